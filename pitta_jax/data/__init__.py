@@ -1,0 +1,1 @@
+"""Dataset readers (numpy frames) and the synthetic driving benchmark."""

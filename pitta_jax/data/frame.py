@@ -1,0 +1,42 @@
+"""The in-memory frame format every reader and the synthetic benchmark produce.
+
+A reader yields `Frame`s at the file's native resolution; resizing to the network input
+happens later (MonoDepth2 protocol: the image is resized, the ground truth stays full size).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class Segment:
+  """One panoptic segment, as in COCO panoptic `segments_info`.
+
+  id: the segment id in the id map (> 0; 0 is void).
+  category_id: COCO category id (1 = person, 3 = car, ...; see `pitta_jax.data.coco`).
+  isthing: True for countable objects (instances), False for stuff.
+  """
+  id: int
+  category_id: int
+  isthing: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+  """One monocular frame.
+
+  image:    (H, W, 3) float32 RGB in [0, 1].
+  depth:    (Hd, Wd) float32 metres, 0 = invalid; None when the dataset has no ground truth.
+            May be larger or smaller than the image (evaluation resizes the prediction to it).
+  panoptic: (H, W) int32 segment id map (0 = void), or None.
+  segments: the segments present in `panoptic`.
+  name:     a stable identifier (file stem, or "<seq>/<index>").
+  """
+  image: np.ndarray
+  depth: np.ndarray | None = None
+  panoptic: np.ndarray | None = None
+  segments: tuple[Segment, ...] = ()
+  name: str = ""
