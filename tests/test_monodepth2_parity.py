@@ -1,0 +1,301 @@
+"""Parity of the Flax MonoDepth2 + converter with an independent PyTorch MonoDepth2.
+
+Reference: `tests/torch_monodepth2.py`, a PyTorch MonoDepth2 with upstream's state_dict names,
+random weights and non-trivial BN statistics, saved with `torch.save` in the zip and the legacy
+format, converted by `weights_convert` (which does not use torch), and compared output by output.
+Tolerances: 1e-4 max abs on disparities (float32), 1e-3 relative on gradients (issue 3).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+
+import torch_monodepth2 as tm
+from pitta_jax import trainable
+from pitta_jax.checkpoint import load_monodepth2
+from pitta_jax.models.depth_decoder import DepthNet
+from pitta_jax.models.pose import PoseNet, transformation_from_parameters
+from weights_convert.monodepth2 import convert_monodepth2
+from weights_convert.pth import CheckpointError
+
+torch.set_num_threads(2)
+
+
+def _save_mono_folder(root, num_layers: int, legacy: bool, seed: int = 0, height=192, width=640):
+  """Writes encoder.pth, depth.pth, pose_encoder.pth, pose.pth as upstream lays them out."""
+  enc = tm.ResnetEncoder(num_layers)
+  dec = tm.DepthDecoder(tm.num_ch_enc(num_layers))
+  penc = tm.ResnetEncoder(num_layers, num_input_images=2)
+  pdec = tm.PoseDecoder(tm.num_ch_enc(num_layers), 1, 2)
+  for i, m in enumerate((enc, dec, penc, pdec)):
+    tm.randomize_(m, seed * 10 + i)
+  root.mkdir(parents=True, exist_ok=True)
+  kw = {"_use_new_zipfile_serialization": False} if legacy else {}
+  enc_state = dict(enc.state_dict())
+  enc_state.update(height=height, width=width, use_stereo=False)  # upstream's extras
+  torch.save(enc_state, root / "encoder.pth", **kw)
+  torch.save(dec.state_dict(), root / "depth.pth", **kw)
+  torch.save(penc.state_dict(), root / "pose_encoder.pth", **kw)
+  torch.save(pdec.state_dict(), root / "pose.pth", **kw)
+  return enc.eval(), dec.eval(), penc.eval(), pdec.eval()
+
+
+def _paths(root):
+  return (root / "encoder.pth", root / "depth.pth", root / "pose_encoder.pth", root / "pose.pth")
+
+
+@pytest.fixture(scope="module")
+def r18(tmp_path_factory):
+  """ResNet-18 MonoDepth2 saved in both formats and converted from each."""
+  root = tmp_path_factory.mktemp("mono_640x192")
+  nets = _save_mono_folder(root / "zip", 18, legacy=False)
+  _save_mono_folder(root / "legacy", 18, legacy=True)  # same seed -> same weights
+  conv_zip = convert_monodepth2(*_paths(root / "zip"))
+  conv_legacy = convert_monodepth2(*_paths(root / "legacy"))
+  return {"root": root, "torch": nets, "zip": conv_zip, "legacy": conv_legacy}
+
+
+@pytest.fixture(scope="module")
+def depth_fns():
+  net = DepthNet(18)
+  eval_fn = jax.jit(lambda v, x: net.apply(v, x, train=False))
+  train_fn = jax.jit(lambda v, x: net.apply(v, x, train=True, mutable=["batch_stats"]))
+  return eval_fn, train_fn
+
+
+def _image(h, w, seed=0, batch=1):
+  rng = np.random.default_rng(seed)
+  return rng.uniform(0, 1, (batch, h, w, 3)).astype(np.float32)
+
+
+def _torch_disps(enc, dec, x_nhwc):
+  with torch.no_grad():
+    out = dec(enc(torch.from_numpy(x_nhwc).permute(0, 3, 1, 2)))
+  return [out[("disp", s)].permute(0, 2, 3, 1).numpy() for s in range(4)]
+
+
+def test_legacy_and_zip_convert_identically(r18):
+  """Both torch serialisations of the same weights give bitwise identical Flax variables."""
+  _, vz, pz = r18["zip"][0], r18["zip"][1], r18["zip"][2]
+  _, vl, pl = r18["legacy"]
+  for a, b in zip(jax.tree_util.tree_leaves((vz, pz)), jax.tree_util.tree_leaves((vl, pl))):
+    np.testing.assert_array_equal(a, b)
+  config = r18["zip"][0]
+  assert (config.num_layers, config.height, config.width, config.use_stereo) == (18, 192, 640, False)
+
+
+@pytest.mark.parametrize("hw", [(192, 640), (96, 320)])
+@pytest.mark.parametrize("fmt", ["zip", "legacy"])
+def test_eval_mode_disparities_match_torch(r18, depth_fns, hw, fmt):
+  enc, dec, _, _ = r18["torch"]
+  x = _image(*hw, seed=hw[0])
+  ref = _torch_disps(enc.eval(), dec.eval(), x)
+  out = depth_fns[0](r18[fmt][1], x)
+  for s in range(4):
+    diff = float(np.max(np.abs(np.asarray(out[s]) - ref[s])))
+    print(f"eval {fmt} {hw[1]}x{hw[0]} scale {s}: max abs diff {diff:.2e}")
+    assert out[s].shape == ref[s].shape
+    assert diff < 1e-4
+
+
+@pytest.mark.parametrize("hw", [(192, 640), (96, 320)])
+def test_train_mode_bn_matches_torch(r18, depth_fns, hw, tmp_path):
+  """Train-mode BN: batch statistics (biased) to normalise, unbiased into the running estimate."""
+  root = r18["root"] / "zip"
+  enc = tm.ResnetEncoder(18)  # fresh copies: train mode mutates the running statistics
+  dec = tm.DepthDecoder(tm.num_ch_enc(18))
+  enc.load_state_dict({k: v for k, v in torch.load(root / "encoder.pth").items()
+                       if k not in ("height", "width", "use_stereo")})
+  dec.load_state_dict(torch.load(root / "depth.pth"))
+  enc.train(), dec.train()
+  x = _image(*hw, seed=7, batch=2)
+  with torch.no_grad():
+    out_t = dec(enc(torch.from_numpy(x).permute(0, 3, 1, 2)))
+  out, new_vars = depth_fns[1](r18["zip"][1], x)
+  for s in range(4):
+    ref = out_t[("disp", s)].permute(0, 2, 3, 1).numpy()
+    diff = float(np.max(np.abs(np.asarray(out[s]) - ref)))
+    print(f"train-BN {hw[1]}x{hw[0]} scale {s}: max abs diff {diff:.2e}")
+    assert diff < 1e-4
+  # running statistics after one momentum-0.1 update
+  tm_mean = enc.encoder.layer3[1].bn2.running_mean.numpy()
+  tm_var = enc.encoder.layer3[1].bn2.running_var.numpy()
+  bs = new_vars["batch_stats"]["encoder"]["layer3_1"]["bn2"]
+  d_mean = float(np.max(np.abs(np.asarray(bs["mean"]) - tm_mean)))
+  d_var = float(np.max(np.abs(np.asarray(bs["var"]) - tm_var) / np.abs(tm_var)))
+  print(f"running mean max abs diff {d_mean:.2e}, running var max rel diff {d_var:.2e}")
+  assert d_mean < 1e-4 and d_var < 1e-4
+
+
+def test_pose_net_matches_torch(r18):
+  _, _, penc, pdec = r18["torch"]
+  pose_vars = r18["zip"][2]
+  x = _image(96, 320, seed=3, batch=2).repeat(2, axis=-1)
+  x[..., 3:] = _image(96, 320, seed=4, batch=2)
+  with torch.no_grad():
+    aa_t, tr_t = pdec([penc(torch.from_numpy(x).permute(0, 3, 1, 2))])
+  aa, tr = jax.jit(lambda v, x: PoseNet(18).apply(v, x))(pose_vars, x)
+  d = max(float(np.max(np.abs(np.asarray(aa) - aa_t.numpy()))),
+          float(np.max(np.abs(np.asarray(tr) - tr_t.numpy()))))
+  print(f"pose axisangle/translation max abs diff {d:.2e}")
+  assert d < 1e-5
+  # 4x4 matrix helper against a literal Rodrigues formula (hand-written in NumPy)
+  m = np.asarray(transformation_from_parameters(aa[:, 0] * 50, tr[:, 0] * 50))
+  for b in range(2):
+    v = np.asarray(aa[b, 0, 0]) * 50
+    th = np.linalg.norm(v)
+    k = v / (th + 1e-7)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    rot = np.eye(3) + np.sin(th) * kx + (1 - np.cos(th)) * kx @ kx
+    np.testing.assert_allclose(m[b, :3, :3], rot, atol=1e-5)
+    np.testing.assert_allclose(m[b, :3, 3], np.asarray(tr[b, 0, 0]) * 50, atol=1e-6)
+
+
+def _bn_grads_torch(root, x, weights, dtype):
+  """Torch autograd of loss = sum_s mean(w_s * disp_s) w.r.t. every encoder BN gamma/beta."""
+  enc, dec = tm.ResnetEncoder(18), tm.DepthDecoder(tm.num_ch_enc(18))
+  enc.load_state_dict({k: v for k, v in torch.load(root / "encoder.pth").items()
+                       if k not in ("height", "width", "use_stereo")})
+  dec.load_state_dict(torch.load(root / "depth.pth"))
+  enc, dec = enc.to(dtype).train(), dec.to(dtype).train()
+  out = dec(enc(torch.from_numpy(x).to(dtype).permute(0, 3, 1, 2)))
+  loss = sum((out[("disp", s)].permute(0, 2, 3, 1) * torch.from_numpy(weights[s]).to(dtype)).mean()
+             for s in range(4))
+  loss.backward()
+  grads = {}
+  for name, module in enc.encoder.named_modules():
+    if isinstance(module, torch.nn.BatchNorm2d):
+      # torch name -> Flax module path: layer3.1.bn2 -> layer3_1/bn2, downsample.1 -> downsample_bn
+      parts = name.replace("downsample.1", "downsample_bn").split(".")
+      if parts[0].startswith("layer"):
+        parts = [f"{parts[0]}_{parts[1]}"] + parts[2:]
+      key = "/".join(parts)
+      grads[key + "/scale"] = module.weight.grad.double().numpy()
+      grads[key + "/bias"] = module.bias.grad.double().numpy()
+  return loss.item(), grads
+
+
+def _bn_grads_jax(variables, x, weights, dtype):
+  from flax.traverse_util import flatten_dict
+  cast = lambda t: jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), t)
+  parts = trainable.split(cast(variables))
+  net = DepthNet(18)
+
+  def loss_fn(tr, frozen, batch_stats, x, weights):
+    disps = net.apply(trainable.merge(tr, frozen, batch_stats), x, train=True)
+    return sum(jnp.mean(d * w) for d, w in zip(disps, weights))
+
+  loss, grads = jax.jit(jax.value_and_grad(loss_fn))(
+      parts.trainable, parts.frozen, parts.batch_stats, cast(x), cast(weights))
+  flat = flatten_dict(grads["encoder"], sep="/")
+  return float(loss), {k: np.asarray(v, np.float64) for k, v in flat.items()}
+
+
+def _worst_rel(grads, ref):
+  """max over BN leaves of max|g - ref| / max|ref| (relative to each leaf's scale)."""
+  assert set(grads) == set(ref) and len(ref) == 40
+  return max(float(np.max(np.abs(grads[k] - ref[k])) / np.max(np.abs(ref[k]))) for k in ref)
+
+
+def test_bn_gradient_matches_torch_autograd(r18):
+  """d(loss)/d(encoder BN gamma, beta) with train-mode BN, against torch autograd.
+
+  In float64 both frameworks compute the same function, so the 1e-3 relative bound of the issue
+  is checked there (the math: BN backward through batch statistics, reflection padding,
+  nearest upsampling, ELU). In float32 the 1/32-scale BN layers of a batch-1 320x96 input
+  normalise 30 values per channel and their gamma/beta gradients cancel to a few 1e-4, so
+  *torch's own* float32 gradient is off its float64 one by up to a few 1e-2 there (measured
+  5.6e-2; JAX float32: 4.8e-2). The float32 check is therefore that JAX float32 is no further
+  from the float64 truth than torch float32 is.
+  """
+  root = r18["root"] / "zip"
+  x = _image(96, 320, seed=11)
+  rng = np.random.default_rng(5)
+  weights = [rng.normal(size=(1, 96 >> s, 320 >> s, 1)).astype(np.float32) for s in range(4)]
+  loss64_t, ref64 = _bn_grads_torch(root, x, weights, torch.float64)
+  loss32_t, ref32 = _bn_grads_torch(root, x, weights, torch.float32)
+  with jax.enable_x64(True):
+    loss64_j, g64 = _bn_grads_jax(r18["zip"][1], x, weights, jnp.float64)
+  loss32_j, g32 = _bn_grads_jax(r18["zip"][1], x, weights, jnp.float32)
+  rel64 = _worst_rel(g64, ref64)
+  rel32_jax, rel32_torch = _worst_rel(g32, ref64), _worst_rel(ref32, ref64)
+  print(f"loss float64: jax {loss64_j:.10f} torch {loss64_t:.10f}; float32: jax {loss32_j:.7f} "
+        f"torch {loss32_t:.7f}")
+  print(f"BN gamma/beta grads, worst max-relative diff over 40 leaves: float64 jax vs torch "
+        f"{rel64:.2e}; vs torch float64: jax float32 {rel32_jax:.2e}, torch float32 {rel32_torch:.2e}")
+  np.testing.assert_allclose(loss64_j, loss64_t, rtol=1e-10)
+  np.testing.assert_allclose(loss32_j, loss32_t, rtol=1e-5)
+  assert rel64 < 1e-3
+  assert rel32_jax < 2 * rel32_torch + 1e-4
+
+
+@pytest.mark.parametrize("num_layers", [34, 50])
+def test_deeper_resnets_convert_and_match(tmp_path, num_layers):
+  enc, dec, _, _ = _save_mono_folder(tmp_path, num_layers, legacy=False, seed=num_layers)
+  config, variables, _ = convert_monodepth2(tmp_path / "encoder.pth", tmp_path / "depth.pth")
+  assert config.num_layers == num_layers
+  x = _image(64, 96, seed=1)
+  ref = _torch_disps(enc, dec, x)
+  out = DepthNet(num_layers).apply(variables, x)
+  diff = max(float(np.max(np.abs(np.asarray(o) - r))) for o, r in zip(out, ref))
+  print(f"ResNet-{num_layers} 96x64 eval: max abs diff {diff:.2e}")
+  assert diff < 1e-4
+
+
+def test_input_size_must_be_multiple_of_32(r18):
+  with pytest.raises(ValueError, match="multiples of 32"):
+    DepthNet(18).apply(r18["zip"][1], np.zeros((1, 100, 320, 3), np.float32))
+
+
+def test_cli_convert_and_load_in_one_call(r18, depth_fns, tmp_path):
+  """`python -m weights_convert monodepth2 ...` writes a directory `load_monodepth2` reads."""
+  root = r18["root"] / "legacy"
+  enc, depth, penc, pose = _paths(root)
+  out = tmp_path / "converted"
+  res = subprocess.run([sys.executable, "-m", "weights_convert", "monodepth2", "--encoder", enc,
+                        "--depth", depth, "--pose-encoder", penc, "--pose", pose, "--out", out],
+                       capture_output=True, text=True)
+  assert res.returncode == 0, res.stderr
+  loaded = load_monodepth2(out)
+  assert loaded.config.has_pose and loaded.config.height == 192 and loaded.config.width == 640
+  for a, b in zip(jax.tree_util.tree_leaves((loaded.depth, loaded.pose)),
+                  jax.tree_util.tree_leaves((r18["zip"][1], r18["zip"][2]))):
+    np.testing.assert_array_equal(a, b)
+
+
+# --- clear errors --------------------------------------------------------------------------------
+
+def test_missing_file_is_named(r18, tmp_path):
+  with pytest.raises(CheckpointError, match="nope.pth"):
+    convert_monodepth2(tmp_path / "nope.pth", r18["root"] / "zip" / "depth.pth")
+
+
+def test_truncated_file_is_named(r18, tmp_path):
+  data = (r18["root"] / "zip" / "encoder.pth").read_bytes()
+  bad = tmp_path / "encoder.pth"
+  bad.write_bytes(data[: len(data) // 2])
+  with pytest.raises(CheckpointError, match="encoder.pth"):
+    convert_monodepth2(bad, r18["root"] / "zip" / "depth.pth")
+
+
+def test_unexpected_missing_and_misshapen_keys_are_named(r18, tmp_path):
+  state = torch.load(r18["root"] / "zip" / "depth.pth")
+  extra = dict(state, **{"decoder.99.conv.weight": torch.zeros(1)})
+  torch.save(extra, tmp_path / "extra.pth")
+  with pytest.raises(CheckpointError, match=r"unexpected keys \['decoder.99.conv.weight'\]"):
+    convert_monodepth2(r18["root"] / "zip" / "encoder.pth", tmp_path / "extra.pth")
+  missing = {k: v for k, v in state.items() if not k.startswith("decoder.12.")}
+  torch.save(missing, tmp_path / "missing.pth")
+  with pytest.raises(CheckpointError, match=r"missing keys \['decoder.12.conv.bias'"):
+    convert_monodepth2(r18["root"] / "zip" / "encoder.pth", tmp_path / "missing.pth")
+  wrong = dict(state, **{"decoder.0.conv.conv.weight": torch.zeros(256, 512, 1, 1)})
+  torch.save(wrong, tmp_path / "wrong.pth")
+  with pytest.raises(CheckpointError, match=r"decoder.0.conv.conv.weight has shape \(256, 512, 1, 1\)"):
+    convert_monodepth2(r18["root"] / "zip" / "encoder.pth", tmp_path / "wrong.pth")
