@@ -1,0 +1,156 @@
+"""Reading and writing the image and depth files every reader shares (OpenCV, host side).
+
+Conventions (SPEC "Data formats to read"):
+- Images are read with OpenCV (BGR on disk order) and returned RGB, float32 in [0, 1]
+  (8-bit / 255, 16-bit / 65535). Grayscale images are rejected (the network needs colour and
+  a grayscale file in a colour dataset is a sign of a wrong directory); RGBA/BGRA images lose
+  their alpha channel without error (PNG exporters often add an opaque alpha).
+- Depth PNGs are single-channel uint16, metres = value / 256, 0 = invalid (KITTI, DrivingStereo,
+  our Waymo layout). Anything else is rejected rather than guessed.
+- Every problem is a `DataError` naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pitta_jax.data.errors import DataError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+DEPTH_PNG_SCALE = 256.0  # KITTI / DrivingStereo: metres = uint16 value / 256
+
+PathLike = str | os.PathLike[str]
+
+
+def require_file(path: PathLike, what: str = "file") -> Path:
+  """`path` as a Path; DataError when it is not an existing regular file."""
+  path = Path(path)
+  if not path.is_file():
+    raise DataError(path, f"{what} not found" if not path.exists() else f"{what} is not a file")
+  return path
+
+
+def require_dir(path: PathLike, what: str = "directory") -> Path:
+  """`path` as a Path; DataError when it is not an existing directory."""
+  path = Path(path)
+  if not path.is_dir():
+    problem = "not found" if not path.exists() else "is not a directory"
+    raise DataError(path, f"{what} {problem}")
+  return path
+
+
+def _imread(path: PathLike, what: str) -> np.ndarray:
+  path = require_file(path, what)
+  # IMREAD_UNCHANGED keeps the bit depth and the channel count, so that both can be checked.
+  array = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  if array is None:
+    raise DataError(path, f"cannot decode {what} (not a PNG/JPEG file, or truncated)")
+  return array
+
+
+def read_image(path: PathLike) -> np.ndarray:
+  """Reads a colour image.
+
+  Args:
+    path: a PNG or JPEG file, 8 or 16 bit, 3 or 4 channels.
+
+  Returns:
+    (H, W, 3) float32 RGB in [0, 1] (alpha, if any, dropped).
+  """
+  array = _imread(path, "image")
+  if array.ndim == 2 or array.shape[2] == 1:
+    raise DataError(path, f"grayscale image of shape {array.shape}, expected 3 colour channels")
+  if array.shape[2] not in (3, 4):
+    raise DataError(path, f"image has {array.shape[2]} channels, expected 3 (or 4 with alpha)")
+  if array.dtype == np.uint8:
+    scale = 255.0
+  elif array.dtype == np.uint16:
+    scale = 65535.0
+  else:
+    raise DataError(path, f"image of dtype {array.dtype}, expected 8 or 16 bit")
+  rgb = cv2.cvtColor(array[..., :3], cv2.COLOR_BGR2RGB)  # (H, W, 3)
+  return (rgb.astype(np.float32) / np.float32(scale)).astype(np.float32)
+
+
+def write_image(path: PathLike, image: np.ndarray) -> None:
+  """Writes (H, W, 3) RGB, float in [0, 1] (rounded to 8 bit) or uint8, as PNG/JPEG by suffix."""
+  image = np.asarray(image)
+  if image.dtype != np.uint8:
+    image = np.clip(np.rint(np.asarray(image, np.float64) * 255.0), 0, 255).astype(np.uint8)
+  _imwrite(path, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+
+
+def _imwrite(path: PathLike, array: np.ndarray) -> None:
+  Path(path).parent.mkdir(parents=True, exist_ok=True)
+  if not cv2.imwrite(os.fspath(path), array):
+    raise DataError(path, "cannot write file (unknown suffix or unwritable directory)")
+
+
+def read_depth_png(path: PathLike, scale: float = DEPTH_PNG_SCALE) -> np.ndarray:
+  """Reads a uint16 depth PNG.
+
+  Args:
+    path: single-channel 16-bit PNG.
+    scale: divisor from stored value to metres (256 for KITTI/DrivingStereo depth).
+
+  Returns:
+    (H, W) float32 metres, 0 = invalid.
+  """
+  array = _imread(path, "depth map")
+  if array.dtype != np.uint16 or array.ndim != 2:
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    raise DataError(path, f"depth PNG must be single-channel uint16, got {array.dtype} with "
+                          f"{channels} channel(s) (an 8-bit visualisation instead of the map?)")
+  return array.astype(np.float32) / np.float32(scale)
+
+
+def write_depth_png(path: PathLike, depth: np.ndarray, scale: float = DEPTH_PNG_SCALE) -> None:
+  """Writes (H, W) metres as uint16 PNG `round(depth * scale)`, clipped to 1..65535 where > 0.
+
+  Invalid pixels (depth <= 0 or not finite) are stored as 0. Values beyond 65535 / scale
+  (256 m at scale 256) saturate.
+  """
+  depth = np.asarray(depth, np.float64)
+  valid = np.isfinite(depth) & (depth > 0)
+  stored = np.where(valid, np.clip(np.rint(np.where(valid, depth, 0.0) * scale), 1, 65535), 0)
+  _imwrite(path, stored.astype(np.uint16))
+
+
+def read_depth_npy(path: PathLike) -> np.ndarray:
+  """Reads a dense (H, W) depth `.npy` (metres, 0 = invalid) without pickle; float32."""
+  path = require_file(path, "depth map")
+  try:
+    array = np.load(path, allow_pickle=False)
+  except (ValueError, OSError) as e:
+    raise DataError(path, f"cannot read .npy depth map ({e})") from None
+  if array.ndim != 2 or not np.issubdtype(array.dtype, np.floating):
+    raise DataError(path, f"depth .npy must be a float (H, W) array, got {array.dtype} "
+                          f"{array.shape}")
+  return array.astype(np.float32)
+
+
+def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES
+                ) -> dict[str, Path]:
+  """Image files of `directory` (not recursive) by stem, suffix case-insensitive.
+
+  Hidden files (`.name`, e.g. macOS `._*` resource forks in zip archives) are skipped.
+
+  Args:
+    directory: the directory to list; DataError when missing.
+    suffixes: accepted suffixes (lower case, with the dot), in order of preference: when a stem
+      exists with two suffixes (`a.png` and `a.jpg`) the earlier one wins.
+  """
+  directory = require_dir(directory, "image directory")
+  found: dict[str, Path] = {}
+  for path in sorted(directory.iterdir()):
+    suffix = path.suffix.lower()
+    if suffix not in suffixes or path.name.startswith(".") or not path.is_file():
+      continue
+    other = found.get(path.stem)
+    if other is None or suffixes.index(suffix) < suffixes.index(other.suffix.lower()):
+      found[path.stem] = path
+  return found

@@ -1,0 +1,237 @@
+"""KITTI raw frames listed by a MonoDepth2 split file, with Eigen or improved ground truth.
+
+Split file (MonoDepth2 `splits/<split>/test_files.txt`): one frame per line,
+`<folder> <frame> <side>`, e.g. `2011_09_26/2011_09_26_drive_0002_sync 0000000069 l`; side
+`l`/`2` = left colour camera (`image_02`), `r`/`3` = right (`image_03`). Images:
+`<data>/<folder>/image_0{2,3}/data/{frame:010d}.{jpg,png}` (MonoDepth2 converts the PNGs to JPEG;
+both are accepted, `ext` forces one).
+
+Ground truth, one of:
+- `gt_depths`: MonoDepth2's `gt_depths.npz` (written by `export_gt_depth.py`), key `data`, one
+  float32 (H, W) map per split line, in the split's order. The maps differ in size, so the
+  array was saved as an *object* array, i.e. a pickle. Unpickling runs code named in the file,
+  so we never call `np.load(allow_pickle=True)`: `load_gt_depths` reads the pickle with an
+  allow-list unpickler that can only rebuild NumPy arrays and dtypes and rejects anything else.
+  The whole object array is unpickled at once (about 1.3 GB for the 697 Eigen test maps) on the
+  first frame that needs it, then shared by all frames. Default: `gt_depths.npz` beside the
+  split file, when it exists.
+- `improved_gt`: the KITTI depth-completion annotations (Uhrig et al.),
+  `<improved_gt>/[train/|val/]<drive>/proj_depth/groundtruth/image_0{2,3}/{frame:010d}.png`,
+  uint16 / 256. They cover 652 of the 697 Eigen test frames: use MonoDepth2's
+  `eigen_benchmark` split with them.
+
+`Frame.depth` is the ground-truth map at its own size (375x1242 or so); the Eigen evaluation
+(Garg crop, 1e-3 < gt < 80) is the metrics module's business. Frame names are
+`<folder>/image_0{2,3}/{frame:010d}`; panoptic maps (optional) are looked up under the image's
+relative path without suffix, `<folder>/image_0{2,3}/data/{frame:010d}`, in `panoptic_dir`.
+"""
+
+from __future__ import annotations
+
+import codecs
+import functools
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pitta_jax.data.errors import DataError
+from pitta_jax.data.image_io import PathLike, read_depth_png, require_dir, require_file
+from pitta_jax.data.panoptic_io import panoptic_source
+from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
+
+SIDE_TO_CAMERA = {"l": 2, "r": 3, "2": 2, "3": 3}
+
+# The only globals an object array of float arrays needs: numpy's array/scalar reconstructors
+# (module numpy.core.* in files written by NumPy 1.x, numpy._core.* by NumPy 2), ndarray, dtype,
+# and for pickle protocol 2, `_codecs.encode` (how it stores bytes; a pure data transform).
+_RECONSTRUCT = np.empty(0).__reduce__()[0]
+_SCALAR = np.float64(0).__reduce__()[0]
+_ALLOWED_GLOBALS = {
+    ("numpy.core.multiarray", "_reconstruct"): _RECONSTRUCT,
+    ("numpy._core.multiarray", "_reconstruct"): _RECONSTRUCT,
+    ("numpy.core.multiarray", "scalar"): _SCALAR,
+    ("numpy._core.multiarray", "scalar"): _SCALAR,
+    ("numpy", "ndarray"): np.ndarray,
+    ("numpy", "dtype"): np.dtype,
+    ("_codecs", "encode"): codecs.encode,
+}
+
+
+class _ArrayUnpickler(pickle.Unpickler):
+  """Unpickler that can build NumPy arrays and nothing else."""
+
+  def find_class(self, module: str, name: str) -> Any:
+    try:
+      return _ALLOWED_GLOBALS[(module, name)]
+    except KeyError:
+      raise pickle.UnpicklingError(f"refusing to load global {module}.{name}") from None
+
+
+def _open_npy_member(path: Path, archive: zipfile.ZipFile, key: str):
+  member = f"{key}.npy"
+  if member not in archive.namelist():
+    raise DataError(path, f"no array '{key}' in the .npz (has: "
+                          f"{', '.join(n.removesuffix('.npy') for n in archive.namelist())})")
+  stream = archive.open(member)
+  version = np.lib.format.read_magic(stream)
+  if version == (1, 0):
+    shape, fortran, dtype = np.lib.format.read_array_header_1_0(stream)
+  elif version == (2, 0):
+    shape, fortran, dtype = np.lib.format.read_array_header_2_0(stream)
+  else:
+    raise DataError(path, f"unsupported .npy format version {version} for '{key}'")
+  return stream, shape, fortran, dtype
+
+
+def gt_depths_count(path: PathLike, key: str = "data") -> int:
+  """Number of maps in a `gt_depths.npz` (from the array header, nothing unpickled)."""
+  path = require_file(path, "gt_depths file")
+  try:
+    with zipfile.ZipFile(path) as archive:
+      stream, shape, _, _ = _open_npy_member(path, archive, key)
+      stream.close()
+  except (zipfile.BadZipFile, ValueError, OSError) as e:
+    raise DataError(path, f"not a readable .npz file ({e})") from None
+  if not shape:
+    raise DataError(path, f"'{key}' is a scalar, expected one depth map per split line")
+  return shape[0]
+
+
+def load_gt_depths(path: PathLike, key: str = "data") -> np.ndarray:
+  """Loads MonoDepth2's `gt_depths.npz` without executing code from the file.
+
+  Returns:
+    (N,) object array of (H_i, W_i) float maps, or an (N, H, W) float array when all maps share
+    a size and the file was saved as a plain array.
+  """
+  path = require_file(path, "gt_depths file")
+  try:
+    with zipfile.ZipFile(path) as archive:
+      stream, shape, fortran, dtype = _open_npy_member(path, archive, key)
+      with stream:
+        if dtype.hasobject:
+          array = _ArrayUnpickler(stream, encoding="latin1").load()
+        else:
+          count = int(np.prod(shape))
+          flat = np.frombuffer(stream.read(count * dtype.itemsize), dtype, count)
+          array = flat.reshape(shape[::-1]).T if fortran else flat.reshape(shape)
+  except pickle.UnpicklingError as e:
+    raise DataError(path, f"unsafe or corrupt pickle in '{key}' ({e})") from None
+  except (zipfile.BadZipFile, ValueError, OSError, EOFError, TypeError, AttributeError,
+          IndexError, KeyError) as e:
+    raise DataError(path, f"not a readable .npz file ({type(e).__name__}: {e})") from None
+  if not isinstance(array, np.ndarray) or array.ndim < 1:
+    raise DataError(path, f"'{key}' is not an array of depth maps")
+  return array
+
+
+class _GtDepths:
+  """Loads a gt_depths.npz on first use and serves map i; shared by all frames of a split."""
+
+  def __init__(self, path: Path):
+    self.path = path
+    self._maps: np.ndarray | None = None
+
+  def __call__(self, index: int) -> np.ndarray:
+    if self._maps is None:
+      self._maps = load_gt_depths(self.path)
+    depth = np.asarray(self._maps[index])
+    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.number):
+      raise DataError(self.path, f"map {index} is {depth.dtype} {depth.shape}, expected (H, W)")
+    return depth.astype(np.float32)
+
+
+def read_split(path: PathLike) -> list[tuple[str, int, int]]:
+  """Parses a MonoDepth2 split file into (folder, frame index, camera 2 or 3) per line."""
+  path = require_file(path, "split file")
+  entries = []
+  for number, line in enumerate(path.read_text().splitlines(), start=1):
+    fields = line.split()
+    if not fields:
+      continue
+    if len(fields) != 3 or fields[2] not in SIDE_TO_CAMERA or not fields[1].isdigit():
+      raise DataError(path, f"line {number} is {line.strip()!r}, expected '<folder> <frame> "
+                            f"<side l|r|2|3>'")
+    entries.append((fields[0], int(fields[1]), SIDE_TO_CAMERA[fields[2]]))
+  return entries
+
+
+def _find_image(data: Path, folder: str, frame: int, camera: int, ext: str | None) -> Path:
+  base = data / folder / f"image_0{camera}" / "data" / f"{frame:010d}"
+  suffixes = (".jpg", ".png") if ext is None else ("." + ext.lstrip("."),)
+  for suffix in suffixes:
+    if base.with_suffix(suffix).is_file():
+      return base.with_suffix(suffix)
+  raise DataError(base.with_suffix(suffixes[0]), "image not found"
+                  + (" (nor .png)" if ext is None else ""))
+
+
+def _find_improved_gt(root: Path, folder: str, frame: int, camera: int) -> Path:
+  tail = Path("proj_depth", "groundtruth", f"image_0{camera}", f"{frame:010d}.png")
+  drive = Path(folder).name
+  candidates = [root / drive / tail, root / "train" / drive / tail, root / "val" / drive / tail,
+                root / folder / tail]
+  for candidate in candidates:
+    if candidate.is_file():
+      return candidate
+  raise DataError(candidates[0], "improved ground truth not found (also looked under train/, "
+                                 "val/ and the raw folder); it covers 652 of the 697 Eigen test "
+                                 "frames, use the eigen_benchmark split")
+
+
+def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None = None,
+               improved_gt: PathLike | None = None, depth: bool = True, ext: str | None = None,
+               panoptic_dir: PathLike | None = None, panoptic_json: PathLike | None = None
+               ) -> FrameSequence:
+  """Opens the KITTI frames of a MonoDepth2 split.
+
+  Args:
+    root: the KITTI raw data directory (holding `2011_09_26/...`).
+    split_file: MonoDepth2 split file, e.g. `splits/eigen/test_files.txt`.
+    gt_depths: MonoDepth2 `gt_depths.npz`; default: `gt_depths.npz` beside the split file.
+    improved_gt: root of the KITTI depth-completion ground truth (instead of `gt_depths`).
+    depth: load ground truth at all (False: images only).
+    ext: image suffix "jpg" or "png"; None = whichever exists (jpg first).
+    panoptic_dir: COCO panoptic PNGs (+ JSONs) mirroring the image tree (see module docstring).
+    panoptic_json: a COCO panoptic annotation file for those PNGs.
+
+  Returns:
+    the frames in split order, loaded on access; depth = ground truth at its own size.
+  """
+  data = require_dir(root, "KITTI data directory")
+  split_file = Path(split_file)
+  entries = read_split(split_file)
+  require_frames(entries, split_file, "lines '<folder> <frame> <side>'")
+  if gt_depths is not None and improved_gt is not None:
+    raise DataError(split_file, "give either gt_depths or improved_gt, not both")
+  gt = None
+  if depth and improved_gt is None:
+    gt_path = Path(gt_depths) if gt_depths is not None else split_file.parent / "gt_depths.npz"
+    if gt_depths is not None or gt_path.is_file():
+      count = gt_depths_count(gt_path)
+      if count != len(entries):
+        raise DataError(gt_path, f"holds {count} depth maps but {split_file.name} lists "
+                                 f"{len(entries)} frames")
+      gt = _GtDepths(gt_path)
+    else:
+      raise DataError(gt_path, "ground truth not found; export it with MonoDepth2's "
+                               "export_gt_depth.py, pass gt_depths/improved_gt, or depth=False")
+  improved_root = None if improved_gt is None else require_dir(improved_gt, "improved GT root")
+  panoptic = panoptic_source(panoptic_dir, panoptic_json)
+  files = []
+  for index, (folder, frame, camera) in enumerate(entries):
+    image = _find_image(data, folder, frame, camera, ext)
+    depth_loader = None
+    if depth and improved_root is not None:
+      depth_loader = functools.partial(
+          read_depth_png, _find_improved_gt(improved_root, folder, frame, camera))
+    elif gt is not None:
+      depth_loader = functools.partial(gt, index)
+    key = f"{folder}/image_0{camera}/data/{frame:010d}"
+    files.append(FrameFiles(name=f"{folder}/image_0{camera}/{frame:010d}", image=image,
+                            depth=depth_loader,
+                            panoptic=None if panoptic is None else panoptic.ref(key)))
+  return FrameSequence(files)

@@ -1,0 +1,259 @@
+"""COCO panoptic files: the RGB-encoded id PNG and its `segments_info` JSON.
+
+Format (panopticapi, SPEC "Data formats to read"): an RGB PNG whose pixel value encodes the
+segment id as `id = R + 256 G + 256^2 B` (0 = void), and per image a list `segments_info` of
+`{"id", "category_id", "iscrowd", "bbox": [x, y, w, h], "area"}` (optionally `"isthing"`),
+`category_id` being a COCO category id (`pitta_jax.data.coco`). Two JSON layouts are read:
+
+- per image: `<stem>.json` beside `<stem>.png`, holding `{"segments_info": [...]}` (what our
+  synthetic exporter and `write_panoptic` write);
+- COCO style: one annotation file `{"annotations": [{"file_name", "segments_info"}, ...],
+  "categories": [{"id", "isthing", ...}, ...]}` whose PNGs lie in one directory (by COCO
+  convention the JSON path without `.json`, e.g. `panoptic_val2017.json` + `panoptic_val2017/`).
+
+`isthing` comes from the segment entry, else from the file's `categories`, else from the COCO
+table. Segments listed in the JSON but absent from the PNG are dropped (a `Frame` holds the
+segments present in its map); ids in the PNG without a JSON entry are an error, as in
+panopticapi's own checks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path, PurePosixPath
+from typing import Any, Mapping, Sequence
+
+import cv2
+import numpy as np
+
+from pitta_jax.data import coco
+from pitta_jax.data.errors import DataError
+from pitta_jax.data.frame import Segment
+from pitta_jax.data.image_io import PathLike, require_dir, require_file
+
+MAX_ID = 256**3 - 1  # the largest id an RGB PNG can encode
+
+
+def rgb_to_id(rgb: np.ndarray) -> np.ndarray:
+  """(H, W, 3) uint8 RGB -> (H, W) int32 ids, `R + 256 G + 256^2 B`."""
+  rgb = np.asarray(rgb).astype(np.int32)
+  return rgb[..., 0] + 256 * rgb[..., 1] + 256 * 256 * rgb[..., 2]
+
+
+def id_to_rgb(ids: np.ndarray) -> np.ndarray:
+  """(H, W) ids in 0..2^24-1 -> (H, W, 3) uint8 RGB, the inverse of `rgb_to_id`."""
+  ids = np.asarray(ids).astype(np.int64)
+  if ids.size and (ids.min() < 0 or ids.max() > MAX_ID):
+    raise ValueError(f"panoptic ids must lie in 0..{MAX_ID}, got {ids.min()}..{ids.max()}")
+  return np.stack([ids % 256, ids // 256 % 256, ids // 65536], axis=-1).astype(np.uint8)
+
+
+def read_panoptic_png(path: PathLike) -> np.ndarray:
+  """Reads a COCO panoptic PNG; (H, W) int32 segment ids, 0 = void."""
+  path = require_file(path, "panoptic PNG")
+  array = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+  if array is None:
+    raise DataError(path, "cannot decode panoptic PNG")
+  if array.ndim != 3 or array.shape[2] not in (3, 4) or array.dtype != np.uint8:
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    raise DataError(path, f"panoptic PNG must be 8-bit RGB (id = R + 256 G + 256^2 B), got "
+                          f"{array.dtype} with {channels} channel(s)")
+  return rgb_to_id(array[..., 2::-1])  # BGR(A) on disk -> RGB
+
+
+def write_panoptic_png(path: PathLike, ids: np.ndarray) -> None:
+  """Writes (H, W) integer ids as a COCO panoptic RGB PNG."""
+  path = Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  if not cv2.imwrite(os.fspath(path), id_to_rgb(ids)[..., ::-1]):
+    raise DataError(path, "cannot write panoptic PNG")
+
+
+def segments_info(ids: np.ndarray, segments: Sequence[Segment]) -> list[dict[str, Any]]:
+  """COCO `segments_info` entries of `segments` in the id map `ids` (H, W).
+
+  `bbox` is `[x, y, w, h]` of the segment's pixels and `area` their count (both 0 for a
+  segment absent from the map); `iscrowd` is 0 and `isthing` is written too.
+  """
+  ids = np.asarray(ids)
+  entries = []
+  for seg in segments:
+    rows, cols = np.nonzero(ids == seg.id)
+    if rows.size:
+      bbox = [int(cols.min()), int(rows.min()), int(cols.max() - cols.min() + 1),
+              int(rows.max() - rows.min() + 1)]
+    else:
+      bbox = [0, 0, 0, 0]
+    entries.append({"id": int(seg.id), "category_id": int(seg.category_id), "iscrowd": 0,
+                    "bbox": bbox, "area": int(rows.size), "isthing": bool(seg.isthing)})
+  return entries
+
+
+def write_panoptic(png_path: PathLike, ids: np.ndarray, segments: Sequence[Segment]) -> Path:
+  """Writes `<stem>.png` and the per-image `<stem>.json` beside it; returns the JSON path."""
+  png_path = Path(png_path)
+  write_panoptic_png(png_path, ids)
+  json_path = png_path.with_suffix(".json")
+  json_path.write_text(json.dumps({"segments_info": segments_info(ids, segments)}))
+  return json_path
+
+
+def _read_json(path: PathLike) -> Any:
+  path = require_file(path, "panoptic JSON")
+  try:
+    return json.loads(path.read_text())
+  except (json.JSONDecodeError, UnicodeDecodeError) as e:
+    raise DataError(path, f"invalid JSON ({e})") from None
+
+
+def parse_segments(entries: Any, path: PathLike, categories: Mapping[int, bool] | None = None
+                   ) -> tuple[Segment, ...]:
+  """`segments_info` entries -> Segments.
+
+  Args:
+    entries: the JSON list of segment dicts.
+    path: the file they came from (for error messages).
+    categories: COCO id -> isthing from the file's `categories`, if it has them.
+  """
+  if not isinstance(entries, list):
+    raise DataError(path, "'segments_info' must be a list")
+  segments = []
+  seen = set()
+  for k, entry in enumerate(entries):
+    if not isinstance(entry, dict) or "id" not in entry or "category_id" not in entry:
+      raise DataError(path, f"segments_info[{k}] lacks 'id' or 'category_id'")
+    seg_id, category_id = entry["id"], entry["category_id"]
+    if not isinstance(seg_id, int) or not 0 < seg_id <= MAX_ID or not isinstance(category_id, int):
+      raise DataError(path, f"segments_info[{k}] has invalid id {seg_id!r} or category_id "
+                            f"{category_id!r}")
+    if seg_id in seen:
+      raise DataError(path, f"segment id {seg_id} listed twice in segments_info")
+    seen.add(seg_id)
+    if "isthing" in entry:
+      isthing = bool(entry["isthing"])
+    elif categories is not None and category_id in categories:
+      isthing = categories[category_id]
+    else:
+      try:
+        isthing = coco.is_thing(category_id)
+      except KeyError:
+        raise DataError(path, f"segments_info[{k}]: category_id {category_id} is not a COCO "
+                              f"panoptic category and no 'isthing' is given") from None
+    segments.append(Segment(id=seg_id, category_id=category_id, isthing=isthing))
+  return tuple(segments)
+
+
+def read_segments_json(path: PathLike) -> tuple[Segment, ...]:
+  """Reads a per-image JSON `{"segments_info": [...]}` (a bare list is accepted too)."""
+  data = _read_json(path)
+  if isinstance(data, dict):
+    if "segments_info" not in data:
+      raise DataError(path, "no 'segments_info' key (a COCO annotation file? pass it as the "
+                            "panoptic annotation file instead)")
+    data = data["segments_info"]
+  return parse_segments(data, path)
+
+
+def _key(file_name: str) -> str:
+  """Lookup key of an annotation's file name: the relative path without suffix."""
+  return str(PurePosixPath(file_name).with_suffix(""))
+
+
+def read_annotation_file(path: PathLike) -> dict[str, tuple[Segment, ...]]:
+  """Reads a COCO-style panoptic annotation file.
+
+  Returns:
+    segments by key, the key being each annotation's `file_name` without its suffix
+    (`"000000000139.png"` -> `"000000000139"`).
+  """
+  data = _read_json(path)
+  if not isinstance(data, dict) or not isinstance(data.get("annotations"), list):
+    raise DataError(path, "not a COCO panoptic annotation file (no 'annotations' list)")
+  categories = None
+  if isinstance(data.get("categories"), list):
+    categories = {c["id"]: bool(c["isthing"]) for c in data["categories"]
+                  if isinstance(c, dict) and "id" in c and "isthing" in c}
+  table = {}
+  for k, ann in enumerate(data["annotations"]):
+    if not isinstance(ann, dict) or "file_name" not in ann or "segments_info" not in ann:
+      raise DataError(path, f"annotations[{k}] lacks 'file_name' or 'segments_info'")
+    table[_key(ann["file_name"])] = parse_segments(ann["segments_info"], path, categories)
+  return table
+
+
+def check_segments(ids: np.ndarray, segments: Sequence[Segment], path: PathLike
+                   ) -> tuple[Segment, ...]:
+  """Segments present in `ids`; DataError when the map holds ids without a segment entry."""
+  present = set(np.unique(ids).tolist()) - {0}
+  listed = {s.id for s in segments}
+  unlisted = sorted(present - listed)
+  if unlisted:
+    shown = ", ".join(map(str, unlisted[:5])) + (", ..." if len(unlisted) > 5 else "")
+    raise DataError(path, f"segment ids {shown} appear in the PNG but not in segments_info")
+  return tuple(s for s in segments if s.id in present)
+
+
+@dataclasses.dataclass(frozen=True)
+class PanopticRef:
+  """Where one frame's panoptic segmentation lives; `load()` reads it.
+
+  png: the id PNG.
+  json: the per-image JSON (None when `segments` came from an annotation file).
+  segments: the segments from an annotation file (None when read from `json`).
+  """
+  png: Path
+  json: Path | None = None
+  segments: tuple[Segment, ...] | None = None
+
+  def load(self) -> tuple[np.ndarray, tuple[Segment, ...]]:
+    """(H, W) int32 ids and the segments present in them."""
+    ids = read_panoptic_png(self.png)
+    segments = self.segments if self.json is None else read_segments_json(self.json)
+    return ids, check_segments(ids, segments or (), self.png)
+
+
+class PanopticSource:
+  """A directory of panoptic PNGs with per-image JSONs or one COCO annotation file.
+
+  Args:
+    directory: the PNG directory; None with `annotation_file` = the annotation file's path
+      without `.json` (COCO convention).
+    annotation_file: a COCO-style annotation JSON; None = per-image `<key>.json` files.
+  """
+
+  def __init__(self, directory: PathLike | None = None, annotation_file: PathLike | None = None):
+    if directory is None and annotation_file is None:
+      raise ValueError("PanopticSource needs a directory or an annotation file")
+    if directory is None:
+      directory = Path(annotation_file).with_suffix("")
+    self.directory = require_dir(directory, "panoptic directory")
+    self.annotation_file = None if annotation_file is None else Path(annotation_file)
+    self._table = None if annotation_file is None else read_annotation_file(annotation_file)
+
+  def has(self, key: str) -> bool:
+    """True when frame `key` has a PNG (and an annotation, for an annotation file)."""
+    if self._table is not None and key not in self._table:
+      return False
+    return (self.directory / f"{key}.png").is_file()
+
+  def ref(self, key: str) -> PanopticRef:
+    """The panoptic files of frame `key` (a relative path without suffix, e.g. a file stem).
+
+    Raises DataError when the PNG, its JSON or its annotation is missing.
+    """
+    png = require_file(self.directory / f"{key}.png", "panoptic PNG")
+    if self._table is None:
+      return PanopticRef(png=png, json=require_file(png.with_suffix(".json"), "panoptic JSON"))
+    if key not in self._table:
+      raise DataError(self.annotation_file, f"no annotation with file_name '{key}.png'")
+    return PanopticRef(png=png, segments=self._table[key])
+
+
+def panoptic_source(directory: PathLike | None, annotation_file: PathLike | None
+                    ) -> PanopticSource | None:
+  """`PanopticSource(directory, annotation_file)`, or None when both are None."""
+  if directory is None and annotation_file is None:
+    return None
+  return PanopticSource(directory, annotation_file)

@@ -1,0 +1,63 @@
+"""Bringing a frame to the network's input size, MonoDepth2's intrinsic-free protocol.
+
+MonoDepth2 feeds the whole image resized to 640x192 (no crop, aspect ratio not kept) and
+evaluates the prediction resized back to the ground truth's size; the ground truth itself is
+never resized. Its KITTI data loader and `test_simple.py` resize with PIL's LANCZOS
+(`ANTIALIAS`), whose kernel widens with the scale factor and so antialiases when shrinking.
+OpenCV's `INTER_LANCZOS4` has a fixed 8x8 support and aliases at the 2-3x reductions we need
+(KITTI 1242 -> 640, DrivingStereo 1762 -> 640, Waymo 1920 -> 640), so we use `cv2.INTER_AREA`
+(the exact box-filter average for shrinking) when neither side grows and `cv2.INTER_LINEAR`
+otherwise. Values therefore differ from PIL's Lanczos by a few grey levels near edges.
+
+Panoptic id maps are resized by nearest neighbour with pixel-centre alignment (source pixel
+floor((i + 0.5) * in / out), the rule of `cv2.INTER_NEAREST_EXACT` and PIL's NEAREST; plain
+`cv2.INTER_NEAREST` samples floor(i * in / out), shifted by half a pixel), so ids are never
+blended. Segments that no pixel keeps after resizing are dropped from `Frame.segments`, so that
+the instance count N of eq. (8) counts visible instances only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+
+from pitta_jax.data.frame import Frame
+
+MONODEPTH2_SIZE = (192, 640)  # (H, W) of MonoDepth2's KITTI models (SPEC step 1)
+
+
+def resize_image(image: np.ndarray, height: int, width: int) -> np.ndarray:
+  """(H, W, 3) float32 [0, 1] -> (height, width, 3) float32 [0, 1] (INTER_AREA when shrinking)."""
+  h, w = image.shape[:2]
+  if (h, w) == (height, width):
+    return image.astype(np.float32)
+  interpolation = cv2.INTER_AREA if height <= h and width <= w else cv2.INTER_LINEAR
+  out = cv2.resize(image.astype(np.float32), (width, height), interpolation=interpolation)
+  return np.clip(out, 0.0, 1.0)
+
+
+def nearest_indices(size_in: int, size_out: int) -> np.ndarray:
+  """(size_out,) int source index of each output pixel, pixel-centre aligned."""
+  return np.minimum(((np.arange(size_out) + 0.5) * size_in / size_out).astype(np.int64),
+                    size_in - 1)
+
+
+def resize_ids(ids: np.ndarray, height: int, width: int) -> np.ndarray:
+  """(H, W) integer map -> (height, width), nearest neighbour, same dtype."""
+  rows = nearest_indices(ids.shape[0], height)
+  cols = nearest_indices(ids.shape[1], width)
+  return ids[rows[:, None], cols[None, :]]
+
+
+def resize_frame(frame: Frame, height: int = MONODEPTH2_SIZE[0], width: int = MONODEPTH2_SIZE[1]
+                 ) -> Frame:
+  """The frame with image and panoptic map at (height, width); depth (ground truth) untouched."""
+  image = resize_image(frame.image, height, width)
+  panoptic, segments = frame.panoptic, frame.segments
+  if panoptic is not None:
+    panoptic = resize_ids(panoptic, height, width)
+    present = set(np.unique(panoptic).tolist())
+    segments = tuple(s for s in segments if s.id in present)
+  return dataclasses.replace(frame, image=image, panoptic=panoptic, segments=segments)

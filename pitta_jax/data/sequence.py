@@ -1,0 +1,120 @@
+"""A lazily loaded sequence of frames: the common return type of every dataset reader.
+
+Readers resolve a dataset's layout into a list of `FrameFiles` (paths only, cheap, so that a
+missing file is reported when the dataset is opened), and `FrameSequence` reads a frame's files
+when it is indexed: a 500-frame subset never sits in memory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import overload
+
+import numpy as np
+
+from pitta_jax.data.errors import DataError
+from pitta_jax.data.frame import Frame
+from pitta_jax.data.image_io import read_image
+from pitta_jax.data.panoptic_io import PanopticRef
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameFiles:
+  """The files of one frame.
+
+  name: the frame's stable identifier (`Frame.name`).
+  image: the colour image file.
+  depth: a loader returning (Hd, Wd) float32 metres (0 = invalid), or None without ground truth.
+  panoptic: the panoptic files, or None.
+  size: the (H, W) the image must have (e.g. from a calibration file), or None.
+  size_source: the file that fixes `size`, named when the image disagrees.
+  """
+  name: str
+  image: Path
+  depth: Callable[[], np.ndarray] | None = None
+  panoptic: PanopticRef | None = None
+  size: tuple[int, int] | None = None
+  size_source: Path | None = None
+
+  def load(self) -> Frame:
+    """Reads the frame; DataError when a file is unreadable or a size disagrees."""
+    image = read_image(self.image)  # (H, W, 3)
+    if self.size is not None and image.shape[:2] != tuple(self.size):
+      raise DataError(self.image, f"image is {_wh(image.shape)} but {self.size_source} says "
+                                  f"{_wh(self.size)} (W x H)")
+    depth = None if self.depth is None else self.depth()
+    panoptic, segments = None, ()
+    if self.panoptic is not None:
+      panoptic, segments = self.panoptic.load()
+      if panoptic.shape != image.shape[:2]:
+        raise DataError(self.panoptic.png, f"panoptic map is {_wh(panoptic.shape)} but its image "
+                                           f"{self.image.name} is {_wh(image.shape)} (W x H)")
+    return Frame(image=image, depth=depth, panoptic=panoptic, segments=segments, name=self.name)
+
+
+def _wh(shape: tuple[int, ...]) -> str:
+  return f"{shape[1]}x{shape[0]}"
+
+
+class FrameSequence(Sequence[Frame]):
+  """Frames read on access.
+
+  Args:
+    files: the frames' files, in sequence order.
+    transform: applied to each frame after loading (e.g. `functools.partial(resize_frame, ...)`).
+  """
+
+  def __init__(self, files: Sequence[FrameFiles],
+               transform: Callable[[Frame], Frame] | None = None):
+    self.files = tuple(files)
+    self.transform = transform
+
+  def __len__(self) -> int:
+    return len(self.files)
+
+  @overload
+  def __getitem__(self, index: int) -> Frame: ...
+
+  @overload
+  def __getitem__(self, index: slice) -> FrameSequence: ...
+
+  def __getitem__(self, index: int | slice) -> Frame | FrameSequence:
+    if isinstance(index, slice):
+      return FrameSequence(self.files[index], self.transform)
+    frame = self.files[index].load()
+    return frame if self.transform is None else self.transform(frame)
+
+  def __iter__(self) -> Iterator[Frame]:
+    for k in range(len(self)):
+      yield self[k]
+
+  @property
+  def names(self) -> tuple[str, ...]:
+    """The frames' names, without loading them."""
+    return tuple(f.name for f in self.files)
+
+  def map(self, transform: Callable[[Frame], Frame]) -> FrameSequence:
+    """The same frames with `transform` applied (after any existing transform) on access."""
+    if self.transform is None:
+      return FrameSequence(self.files, transform)
+    first = self.transform
+    return FrameSequence(self.files, lambda frame: transform(first(frame)))
+
+  def __add__(self, other: FrameSequence) -> FrameSequence:
+    if not isinstance(other, FrameSequence) or other.transform is not self.transform:
+      return NotImplemented
+    return FrameSequence(self.files + other.files, self.transform)
+
+  def __repr__(self) -> str:
+    first = f", first={self.files[0].name!r}" if self.files else ""
+    return f"FrameSequence(len={len(self)}{first})"
+
+
+def require_frames(files: Sequence[FrameFiles], searched: Path | str, pattern: str
+                   ) -> Sequence[FrameFiles]:
+  """`files`, or DataError naming the directory searched and the pattern when there are none."""
+  if not files:
+    raise DataError(searched, f"no frames found (looked for {pattern})")
+  return files

@@ -1,0 +1,75 @@
+"""Depth prediction with a converted (or trained) MonoDepth2: `pitta-jax predict`.
+
+Each image is read, resized to the network's input size (`resize_image`, as the readers do),
+run in eval mode (running BN statistics), and written as `<stem>_disp.npy` (scale-0 sigmoid
+disparity, (H, W) float32 at the network's resolution), `<stem>_depth.npy`
+(`disp_to_depth(disp, 0.1, 100)`), and `<stem>_disp.png` (magma, MonoDepth2's convention).
+This is also how a user checks a conversion by eye.
+"""
+
+from __future__ import annotations
+
+import glob
+from pathlib import Path
+from typing import Iterable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from pitta_jax import viz
+from pitta_jax.checkpoint import load_monodepth2
+from pitta_jax.data.errors import DataError
+from pitta_jax.data.image_io import IMAGE_SUFFIXES, list_images, read_image, write_image
+from pitta_jax.data.resize import resize_image
+from pitta_jax.models.depth_decoder import DepthNet, check_input_size, disp_to_depth
+
+
+def expand_images(spec: str) -> list[Path]:
+  """A file, a directory (its images), or a glob pattern -> sorted image paths."""
+  path = Path(spec)
+  if path.is_dir():
+    paths = sorted(list_images(path).values())
+  elif path.is_file():
+    paths = [path]
+  else:
+    paths = sorted(Path(p) for p in glob.glob(spec) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
+  if not paths:
+    raise DataError(spec, f"no image found (a file, a directory or a glob of {IMAGE_SUFFIXES})")
+  return paths
+
+
+def make_predictor(num_layers: int):
+  """Jitted (variables, images (B, H, W, 3)) -> scale-0 disparity (B, H, W), eval mode."""
+  net = DepthNet(num_layers)
+  return jax.jit(lambda v, x: net.apply(v, x, train=False)[0][..., 0])
+
+
+def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_dir: str | Path,
+                   quiet: bool = False) -> list[Path]:
+  """Writes disparity/depth .npy and a colour PNG per image; returns the PNG paths.
+
+  images: paths, or a spec for `expand_images` (expanded after the weights load, so a bad
+  weights directory is reported first).
+  """
+  weights = load_monodepth2(weights_dir)
+  images = expand_images(images) if isinstance(images, str) else list(images)
+  h, w = weights.config.height, weights.config.width
+  check_input_size(h, w)
+  predict = make_predictor(weights.config.num_layers)
+  out = Path(out_dir)
+  out.mkdir(parents=True, exist_ok=True)
+  written = []
+  for path in tqdm(images, desc="predict", unit="img", disable=quiet):
+    image = resize_image(read_image(path), h, w)
+    disp = np.asarray(predict(weights.depth, jnp.asarray(image[None])))[0]
+    if not np.all(np.isfinite(disp)):
+      raise FloatingPointError(f"{path}: the network produced non-finite disparities")
+    depth = np.asarray(disp_to_depth(disp))
+    np.save(out / f"{path.stem}_disp.npy", disp.astype(np.float32))
+    np.save(out / f"{path.stem}_depth.npy", depth.astype(np.float32))
+    png = out / f"{path.stem}_disp.png"
+    write_image(png, viz.colorize(disp))
+    written.append(png)
+  return written

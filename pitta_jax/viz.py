@@ -1,0 +1,57 @@
+"""Images for people: colour-mapped disparity/depth, panoptic colours, image grids (host NumPy).
+
+MonoDepth2's convention for disparity pictures: the magma colour map normalised by the 95th
+percentile of the disparity.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None = None,
+             colormap: int = cv2.COLORMAP_MAGMA) -> np.ndarray:
+  """(H, W) float -> (H, W, 3) uint8 RGB. Defaults: vmin = min, vmax = 95th percentile."""
+  values = np.asarray(values, np.float64)
+  finite = np.isfinite(values)
+  if not finite.any():
+    return np.zeros(values.shape + (3,), np.uint8)
+  lo = float(np.min(values[finite])) if vmin is None else vmin
+  hi = float(np.percentile(values[finite], 95)) if vmax is None else vmax
+  scaled = np.clip((np.where(finite, values, lo) - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+  bgr = cv2.applyColorMap((scaled * 255).astype(np.uint8), colormap)
+  return bgr[..., ::-1].copy()
+
+
+def colorize_depth(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
+  """Depth (H, W) metres -> RGB via its disparity (near = bright), 0/invalid -> black."""
+  depth = np.asarray(depth, np.float64)
+  valid = depth > 0
+  disp = np.where(valid, 1.0 / np.maximum(depth, 1e-6), np.nan)
+  rgb = colorize(disp, vmin=1.0 / max_depth)
+  rgb[~valid] = 0
+  return rgb
+
+
+def colorize_ids(ids: np.ndarray, seed: int = 0) -> np.ndarray:
+  """Integer id map (H, W) -> RGB, a fixed pseudo-random colour per id, 0 -> black."""
+  ids = np.asarray(ids, np.int64)
+  uniq, inverse = np.unique(ids, return_inverse=True)
+  rng = np.random.default_rng(seed)
+  palette = rng.integers(40, 256, size=(len(uniq), 3), dtype=np.uint8)
+  palette[uniq == 0] = 0
+  return palette[inverse.reshape(ids.shape)]
+
+
+def grid(rows: list[list[np.ndarray]], pad: int = 4) -> np.ndarray:
+  """Tiles uint8 RGB images (resized to the first image's size) into a grid."""
+  h, w = rows[0][0].shape[:2]
+  ncol = max(len(r) for r in rows)
+  out = np.full((len(rows) * (h + pad) - pad, ncol * (w + pad) - pad, 3), 255, np.uint8)
+  for i, row in enumerate(rows):
+    for j, img in enumerate(row):
+      if img.shape[:2] != (h, w):
+        img = cv2.resize(img, (w, h), interpolation=cv2.INTER_NEAREST)
+      out[i * (h + pad): i * (h + pad) + h, j * (w + pad): j * (w + pad) + w] = img
+  return out

@@ -1,0 +1,73 @@
+"""`pitta-jax convert` + `pitta-jax predict` end to end, against the PyTorch reference model.
+
+Reference: `tests/torch_monodepth2.py` run on the same resized image.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+import torch_monodepth2 as tm
+from pitta_jax.cli import main
+from pitta_jax.data.image_io import read_image
+from pitta_jax.data.resize import resize_image
+
+H, W = 64, 96
+
+
+@pytest.fixture(scope="module")
+def converted(tmp_path_factory):
+  root = tmp_path_factory.mktemp("mono_96x64")
+  enc, dec = tm.ResnetEncoder(18), tm.DepthDecoder(tm.num_ch_enc(18))
+  tm.randomize_(enc, 1), tm.randomize_(dec, 2)
+  torch.save({**enc.state_dict(), "height": H, "width": W, "use_stereo": False},
+             root / "encoder.pth", _use_new_zipfile_serialization=False)
+  torch.save(dec.state_dict(), root / "depth.pth", _use_new_zipfile_serialization=False)
+  out = root / "weights"
+  assert main(["convert", "monodepth2", "--encoder", str(root / "encoder.pth"),
+               "--depth", str(root / "depth.pth"), "--out", str(out)]) == 0
+  return out, enc.eval(), dec.eval(), root
+
+
+def test_predict_writes_outputs_matching_torch(converted, tmp_path):
+  weights, enc, dec, _ = converted
+  rng = np.random.default_rng(0)
+  img_dir = tmp_path / "imgs"
+  img_dir.mkdir()
+  for i, (h, w) in enumerate([(120, 200), (64, 96)]):
+    cv2.imwrite(str(img_dir / f"im{i}.png"), rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
+  assert main(["predict", "--weights", str(weights), "--images", str(img_dir), "--out",
+               str(tmp_path / "pred"), "--quiet"]) == 0
+  for i in range(2):
+    disp = np.load(tmp_path / "pred" / f"im{i}_disp.npy")
+    depth = np.load(tmp_path / "pred" / f"im{i}_depth.npy")
+    assert disp.shape == depth.shape == (H, W)
+    assert (tmp_path / "pred" / f"im{i}_disp.png").is_file()
+    x = resize_image(read_image(img_dir / f"im{i}.png"), H, W)
+    with torch.no_grad():
+      ref = dec(enc(torch.from_numpy(x[None]).permute(0, 3, 1, 2)))[("disp", 0)][0, 0].numpy()
+    diff = float(np.max(np.abs(disp - ref)))
+    print(f"predict im{i}: max abs diff vs torch {diff:.2e}")
+    assert diff < 1e-4
+    np.testing.assert_allclose(depth, 1 / (1 / 100 + (1 / 0.1 - 1 / 100) * disp), rtol=1e-6)
+
+
+def test_predict_glob_and_errors(converted, tmp_path, capsys):
+  weights = converted[0]
+  assert main(["predict", "--weights", str(weights), "--images", str(tmp_path / "*.png"),
+               "--out", str(tmp_path / "o")]) == 2
+  assert "no image found" in capsys.readouterr().err
+  assert main(["predict", "--weights", str(tmp_path / "nowhere"), "--images", "x.png",
+               "--out", str(tmp_path / "o")]) == 2
+  assert "model.json" in capsys.readouterr().err
+
+
+def test_convert_errors_exit_2(converted, tmp_path, capsys):
+  root = converted[3]
+  assert main(["convert", "monodepth2", "--encoder", str(root / "depth.pth"), "--depth",
+               str(root / "depth.pth"), "--out", str(tmp_path / "w")]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("error: ") and "depth.pth" in err and err.count("\n") == 1
