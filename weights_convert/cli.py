@@ -9,13 +9,15 @@ from __future__ import annotations
 import argparse
 import sys
 
-from weights_convert import monodepth2
+from weights_convert import mask2former, monodepth2
 from weights_convert.pth import CheckpointError
 
 # converter name -> (help, add_arguments, run)
 CONVERTERS = {
     "monodepth2": ("MonoDepth2 encoder/depth(/pose) .pth files -> a pitta-jax weights directory",
                    monodepth2.add_arguments, monodepth2.run),
+    "mask2former": ("Mask2Former (detectron2 .pkl / Hugging Face .safetensors) -> a pitta-jax "
+                    "weights directory", mask2former.add_arguments, mask2former.run),
 }
 
 

@@ -1,0 +1,163 @@
+"""Mask2Former panoptic post-processing (`pitta_jax.panoptic`) on hand-built predictions.
+
+Reference: detectron2 Mask2Former's `MaskFormer.panoptic_inference` (upstream
+`mask2former/maskformer_model.py`), worked by hand for each case below. Three classes plus
+"no object": class 0 is a thing, classes 1 and 2 are stuff. Mask logits are +-10 (sigmoid
+0.99995 / 0.00005) unless a case needs otherwise; class logits are built for a chosen
+probability.
+"""
+
+from __future__ import annotations
+
+import hypothesis.extra.numpy as hnp
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from pitta_jax import panoptic
+from pitta_jax.data import coco
+from pitta_jax.data.frame import Segment as FrameSegment
+from pitta_jax.panoptic import Segment, panoptic_inference
+
+K = 3
+IS_THING = np.array([True, False, False])
+HW = (4, 6)
+
+
+def cls_logits(label: int, prob: float) -> np.ndarray:
+  """(K + 1,) logits whose softmax gives `prob` to `label` and equal shares to the rest."""
+  logits = np.zeros(K + 1, np.float32)
+  logits[label] = np.log(prob * K / (1 - prob))
+  return logits
+
+
+def mask(rows=slice(None), cols=slice(None), inside: float = 10.0) -> np.ndarray:
+  m = np.full(HW, -10.0, np.float32)
+  m[rows, cols] = inside
+  return m
+
+
+def run(queries, **kw):
+  """queries: list of (class logits, mask logits)."""
+  mask_cls = np.stack([q[0] for q in queries])
+  mask_pred = np.stack([q[1] for q in queries])
+  return panoptic_inference(mask_cls, mask_pred, is_thing=IS_THING, **kw)
+
+
+def test_cls_logits_helper():
+  p = np.exp(cls_logits(2, 0.9))
+  assert abs(p[2] / p.sum() - 0.9) < 1e-6
+
+
+def test_two_things_of_one_class_are_two_segments():
+  id_map, segs = run([(cls_logits(0, 0.99), mask(cols=slice(0, 3))),
+                      (cls_logits(0, 0.99), mask(cols=slice(3, 6)))])
+  expected = np.zeros(HW, np.int32)
+  expected[:, :3], expected[:, 3:] = 1, 2
+  np.testing.assert_array_equal(id_map, expected)
+  assert segs == [Segment(1, 0, True), Segment(2, 0, True)]
+  assert id_map.dtype == np.int32
+
+
+def test_stuff_of_one_class_is_merged():
+  id_map, segs = run([(cls_logits(1, 0.99), mask(cols=slice(0, 3))),
+                      (cls_logits(1, 0.95), mask(cols=slice(3, 6)))])
+  np.testing.assert_array_equal(id_map, np.ones(HW, np.int32))
+  assert segs == [Segment(1, 1, False)]
+
+
+def test_stuff_merged_across_a_thing_keeps_the_first_id():
+  id_map, segs = run([(cls_logits(1, 0.99), mask(cols=slice(0, 2))),
+                      (cls_logits(0, 0.99), mask(cols=slice(2, 4))),
+                      (cls_logits(1, 0.99), mask(cols=slice(4, 6)))])
+  np.testing.assert_array_equal(id_map[0], [1, 1, 2, 2, 1, 1])
+  assert segs == [Segment(1, 1, False), Segment(2, 0, True)]
+
+
+def test_no_object_and_low_scores_are_dropped():
+  no_object = np.zeros(K + 1, np.float32)
+  no_object[K] = 10.0  # argmax is "no object", probability 0.99986
+  queries = [(no_object, mask()),
+             (cls_logits(2, 0.75), mask(rows=slice(2, 4))),  # 0.75 < 0.8
+             (cls_logits(0, 0.9), mask(rows=slice(0, 2), cols=slice(0, 2)))]
+  id_map, segs = run(queries)
+  expected = np.zeros(HW, np.int32)
+  expected[:2, :2] = 1
+  np.testing.assert_array_equal(id_map, expected)
+  assert segs == [Segment(1, 0, True)]
+  # with a lower object threshold the 0.75 stuff query is kept (query order = id order)
+  id_map, segs = run(queries, object_mask_threshold=0.7)
+  assert segs == [Segment(1, 2, False), Segment(2, 0, True)]
+  assert (id_map[2:] == 1).all()
+
+
+def test_nothing_kept_gives_void():
+  id_map, segs = run([(cls_logits(0, 0.5), mask())])
+  assert segs == [] and id_map.shape == HW and not id_map.any()
+
+
+def test_overlap_threshold_drops_a_mostly_hidden_query():
+  # q0 (0.99) covers cols 0-3, q1 (0.95) covers cols 2-5; q0 wins cols 2-3 by its higher score,
+  # so q1 keeps 2 of its 4 columns: 0.5 < 0.8 -> dropped, cols 4-5 stay void.
+  queries = [(cls_logits(0, 0.99), mask(cols=slice(0, 4))),
+             (cls_logits(0, 0.95), mask(cols=slice(2, 6)))]
+  id_map, segs = run(queries)
+  np.testing.assert_array_equal(id_map[0], [1, 1, 1, 1, 0, 0])
+  assert segs == [Segment(1, 0, True)]
+  id_map, segs = run(queries, overlap_threshold=0.5)  # 0.5 is not < 0.5: kept
+  np.testing.assert_array_equal(id_map[0], [1, 1, 1, 1, 2, 2])
+  assert segs == [Segment(1, 0, True), Segment(2, 0, True)]
+
+
+def test_pixels_below_half_are_void_even_when_assigned():
+  m = mask()
+  m[0, :] = -1.0  # sigmoid 0.27: still the argmax (only query), but not in the segment
+  id_map, segs = run([(cls_logits(0, 0.99), m)])
+  np.testing.assert_array_equal(id_map[0], 0)
+  np.testing.assert_array_equal(id_map[1:], 1)
+  assert segs == [Segment(1, 0, True)]
+
+
+def test_ties_go_to_the_first_query():
+  q = (cls_logits(0, 0.9), mask(rows=slice(0, 2)))
+  id_map, segs = run([q, q])  # identical: q1 is never the argmax, mask_area 0 -> dropped
+  assert segs == [Segment(1, 0, True)]
+  assert set(np.unique(id_map)) == {0, 1}
+
+
+def test_default_is_thing_is_coco_panoptic():
+  t = panoptic.default_is_thing(133)
+  assert t[:80].all() and not t[80:].any()
+  with pytest.raises(ValueError, match="is_thing"):
+    panoptic_inference(np.zeros((2, 5)), np.zeros((2, 3, 3)))
+
+
+def test_to_frame_segments_maps_contiguous_to_coco_ids():
+  segs = [Segment(1, 2, True), Segment(2, 80, False), Segment(3, 0, True)]
+  out = panoptic.to_frame_segments(segs)
+  assert out == (FrameSegment(1, 3, True), FrameSegment(2, 92, False), FrameSegment(3, 1, True))
+  assert coco.contiguous_to_id(80) == 92
+  assert panoptic.to_frame_segments(segs[:1], [7, 8, 9]) == (FrameSegment(1, 9, True),)
+
+
+@settings(max_examples=40, deadline=None)
+@given(mask_cls=hnp.arrays(np.float32, (6, K + 1), elements=st.floats(-4, 8, width=32)),
+       mask_pred=hnp.arrays(np.float32, (6, 5, 7), elements=st.floats(-6, 6, width=32)),
+       threshold=st.sampled_from([0.0, 0.3, 0.8]))
+def test_invariants(mask_cls, mask_pred, threshold):
+  """Ids 1..n in order; the map holds exactly those ids (and 0); one segment per stuff class;
+  every painted pixel has sigmoid >= 0.5 for some kept query of the segment's class."""
+  id_map, segs = panoptic_inference(mask_cls, mask_pred, is_thing=IS_THING,
+                                    object_mask_threshold=threshold)
+  assert [s.id for s in segs] == list(range(1, len(segs) + 1))
+  assert set(np.unique(id_map)) - {0} == {s.id for s in segs}
+  stuff = [s.category_id for s in segs if not s.isthing]
+  assert len(stuff) == len(set(stuff))
+  for s in segs:
+    assert s.isthing == IS_THING[s.category_id]
+    probs = np.exp(mask_cls - mask_cls.max(-1, keepdims=True))
+    probs /= probs.sum(-1, keepdims=True)
+    same = (probs.argmax(-1) == s.category_id) & (probs.max(-1) > threshold)
+    with np.errstate(over="ignore"):
+      covered = (1 / (1 + np.exp(-mask_pred[same])) >= 0.5).any(0)  # float32, as implemented
+    assert covered[id_map == s.id].all()
