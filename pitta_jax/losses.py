@@ -1,0 +1,286 @@
+"""PITTA's losses: depth-refining (eqs. 7-8), edge-guided (eq. 9) and their sum (eq. 10).
+
+Single frame, no batch axis, plain arrays in, jittable (window size, mode and implementation are
+static). Public entry points:
+
+  median_filter(x, s)                                    eq. 7     (from `pitta_jax.median`)
+  edge_map(x, weight)                                    eqs. 5-6  (from `pitta_jax.edges`)
+  depth_refining_loss(depth, panoptic, dynamic_ids, s, mode)          eq. 8
+  edge_guided_loss(image, depth, u, v)                                eq. 9
+  pitta_loss(image, depth, panoptic, dynamic_ids, s, lam, mode)       eq. 10
+
+`dynamic_ids` are the panoptic segment ids of the frame's dynamic instances, an int array padded
+with 0 or -1 (entries <= 0 are unused). N = the number of used entries (an id with no pixel in
+the map still counts, exactly as an empty mask would in eq. 8).
+
+The engine, which already holds the per-pixel instance index map, calls
+`depth_refining_loss_from_index`.
+
+Depth-refining loss, two implementations with the same value and the same gradient:
+
+- "literal": eq. 8 as written. For each of the N_max table rows, D~_j = D * M_j, its median
+  filter D~'_j (stop-gradient), and sum |D~_j - D~'_j| over all pixels; invalid rows add nothing;
+  divided by N. Cost grows with N_max.
+- "fast" (default): the instances are disjoint, so per pixel only a fixed number of terms of
+  sum_j |D~_j - D~'_j| can be nonzero. In a window with c pixels, m of instance k, D~_k holds
+  c - m zeros; when the zeros number at least c//2 + 1 both middle order statistics are zeros
+  (whatever the signs of the m others: at most m <= (c-1)//2 of them sort before the zeros), so
+  D~'_k = 0. A nonzero D~'_k therefore needs m >= ceil(c/2); at most two instances reach that, and
+  each then fills a run of >= ceil(c/2) sorted slots of the window's index multiset, which covers
+  slot (c-1)//2 or c//2. So at a pixel of instance k0 (0 = none) the terms are:
+    j = k0:               |D~_k0 - D~'_k0|                 (carries the gradient)
+    j = e (the majority): |0 - D~'_e|                      (constant in D, part of the value)
+  with e the instance != k0 found at slot (c-1)//2 or c//2 of the window's sorted indices whose
+  count reaches ceil(c/2) (two such instances fill the whole window, so one of them is k0).
+  Work, whatever N is: one sorting-network pass over the window's instance indices (candidates
+  and their counts), then one pass over the two masked maps D~_k0 and D~_e stacked.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from pitta_jax import masks as masks_lib
+from pitta_jax.edges import edge_map, image_edge_map
+from pitta_jax.median import (INT_PAD, median_filter, median_of_views, middle_order_statistics,
+                              middle_ranks, window_views)
+
+Array = jax.Array
+
+__all__ = [
+    "PittaLoss", "median_filter", "edge_map", "image_edge_map", "depth_refining_loss",
+    "depth_refining_loss_from_index", "depth_refining_loss_literal", "depth_refining_loss_fast",
+    "edge_guided_loss", "pitta_loss", "pitta_loss_from_index", "combine",
+]
+
+IMPLS = ("fast", "literal")
+
+
+class PittaLoss(NamedTuple):
+  """Eq. 10 and its parts (scalars)."""
+  total: Array  # L = L_d + lambda * L_e
+  l_d: Array  # depth-refining loss, eq. 8
+  l_e: Array  # edge-guided loss, eq. 9
+  n: Array  # number of dynamic instances N (int32)
+
+
+def _mean_over_instances(total: Array, n: Array) -> Array:
+  """total / N, and 0 when N = 0 (no NaN in the value or the gradient)."""
+  n = jnp.asarray(n, jnp.int32)
+  safe_n = jnp.maximum(n, 1).astype(jnp.float32)
+  return jnp.where(n > 0, total / safe_n, 0.0)
+
+
+def depth_refining_loss_literal(depth: Array, masks: Array, inst_valid: Array, s: int = 5) -> Array:
+  """Depth-refining loss, eq. 8 term by term (the reference implementation).
+
+  `L_d = 1/N sum_j sum_{x,y} |D~_j(x, y) - sg(D~'_j(x, y))|`, D~_j = D * M_j (eq. 4),
+  D~'_j = median_filter(D~_j, s) (eq. 7), sg = stop-gradient (pseudo labels are constants).
+
+  Args:
+    depth: (H, W) float depth D.
+    masks: (N_max, H, W) float32 masks M_j (eq. 3, g_j included), see `masks.instance_masks`.
+    inst_valid: (N_max,) bool; invalid rows contribute nothing, N = inst_valid.sum().
+    s: odd median window (static).
+
+  Returns:
+    scalar float32 L_d (0 when N = 0).
+  """
+  depth = jnp.asarray(depth, jnp.float32)
+  inst_valid = jnp.asarray(inst_valid, bool)
+
+  def one(m):  # m: (H, W)
+    masked = depth * m  # D~_j, eq. 4
+    pseudo = median_filter(jax.lax.stop_gradient(masked), s)  # D~'_j, eq. 7
+    return jnp.sum(jnp.abs(masked - pseudo))
+
+  per_instance = jax.vmap(one)(jnp.asarray(masks, jnp.float32))  # (N_max,)
+  total = jnp.sum(jnp.where(inst_valid, per_instance, 0.0))
+  return _mean_over_instances(total, jnp.sum(inst_valid))
+
+
+def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int = 5,
+                             mode: str = "binary") -> Array:
+  """Depth-refining loss, eq. 8, at a cost independent of N (see the module docstring).
+
+  Same value (up to float summation order) and the same gradient w.r.t. depth as
+  `depth_refining_loss_literal`, including the constant terms |0 - D~'_j| just outside each
+  instance.
+
+  Args:
+    depth: (H, W) float depth D.
+    index_map: (H, W) int32 instance index, 0 = none, j = instance j (`masks.instance_index_map`).
+    n: scalar int, the number of instances N (table rows, with or without pixels).
+    s: odd median window (static).
+    mode: "binary" (g_j = 1) or "instance_id" (g_j = j), static.
+
+  Returns:
+    scalar float32 L_d (0 when N = 0).
+  """
+  depth = jnp.asarray(depth, jnp.float32)
+  index_map = jnp.asarray(index_map, jnp.int32)
+  if depth.ndim != 2 or depth.shape != index_map.shape:
+    raise ValueError(f"depth {depth.shape} and index_map {index_map.shape} must be the same (H, W)")
+  own_masked = depth * masks_lib.pixel_gain(index_map, mode)  # D~_k0 at each pixel's own k0
+
+  # Majority candidates: the window's sorted instance indices at slots (c-1)//2 and c//2.
+  idx_views = window_views(index_map, s, INT_PAD)  # s*s x (H, W), INT_PAD outside the image
+  cand_lo, cand_hi = middle_order_statistics(idx_views, s)
+  lo_rank, _ = middle_ranks(*index_map.shape, s)
+  need = lo_rank + 1  # ceil(c / 2) = (c - 1) // 2 + 1
+  count_lo = sum((v == cand_lo).astype(jnp.int32) for v in idx_views)
+  count_hi = sum((v == cand_hi).astype(jnp.int32) for v in idx_views)
+  ok_lo = (cand_lo > 0) & (cand_lo != index_map) & (count_lo >= need)
+  ok_hi = (cand_hi > 0) & (cand_hi != index_map) & (count_hi >= need)
+  extra = jnp.where(ok_lo, cand_lo, jnp.where(ok_hi, cand_hi, 0))  # (H, W), 0 = none
+
+  # Pseudo labels D~'_k at each pixel for k = own instance and k = extra (stop-gradient).
+  val_views = window_views(jax.lax.stop_gradient(own_masked), s, jnp.inf)
+
+  # One pass filters both maps: row 0 = D~_k0, row 1 = D~_extra (k per pixel).
+  keys = jnp.stack([index_map, extra])  # (2, H, W)
+  views = [jnp.where(iv[None] == keys, vv[None], jnp.where(iv[None] == INT_PAD, jnp.inf, 0.0))
+           for iv, vv in zip(idx_views, val_views)]  # s*s x (2, H, W)
+  pseudo_own, pseudo_extra = median_of_views(views, s)  # (H, W) each
+
+  own_term = jnp.where(index_map > 0, jnp.abs(own_masked - pseudo_own), 0.0)
+  extra_term = jnp.where(extra > 0, jnp.abs(pseudo_extra), 0.0)  # |0 - D~'_e|
+  return _mean_over_instances(jnp.sum(own_term + extra_term), n)
+
+
+def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, s: int = 5,
+                                   mode: str = "binary", impl: str = "fast",
+                                   n_max: int | None = None) -> Array:
+  """Depth-refining loss, eq. 8, from an instance index map (what the engine holds).
+
+  Args:
+    depth: (H, W) float depth.
+    index_map: (H, W) int32, 0 or j in 1..N_max.
+    n: scalar int N.
+    s: odd median window (static).
+    mode: "binary" or "instance_id" (static).
+    impl: "fast" (default, cost independent of N) or "literal" (eq. 8 term by term).
+    n_max: static table size, required by "literal" (rows j > n are invalid).
+
+  Returns:
+    scalar float32 L_d.
+  """
+  masks_lib.check_mode(mode)
+  if impl == "fast":
+    return depth_refining_loss_fast(depth, index_map, n, s, mode)
+  if impl == "literal":
+    if n_max is None:
+      raise ValueError("impl='literal' needs the static table size n_max")
+    masks = masks_lib.masks_from_index(index_map, n_max, mode)  # (N_max, H, W)
+    valid = jnp.arange(1, n_max + 1) <= jnp.asarray(n)  # (N_max,)
+    return depth_refining_loss_literal(depth, masks, valid, s)
+  raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
+
+
+def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: int = 5,
+                        mode: str = "binary", impl: str = "fast") -> Array:
+  """Depth-refining loss, eq. 8, from a panoptic id map.
+
+  Args:
+    depth: (H, W) float depth D.
+    panoptic: (H, W) int segment id map (0 = void).
+    dynamic_ids: (N_max,) int segment ids of the dynamic instances, padded with 0 or -1
+      (entries <= 0 unused, anywhere); instance j is the j-th used entry (g_j = j).
+    s: odd median window (static), paper default 5.
+    mode: "binary" (g_j = 1, default) or "instance_id" (g_j = j, eq. 3 literally); static.
+    impl: "fast" (default) or "literal"; static.
+
+  Returns:
+    scalar float32 L_d (0 when no entry is used).
+  """
+  masks_lib.check_mode(mode)
+  inst_ids, inst_valid = masks_lib.table_from_dynamic_ids(dynamic_ids)
+  if impl == "literal":
+    masks = masks_lib.instance_masks(panoptic, inst_ids, inst_valid, mode)  # (N_max, H, W)
+    return depth_refining_loss_literal(depth, masks, inst_valid, s)
+  if impl == "fast":
+    index_map = masks_lib.instance_index_map(panoptic, inst_ids, inst_valid)  # (H, W)
+    return depth_refining_loss_fast(depth, index_map, jnp.sum(inst_valid), s, mode)
+  raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
+
+
+def edge_guided_loss(image: Array, depth: Array, u: Array | float | None = None,
+                     v: Array | float | None = None) -> Array:
+  """Edge-guided loss, eq. 9: `L_e = sum_{x,y} |dI(x, y) - dD(x, y)|`.
+
+  Args:
+    image: (H, W, C) float image (the edge map uses its channel mean, eq. 5).
+    depth: (H, W) float depth D (eq. 6).
+    u: image weights U: None (= 1), scalar or (H, W).
+    v: depth weights V: None (= 1), scalar or (H, W).
+
+  Returns:
+    scalar float32 L_e >= 0.
+  """
+  d_image = image_edge_map(image, u)  # (H, W)
+  d_depth = edge_map(depth, v)  # (H, W)
+  if d_image.shape != d_depth.shape:
+    raise ValueError(f"image {d_image.shape} and depth {d_depth.shape} sizes differ")
+  return jnp.sum(jnp.abs(d_image - d_depth))
+
+
+def pitta_loss(image: Array, depth: Array, panoptic: Array, dynamic_ids: Array, s: int = 5,
+               lam: float | Array = 0.2, mode: str = "binary", impl: str = "fast",
+               u: Array | float | None = None, v: Array | float | None = None) -> PittaLoss:
+  """PITTA's total loss, eq. 10: `L = L_d + lambda * L_e`.
+
+  Args:
+    image: (H, W, 3) float image in [0, 1].
+    depth: (H, W) float predicted depth.
+    panoptic: (H, W) int segment id map.
+    dynamic_ids: (N_max,) int dynamic segment ids padded with 0 or -1 (see
+      `depth_refining_loss`).
+    s: odd median window (static), default 5.
+    lam: lambda >= 0, default 0.2 (the paper's best, Table 4); a float or a traced scalar.
+      inf means "L_e only" (Table 4's last column): total = L_e.
+    mode: "binary" or "instance_id" (static).
+    impl: "fast" or "literal" for L_d (static).
+    u, v: edge weights U, V (None = 1).
+
+  Returns:
+    PittaLoss(total, l_d, l_e, n).
+  """
+  l_d = depth_refining_loss(depth, panoptic, dynamic_ids, s, mode, impl)
+  l_e = edge_guided_loss(image, depth, u, v)
+  n = jnp.sum(jnp.asarray(dynamic_ids).reshape(-1) > 0).astype(jnp.int32)
+  return PittaLoss(total=combine(l_d, l_e, lam), l_d=l_d, l_e=l_e, n=n)
+
+
+def combine(l_d: Array, l_e: Array, lam: float | Array) -> Array:
+  """Eq. 10, `L = L_d + lambda * L_e`; lambda = inf means L_e alone (Table 4's last column).
+
+  lam: a Python float or a traced scalar; for a traced inf there is no inf * 0 = NaN in the
+  gradient.
+  """
+  if isinstance(lam, (int, float)):
+    return l_e if math.isinf(lam) else l_d + lam * l_e
+  lam = jnp.asarray(lam, jnp.float32)
+  is_inf = jnp.isinf(lam)
+  return jnp.where(is_inf, l_e, l_d + jnp.where(is_inf, 0.0, lam) * l_e)
+
+
+def pitta_loss_from_index(image: Array, depth: Array, index_map: Array, n: Array, *, s: int = 5,
+                          lam: float | Array = 0.2, mode: str = "binary", impl: str = "fast",
+                          n_max: int | None = None, u: Array | float | None = None,
+                          v: Array | float | None = None) -> PittaLoss:
+  """Eq. 10 from an instance index map (what the adaptation engine holds per frame).
+
+  Args:
+    image: (H, W, 3) float image; depth: (H, W) float depth.
+    index_map: (H, W) int32, 0 = no dynamic instance, j = instance j (`masks.instance_index_map`).
+    n: scalar int N; other arguments as `pitta_loss` (`n_max` for impl="literal").
+  """
+  l_d = depth_refining_loss_from_index(depth, index_map, n, s=s, mode=mode, impl=impl,
+                                       n_max=n_max)
+  l_e = edge_guided_loss(image, depth, u, v)
+  return PittaLoss(total=combine(l_d, l_e, lam), l_d=l_d, l_e=l_e,
+                   n=jnp.asarray(n, jnp.int32))

@@ -1,0 +1,190 @@
+"""Instance-wise masks of the dynamic objects (paper eqs. 3-4).
+
+A frame's dynamic instances live in a fixed-size table (static N_max) with a validity vector,
+never in a Python list, so that everything stays jittable:
+
+  inst_ids   (N_max,) int32  panoptic segment id of instance j (row j - 1), 0 on invalid rows
+  inst_valid (N_max,) bool   which rows hold an instance; N = inst_valid.sum()
+
+Instance j (1-based, j = row + 1) has the mask `M_j(x, y) = g_j` on its segment and 0 elsewhere
+(eq. 3), with `g_j = 1` ("binary", the default) or `g_j = j` ("instance_id", eq. 3 literally: the
+instance's index in the table). The masked depth is `D~_j = D * M_j` (eq. 4). The per-pixel
+instance index map (0 = no dynamic instance, j = instance j) carries the same information in
+(H, W), which is what the fast depth-refining loss uses.
+
+Panoptic segment ids are > 0 (0 = void, as in COCO panoptic), so ids <= 0 mean "unused".
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Array = jax.Array
+
+# COCO category ids of the dynamic set O (paper Sec. 3.1; SPEC item 3): person, bicycle, car,
+# motorcycle, bus, train, truck.
+DEFAULT_DYNAMIC_COCO_IDS = (1, 2, 3, 4, 6, 7, 8)
+
+MASK_MODES = ("binary", "instance_id")
+
+
+def check_mode(mode: str) -> None:
+  """Raises ValueError unless `mode` is one of `MASK_MODES`."""
+  if mode not in MASK_MODES:
+    raise ValueError(f"mask mode must be one of {MASK_MODES}, got {mode!r}")
+
+
+def _compact(keys: Array, keep: Array, n_max: int) -> tuple[Array, Array]:
+  """The kept entries of `keys` first (order preserved), cut or padded to n_max rows."""
+  order = jnp.argsort(~keep, stable=True)  # kept rows first, stable
+  s = keys.shape[0]
+  if n_max > s:
+    order = jnp.concatenate([order, jnp.zeros((n_max - s,), order.dtype)])
+    pad_ok = jnp.arange(n_max) < s
+  else:
+    order = order[:n_max]
+    pad_ok = jnp.ones((n_max,), bool)
+  valid = keep[order] & pad_ok  # (N_max,)
+  ids = jnp.where(valid, keys[order], 0).astype(jnp.int32)  # (N_max,)
+  return ids, valid
+
+
+def instance_table(segment_ids: Array, segment_classes: Array, segment_valid: Array,
+                   dynamic_classes: Array, n_max: int) -> tuple[Array, Array]:
+  """Table of the dynamic instances N of a frame (eq. 3: segments whose class is in O).
+
+  Args:
+    segment_ids: (S_max,) int32 panoptic segment ids (> 0).
+    segment_classes: (S_max,) int32 class (COCO category id) of each segment.
+    segment_valid: (S_max,) bool, which entries hold a segment.
+    dynamic_classes: (K,) int32 the dynamic class set O (e.g. `DEFAULT_DYNAMIC_COCO_IDS`);
+      pad with -1 (any value that no segment's class takes).
+    n_max: static table size; dynamic segments beyond n_max are dropped (the first n_max kept).
+
+  Returns:
+    inst_ids: (N_max,) int32, the dynamic segments' ids in their original order, then 0.
+    inst_valid: (N_max,) bool, True on the first N rows.
+  """
+  segment_ids = jnp.asarray(segment_ids, jnp.int32)
+  segment_classes = jnp.asarray(segment_classes, jnp.int32)
+  dynamic_classes = jnp.asarray(dynamic_classes, jnp.int32).reshape(-1)
+  is_dyn = (jnp.asarray(segment_valid, bool) & (segment_ids > 0)
+            & jnp.any(segment_classes[:, None] == dynamic_classes[None, :], axis=1))  # (S_max,)
+  return _compact(segment_ids, is_dyn, n_max)
+
+
+def table_from_dynamic_ids(dynamic_ids: Array) -> tuple[Array, Array]:
+  """Instance table from a padded list of dynamic segment ids.
+
+  Args:
+    dynamic_ids: (N_max,) int panoptic segment ids of the dynamic instances; entries <= 0
+      (0 or -1) are unused and may sit anywhere.
+
+  Returns:
+    (inst_ids, inst_valid), (N_max,) each, the used ids first in their order, so instance j
+    (g_j = j in "instance_id" mode) is the j-th used entry.
+  """
+  dynamic_ids = jnp.asarray(dynamic_ids, jnp.int32).reshape(-1)
+  return _compact(dynamic_ids, dynamic_ids > 0, dynamic_ids.shape[0])
+
+
+def instance_index_map(panoptic: Array, inst_ids: Array, inst_valid: Array) -> Array:
+  """Per-pixel instance index: 0 = no dynamic instance, j in 1..N_max for instance j.
+
+  Compares every pixel with the N_max table ids: O(H W N_max) elementwise work fused into one
+  loop, about 0.3 ms at 640x192 with N_max = 32 on a CPU (a binary search is slower here).
+
+  Args:
+    panoptic: (H, W) int segment id map (0 = void).
+    inst_ids: (N_max,) int32 table ids (row j - 1 = instance j); ids should be distinct (the
+      first matching row wins).
+    inst_valid: (N_max,) bool.
+
+  Returns:
+    (H, W) int32 index map.
+  """
+  panoptic = jnp.asarray(panoptic, jnp.int32)
+  inst_ids = jnp.asarray(inst_ids, jnp.int32)
+  inst_valid = jnp.asarray(inst_valid, bool)
+  usable = inst_valid & (inst_ids > 0)  # (N_max,) invalid rows never match
+  index = jnp.zeros(panoptic.shape, jnp.int32)  # (H, W)
+  for j in reversed(range(inst_ids.shape[0])):  # unrolled and fused by XLA; first match wins
+    index = jnp.where((panoptic == inst_ids[j]) & usable[j], j + 1, index)
+  return index
+
+
+def instance_gains(n_max: int, mode: str = "binary") -> Array:
+  """g_j of eq. 3 for j = 1..N_max: 1 ("binary") or j ("instance_id").  # (N_max,) float32"""
+  check_mode(mode)
+  if mode == "binary":
+    return jnp.ones((n_max,), jnp.float32)
+  return jnp.arange(1, n_max + 1, dtype=jnp.float32)
+
+
+def pixel_gain(index_map: Array, mode: str = "binary") -> Array:
+  """g of the instance at each pixel, 0 off the instances: sum_j M_j.  # (H, W) float32"""
+  check_mode(mode)
+  index_map = jnp.asarray(index_map, jnp.int32)
+  if mode == "binary":
+    return (index_map > 0).astype(jnp.float32)
+  return index_map.astype(jnp.float32)
+
+
+def masks_from_index(index_map: Array, n_max: int, mode: str = "binary") -> Array:
+  """Instance-wise masks M_j (eq. 3) from the index map.
+
+  Args:
+    index_map: (H, W) int32, 0 or j in 1..n_max.
+    n_max: static number of rows.
+    mode: "binary" (g_j = 1) or "instance_id" (g_j = j).
+
+  Returns:
+    (N_max, H, W) float32, M_j in row j - 1 (all zero for instances without pixels).
+  """
+  index_map = jnp.asarray(index_map, jnp.int32)
+  j = jnp.arange(1, n_max + 1, dtype=jnp.int32)[:, None, None]  # (N_max, 1, 1)
+  gains = instance_gains(n_max, mode)[:, None, None]  # (N_max, 1, 1)
+  return jnp.where(index_map[None] == j, gains, 0.0).astype(jnp.float32)
+
+
+def instance_masks(panoptic: Array, inst_ids: Array, inst_valid: Array,
+                   mode: str = "binary") -> Array:
+  """Instance-wise masks M_j of eq. 3 straight from the panoptic map.
+
+  Args:
+    panoptic: (H, W) int segment id map.
+    inst_ids: (N_max,) int32 table ids.
+    inst_valid: (N_max,) bool; invalid rows give all-zero masks.
+    mode: "binary" (g_j = 1) or "instance_id" (g_j = j, the 1-based row).
+
+  Returns:
+    (N_max, H, W) float32 masks.
+  """
+  panoptic = jnp.asarray(panoptic, jnp.int32)
+  inst_ids = jnp.asarray(inst_ids, jnp.int32)
+  inst_valid = jnp.asarray(inst_valid, bool)
+  n_max = inst_ids.shape[0]
+  inside = (panoptic[None] == inst_ids[:, None, None]) & inst_valid[:, None, None]  # (N_max, H, W)
+  gains = instance_gains(n_max, mode)[:, None, None]
+  return jnp.where(inside, gains, 0.0).astype(jnp.float32)
+
+
+def dynamic_ids_from_segments(segments, n_max: int,
+                              dynamic_classes=DEFAULT_DYNAMIC_COCO_IDS) -> np.ndarray:
+  """Host-side helper: padded dynamic segment ids from `Segment`-like objects.
+
+  Args:
+    segments: iterable with `.id` and `.category_id` (e.g. `pitta_jax.data.frame.Segment`).
+    n_max: length of the result; extra dynamic segments are dropped.
+    dynamic_classes: the dynamic COCO category ids O.
+
+  Returns:
+    (n_max,) int32, the dynamic ids in order, padded with 0.
+  """
+  dyn = set(int(c) for c in dynamic_classes)
+  ids = [int(s.id) for s in segments if int(s.category_id) in dyn and int(s.id) > 0][:n_max]
+  out = np.zeros((n_max,), np.int32)
+  out[:len(ids)] = ids
+  return out

@@ -1,0 +1,188 @@
+"""Median filter with a window that shrinks at the image border (paper eq. 7).
+
+`D~'(x, y) = median{ D~(p, q) : p in [max(x-r, 0), min(x+r, H-1)],
+                                q in [max(y-r, 0), min(y+r, W-1)] }`, r = s // 2.
+
+No padding: at the border the window holds fewer pixels, c(x, y) = rows(x) * cols(y). The median
+of an even count is the mean of the two middle values, `(a + b) / 2` in float32 (NumPy's
+convention), so the result equals a literal `np.median` loop bit for bit.
+
+How: the s*s shifted views of the map, padded with +inf, go through a Batcher odd-even merge
+sorting network made of elementwise min/max (XLA fuses it into one loop over the pixels). The
+padding sorts last, so the c valid values of a window occupy the first c sorted slots and the
+two middle ones sit at (c-1)//2 and c//2, with c a function of the position. Only the
+comparators that feed the slots needed somewhere are kept (124 of them for s = 5, 352 for
+s = 7), and a select chain picks each pixel's slots. A network is exact: it permutes the values,
+so ties come out as they are. About 2-4 ms at 640x192 with s = 5 on 2 CPU cores, where
+`jnp.sort` along the window axis takes about 300 ms.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Array = jax.Array
+
+# Padding for integer maps: sorts after every real value.
+INT_PAD = np.iinfo(np.int32).max
+
+
+@functools.lru_cache(maxsize=None)
+def _batcher_pairs(n: int) -> tuple[tuple[int, int], ...]:
+  """Comparators (i, j), i < j, of Batcher's odd-even merge sort on 2**k >= n wires.
+
+  Comparators touching a wire >= n are dropped: with +inf on those wires they never move a
+  value (the larger value always goes to the higher wire), so the network still sorts n wires.
+  """
+  size = 1
+  while size < n:
+    size *= 2
+  pairs = []
+  p = 1
+  while p < size:
+    k = p
+    while k >= 1:
+      for j in range(k % p, size - k, 2 * k):
+        for i in range(min(k, size - j - k)):
+          if (i + j) // (2 * p) == (i + j + k) // (2 * p):
+            lo, hi = i + j, i + j + k
+            if hi < n:
+              pairs.append((lo, hi))
+      k //= 2
+    p *= 2
+  return tuple(pairs)
+
+
+@functools.lru_cache(maxsize=None)
+def _selection_network(n: int, ranks: tuple[int, ...]) -> tuple[tuple[int, int, bool, bool], ...]:
+  """The sorting network on n wires pruned to the comparators that the output `ranks` need.
+
+  Returns (i, j, need_min, need_max) per kept comparator, in order; a comparator whose output
+  wire is not needed later computes only the other output.
+  """
+  needed = set(ranks)
+  kept = []
+  for i, j in reversed(_batcher_pairs(n)):
+    need_min, need_max = i in needed, j in needed
+    if need_min or need_max:
+      kept.append((i, j, need_min, need_max))
+      needed.update((i, j))
+  return tuple(reversed(kept))
+
+
+def window_counts(h: int, w: int, s: int) -> np.ndarray:
+  """Number of pixels c(x, y) in the border-shrunk window of eq. 7.  # (h, w) int32"""
+  r = s // 2
+  rows = np.minimum(np.arange(h) + r, h - 1) - np.maximum(np.arange(h) - r, 0) + 1  # (h,)
+  cols = np.minimum(np.arange(w) + r, w - 1) - np.maximum(np.arange(w) - r, 0) + 1  # (w,)
+  return (rows[:, None] * cols[None, :]).astype(np.int32)
+
+
+def _check_window(s: int) -> None:
+  if not isinstance(s, (int, np.integer)) or s < 1 or s % 2 == 0:
+    raise ValueError(f"window size s must be a positive odd int, got {s!r}")
+
+
+def window_views(x: Array, s: int, pad_value) -> list[Array]:
+  """The s*s shifted views of x, padded with `pad_value` outside the image.
+
+  View number dy * s + dx holds x(i + dy - r, j + dx - r) at (i, j).
+
+  Args:
+    x: (H, W) map.
+    s: odd window size.
+    pad_value: value of the out-of-image pixels (+inf for a median, `INT_PAD` for ints).
+
+  Returns:
+    s*s arrays of shape (H, W).
+  """
+  _check_window(s)
+  h, w = x.shape
+  r = s // 2
+  padded = jnp.pad(x, r, constant_values=pad_value)  # (H + 2r, W + 2r)
+  return [padded[dy:dy + h, dx:dx + w] for dy in range(s) for dx in range(s)]
+
+
+def middle_ranks(h: int, w: int, s: int) -> tuple[Array, Array]:
+  """Per pixel, the sorted slots of the window's two middle values.
+
+  Built from iotas inside the traced function (no (H, W) constants in the program).
+
+  Returns:
+    ((c-1)//2, c//2), (H, W) int32 each, c = c(x, y) the window's pixel count.
+  """
+  r = s // 2
+  i = jnp.arange(h, dtype=jnp.int32)[:, None]  # (H, 1)
+  j = jnp.arange(w, dtype=jnp.int32)[None, :]  # (1, W)
+  rows = jnp.minimum(i + r, h - 1) - jnp.maximum(i - r, 0) + 1  # (H, 1)
+  cols = jnp.minimum(j + r, w - 1) - jnp.maximum(j - r, 0) + 1  # (1, W)
+  c = rows * cols  # (H, W)
+  return (c - 1) // 2, c // 2
+
+
+def middle_order_statistics(views: list[Array], s: int) -> tuple[Array, Array]:
+  """Per pixel, the sorted values at slots (c-1)//2 and c//2 of its border-shrunk window.
+
+  Args:
+    views: the s*s views of `window_views`, (..., H, W) each (leading axes = several maps
+      filtered in one pass), the out-of-image slots holding a value that sorts after every real
+      one (+inf, `INT_PAD`).
+    s: the odd window size.
+
+  Returns:
+    (lower, upper): the lower and upper middle values, (..., H, W) each (equal when c is odd).
+  """
+  h, w = views[0].shape[-2:]
+  counts = window_counts(h, w, s)  # static, for the set of slots needed
+  ranks = sorted(set(np.unique((counts - 1) // 2).tolist()) | set(np.unique(counts // 2).tolist()))
+  wires = list(views)
+  for i, j, need_min, need_max in _selection_network(len(wires), tuple(ranks)):
+    a, b = wires[i], wires[j]
+    if need_min:
+      wires[i] = jnp.minimum(a, b)
+    if need_max:
+      wires[j] = jnp.maximum(a, b)
+  lo_rank, hi_rank = middle_ranks(h, w, s)
+  # A select chain, not a stack + gather: XLA would fuse a stack of the network outputs into one
+  # loop that recomputes the whole network for every stacked slot.
+  lower, upper = wires[ranks[-1]], wires[ranks[-1]]
+  for k in ranks[:-1]:
+    lower = jnp.where(lo_rank == k, wires[k], lower)
+    upper = jnp.where(hi_rank == k, wires[k], upper)
+  return lower, upper
+
+
+def median_of_views(views: list[Array], s: int) -> Array:
+  """Median (eq. 7) of the border-shrunk windows given as +inf-padded views (`window_views`)."""
+  lower, upper = middle_order_statistics(views, s)
+  lo_rank, hi_rank = middle_ranks(*views[0].shape[-2:], s)
+  even = lo_rank != hi_rank  # (H, W)
+  # NumPy: the mean of the two middle values in the input's float type; odd: the value itself.
+  return jnp.where(even, (lower + upper) / 2, lower)
+
+
+def median_filter(x: Array, s: int = 5) -> Array:
+  """Median filter with a border-shrunk window, paper eq. 7.
+
+  Equals a loop of `np.median(x[max(i-r,0):min(i+r,H-1)+1, max(j-r,0):min(j+r,W-1)+1])` over
+  the pixels exactly (float32), including even counts at the border (mean of the two middle
+  values) and windows larger than the image. Not differentiated in PITTA (pseudo labels are
+  stop-gradient), but min/max have gradients if needed.
+
+  Args:
+    x: (H, W) float map (cast to float32). NaN: unspecified. Subnormal values may be
+      flushed to zero (XLA's CPU and GPU backends do), unlike NumPy.
+    s: odd window size (static), r = s // 2; s = 1 is the identity.
+
+  Returns:
+    (H, W) float32 filtered map.
+  """
+  _check_window(s)
+  x = jnp.asarray(x, jnp.float32)
+  if x.ndim != 2:
+    raise ValueError(f"median_filter expects an (H, W) map, got shape {x.shape}")
+  return median_of_views(window_views(x, s, jnp.inf), s)

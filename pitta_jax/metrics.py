@@ -1,0 +1,150 @@
+"""Depth evaluation metrics, MonoDepth2 protocol (host-side NumPy).
+
+The 7 Eigen et al. metrics as MonoDepth2's `compute_errors` computes them, for one frame:
+
+  abs_rel  = mean(|gt - pred| / gt)          sq_rel   = mean((gt - pred)**2 / gt)
+  rmse     = sqrt(mean((gt - pred)**2))      rmse_log = sqrt(mean((log gt - log pred)**2))
+  a1, a2, a3 = mean(max(gt/pred, pred/gt) < 1.25, 1.25**2, 1.25**3)
+
+Protocol (MonoDepth2 `evaluate_depth.py`): the prediction is resized to the ground truth's size
+with `cv2.resize(..., interpolation=cv2.INTER_LINEAR)`; the valid pixels are
+`min_depth < gt < max_depth` (and the Garg crop when asked); per-image median scaling
+`pred *= median(gt_valid) / median(pred_valid)` (monocular models); then pred is clamped to
+[min_depth, max_depth]. Frames are averaged with `mean_metrics`.
+
+MonoDepth2 resizes the *disparity* and inverts it afterwards. We take the depth by default and
+resize the depth; pass `pred_is_disparity=True` to get MonoDepth2's order exactly (resize the
+disparity, then depth = 1 / disparity). Metrics are computed in float64.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable, Mapping
+
+import cv2
+import numpy as np
+
+METRIC_NAMES = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+
+# Garg/Eigen crop fractions of MonoDepth2 (rows top, bottom; cols left, right).
+GARG_CROP = (0.40810811, 0.99189189, 0.03594771, 0.96405229)
+
+
+def garg_crop_mask(height: int, width: int) -> np.ndarray:
+  """MonoDepth2's Garg crop as a bool mask (bounds truncated with int32, as MonoDepth2 does).
+
+  Returns:
+    (height, width) bool, True in rows [0.40810811 H, 0.99189189 H), cols [0.03594771 W,
+    0.96405229 W).
+  """
+  crop = np.array([GARG_CROP[0] * height, GARG_CROP[1] * height,
+                   GARG_CROP[2] * width, GARG_CROP[3] * width]).astype(np.int32)
+  mask = np.zeros((height, width), bool)
+  mask[crop[0]:crop[1], crop[2]:crop[3]] = True
+  return mask
+
+
+def compute_errors(gt: np.ndarray, pred: np.ndarray) -> dict[str, float]:
+  """The 7 metrics on matched valid pixels (MonoDepth2's `compute_errors`).
+
+  Args:
+    gt: (P,) positive ground-truth depths.
+    pred: (P,) positive predicted depths.
+
+  Returns:
+    dict with `METRIC_NAMES` keys, Python floats.
+  """
+  gt = np.asarray(gt, np.float64)
+  pred = np.asarray(pred, np.float64)
+  thresh = np.maximum(gt / pred, pred / gt)
+  out = {
+      "abs_rel": np.mean(np.abs(gt - pred) / gt),
+      "sq_rel": np.mean((gt - pred) ** 2 / gt),
+      "rmse": np.sqrt(np.mean((gt - pred) ** 2)),
+      "rmse_log": np.sqrt(np.mean((np.log(gt) - np.log(pred)) ** 2)),
+      "a1": np.mean(thresh < 1.25),
+      "a2": np.mean(thresh < 1.25 ** 2),
+      "a3": np.mean(thresh < 1.25 ** 3),
+  }
+  return {k: float(out[k]) for k in METRIC_NAMES}
+
+
+def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = 1e-3,
+                  max_depth: float = 80.0, median_scaling: bool = True, garg_crop: bool = False,
+                  clamp: bool = True, pred_is_disparity: bool = False) -> dict[str, float]:
+  """The 7 depth metrics of one frame, MonoDepth2 protocol.
+
+  Args:
+    pred: (h, w) predicted depth (or disparity with `pred_is_disparity`), any size; resized to
+      gt's size with cv2 INTER_LINEAR when the sizes differ.
+    gt: (H, W) ground-truth depth in metres; pixels outside (min_depth, max_depth) are ignored.
+    min_depth, max_depth: valid range of gt, and the clamp range of pred.
+    median_scaling: multiply pred by median(gt) / median(pred) over the valid pixels (monocular).
+    garg_crop: also restrict to the Garg crop (KITTI Eigen split).
+    clamp: clamp pred to [min_depth, max_depth] after scaling.
+    pred_is_disparity: pred is a disparity; resize it, then take depth = 1 / disparity
+      (MonoDepth2's order).
+
+  Returns:
+    dict with `METRIC_NAMES` keys, Python floats.
+
+  Raises:
+    ValueError: pred or gt not 2-D, NaN in pred, no valid pixel, or (without clamping) a
+      non-positive or non-finite prediction on a valid pixel.
+  """
+  pred = np.asarray(pred)
+  gt = np.asarray(gt)
+  if pred.ndim != 2:
+    raise ValueError(f"pred must be a 2-D (H, W) map, got shape {pred.shape}")
+  if gt.ndim != 2:
+    raise ValueError(f"gt must be a 2-D (H, W) map, got shape {gt.shape}")
+  if np.isnan(pred).any():
+    raise ValueError("pred contains NaN")
+  gt_h, gt_w = gt.shape
+  pred = pred.astype(np.float32)
+  if pred.shape != gt.shape:
+    pred = cv2.resize(pred, (gt_w, gt_h), interpolation=cv2.INTER_LINEAR)
+  if pred_is_disparity:
+    with np.errstate(divide="ignore"):
+      pred = 1.0 / pred
+  gt = gt.astype(np.float64)
+  pred = pred.astype(np.float64)
+
+  with np.errstate(invalid="ignore"):
+    valid = (gt > min_depth) & (gt < max_depth)  # (H, W); NaN gt is invalid
+  if garg_crop:
+    valid &= garg_crop_mask(gt_h, gt_w)
+  if not valid.any():
+    raise ValueError(f"no valid ground-truth pixel in ({min_depth}, {max_depth})"
+                     + (" inside the Garg crop" if garg_crop else ""))
+  gt_v, pred_v = gt[valid], pred[valid]  # (P,)
+  if median_scaling:
+    pred_v = pred_v * (np.median(gt_v) / np.median(pred_v))
+  if clamp:
+    pred_v = np.clip(pred_v, min_depth, max_depth)
+  if not (np.isfinite(pred_v).all() and (pred_v > 0).all()):
+    raise ValueError("pred must be positive and finite on the valid pixels (after scaling); "
+                     "use clamp=True or check the prediction")
+  return compute_errors(gt_v, pred_v)
+
+
+def mean_metrics(per_frame: Iterable[Mapping[str, float]]) -> dict[str, float]:
+  """Average of per-frame metrics (MonoDepth2 averages the frames' metrics, not the pixels).
+
+  Args:
+    per_frame: dicts with at least the `METRIC_NAMES` keys.
+
+  Returns:
+    dict with `METRIC_NAMES` keys.
+
+  Raises:
+    ValueError: no frame, or a frame missing a metric.
+  """
+  rows = list(per_frame)
+  if not rows:
+    raise ValueError("mean_metrics needs at least one frame")
+  for i, row in enumerate(rows):
+    missing = [k for k in METRIC_NAMES if k not in row]
+    if missing:
+      raise ValueError(f"frame {i} lacks the metrics {missing}")
+  return {k: float(np.mean([float(row[k]) for row in rows])) for k in METRIC_NAMES}

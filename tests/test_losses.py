@@ -1,0 +1,248 @@
+"""Losses, eqs. 8-10: the fast and literal L_d against literal NumPy loops (value and gradient),
+hand-computed values, and properties."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from pitta_jax import losses, masks
+from reference_numpy import (channel_mean_loop, depth_refining_grad_loop,
+                             depth_refining_loss_loop, edge_guided_loss_loop, laplacian_edge_loop)
+
+SHAPE = (12, 20)
+RTOL = 1e-5  # fast vs literal vs loop: float32 sums in different orders
+
+
+def _ld_value_and_grad(depth, panoptic, dynamic_ids, s, mode, impl):
+  f = lambda d: losses.depth_refining_loss(d, panoptic, dynamic_ids, s, mode, impl)
+  return jax.value_and_grad(f)(depth)
+
+
+@pytest.fixture(scope="module")
+def ld():
+  """(value, grad) of L_d w.r.t. depth; one compilation per (shape, s, mode, impl)."""
+  return jax.jit(_ld_value_and_grad, static_argnums=(3, 4, 5))
+
+
+@pytest.fixture(scope="module")
+def total():
+  return jax.jit(losses.pitta_loss, static_argnames=("s", "mode", "impl"))
+
+
+@pytest.fixture(scope="module")
+def le():
+  return jax.jit(losses.edge_guided_loss)
+
+
+def random_panoptic(rng, shape, n_ids, block):
+  """Segment ids 0..n_ids in blocks of `block` pixels (block 1: every pixel random, so instances
+  touch each other everywhere), cut to `shape`."""
+  small = rng.integers(0, n_ids + 1, (shape[0] // block + 1, shape[1] // block + 1))
+  return np.kron(small, np.ones((block, block), np.int64))[:shape[0], :shape[1]].astype(np.int32)
+
+
+# Instances 3, 1, 5, 2 and an id absent from the map (9, still counted in N); 0 / -1 = unused.
+DYNAMIC_IDS = np.array([3, 1, 0, 5, 9, -1, 2, 0], np.int32)
+
+
+def assert_ld_matches_loop(ld, depth, pan, dyn, s, mode):
+  want_v = depth_refining_loss_loop(depth, pan, dyn, s, mode)
+  want_g = depth_refining_grad_loop(depth, pan, dyn, s, mode)
+  got = {impl: ld(depth, pan, dyn, s, mode, impl) for impl in losses.IMPLS}
+  for impl, (v, g) in got.items():
+    np.testing.assert_allclose(float(v), want_v, rtol=RTOL, err_msg=impl)
+    np.testing.assert_allclose(np.asarray(g), want_g, rtol=RTOL, atol=1e-7, err_msg=impl)
+  (vf, gf), (vl, gl) = got["fast"], got["literal"]
+  np.testing.assert_allclose(float(vf), float(vl), rtol=RTOL)
+  np.testing.assert_allclose(np.asarray(gf), np.asarray(gl), rtol=RTOL, atol=1e-7)
+  return want_v
+
+
+@pytest.mark.parametrize("s,mode", [(1, "binary"), (3, "binary"), (5, "binary"), (7, "binary"),
+                                    (3, "instance_id"), (5, "instance_id")])
+def test_fast_and_literal_match_loop(ld, s, mode):
+  # Reference: literal NumPy loops of eqs. 3, 4, 7, 8 (value) and of the sign formula for the
+  # gradient, on random id maps where instances touch (block 1: every pixel random; blocks of
+  # 2-3 pixels: larger touching instances), tolerance 1e-5 relative.
+  rng = np.random.default_rng(s + (10 if mode == "binary" else 20))
+  for block in (1, 2, 3):
+    pan = random_panoptic(rng, SHAPE, 6, block)
+    depth = rng.uniform(0.5, 80.0, SHAPE).astype(np.float32)
+    value = assert_ld_matches_loop(ld, depth, pan, DYNAMIC_IDS, s, mode)
+    assert value > 0 or s == 1
+
+
+def test_image_smaller_than_window(ld):
+  # Reference: NumPy loops; a 3x4 image with s = 5 (every window is clipped on both axes).
+  rng = np.random.default_rng(3)
+  pan = random_panoptic(rng, (3, 4), 4, 1)
+  depth = rng.uniform(1.0, 10.0, (3, 4)).astype(np.float32)
+  assert_ld_matches_loop(ld, depth, pan, np.array([1, 2, 3, 4], np.int32), 5, "binary")
+
+
+def test_hand_computed_includes_terms_outside_instances(ld):
+  # Hand value, 1x3 row, s = 3, instance = pixels 0, 1 (depths 2, 4); pixel 2 background:
+  # D~ = [2, 4, 0]; windows {2,4} -> 3, {2,4,0} -> 2, {4,0} -> 2;
+  # L_d = |2-3| + |4-2| + |0-2| = 1 + 2 + 2 = 5 (N = 1). The last term lies outside the
+  # instance: constant in D but part of eq. 8's value. Gradient: sign(2-3), sign(4-2), 0.
+  depth = np.array([[2.0, 4.0, 10.0]], np.float32)
+  pan = np.array([[7, 7, 1]], np.int32)
+  dyn = np.array([7, 0], np.int32)
+  for impl in losses.IMPLS:
+    v, g = ld(depth, pan, dyn, 3, "binary", impl)
+    assert float(v) == pytest.approx(5.0), impl
+    np.testing.assert_array_equal(np.asarray(g), [[-1.0, 1.0, 0.0]])
+  # instance_id mode with the instance second in the table (g = 2): D~ = [4, 8, 0] -> windows
+  # 6, 4, 4 -> L_d = (2 + 4 + 4) / N, N = 2 (id 5 has no pixel but counts).
+  dyn = np.array([5, 7], np.int32)
+  for impl in losses.IMPLS:
+    v, g = ld(depth, pan, dyn, 3, "instance_id", impl)
+    assert float(v) == pytest.approx(10.0 / 2), impl
+    np.testing.assert_array_equal(np.asarray(g), [[-1.0, 1.0, 0.0]])  # 1/N * g * sign
+
+
+def test_no_instances_gives_zero_without_nan(ld):
+  # Hand value: N = 0 -> L_d = 0 and a zero (not NaN) gradient, in both implementations.
+  depth = np.random.default_rng(0).uniform(1, 5, SHAPE).astype(np.float32)
+  pan = random_panoptic(np.random.default_rng(1), SHAPE, 6, 2)
+  for dyn in (np.zeros(8, np.int32), np.full(8, -1, np.int32)):
+    for impl in losses.IMPLS:
+      v, g = ld(depth, pan, dyn, 3, "binary", impl)
+      assert float(v) == 0.0
+      assert np.all(np.asarray(g) == 0.0)
+
+
+def test_from_index_matches_public_api(ld):
+  # Reference: the public entry point from the panoptic map (same table, same numbers).
+  rng = np.random.default_rng(5)
+  pan = random_panoptic(rng, SHAPE, 6, 1)
+  depth = rng.uniform(1, 5, SHAPE).astype(np.float32)
+
+  @jax.jit
+  def from_index(depth, pan, dyn):
+    ids, valid = masks.table_from_dynamic_ids(dyn)
+    index = masks.instance_index_map(pan, ids, valid)
+    return [losses.depth_refining_loss_from_index(depth, index, jnp.sum(valid), s=3,
+                                                  mode="instance_id", impl=impl,
+                                                  n_max=dyn.shape[0])
+            for impl in losses.IMPLS]
+
+  want, _ = ld(depth, pan, DYNAMIC_IDS, 3, "instance_id", "literal")
+  for got in from_index(depth, pan, DYNAMIC_IDS):
+    np.testing.assert_allclose(float(got), float(want), rtol=RTOL)
+
+
+def test_bad_arguments():
+  d, i = jnp.ones((4, 4)), jnp.zeros((4, 4), jnp.int32)
+  with pytest.raises(ValueError, match="n_max"):
+    losses.depth_refining_loss_from_index(d, i, 1, impl="literal")
+  with pytest.raises(ValueError, match="impl"):
+    losses.depth_refining_loss_from_index(d, i, 1, impl="slow")
+  with pytest.raises(ValueError, match="mode"):
+    losses.depth_refining_loss(d, i, jnp.zeros(2, jnp.int32), 3, mode="ids")
+  with pytest.raises(ValueError, match="odd"):
+    losses.depth_refining_loss(d, i, jnp.zeros(2, jnp.int32), 4)
+
+
+# --- properties (shape SHAPE, s = 3, binary mode unless stated: one compilation each) --------
+
+panoptic_maps = hnp.arrays(np.int32, SHAPE, elements=st.integers(0, 5))
+depth_maps = hnp.arrays(np.float32, SHAPE,
+                        elements=st.floats(0.125, 80.0, width=32, allow_subnormal=False))
+
+
+@settings(max_examples=15, deadline=None)
+@given(pan=panoptic_maps, depth=depth_maps, perm=st.permutations(range(5)))
+def test_invariant_to_permuting_instances(ld, pan, depth, perm):
+  # Property (binary mode): L_d and its gradient do not depend on the order of the instances.
+  dyn = np.array([1, 2, 3, 4, 5], np.int32)
+  v, g = ld(depth, pan, dyn, 3, "binary", "fast")
+  vp, gp = ld(depth, pan, dyn[list(perm)], 3, "binary", "fast")
+  np.testing.assert_allclose(float(vp), float(v), rtol=RTOL)
+  np.testing.assert_allclose(np.asarray(gp), np.asarray(g), rtol=RTOL)
+
+
+@settings(max_examples=15, deadline=None)
+@given(pan=panoptic_maps, depth=depth_maps, a=st.floats(0.01, 100.0))
+def test_positively_homogeneous(ld, pan, depth, a):
+  # Property (binary mode): L_d(a D) = a L_d(D) for a > 0 (medians commute with scaling).
+  dyn = np.array([1, 2, 3, 4, 5], np.int32)
+  v, _ = ld(depth, pan, dyn, 3, "binary", "fast")
+  va, _ = ld((np.float32(a) * depth).astype(np.float32), pan, dyn, 3, "binary", "fast")
+  np.testing.assert_allclose(float(va), a * float(v), rtol=1e-4, atol=1e-6)
+
+
+@settings(max_examples=15, deadline=None)
+@given(pan=panoptic_maps, depth=depth_maps)
+def test_fast_equals_literal_property(ld, pan, depth):
+  # Reference: the literal eq. 8 (vmap over the N_max masked maps), value and gradient.
+  dyn = np.array([2, 0, 4, 1, 5, -1], np.int32)
+  vf, gf = ld(depth, pan, dyn, 3, "binary", "fast")
+  vl, gl = ld(depth, pan, dyn, 3, "binary", "literal")
+  np.testing.assert_allclose(float(vf), float(vl), rtol=RTOL, atol=1e-6)
+  np.testing.assert_allclose(np.asarray(gf), np.asarray(gl), rtol=RTOL)
+
+
+# --- edge-guided loss and total ----------------------------------------------------------------
+
+def test_edge_guided_loss_matches_loop(le):
+  # Reference: literal NumPy loops of eqs. 5, 6, 9, with weights None and (H, W) arrays.
+  rng = np.random.default_rng(2)
+  image = rng.random(SHAPE + (3,)).astype(np.float32)
+  depth = rng.uniform(1, 50, SHAPE).astype(np.float32)
+  u, v = rng.random(SHAPE).astype(np.float32), rng.random(SHAPE).astype(np.float32)
+  for uu, vv in ((None, None), (u, v), (np.float32(2.0), None)):
+    np.testing.assert_allclose(float(le(image, depth, uu, vv)),
+                               edge_guided_loss_loop(image, depth, uu, vv), rtol=1e-5)
+
+
+@settings(max_examples=15, deadline=None)
+@given(d=hnp.arrays(np.float32, SHAPE, elements=st.integers(0, 64).map(lambda k: k / 8.0)),
+       noise=hnp.arrays(np.float32, SHAPE + (3,), elements=st.integers(-8, 8).map(float)))
+def test_edge_guided_loss_properties(le, d, noise):
+  # Properties: L_e >= 0; L_e = 0 when the depth's edges equal the image's (an image with three
+  # equal channels d against the depth d + 3; up to the rounding of the channel mean and of the
+  # added constant, 1e-6 of the edges' sum); against a flat depth, L_e = sum dI (loop reference).
+  grey = np.repeat(d[..., None], 3, axis=-1)
+  edges_d = float(np.sum(laplacian_edge_loop(d)))
+  assert float(le(grey, d + np.float32(3.0))) <= 1e-6 * (1.0 + edges_d)
+  image = grey + np.float32(0.25) * noise
+  assert float(le(image, d)) >= 0.0
+  flat = float(le(image, np.full(SHAPE, 5.0, np.float32)))
+  edges_sum = float(np.sum(laplacian_edge_loop(channel_mean_loop(image))))
+  np.testing.assert_allclose(flat, edges_sum, rtol=1e-5, atol=1e-5)
+
+
+def test_pitta_loss_total_and_parts(total):
+  # Reference: eq. 10 from the NumPy loops of L_d and L_e; lambda = 0 leaves only L_d,
+  # lambda = inf (Table 4's "L_e only") leaves only L_e.
+  rng = np.random.default_rng(4)
+  image = rng.random(SHAPE + (3,)).astype(np.float32)
+  depth = rng.uniform(1, 50, SHAPE).astype(np.float32)
+  pan = random_panoptic(rng, SHAPE, 6, 2)
+  out = total(image, depth, pan, DYNAMIC_IDS, s=3, lam=0.2)  # lam traced: one compilation
+  l_d = depth_refining_loss_loop(depth, pan, DYNAMIC_IDS, 3)
+  l_e = edge_guided_loss_loop(image, depth)
+  assert int(out.n) == 5
+  np.testing.assert_allclose(float(out.l_d), l_d, rtol=RTOL)
+  np.testing.assert_allclose(float(out.l_e), l_e, rtol=RTOL)
+  np.testing.assert_allclose(float(out.total), l_d + 0.2 * l_e, rtol=RTOL)
+  zero = total(image, depth, pan, DYNAMIC_IDS, s=3, lam=0.0)
+  assert float(zero.total) == float(zero.l_d)
+  only_e = total(image, depth, pan, DYNAMIC_IDS, s=3, lam=math.inf)
+  assert float(only_e.total) == float(only_e.l_e)
+  # The gradient through a traced lambda = inf is L_e's alone (no inf * 0 = NaN).
+  grad = jax.jit(jax.grad(lambda d, lam: losses.pitta_loss(image, d, pan, DYNAMIC_IDS, s=3,
+                                                           lam=lam).total))
+  g_inf = np.asarray(grad(depth, math.inf))
+  assert np.isfinite(g_inf).all()
+  g_e = np.asarray(jax.jit(jax.grad(lambda d: losses.edge_guided_loss(image, d)))(depth))
+  np.testing.assert_allclose(g_inf, g_e, rtol=1e-6)

@@ -1,0 +1,142 @@
+"""Instance table, index map and masks (eqs. 3-4): against literal NumPy loops and hand values."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from pitta_jax import masks
+from reference_numpy import instance_masks_loop, instance_table_loop, used_ids
+
+S_MAX = 8
+SHAPE = (5, 7)
+
+
+@pytest.fixture(scope="module")
+def jitted():
+  return {
+      "table": jax.jit(masks.instance_table, static_argnums=4),
+      "index": jax.jit(masks.instance_index_map),
+      "masks": jax.jit(masks.instance_masks, static_argnums=3),
+      "from_index": jax.jit(masks.masks_from_index, static_argnums=(1, 2)),
+      "compact": jax.jit(masks.table_from_dynamic_ids),
+  }
+
+
+def test_default_dynamic_set():
+  # Hand value: COCO ids of person, bicycle, car, motorcycle, bus, train, truck (SPEC item 3).
+  assert masks.DEFAULT_DYNAMIC_COCO_IDS == (1, 2, 3, 4, 6, 7, 8)
+
+
+def test_instance_table_hand(jitted):
+  # Hand value: segments 10 (car 3), 11 (road 100), 12 (person 1), 13 (invalid car),
+  # 14 (bus 6), 0 (padding); dynamic first in order: 10, 12, 14.
+  ids = np.array([10, 11, 12, 13, 14, 0, 0, 0], np.int32)
+  cls = np.array([3, 100, 1, 3, 6, 0, 0, 0], np.int32)
+  valid = np.array([1, 1, 1, 0, 1, 0, 0, 0], bool)
+  dyn = np.array(masks.DEFAULT_DYNAMIC_COCO_IDS + (-1,), np.int32)
+  inst_ids, inst_valid = jitted["table"](ids, cls, valid, dyn, 4)
+  np.testing.assert_array_equal(inst_ids, [10, 12, 14, 0])
+  np.testing.assert_array_equal(inst_valid, [True, True, True, False])
+  inst_ids, inst_valid = jitted["table"](ids, cls, valid, dyn, 2)  # truncated to n_max
+  np.testing.assert_array_equal(inst_ids, [10, 12])
+  np.testing.assert_array_equal(inst_valid, [True, True])
+
+
+@settings(max_examples=30, deadline=None)
+@given(ids=hnp.arrays(np.int32, S_MAX, elements=st.integers(0, 40), unique=True),
+       cls=hnp.arrays(np.int32, S_MAX, elements=st.integers(1, 10)),
+       valid=hnp.arrays(bool, S_MAX),
+       n_max=st.sampled_from([3, 12]))
+def test_instance_table_matches_loop(jitted, ids, cls, valid, n_max):
+  # Reference: loop over the segments keeping the dynamic ones in order (instance_table_loop).
+  dyn = np.array([1, 3, 8, -1], np.int32)
+  got_ids, got_valid = jitted["table"](ids, cls, valid, dyn, n_max)
+  want_ids, want_valid = instance_table_loop(ids, cls, valid, dyn, n_max)
+  np.testing.assert_array_equal(got_ids, want_ids)
+  np.testing.assert_array_equal(got_valid, want_valid)
+
+
+def test_table_from_dynamic_ids_compacts(jitted):
+  # Hand value: [0, 5, -1, 7] -> instances 5 (j=1) and 7 (j=2), then padding.
+  ids, valid = jitted["compact"](np.array([0, 5, -1, 7], np.int32))
+  np.testing.assert_array_equal(ids, [5, 7, 0, 0])
+  np.testing.assert_array_equal(valid, [True, True, False, False])
+
+
+def index_map_loop(panoptic, inst_ids, inst_valid):
+  """Reference: per pixel, the 1-based row of the table holding its id (0 if none)."""
+  out = np.zeros(panoptic.shape, np.int32)
+  for x in range(panoptic.shape[0]):
+    for y in range(panoptic.shape[1]):
+      for j, (sid, ok) in enumerate(zip(inst_ids, inst_valid), start=1):
+        if ok and sid > 0 and panoptic[x, y] == sid:
+          out[x, y] = j
+          break
+  return out
+
+
+def test_index_map_hand(jitted):
+  # Hand value: table [7, 3, (invalid 5)]: id 7 -> 1, id 3 -> 2, ids 5, 0, 9 -> 0.
+  pan = np.array([[7, 3, 5], [0, 9, 7]], np.int32)
+  got = jitted["index"](pan, np.array([7, 3, 5], np.int32), np.array([True, True, False]))
+  np.testing.assert_array_equal(got, [[1, 2, 0], [0, 0, 1]])
+
+
+@settings(max_examples=30, deadline=None)
+@given(pan=hnp.arrays(np.int32, SHAPE, elements=st.integers(0, 9)),
+       dyn=hnp.arrays(np.int32, 6, elements=st.integers(-1, 12), unique=True))
+def test_index_map_and_masks_match_loops(jitted, pan, dyn):
+  # Reference: index_map_loop and instance_masks_loop (eq. 3) in both g_j modes; the masks
+  # built from the panoptic map and from the index map agree.
+  inst_ids, inst_valid = jitted["compact"](dyn)
+  index = np.asarray(jitted["index"](pan, inst_ids, inst_valid))
+  np.testing.assert_array_equal(index, index_map_loop(pan, np.asarray(inst_ids),
+                                                      np.asarray(inst_valid)))
+  n = len(used_ids(dyn))
+  for mode in masks.MASK_MODES:
+    got = np.asarray(jitted["masks"](pan, inst_ids, inst_valid, mode))  # (N_max, H, W)
+    want = instance_masks_loop(pan, dyn, mode)
+    assert got.shape == (dyn.shape[0],) + SHAPE
+    for j in range(dyn.shape[0]):
+      np.testing.assert_array_equal(got[j], want[j] if j < n else 0.0)
+    np.testing.assert_array_equal(np.asarray(jitted["from_index"](index, dyn.shape[0], mode)), got)
+
+
+def test_instance_id_mode_hand(jitted):
+  # Hand value: eq. 3 literally, g_j = j: the second instance's mask holds 2.
+  pan = np.array([[4, 4, 6]], np.int32)
+  m = np.asarray(jitted["masks"](pan, np.array([4, 6], np.int32), np.array([True, True]),
+                                 "instance_id"))
+  np.testing.assert_array_equal(m, [[[1, 1, 0]], [[0, 0, 2]]])
+
+
+def test_pixel_gain_is_sum_of_masks():
+  # Reference: sum_j M_j from masks_from_index.
+  index = jnp.array([[0, 1, 2], [2, 0, 3]], jnp.int32)
+  for mode in masks.MASK_MODES:
+    np.testing.assert_array_equal(masks.pixel_gain(index, mode),
+                                  masks.masks_from_index(index, 3, mode).sum(0))
+
+
+def test_bad_mode():
+  with pytest.raises(ValueError, match="mode"):
+    masks.instance_gains(3, "weird")
+
+
+def test_dynamic_ids_from_segments():
+  # Hand value: Segment-like records; cars/persons kept in order, sky (category 119) dropped.
+  @dataclasses.dataclass
+  class Seg:
+    id: int
+    category_id: int
+  segs = [Seg(5, 3), Seg(6, 119), Seg(9, 1), Seg(2, 8)]
+  np.testing.assert_array_equal(masks.dynamic_ids_from_segments(segs, 4), [5, 9, 2, 0])
+  np.testing.assert_array_equal(masks.dynamic_ids_from_segments(segs, 2), [5, 9])

@@ -1,0 +1,154 @@
+"""Median filter, eq. 7: against a literal NumPy loop (exact float32), hand values, properties."""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from pitta_jax import median as median_lib
+from reference_numpy import median_filter_loop
+
+SHAPE = (7, 9)  # the hypothesis tests' shape (one compilation per window size)
+
+
+@pytest.fixture(scope="module")
+def mf():
+  return jax.jit(median_lib.median_filter, static_argnums=1)
+
+
+def int_maps(shape=SHAPE, lo=-3, hi=3):
+  """Small-integer float32 maps: many ties, and exact arithmetic in the properties."""
+  return hnp.arrays(np.float32, shape, elements=st.integers(lo, hi).map(float))
+
+
+@pytest.mark.parametrize("n", range(1, 11))
+def test_network_sorts_all_binary_inputs(n):
+  # Reference: the 0-1 principle (a comparator network sorts every input iff it sorts all 0/1
+  # inputs), checked exhaustively against Python's sorted().
+  pairs = median_lib._batcher_pairs(n)
+  for bits in itertools.product((0, 1), repeat=n):
+    v = list(bits)
+    for i, j in pairs:
+      if v[i] > v[j]:
+        v[i], v[j] = v[j], v[i]
+    assert v == sorted(v), bits
+
+
+@pytest.mark.parametrize("n", [25, 49])
+def test_network_sorts_random_inputs(n):
+  # Reference: Python's sorted() on random inputs with ties, for the 5x5 and 7x7 windows.
+  rng = np.random.default_rng(n)
+  pairs = median_lib._batcher_pairs(n)
+  for _ in range(300):
+    v = rng.integers(0, 6, n).tolist()
+    want = sorted(v)
+    for i, j in pairs:
+      if v[i] > v[j]:
+        v[i], v[j] = v[j], v[i]
+    assert v == want
+
+
+def test_window_counts_match_loop():
+  # Reference: counting the pixels of eq. 7's window with loops.
+  for h, w, s in [(5, 8, 3), (4, 3, 5), (2, 2, 7), (9, 6, 5)]:
+    r = s // 2
+    rows = [min(i + r, h - 1) - max(i - r, 0) + 1 for i in range(h)]
+    cols = [min(j + r, w - 1) - max(j - r, 0) + 1 for j in range(w)]
+    want = np.array([[rows[i] * cols[j] for j in range(w)] for i in range(h)])
+    np.testing.assert_array_equal(median_lib.window_counts(h, w, s), want)
+  lo, hi = jax.jit(median_lib.middle_ranks, static_argnums=(0, 1, 2))(h, w, s)
+  np.testing.assert_array_equal(lo, (want - 1) // 2)
+  np.testing.assert_array_equal(hi, want // 2)
+
+
+@pytest.mark.parametrize("s", [1, 3, 5, 7])
+@pytest.mark.parametrize("shape", [(12, 20), (3, 4), (2, 9), (1, 1)])
+def test_equals_numpy_loop_exactly(mf, s, shape):
+  # Reference: literal NumPy loop of eq. 7 (np.median per window); float32 equality, on real
+  # values and on small integers (ties, even counts at the border, images smaller than s).
+  rng = np.random.default_rng(s * 100 + shape[0])
+  for x in (rng.standard_normal(shape).astype(np.float32),
+            rng.integers(-2, 3, shape).astype(np.float32) * np.float32(0.1),
+            (rng.random(shape) * 80).astype(np.float32)):
+    got = np.asarray(mf(x, s))
+    want = median_filter_loop(x, s)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, want)
+
+
+def test_hand_computed_even_counts(mf):
+  # Hand values: 2x2 map with s = 3, every window is the whole map {1, 2, 3, 10}: median =
+  # (2 + 3) / 2 = 2.5 (mean of the two middle values, not 2 or 3, and not the mean 4).
+  x = np.array([[1, 2], [3, 10]], np.float32)
+  np.testing.assert_array_equal(np.asarray(mf(x, 3)), np.full((2, 2), 2.5, np.float32))
+  # 1x4 row, s = 3: windows {1,5}, {1,5,2}, {5,2,8}, {2,8} -> 3, 2, 5, 5.
+  x = np.array([[1, 5, 2, 8]], np.float32)
+  np.testing.assert_array_equal(np.asarray(mf(x, 3)), [[3, 2, 5, 5]])
+
+
+def test_identity_for_window_one(mf):
+  # Hand value: a 1x1 window is the pixel itself.
+  x = np.random.default_rng(0).standard_normal((12, 20)).astype(np.float32)
+  np.testing.assert_array_equal(np.asarray(mf(x, 1)), x)
+
+
+@pytest.mark.parametrize("s", [0, 2, 4, -1, 3.0])
+def test_rejects_bad_window(s):
+  with pytest.raises(ValueError, match="odd"):
+    median_lib.median_filter(jnp.zeros((4, 4)), s)
+
+
+def test_rejects_non_2d():
+  with pytest.raises(ValueError, match="H, W"):
+    median_lib.median_filter(jnp.zeros((4, 4, 3)), 3)
+
+
+@settings(max_examples=25, deadline=None)
+@given(x=int_maps(), s=st.sampled_from([3, 5]))
+def test_matches_loop_property(mf, x, s):
+  # Reference: literal NumPy loop, exact, on tie-heavy integer maps.
+  np.testing.assert_array_equal(np.asarray(mf(x, s)), median_filter_loop(x, s))
+
+
+@settings(max_examples=20, deadline=None)
+@given(x=int_maps(), s=st.sampled_from([3, 5]))
+def test_commutes_with_increasing_maps(mf, x, s):
+  # Property: order statistics commute with strictly increasing maps f. Where the count is odd
+  # the median is an order statistic, so med(f(x)) = f(med(x)) for any such f (here x**3 + x,
+  # exact on small ints); everywhere, with even counts too, for the affine f(x) = 4x - 3.
+  counts = median_lib.window_counts(*x.shape, s)
+  odd = counts % 2 == 1
+  f = lambda v: v ** 3 + v
+  got = np.asarray(mf(f(x), s))
+  want = f(np.asarray(mf(x, s)))
+  np.testing.assert_array_equal(got[odd], want[odd])
+  np.testing.assert_array_equal(np.asarray(mf(4 * x - 3, s)), 4 * np.asarray(mf(x, s)) - 3)
+
+
+@settings(max_examples=20, deadline=None)
+@given(x=hnp.arrays(np.float32, SHAPE,
+                    elements=st.floats(-100, 100, width=32, allow_subnormal=False)),
+       s=st.sampled_from([3, 5]))
+def test_commutes_with_flips_and_transpose(mf, x, s):
+  # Property: the window is symmetric, so flipping/transposing the map flips/transposes the
+  # result exactly.
+  y = np.asarray(mf(x, s))
+  np.testing.assert_array_equal(np.asarray(mf(x[::-1], s)), y[::-1])
+  np.testing.assert_array_equal(np.asarray(mf(x[:, ::-1], s)), y[:, ::-1])
+  np.testing.assert_array_equal(np.asarray(mf(np.ascontiguousarray(x.T), s)), y.T)
+
+
+@settings(max_examples=10, deadline=None)
+@given(c=st.floats(-1e3, 1e3, width=32, allow_subnormal=False), s=st.sampled_from([3, 5]))
+def test_constant_map_is_fixed(mf, c, s):
+  # Property: the median of equal values is that value. (Subnormals excluded: XLA on CPU
+  # flushes them to zero.)
+  x = np.full(SHAPE, c, np.float32)
+  np.testing.assert_array_equal(np.asarray(mf(x, s)), x)

@@ -1,0 +1,137 @@
+"""Depth metrics (MonoDepth2 protocol): hand-computed cases and a per-pixel NumPy loop."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from pitta_jax import metrics
+from reference_numpy import depth_metrics_literal
+
+
+def test_metric_names_order():
+  # Hand value: MonoDepth2's order of compute_errors' outputs.
+  assert metrics.METRIC_NAMES == ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+
+
+def test_hand_computed_2x2_without_scaling():
+  # gt [[1, 2], [4, 0]] (0 is invalid), pred [[1, 1], [5, 9]]: valid pairs (1,1), (2,1), (4,5).
+  # abs_rel  = (0 + 1/2 + 1/4) / 3 = 0.25
+  # sq_rel   = (0 + 1/2 + 1/4) / 3 = 0.25          ((2-1)^2/2, (4-5)^2/4)
+  # rmse     = sqrt((0 + 1 + 1) / 3) = sqrt(2/3)
+  # rmse_log = sqrt((0 + ln(2)^2 + ln(5/4)^2) / 3)
+  # thresh   = 1, 2, 1.25 -> a1 (< 1.25) = 1/3, a2 (< 1.5625) = 2/3, a3 (< 1.953125) = 2/3
+  gt = np.array([[1, 2], [4, 0]], np.float32)
+  pred = np.array([[1, 1], [5, 9]], np.float32)
+  got = metrics.depth_metrics(pred, gt, median_scaling=False)
+  want = dict(abs_rel=0.25, sq_rel=0.25, rmse=math.sqrt(2 / 3),
+              rmse_log=math.sqrt((math.log(2) ** 2 + math.log(1.25) ** 2) / 3),
+              a1=1 / 3, a2=2 / 3, a3=2 / 3)
+  for k in metrics.METRIC_NAMES:
+    assert got[k] == pytest.approx(want[k], rel=1e-12), k
+
+
+def test_hand_computed_2x2_with_scaling_and_clamp():
+  # Same gt; pred [[1, 1], [5, 9]] scaled by median(gt_valid) / median(pred_valid) = 2 / 1:
+  # pred (2, 2, 10); with max_depth = 8 the clamp makes it (2, 2, 8) (gt 4 < 8 stays valid).
+  # abs_rel = (1/1 + 0 + 4/4) / 3 = 2/3; sq_rel = (1 + 0 + 16/4) / 3 = 5/3;
+  # rmse = sqrt((1 + 0 + 16) / 3); rmse_log = sqrt((ln 2^2 + 0 + ln 2^2) / 3);
+  # thresh = 2, 1, 2 -> a1 = a2 = a3 = 1/3.
+  gt = np.array([[1, 2], [4, 0]], np.float32)
+  pred = np.array([[1, 1], [5, 9]], np.float32)
+  got = metrics.depth_metrics(pred, gt, max_depth=8.0)
+  want = dict(abs_rel=2 / 3, sq_rel=5 / 3, rmse=math.sqrt(17 / 3),
+              rmse_log=math.sqrt(2 * math.log(2) ** 2 / 3), a1=1 / 3, a2=1 / 3, a3=1 / 3)
+  for k in metrics.METRIC_NAMES:
+    assert got[k] == pytest.approx(want[k], rel=1e-12), k
+
+
+@pytest.mark.parametrize("median_scaling", [True, False])
+@pytest.mark.parametrize("clamp", [True, False])
+def test_matches_per_pixel_loop(median_scaling, clamp):
+  # Reference: MonoDepth2's protocol and formulas written per pixel (depth_metrics_literal).
+  rng = np.random.default_rng(int(median_scaling) * 2 + int(clamp))
+  gt = rng.uniform(0.5, 90.0, (15, 24)).astype(np.float32)
+  gt[rng.random(gt.shape) < 0.3] = 0.0  # invalid pixels
+  pred = (gt * rng.uniform(0.5, 1.6, gt.shape) + 0.3).astype(np.float32)
+  got = metrics.depth_metrics(pred, gt, median_scaling=median_scaling, clamp=clamp)
+  want = depth_metrics_literal(pred, gt, median_scaling=median_scaling, clamp=clamp)
+  for k in metrics.METRIC_NAMES:
+    np.testing.assert_allclose(got[k], want[k], rtol=1e-10, err_msg=k)
+
+
+def test_resizes_prediction_bilinear():
+  # Reference: cv2.resize(pred, (W, H), INTER_LINEAR) then the loop; and a hand value: a
+  # constant prediction 2 on any grid stays 2, against gt 4 -> abs_rel 0.5, a1 = 0.
+  rng = np.random.default_rng(7)
+  gt = rng.uniform(1.0, 50.0, (12, 20)).astype(np.float32)
+  pred = rng.uniform(1.0, 50.0, (6, 10)).astype(np.float32)
+  resized = cv2.resize(pred, (20, 12), interpolation=cv2.INTER_LINEAR)
+  got = metrics.depth_metrics(pred, gt)
+  want = depth_metrics_literal(resized, gt)
+  for k in metrics.METRIC_NAMES:
+    np.testing.assert_allclose(got[k], want[k], rtol=1e-10, err_msg=k)
+  const = metrics.depth_metrics(np.full((3, 5), 2.0, np.float32), np.full((6, 10), 4.0),
+                                median_scaling=False)
+  assert const["abs_rel"] == pytest.approx(0.5)
+  assert const["a1"] == 0.0
+
+
+def test_disparity_input_matches_depth_input():
+  # Reference: MonoDepth2's order (resize the disparity, then invert) on a same-size map is just
+  # depth = 1 / disparity.
+  rng = np.random.default_rng(8)
+  gt = rng.uniform(1.0, 50.0, (8, 12)).astype(np.float32)
+  depth = rng.uniform(1.0, 50.0, (8, 12)).astype(np.float32)
+  a = metrics.depth_metrics(depth, gt)
+  b = metrics.depth_metrics((1.0 / depth).astype(np.float32), gt, pred_is_disparity=True)
+  for k in metrics.METRIC_NAMES:
+    np.testing.assert_allclose(a[k], b[k], rtol=1e-6, err_msg=k)
+
+
+def test_garg_crop():
+  # Hand values for KITTI's 375x1242: rows int(0.40810811*375) = 153 .. int(0.99189189*375) =
+  # 371, cols int(0.03594771*1242) = 44 .. int(0.96405229*1242) = 1197.
+  mask = metrics.garg_crop_mask(375, 1242)
+  assert mask.sum() == (371 - 153) * (1197 - 44)
+  assert mask[153, 44] and mask[370, 1196]
+  assert not mask[152, 44] and not mask[371, 44] and not mask[153, 43] and not mask[153, 1197]
+  # Errors only outside the crop do not count.
+  gt = np.full((375, 1242), 10.0, np.float32)
+  pred = gt.copy()
+  pred[:150] = 30.0
+  assert metrics.depth_metrics(pred, gt, garg_crop=True, median_scaling=False)["abs_rel"] == 0.0
+  assert metrics.depth_metrics(pred, gt, garg_crop=False, median_scaling=False)["abs_rel"] > 0.0
+
+
+def test_clear_errors():
+  gt = np.ones((4, 4), np.float32)
+  with pytest.raises(ValueError, match="pred must be a 2-D"):
+    metrics.depth_metrics(np.ones((1, 4, 4)), gt)
+  with pytest.raises(ValueError, match="gt must be a 2-D"):
+    metrics.depth_metrics(np.ones((4, 4)), np.ones(4))
+  with pytest.raises(ValueError, match="NaN"):
+    metrics.depth_metrics(np.full((4, 4), np.nan), gt)
+  with pytest.raises(ValueError, match="no valid"):
+    metrics.depth_metrics(np.ones((4, 4)), np.zeros((4, 4)))
+  with pytest.raises(ValueError, match="no valid"):
+    metrics.depth_metrics(np.ones((4, 4)), np.full((4, 4), 100.0))  # all beyond max_depth
+  with pytest.raises(ValueError, match="positive"):
+    metrics.depth_metrics(-np.ones((4, 4)), gt, median_scaling=False, clamp=False)
+
+
+def test_mean_metrics():
+  # Hand value: the mean over frames of each metric.
+  a = {k: 1.0 for k in metrics.METRIC_NAMES}
+  b = {k: 3.0 for k in metrics.METRIC_NAMES}
+  b["a1"] = 0.0
+  m = metrics.mean_metrics([a, b])
+  assert m["abs_rel"] == 2.0 and m["a1"] == 0.5
+  assert tuple(m) == metrics.METRIC_NAMES
+  with pytest.raises(ValueError, match="at least one"):
+    metrics.mean_metrics([])
+  with pytest.raises(ValueError, match="lacks"):
+    metrics.mean_metrics([{"abs_rel": 1.0}])
