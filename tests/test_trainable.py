@@ -20,7 +20,10 @@ from pitta_jax.models.depth_decoder import DepthNet
 
 @pytest.fixture(scope="module")
 def variables():
-  return DepthNet(18).init(jax.random.PRNGKey(0), jnp.zeros((1, 64, 64, 3)))
+  """Zeros with the variables' shapes (selection depends on names and shapes only; no init
+  compile needed)."""
+  shapes = jax.eval_shape(DepthNet(18).init, jax.random.PRNGKey(0), jnp.zeros((1, 64, 64, 3)))
+  return jax.tree_util.tree_map(lambda s: np.zeros(s.shape, s.dtype), shapes)
 
 
 def _n_values(tree):

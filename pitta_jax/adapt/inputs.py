@@ -1,0 +1,64 @@
+"""Host side of the engine: `Frame`s -> stacked, padded `StepInput` chunks (NumPy).
+
+Images and panoptic maps are resized to the network's input size (`resize_frame`: image area /
+linear, ids nearest, the ground-truth depth untouched). Segments become fixed-size padded
+arrays; the last chunk is padded with copies of its last frame marked `valid=False`, so one
+compiled scan serves the whole sequence.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from pitta_jax.adapt.engine import StepInput
+from pitta_jax.data.errors import DataError
+from pitta_jax.data.frame import Frame
+from pitta_jax.data.resize import resize_frame
+
+
+def step_input(frame: Frame, height: int, width: int, max_segments: int) -> StepInput:
+  """One frame at the network's size. A frame without panoptic map has no instances (N = 0)."""
+  if frame.image.ndim != 3 or frame.image.shape[-1] != 3:
+    raise DataError(frame.name or "frame", f"image must be (H, W, 3), got {frame.image.shape}")
+  if not np.all(np.isfinite(frame.image)):
+    raise DataError(frame.name or "frame", "image holds NaN or infinite values")
+  frame = resize_frame(frame, height, width)
+  if frame.panoptic is None:
+    panoptic = np.zeros((height, width), np.int32)
+    segments = ()
+  else:
+    panoptic = np.asarray(frame.panoptic, np.int32)
+    segments = frame.segments
+  if len(segments) > max_segments:  # keep the things first: they are what the loss uses
+    segments = tuple(sorted(segments, key=lambda s: not s.isthing))[:max_segments]
+  ids = np.zeros((max_segments,), np.int32)
+  classes = np.zeros((max_segments,), np.int32)
+  valid = np.zeros((max_segments,), bool)
+  for k, seg in enumerate(segments):
+    ids[k], classes[k], valid[k] = seg.id, seg.category_id, True
+  return StepInput(np.asarray(frame.image, np.float32), panoptic, ids, classes, valid,
+                   np.array(True))
+
+
+def stack(inputs: list[StepInput], size: int) -> StepInput:
+  """Stacks frames on a leading axis, padding to `size` with invalid copies of the last one."""
+  if not inputs:
+    raise ValueError("no frame to stack")
+  pad = [inputs[-1]._replace(valid=np.array(False))] * (size - len(inputs))
+  return StepInput(*(np.stack(field) for field in zip(*(inputs + pad))))
+
+
+def chunks(frames: Iterable[Frame], height: int, width: int, chunk_size: int,
+           max_segments: int) -> Iterator[tuple[StepInput, list[Frame]]]:
+  """Yields (stacked chunk, the original frames of it) — frames keep their full-size depth for
+  evaluation. Memory holds one chunk at a time."""
+  batch: list[Frame] = []
+  for frame in frames:
+    batch.append(frame)
+    if len(batch) == chunk_size:
+      yield stack([step_input(f, height, width, max_segments) for f in batch], chunk_size), batch
+      batch = []
+  if batch:
+    yield stack([step_input(f, height, width, max_segments) for f in batch], chunk_size), batch
