@@ -33,6 +33,41 @@ def _run_predict(args) -> int:
   return 0
 
 
+def _add_segment(sub) -> None:
+  p = sub.add_parser(
+      "segment", help="run a converted Mask2Former on images, write COCO panoptic PNG + JSON",
+      description="Panoptic segmentation with a Mask2Former weights directory (from `pitta-jax "
+                  "convert mask2former --from {detectron2,hf} CKPT --out DIR`). Writes per "
+                  "image OUT/<stem>.png (COCO panoptic: id = R + 256 G + 256^2 B, 0 = void) "
+                  "and OUT/<stem>.json ({\"segments_info\": [...]}, COCO category ids), at the "
+                  "image's own size: the input of `--segmentation png:OUT` (or the folder "
+                  "reader's panoptic_dir option). By default each image enters the network at "
+                  "its own size, zero-padded to a multiple of 32 (no upscaling to 800 pixels).",
+      epilog="example: pitta-jax segment --weights weights/m2f_swin_t --images 'seq/*.png' "
+             "--out seq_panoptic; then pitta-jax adapt --dataset folder --root seq "
+             "--segmentation png:seq_panoptic ...")
+  p.add_argument("--weights", required=True, metavar="DIR",
+                 help="Mask2Former weights directory (config.json + params)")
+  p.add_argument("--images", required=True, metavar="PATH",
+                 help="an image file, a directory, or a glob (quote it)")
+  p.add_argument("--out", required=True, metavar="OUT", help="output directory")
+  p.add_argument("--height", type=int, metavar="H", help="resize images to H x W for the network "
+                                                         "(with --width; default: own size)")
+  p.add_argument("--width", type=int, metavar="W", help="network input width (with --height)")
+  p.add_argument("--quiet", action="store_true", help="no progress bar")
+  p.set_defaults(func=_run_segment)
+
+
+def _run_segment(args) -> int:
+  from pitta_jax.segment import segment_images
+  if (args.height is None) != (args.width is None):
+    raise ValueError("give both --height and --width, or neither")
+  size = None if args.height is None else (args.height, args.width)
+  written = segment_images(args.weights, args.images, args.out, size, args.quiet)
+  print(f"wrote {len(written)} panoptic maps to {args.out}")
+  return 0
+
+
 def _add_convert(sub) -> None:
   from weights_convert import cli as convert_cli
   p = sub.add_parser("convert", help="convert PyTorch checkpoints (same as python -m weights_convert)",
@@ -41,13 +76,141 @@ def _add_convert(sub) -> None:
   p.set_defaults(func=lambda args: convert_cli.run(args))
 
 
+def _add_demo(sub) -> None:
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.config_cli import add_dataclass_arguments
+  from pitta_jax.demo import DemoConfig
+  p = sub.add_parser(
+      "demo", help="the embedded synthetic benchmark end to end (no downloads, no arguments)",
+      description="Train (once, cached) a clear-weather source MonoDepth2 on the synthetic "
+                  "driving benchmark, then run No adaptation / BN batch stats / PITTA on fog, "
+                  "rain, night and snow sequences; print the 7 metrics and write results.json, "
+                  "results.csv, table.md and figures/ to --out.")
+  add_dataclass_arguments(p, DemoConfig, "demo")
+  add_dataclass_arguments(p, AdaptConfig, "adaptation (PITTA row; paper defaults)")
+  p.add_argument("--retrain", action="store_true", help="retrain the source model (ignore cache)")
+  p.add_argument("--quiet", action="store_true", help="no progress bars")
+  p.set_defaults(func=_run_demo)
+
+
+def _run_demo(args) -> int:
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.config_cli import dataclass_from_args
+  from pitta_jax.demo import DemoConfig, run_demo
+  from pitta_jax.source_model import SourceConfig, load_or_train_source
+  if args.retrain:
+    load_or_train_source(SourceConfig(), quiet=args.quiet, retrain=True)
+  run_demo(dataclass_from_args(DemoConfig, args), dataclass_from_args(AdaptConfig, args),
+           quiet=args.quiet)
+  return 0
+
+
+def _add_train_source(sub) -> None:
+  from pitta_jax.config_cli import add_dataclass_arguments
+  from pitta_jax.source_model import SourceConfig
+  p = sub.add_parser(
+      "train-source", help="train the clear-domain source MonoDepth2 of the synthetic benchmark",
+      description="Train MonoDepth2 ResNet-18 from scratch on clear synthetic frames with a "
+                  "supervised depth loss; cached under $PITTA_JAX_CACHE or ~/.cache/pitta-jax "
+                  "by config hash. Prints the weights directory (usable with --weights).")
+  add_dataclass_arguments(p, SourceConfig, "training")
+  p.add_argument("--retrain", action="store_true", help="ignore a cached model")
+  p.add_argument("--quiet", action="store_true")
+  p.set_defaults(func=_run_train_source)
+
+
+def _run_train_source(args) -> int:
+  import json
+  from pitta_jax.config_cli import dataclass_from_args
+  from pitta_jax.source_model import SourceConfig, load_or_train_source
+  weights, report = load_or_train_source(dataclass_from_args(SourceConfig, args),
+                                         quiet=args.quiet, retrain=args.retrain)
+  print(json.dumps(report, indent=2))
+  return 0
+
+
+DATASETS = ("drivingstereo", "kitti", "waymo", "folder", "synthetic")
+
+
+def _add_adapt(sub, name: str) -> None:
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.config_cli import add_dataclass_arguments
+  from pitta_jax.run import EvalConfig
+  adapting = name == "adapt"
+  p = sub.add_parser(
+      name, help=("adapt a depth network online with PITTA (or another method) and evaluate"
+                  if adapting else "evaluate a depth network without adaptation"),
+      description=("Online test-time adaptation over a frame sequence (predict-then-adapt), "
+                   "evaluated with the 7 Eigen metrics (MonoDepth2 protocol)." if adapting else
+                   "Evaluate the network as it is (running BN statistics, no update)."))
+  p.add_argument("--dataset", choices=DATASETS, required=True)
+  p.add_argument("--root", help="dataset root (not needed for synthetic)")
+  p.add_argument("--weights", help="weights directory; default for synthetic: the cached "
+                 "source model (trained on first use)")
+  p.add_argument("--segmentation", default="gt",
+                 help="gt (the dataset's own panoptic maps), png:DIR (COCO-panoptic PNG + JSON "
+                      "per frame stem), or mask2former:DIR (converted Mask2Former weights)")
+  p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                 help="reader option, repeatable (e.g. weather=foggy size=half for "
+                      "drivingstereo; domain=fog num_frames=100 seed=3 for synthetic)")
+  p.add_argument("--out", default="pitta_out/" + name, help="output directory")
+  p.add_argument("--checkpoint-every", type=int, default=0,
+                 help="save the adaptation state every K frames under OUT/checkpoints")
+  p.add_argument("--quiet", action="store_true", help="no progress bars")
+  if adapting:
+    add_dataclass_arguments(p, AdaptConfig, "adaptation (paper defaults)")
+  add_dataclass_arguments(p, EvalConfig, "evaluation")
+  p.set_defaults(func=_run_adapt, adapting=adapting)
+
+
+def _run_adapt(args) -> int:
+  import dataclasses
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.config_cli import dataclass_from_args
+  from pitta_jax.report import Row, write_results
+  from pitta_jax.run import EvalConfig, run_sequence
+  from pitta_jax.sources import open_frames, open_weights
+  if args.adapting:
+    cfg = dataclass_from_args(AdaptConfig, args)
+  else:
+    cfg = AdaptConfig(method="none", bn_stats="running")
+  eval_cfg = dataclass_from_args(EvalConfig, args)
+  weights = open_weights(args.weights, args.dataset, quiet=args.quiet)
+  frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
+                       weights.config.height, weights.config.width)
+  out = args.out
+  res = run_sequence(weights, frames, cfg, eval_cfg, name=f"{args.dataset} {cfg.method}",
+                     quiet=args.quiet,
+                     checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
+                     checkpoint_every=args.checkpoint_every)
+  row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.fps, 2),
+                                                   "frames": len(res.frame_names),
+                                                   "n_skipped": res.n_skipped})
+  meta = {"command": args.command, "dataset": args.dataset, "root": args.root,
+          "options": args.option, "segmentation": args.segmentation,
+          "weights": str(args.weights), "adapt": dataclasses.asdict(cfg),
+          "eval": dataclasses.asdict(eval_cfg),
+          "per_frame": [{"name": n, **m} for n, m in zip(res.frame_names, res.per_frame)],
+          "logs": {k: v.tolist() for k, v in res.logs.items()}}
+  table = write_results(out, [row], meta, group_title="Dataset")
+  if not args.quiet:
+    print(table)
+  print(f"{len(res.frame_names)} frames at {res.fps:.2f} frames/s; results in {out}/")
+  return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
   parser = argparse.ArgumentParser(
       prog="pitta-jax",
       description="PITTA: pose-agnostic, instance-aware test-time adaptation of monocular depth "
                   "networks, in JAX.")
   sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+  _add_demo(sub)
+  _add_adapt(sub, "adapt")
+  _add_adapt(sub, "evaluate")
+  _add_train_source(sub)
   _add_predict(sub)
+  _add_segment(sub)
   _add_convert(sub)
   return parser
 

@@ -44,6 +44,17 @@ def colorize_ids(ids: np.ndarray, seed: int = 0) -> np.ndarray:
   return palette[inverse.reshape(ids.shape)]
 
 
+def label(image: np.ndarray, text: str) -> np.ndarray:
+  """A copy of a uint8 RGB image with `text` in its top-left corner (white on a dark band)."""
+  out = image.copy()
+  scale = max(0.35, image.shape[0] / 400)
+  (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+  out[: th + 8, : tw + 8] = (out[: th + 8, : tw + 8] * 0.3).astype(np.uint8)
+  cv2.putText(out, text, (4, th + 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1,
+              cv2.LINE_AA)
+  return out
+
+
 def grid(rows: list[list[np.ndarray]], pad: int = 4) -> np.ndarray:
   """Tiles uint8 RGB images (resized to the first image's size) into a grid."""
   h, w = rows[0][0].shape[:2]
@@ -55,3 +66,8 @@ def grid(rows: list[list[np.ndarray]], pad: int = 4) -> np.ndarray:
         img = cv2.resize(img, (w, h), interpolation=cv2.INTER_NEAREST)
       out[i * (h + pad): i * (h + pad) + h, j * (w + pad): j * (w + pad) + w] = img
   return out
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+  """float RGB in [0, 1] -> uint8 (rounded)."""
+  return np.clip(np.rint(np.asarray(image, np.float64) * 255.0), 0, 255).astype(np.uint8)

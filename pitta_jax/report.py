@@ -1,0 +1,119 @@
+"""Results to files: results.json, results.csv, table.md (the 7 Eigen metrics per row), and a
+per-frame curve figure. Used by the CLI, the demo and the experiments.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+
+from pitta_jax.metrics import METRIC_NAMES
+
+HIGHER_IS_BETTER = ("a1", "a2", "a3")  # threshold accuracies; the errors are lower-is-better
+HEADERS = {"abs_rel": "AbsRel ↓", "sq_rel": "SqRel ↓", "rmse": "RMSE ↓", "rmse_log": "RMSElog ↓",
+           "a1": "δ<1.25 ↑", "a2": "δ<1.25² ↑", "a3": "δ<1.25³ ↑"}
+
+
+@dataclasses.dataclass
+class Row:
+  """One line of a results table: a (group, method) pair and its mean metrics."""
+  group: str           # e.g. the weather shift or dataset
+  method: str
+  metrics: dict[str, float]
+  extra: dict[str, Any] = dataclasses.field(default_factory=dict)  # fps, seconds, n_skipped...
+
+
+def markdown_table(rows: Sequence[Row], group_title: str = "Shift") -> str:
+  """The paper's table layout: group, method, 7 metrics (3 decimals; best per group in bold)."""
+  head = f"| {group_title} | Method | " + " | ".join(HEADERS[m] for m in METRIC_NAMES) + " |"
+  lines = [head, "|" + "---|" * (len(METRIC_NAMES) + 2)]
+  for group in dict.fromkeys(r.group for r in rows):
+    members = [r for r in rows if r.group == group]
+    best = {}
+    for m in METRIC_NAMES:
+      vals = [r.metrics[m] for r in members if m in r.metrics]
+      if len(vals) > 1:
+        best[m] = max(vals) if m in HIGHER_IS_BETTER else min(vals)
+    for r in members:
+      cells = []
+      for m in METRIC_NAMES:
+        v = r.metrics.get(m, float("nan"))
+        text = f"{v:.3f}"
+        cells.append(f"**{text}**" if m in best and np.isclose(v, best[m]) else text)
+      lines.append(f"| {group} | {r.method} | " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def write_results(out_dir: str | Path, rows: Sequence[Row], meta: dict[str, Any],
+                  group_title: str = "Shift") -> str:
+  """Writes results.json (meta + rows), results.csv and table.md; returns the markdown."""
+  out = Path(out_dir)
+  out.mkdir(parents=True, exist_ok=True)
+  table = markdown_table(rows, group_title)
+  (out / "table.md").write_text(table)
+  payload = {**meta, "rows": [dataclasses.asdict(r) for r in rows]}
+  (out / "results.json").write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
+  with open(out / "results.csv", "w", newline="") as f:
+    writer = csv.writer(f)
+    extra_keys = sorted({k for r in rows for k in r.extra})
+    writer.writerow([group_title.lower(), "method", *METRIC_NAMES, *extra_keys])
+    for r in rows:
+      writer.writerow([r.group, r.method, *(f"{r.metrics.get(m, float('nan')):.6f}"
+                                            for m in METRIC_NAMES),
+                       *(r.extra.get(k, "") for k in extra_keys)])
+  return table
+
+
+def _jsonable(x):
+  if isinstance(x, (np.floating, np.integer)):
+    return x.item()
+  if isinstance(x, np.ndarray):
+    return x.tolist()
+  if dataclasses.is_dataclass(x):
+    return dataclasses.asdict(x)
+  if isinstance(x, Path):
+    return str(x)
+  raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+_COLOURS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189)]
+
+
+def curve_figure(series: dict[str, np.ndarray], title: str, ylabel: str = "AbsRel",
+                 size: tuple[int, int] = (720, 360)) -> np.ndarray:
+  """A line plot (uint8 RGB) of per-frame values, one line per series, drawn with OpenCV."""
+  w, h = size
+  left, right, top, bottom = 60, 20, 40, 40
+  img = np.full((h, w, 3), 255, np.uint8)
+  vals = np.concatenate([np.asarray(v, float) for v in series.values() if len(v)])
+  vals = vals[np.isfinite(vals)]
+  lo, hi = (float(vals.min()), float(vals.max())) if vals.size else (0.0, 1.0)
+  if hi - lo < 1e-9:
+    lo, hi = lo - 0.5, hi + 0.5
+  n = max(len(v) for v in series.values())
+  def xy(i, v):
+    x = left + (w - left - right) * (i / max(n - 1, 1))
+    y = top + (h - top - bottom) * (1 - (v - lo) / (hi - lo))
+    return int(round(x)), int(round(y))
+  cv2.rectangle(img, (left, top), (w - right, h - bottom), (0, 0, 0), 1)
+  font = cv2.FONT_HERSHEY_SIMPLEX
+  for frac in (0.0, 0.5, 1.0):
+    v = lo + frac * (hi - lo)
+    cv2.putText(img, f"{v:.3f}", (4, xy(0, v)[1] + 4), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+  cv2.putText(img, title, (left, 24), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+  cv2.putText(img, f"frame (0..{n - 1})", (w // 2 - 40, h - 12), font, 0.4, (0, 0, 0), 1,
+              cv2.LINE_AA)
+  cv2.putText(img, ylabel, (4, top - 8), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+  for k, (name, v) in enumerate(series.items()):
+    colour = _COLOURS[k % len(_COLOURS)]
+    pts = np.array([xy(i, x) for i, x in enumerate(np.asarray(v, float)) if np.isfinite(x)])
+    if len(pts) > 1:
+      cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, colour, 2, cv2.LINE_AA)
+    cv2.putText(img, name, (w - right - 200, top + 18 + 16 * k), font, 0.45, colour, 1, cv2.LINE_AA)
+  return img

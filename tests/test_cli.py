@@ -1,0 +1,88 @@
+"""The main job and the adapt/evaluate commands, end to end at a tiny size.
+
+`pitta-jax demo` with a 2-step source model at 96x64 and 3-frame sequences: checks the files a
+user gets and that every number in them is consistent with the per-frame logs (independent
+recomputation of the means from results.json's per-frame values); `adapt`/`evaluate` on the
+synthetic dataset reuse the demo's cached source model and its compiled steps.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from pitta_jax import source_model
+from pitta_jax.adapt import AdaptConfig
+from pitta_jax.cli import main
+from pitta_jax.demo import DemoConfig, run_demo
+from pitta_jax.metrics import METRIC_NAMES
+from pitta_jax.source_model import SourceConfig
+
+TINY = SourceConfig(height=64, width=96, sequences=1, frames_per_sequence=4, steps=2, batch_size=2)
+
+
+@pytest.fixture(scope="module")
+def demo_out(tmp_path_factory):
+  cache = tmp_path_factory.mktemp("cache")
+  mp = pytest.MonkeyPatch()
+  mp.setenv(source_model.CACHE_ENV, str(cache))
+  out = tmp_path_factory.mktemp("demo")
+  result = run_demo(DemoConfig(shifts=("fog",), num_frames=3, out=str(out)), AdaptConfig(),
+                    TINY, quiet=True)
+  yield out, result, cache
+  mp.undo()
+
+
+def test_demo_writes_results_table_and_figures(demo_out):
+  out, result, _ = demo_out
+  data = json.loads((out / "results.json").read_text())
+  rows = [(r["group"], r["method"]) for r in data["rows"]]
+  assert rows == [("clear", "No adaptation"), ("fog", "No adaptation"), ("fog", "BN batch stats"),
+                  ("fog", "PITTA")]
+  for r in data["rows"]:  # the table's means are the means of the per-frame values
+    per_frame = data["per_frame_abs_rel"][r["group"]][r["method"]]
+    assert len(per_frame) == 3
+    np.testing.assert_allclose(r["metrics"]["abs_rel"], np.mean(per_frame), rtol=1e-6)
+    assert set(r["metrics"]) == set(METRIC_NAMES) and r["extra"]["frames"] == 3
+  assert data["adapt"]["lam"] == 0.2 and data["adapt"]["lr"] == 1e-4  # the paper's defaults
+  with open(out / "results.csv") as f:
+    assert len(list(csv.reader(f))) == 5
+  assert (out / "table.md").read_text() == result["table"]
+  for name in ("fog_frame002.png", "fog_abs_rel_per_frame.png", "clear_frame002.png"):
+    assert (out / "figures" / name).stat().st_size > 1000
+  # the source model was cached and is found again (no retraining)
+  weights, report = source_model.load_or_train_source(TINY, quiet=True)
+  assert report["weights_dir"] == str(source_model.cached_dir(TINY))
+
+
+def test_adapt_and_evaluate_on_synthetic(demo_out, tmp_path, monkeypatch):
+  _, _, cache = demo_out
+  monkeypatch.setenv(source_model.CACHE_ENV, str(cache))
+  weights = str(source_model.cached_dir(TINY))
+  common = ["--dataset", "synthetic", "--weights", weights, "--option", "num_frames=3",
+            "--option", "domain=fog", "--quiet"]
+  assert main(["adapt", *common, "--out", str(tmp_path / "a"), "--lam", "0.5"]) == 0
+  assert main(["evaluate", *common, "--out", str(tmp_path / "e")]) == 0
+  adapt = json.loads((tmp_path / "a" / "results.json").read_text())
+  evaluate = json.loads((tmp_path / "e" / "results.json").read_text())
+  assert adapt["adapt"]["lam"] == 0.5 and adapt["adapt"]["method"] == "pitta"
+  assert evaluate["adapt"]["method"] == "none" and evaluate["adapt"]["bn_stats"] == "running"
+  assert len(adapt["per_frame"]) == 3 and len(adapt["logs"]["loss"]) == 3
+  # evaluate on the demo's fog sequence (same seed) gives the demo's No adaptation numbers
+  demo = json.loads((demo_out[0] / "results.json").read_text())
+  ref = [r for r in demo["rows"] if r["group"] == "fog" and r["method"] == "No adaptation"][0]
+  np.testing.assert_allclose(evaluate["rows"][0]["metrics"]["abs_rel"],
+                             ref["metrics"]["abs_rel"], rtol=1e-6)
+
+
+def test_user_errors_are_one_line(tmp_path, capsys):
+  assert main(["adapt", "--dataset", "kitti", "--weights", str(tmp_path), "--out",
+               str(tmp_path / "o")]) == 2
+  assert "model.json" in capsys.readouterr().err
+  assert main(["adapt", "--dataset", "folder", "--root", str(tmp_path / "missing"), "--out",
+               str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("error: ") and err.count("\n") == 1
