@@ -41,6 +41,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from weights_convert.strict import check_keys
 from weights_convert.pth import CheckpointError, load_pickle, load_pth
 
 CONFIG_JSON = "config.json"
@@ -303,10 +304,6 @@ def _to_torch(a: np.ndarray, kind: str) -> np.ndarray:
   return np.ascontiguousarray(a)
 
 
-def _listing(keys: list[str]) -> str:
-  return ", ".join(keys)
-
-
 def apply_rules(state: dict, rules: Rules, ignored: re.Pattern, path: str,
                 expected: dict[tuple[str, ...], tuple[int, ...]]
                 ) -> dict[tuple[str, ...], np.ndarray]:
@@ -323,16 +320,7 @@ def apply_rules(state: dict, rules: Rules, ignored: re.Pattern, path: str,
     Flax path ("params", ...) -> float32 array.
   """
   used = {s for rule in rules for s in rule.sources}
-  unexpected = sorted(k for k in state if k not in used and not ignored.match(k))
-  missing = sorted(k for k in used if k not in state)
-  problems = []
-  if unexpected:
-    problems.append(f"{len(unexpected)} unexpected keys: {_listing(unexpected)}")
-  if missing:
-    problems.append(f"{len(missing)} missing keys: {_listing(missing)}")
-  if problems:
-    raise CheckpointError(f"{path}: " + "; ".join(problems)
-                          + f" ({len(used)} keys expected)")
+  check_keys(path, state, used, lambda k: bool(ignored.match(k)))
   flat = {}
   for rule in rules:
     parts = []

@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 
 from weights_convert.pth import CheckpointError, load_pth
+from weights_convert.strict import check_keys
 
 Transform = Callable[[np.ndarray], np.ndarray]
 # torch key -> (flax path (collection, module..., leaf), transform)
@@ -123,15 +124,7 @@ def apply_table(state: dict, table: KeyTable, path: str, expected: dict[tuple[st
     path: file name, for messages.
     expected: Flax path -> shape of the target model (from `jax.eval_shape` of its init).
   """
-  unexpected = sorted(k for k in state if k not in table and not _is_ignorable(k))
-  missing = sorted(k for k in table if k not in state)
-  problems = []
-  if unexpected:
-    problems.append(f"unexpected keys {unexpected[:8]}{' ...' if len(unexpected) > 8 else ''}")
-  if missing:
-    problems.append(f"missing keys {missing[:8]}{' ...' if len(missing) > 8 else ''}")
-  if problems:
-    raise CheckpointError(f"{path}: " + "; ".join(problems) + f" ({len(table)} keys expected)")
+  check_keys(path, state, table, _is_ignorable)
   flat = {}
   for key, (fpath, transform) in table.items():
     value = state[key]

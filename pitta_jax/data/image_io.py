@@ -120,13 +120,18 @@ def write_depth_png(path: PathLike, depth: np.ndarray, scale: float = DEPTH_PNG_
   _imwrite(path, stored.astype(np.uint16))
 
 
+def load_npy(path: PathLike, what: str) -> np.ndarray:
+  """np.load without pickle (a .npy cannot run code); DataError naming the file otherwise."""
+  try:
+    return np.load(path, allow_pickle=False)
+  except (ValueError, OSError) as e:
+    raise DataError(path, f"cannot read .npy {what} ({e})") from None
+
+
 def read_depth_npy(path: PathLike) -> np.ndarray:
   """Reads a dense (H, W) depth `.npy` (metres, 0 = invalid) without pickle; float32."""
   path = require_file(path, "depth map")
-  try:
-    array = np.load(path, allow_pickle=False)
-  except (ValueError, OSError) as e:
-    raise DataError(path, f"cannot read .npy depth map ({e})") from None
+  array = load_npy(path, "depth map")
   if array.ndim != 2 or not np.issubdtype(array.dtype, np.floating):
     raise DataError(path, f"depth .npy must be a float (H, W) array, got {array.dtype} "
                           f"{array.shape}")

@@ -56,7 +56,7 @@ from typing import Sequence
 import numpy as np
 
 from pitta_jax.data.errors import DataError
-from pitta_jax.data.image_io import (PathLike, list_images, read_depth_png, read_image, require_dir,
+from pitta_jax.data.image_io import (PathLike, list_images, load_npy, read_depth_png, read_image, require_dir,
                                      require_file)
 from pitta_jax.data.panoptic_io import PanopticSource, panoptic_source
 from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
@@ -111,10 +111,7 @@ def read_waymo_depth_npy(path: Path, image: Path, calib: WaymoCalib | None) -> n
 
   The raster size is calib's (height, width), or the image's when there is no calib.json.
   """
-  try:
-    array = np.load(path, allow_pickle=False)
-  except (ValueError, OSError) as e:
-    raise DataError(path, f"cannot read .npy depth ({e})") from None
+  array = load_npy(path, "depth")
   if array.ndim != 2 or not np.issubdtype(array.dtype, np.number):
     raise DataError(path, f"depth .npy must be (H, W) or (N, 3) numbers, got {array.dtype} "
                           f"{array.shape}")
