@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
+import re
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -36,9 +38,22 @@ def _parse_int_tuple(text: str) -> tuple[int, ...]:
   return tuple(out)
 
 
+def field_comments(cls: type) -> dict[str, str]:
+  """The trailing `# comment` of each field line in the dataclass source (its help text)."""
+  try:
+    source = inspect.getsource(cls)
+  except (OSError, TypeError):
+    return {}
+  found = {}
+  for match in re.finditer(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.+)$", source, re.MULTILINE):
+    found[match.group(1)] = match.group(2).strip()
+  return found
+
+
 def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, title: str) -> None:
   """Adds one optional flag per field of `cls` (default None = keep the dataclass default)."""
   group = parser.add_argument_group(title)
+  comments = field_comments(cls)
   for field in dataclasses.fields(cls):
     default = field.default
     if isinstance(default, bool):
@@ -55,7 +70,8 @@ def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, title: s
       kind, meta = str, "STR"
     shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
     group.add_argument(f"--{field.name.replace('_', '-')}", dest=f"cfg_{field.name}", type=kind,
-                       default=None, metavar=meta, help=f"default: {shown}")
+                       default=None, metavar=meta,
+                       help=f"{comments.get(field.name, '')} (default: {shown})".lstrip())
 
 
 def dataclass_from_args(cls: type[T], args: argparse.Namespace, **fixed: Any) -> T:

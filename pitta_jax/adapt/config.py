@@ -13,11 +13,11 @@ from pitta_jax.masks import DEFAULT_DYNAMIC_COCO_IDS
 @dataclasses.dataclass(frozen=True)
 class AdaptConfig:
   """Configuration of one adaptation run (one method on one frame sequence)."""
-  method: str = "pitta"            # registry key in `pitta_jax.adapt.methods.METHODS`
+  method: str = "pitta"            # pitta | none (registry `pitta_jax.adapt.methods.METHODS`)
   optimizer: str = "adam"          # adam | sgd (paper eq. 11 writes plain SGD; SPEC: Adam default)
-  lr: float = 1e-4                 # SPEC step 10
+  lr: float = 1e-4                 # learning rate alpha of eq. 11 (SPEC step 10)
   momentum: float = 0.0            # sgd only
-  steps_per_frame: int = 1         # SPEC step 10
+  steps_per_frame: int = 1         # optimiser steps per frame (SPEC step 10)
   lam: float = 0.2                 # paper Table 4: best lambda (eq. 10)
   window: int = 5                  # median window s (eq. 7), SPEC step 5
   mask_mode: str = "binary"        # binary | instance_id (eq. 3 literally)
