@@ -65,6 +65,15 @@ def cache_root() -> Path:
   return Path(base) / "pitta-jax"
 
 
+def enable_compilation_cache() -> None:
+  """Persist XLA executables under the cache root, so a second run skips the compiles
+  (tens of seconds per network on a CPU). Safe to call more than once."""
+  path = cache_root() / "xla"
+  path.mkdir(parents=True, exist_ok=True)
+  jax.config.update("jax_compilation_cache_dir", str(path))
+  jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
 def cached_dir(cfg: SourceConfig) -> Path:
   return cache_root() / "source" / f"monodepth2_r{cfg.num_layers}_{cfg.width}x{cfg.height}_{cfg.key()}"
 

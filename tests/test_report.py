@@ -70,4 +70,4 @@ def test_string_tuples_parse_as_strings():
   parser = argparse.ArgumentParser()
   add_dataclass_arguments(parser, DemoConfig, "demo")
   cfg = dataclass_from_args(DemoConfig, parser.parse_args(["--shifts", "fog, night"]))
-  assert cfg.shifts == ("fog", "night") and cfg.num_frames == 60
+  assert cfg.shifts == ("fog", "night") and cfg.num_frames == 40
