@@ -137,7 +137,8 @@ def init_state(variables: Tree, method: Method, cfg: AdaptConfig,
                tx: optax.GradientTransformation) -> AdaptState:
   """Splits the variables with the configured selector and builds the initial carry."""
   parts = trainable_lib.split(variables, trainable_lib.parse_selector(cfg.selector))
-  to_jnp = functools.partial(jax.tree_util.tree_map, jnp.asarray)
+  # private copies: the runner donates the carry, which must never alias the caller's arrays
+  to_jnp = functools.partial(jax.tree_util.tree_map, lambda x: jnp.array(x, copy=True))
   tr = to_jnp(parts.trainable)
   return AdaptState(
       trainable=tr, frozen=to_jnp(parts.frozen), batch_stats=to_jnp(parts.batch_stats),
