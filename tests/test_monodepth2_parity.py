@@ -169,17 +169,7 @@ def _bn_grads_torch(root, x, weights, dtype):
   loss = sum((out[("disp", s)].permute(0, 2, 3, 1) * torch.from_numpy(weights[s]).to(dtype)).mean()
              for s in range(4))
   loss.backward()
-  grads = {}
-  for name, module in enc.encoder.named_modules():
-    if isinstance(module, torch.nn.BatchNorm2d):
-      # torch name -> Flax module path: layer3.1.bn2 -> layer3_1/bn2, downsample.1 -> downsample_bn
-      parts = name.replace("downsample.1", "downsample_bn").split(".")
-      if parts[0].startswith("layer"):
-        parts = [f"{parts[0]}_{parts[1]}"] + parts[2:]
-      key = "/".join(parts)
-      grads[key + "/scale"] = module.weight.grad.double().numpy()
-      grads[key + "/bias"] = module.bias.grad.double().numpy()
-  return loss.item(), grads
+  return loss.item(), tm.bn_grads(enc)
 
 
 def _bn_grads_jax(variables, x, weights, dtype):

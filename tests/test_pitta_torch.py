@@ -88,16 +88,7 @@ def _torch_side(enc, dec, image, panoptic, ids, dtype):
   depth = 1.0 / (1 / 100 + (1 / 0.1 - 1 / 100) * disp)
   total, l_d, l_e = t_pitta_loss(x, depth, panoptic, ids)
   total.backward()
-  grads = {}
-  for name, m in enc.encoder.named_modules():
-    if isinstance(m, torch.nn.BatchNorm2d):
-      parts = name.replace("downsample.1", "downsample_bn").split(".")
-      if parts[0].startswith("layer"):
-        parts = [f"{parts[0]}_{parts[1]}"] + parts[2:]
-      key = "/".join(parts)
-      grads[key + "/scale"] = m.weight.grad.double().numpy()
-      grads[key + "/bias"] = m.bias.grad.double().numpy()
-  return float(total), float(l_d), float(l_e), grads
+  return float(total), float(l_d), float(l_e), tm.bn_grads(enc)
 
 
 def _jax_side(variables, image, panoptic, ids, dtype, with_grad=True):

@@ -207,3 +207,18 @@ def randomize_(module: nn.Module, seed: int) -> None:
         mod.running_mean.copy_(0.2 * torch.randn(mod.running_mean.shape, generator=g))
         mod.running_var.copy_(0.5 + torch.rand(mod.running_var.shape, generator=g))
         mod.num_batches_tracked.fill_(7)
+
+
+def bn_grads(encoder: "ResnetEncoder") -> dict:
+  """Encoder BN gamma/beta gradients keyed by the Flax leaf path (`layer3_1/bn2/scale`, ...):
+  torch `layer3.1.bn2` -> `layer3_1/bn2`, `downsample.1` -> `downsample_bn`."""
+  grads = {}
+  for name, module in encoder.encoder.named_modules():
+    if isinstance(module, nn.BatchNorm2d):
+      parts = name.replace("downsample.1", "downsample_bn").split(".")
+      if parts[0].startswith("layer"):
+        parts = [f"{parts[0]}_{parts[1]}"] + parts[2:]
+      key = "/".join(parts)
+      grads[key + "/scale"] = module.weight.grad.double().numpy()
+      grads[key + "/bias"] = module.bias.grad.double().numpy()
+  return grads
