@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import flax.linen as nn
 
-from pitta_jax.models.layers import reflect_pad, upsample_nearest2x
+from pitta_jax.models.layers import Conv, reflect_pad, upsample_nearest2x
 from pitta_jax.models.resnet import ResnetEncoder, encoder_channels
 
 DECODER_CHANNELS = (16, 32, 64, 128, 256)
@@ -26,7 +26,7 @@ MIN_DEPTH, MAX_DEPTH = 0.1, 100.0  # MonoDepth2's defaults
 
 def conv3x3_reflect(x: jax.Array, features: int, name: str) -> jax.Array:
   """MonoDepth2's `Conv3x3(use_refl=True)`: ReflectionPad2d(1) then a 3x3 VALID conv with bias."""
-  return nn.Conv(features, (3, 3), padding="VALID", use_bias=True, name=name)(reflect_pad(x))
+  return Conv(features, (3, 3), padding="VALID", use_bias=True, name=name)(reflect_pad(x))
 
 
 class DepthDecoder(nn.Module):

@@ -3,17 +3,25 @@
 - `BatchNorm`: PyTorch `nn.BatchNorm2d` semantics, which Flax's `nn.BatchNorm` does not have:
   normalisation uses the *biased* batch variance, the running estimate receives the *unbiased*
   one, momentum 0.1 means `running = 0.9 * running + 0.1 * batch`, eps 1e-5.
-- `conv`: a `flax.linen.Conv` with explicit PyTorch-style symmetric padding (Flax's 'SAME' pads
-  asymmetrically for stride-2 convolutions).
+- `Conv`: `flax.linen.Conv` with the loop-friendly input gradient of `conv_vjp` (fast inside
+  the engine's `lax.scan` on CPU); `conv`: one with explicit PyTorch-style symmetric padding
+  (Flax's 'SAME' pads asymmetrically for stride-2 convolutions).
 - `reflect_pad`, `upsample_nearest2x`: MonoDepth2's `ReflectionPad2d(1)` and
   `F.interpolate(scale_factor=2, mode="nearest")`.
 """
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import flax.linen as nn
+
+from pitta_jax.models import conv_vjp
+
+# Every convolution of the adapted networks: same parameters and values as nn.Conv.
+Conv = functools.partial(nn.Conv, conv_general_dilated=conv_vjp.conv_general_dilated)
 
 
 class BatchNorm(nn.Module):
@@ -63,7 +71,7 @@ class BatchNorm(nn.Module):
 def conv(features: int, kernel: int, stride: int = 1, padding: int = 0, use_bias: bool = False,
          name: str | None = None) -> nn.Conv:
   """A PyTorch-equivalent `Conv2d(k, stride, padding)` in NHWC (kernel stored as HWIO)."""
-  return nn.Conv(features, (kernel, kernel), strides=(stride, stride),
+  return Conv(features, (kernel, kernel), strides=(stride, stride),
                  padding=((padding, padding), (padding, padding)), use_bias=use_bias, name=name)
 
 

@@ -1,0 +1,93 @@
+"""A 2-D NHWC convolution whose input gradient stays fast inside `lax.scan` on XLA:CPU.
+
+Why: JAX differentiates `lax.conv_general_dilated` w.r.t. its input with another convolution
+whose kernel is the flipped forward kernel read with input/output features swapped (`01oi`).
+XLA:CPU hands a convolution to its fast library only in the canonical `01io` kernel layout; in
+the entry computation a layout pass makes the swap a physical transpose, but inside a while
+loop (the body of the engine's `lax.scan` over frames) the `01oi` convolution is emitted as a
+generic loop nest instead. Measured on 2 CPU cores, the scanned PITTA step at 320x96 took
+443 ms/frame with JAX's rule and 170 ms/frame with this one (`benchmarks/step.py`).
+
+The fix is a `jax.custom_vjp` whose backward builds the input gradient from an explicitly
+flipped and transposed kernel, already in canonical HWIO, with the same padding and dilation
+JAX's own transpose rule uses; the kernel gradient is JAX's own rule. Values and gradients are
+those of `lax.conv_general_dilated` (tests/test_conv_vjp.py). Flax's `nn.Conv` takes it through
+its `conv_general_dilated` attribute (`models.layers.Conv`).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+NHWC_HWIO = ("NHWC", "HWIO", "NHWC")
+Pairs = tuple[tuple[int, int], ...]
+
+
+def _dilated_size(size: int, dilation: int) -> int:
+  return 0 if size == 0 else 1 + dilation * (size - 1)
+
+
+def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
+          rhs_dilation: tuple[int, int], precision: Any) -> jax.Array:
+  return lax.conv_general_dilated(x, k, strides, padding, None, rhs_dilation, NHWC_HWIO,
+                                  precision=precision)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4, 5))
+def conv_nhwc(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
+              rhs_dilation: tuple[int, int], precision: Any = None) -> jax.Array:
+  """Convolution of x (N, H, W, C) with k (kh, kw, C, O) -> (N, H', W', O); see module doc."""
+  return _conv(x, k, strides, padding, rhs_dilation, precision)
+
+
+def _conv_fwd(x, k, strides, padding, rhs_dilation, precision):
+  return _conv(x, k, strides, padding, rhs_dilation, precision), (x, k)
+
+
+def _conv_bwd(strides, padding, rhs_dilation, precision, residuals, g):
+  x, k = residuals
+  # kernel gradient: JAX's rule (XLA drops it when the kernel is not differentiated)
+  _, kernel_vjp = jax.vjp(lambda kk: _conv(x, kk, strides, padding, rhs_dilation, precision), k)
+  dk, = kernel_vjp(g)
+  # input gradient: full correlation of the stride-dilated cotangent with the flipped kernel
+  window = [_dilated_size(s, d) for s, d in zip(k.shape[:2], rhs_dilation)]
+  lo = [w - p_lo - 1 for w, (p_lo, _) in zip(window, padding)]
+  hi = [n + w - 1 - _dilated_size(m, s) - l
+        for n, w, m, s, l in zip(x.shape[1:3], window, g.shape[1:3], strides, lo)]
+  k_t = jnp.transpose(jnp.flip(k, (0, 1)), (0, 1, 3, 2))  # (kh, kw, O, C), canonical HWIO
+  dx = lax.conv_general_dilated(g, k_t, (1, 1), tuple(zip(lo, hi)), strides, rhs_dilation,
+                                NHWC_HWIO, precision=precision)
+  return dx, dk
+
+
+conv_nhwc.defvjp(_conv_fwd, _conv_bwd)
+
+
+def conv_general_dilated(lhs: jax.Array, rhs: jax.Array, window_strides: Sequence[int],
+                         padding: str | Sequence[tuple[int, int]],
+                         lhs_dilation: Sequence[int] | None = None,
+                         rhs_dilation: Sequence[int] | None = None,
+                         dimension_numbers: Any = None, feature_group_count: int = 1,
+                         batch_group_count: int = 1, precision: Any = None,
+                         preferred_element_type: Any = None) -> jax.Array:
+  """Drop-in `lax.conv_general_dilated`: plain 2-D NHWC/HWIO convolutions go to `conv_nhwc`,
+  anything else (grouped, input-dilated, string padding other than VALID, other layouts) to
+  `lax.conv_general_dilated` unchanged."""
+  if isinstance(padding, str) and padding.upper() == "VALID":
+    padding = ((0, 0),) * (lhs.ndim - 2)
+  plain = (lhs.ndim == 4 and not isinstance(padding, str) and feature_group_count == 1
+           and batch_group_count == 1 and preferred_element_type is None
+           and tuple(lhs_dilation or (1, 1)) == (1, 1)
+           and lax.conv_dimension_numbers(lhs.shape, rhs.shape, dimension_numbers)
+           == lax.conv_dimension_numbers(lhs.shape, rhs.shape, NHWC_HWIO))
+  if not plain:
+    return lax.conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation,
+                                    rhs_dilation, dimension_numbers, feature_group_count,
+                                    batch_group_count, precision, preferred_element_type)
+  return conv_nhwc(lhs, rhs, tuple(window_strides), tuple(tuple(p) for p in padding),
+                   tuple(rhs_dilation or (1, 1)), precision)

@@ -1,0 +1,41 @@
+"""Random MonoDepth2 variables whose activations stay O(1): for tests and benchmarks.
+
+Flax's default init gives a random ResNet whose deep activations explode or vanish without
+ImageNet BN statistics; these draws (the same distributions as the PyTorch reference's
+`tests/torch_monodepth2.randomize_`) keep every layer's output O(1), so losses, gradients and
+timings behave like those of a trained network. NumPy draws on `jax.eval_shape`: no compile.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pitta_jax.models.depth_decoder import DepthNet
+
+
+def random_monodepth2_variables(seed: int = 0, num_layers: int = 18) -> dict[str, Any]:
+  """{"params", "batch_stats"} of a `DepthNet(num_layers)`.
+
+  Kernels ~ N(0, 1 / fan_in), BN gamma ~ U[0.3, 0.8], biases and beta ~ 0.1 N(0, 1), running
+  means ~ 0.2 N(0, 1) and variances ~ U[0.5, 1.5]. The variables do not depend on the image size.
+  """
+  rng = np.random.default_rng(seed)
+  shapes = jax.eval_shape(DepthNet(num_layers).init, jax.random.PRNGKey(0),
+                          jnp.zeros((1, 64, 64, 3)))
+
+  def draw(path, x):
+    name = jax.tree_util.keystr(path)
+    if x.ndim == 4:  # conv kernel (kh, kw, in, out)
+      return rng.normal(size=x.shape).astype(np.float32) / np.sqrt(np.prod(x.shape[:3]))
+    if "mean" in name:
+      return (0.2 * rng.normal(size=x.shape)).astype(np.float32)
+    if "var" in name:
+      return (0.5 + rng.uniform(size=x.shape)).astype(np.float32)
+    if "scale" in name:
+      return (0.3 + 0.5 * rng.uniform(size=x.shape)).astype(np.float32)
+    return (0.1 * rng.normal(size=x.shape)).astype(np.float32)
+  return jax.tree_util.tree_map_with_path(draw, shapes)

@@ -1,0 +1,101 @@
+"""The loop-friendly convolution: JAX's own values and gradients, and canonical kernels in a scan."""
+
+from __future__ import annotations
+
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import flax.linen as nn
+from jax import lax
+
+from pitta_jax.models import conv_vjp
+from pitta_jax.models.layers import Conv
+
+NHWC = ("NHWC", "HWIO", "NHWC")
+
+# (input H, W, kernel, stride, padding (lo, hi) per axis, kernel dilation)
+CASES = [
+    ((17, 23), 3, (1, 1), ((1, 1), (1, 1)), (1, 1)),
+    ((17, 23), 3, (2, 2), ((1, 1), (1, 1)), (1, 1)),
+    ((16, 20), 7, (2, 2), ((3, 3), (3, 3)), (1, 1)),
+    ((15, 9), 1, (2, 2), ((0, 0), (0, 0)), (1, 1)),
+    ((13, 14), 3, (3, 2), ((0, 2), (1, 0)), (1, 1)),
+    ((12, 12), 3, (1, 2), ((2, 2), (1, 1)), (2, 2)),
+    ((8, 9), 3, (1, 1), ((0, 0), (0, 0)), (1, 1)),
+]
+
+
+@pytest.mark.parametrize("size,ksize,strides,padding,dilation", CASES)
+def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding, dilation):
+  rng = np.random.default_rng(sum(size) + ksize)
+  x = rng.standard_normal((2, *size, 5), np.float32)
+  k = rng.standard_normal((ksize, ksize, 5, 7), np.float32)
+
+  @jax.jit
+  def run_both(x, k):
+    def run(fn):
+      def f(x, k):
+        return fn(x, k, strides, padding, rhs_dilation=dilation, dimension_numbers=NHWC)
+      y, vjp = jax.vjp(f, x, k)
+      return (y, *vjp(jnp.cos(3.0 * y)))  # a cotangent that is not all ones
+    return run(lax.conv_general_dilated), run(conv_vjp.conv_general_dilated)
+
+  ref, got = run_both(x, k)
+  for name, a, b in zip(("value", "input grad", "kernel grad"), ref, got):
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.shape == b.shape, name
+    err = float(np.max(np.abs(a - b)) / (np.max(np.abs(a)) + 1e-12))
+    print(f"{name}: max rel diff {err:.2e}")
+    assert err < 1e-6, name
+
+
+def test_other_forms_fall_back_to_lax():
+  """Grouped / input-dilated / SAME convolutions are passed through unchanged."""
+  rng = np.random.default_rng(0)
+  x = rng.standard_normal((1, 9, 9, 4), np.float32)
+  for kwargs, cin in (({"feature_group_count": 2}, 2), ({"lhs_dilation": (2, 2)}, 4)):
+    k = rng.standard_normal((3, 3, cin, 4), np.float32)
+
+    @jax.jit
+    def both(x, k):
+      return [fn(x, k, (1, 1), ((1, 1), (1, 1)), dimension_numbers=NHWC, **kwargs)
+              for fn in (lax.conv_general_dilated, conv_vjp.conv_general_dilated)]
+    a, b = both(x, k)
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def _kernel_layouts(conv_fn) -> list[str]:
+  """dim_labels of every convolution XLA compiles for the gradient of a 3-step scan."""
+  def loss(x, k):
+    def body(c, _):
+      y = conv_fn(c, k, (2, 2), ((1, 1), (1, 1)), dimension_numbers=NHWC)
+      return c, jnp.sum(jnp.tanh(y))
+    return jnp.sum(lax.scan(body, x, None, length=3)[1])
+  x, k = jnp.ones((1, 16, 16, 8)), jnp.ones((3, 3, 8, 8))
+  text = jax.jit(jax.grad(loss)).lower(x, k).compile().as_text()
+  return re.findall(r"dim_labels=([a-z0-9_>-]+)", text)
+
+
+def test_input_gradient_kernel_is_canonical_inside_scan():
+  """The reason for the module: no `01oi` (swapped-feature) kernels inside the while loop.
+  JAX's own rule is checked too, so the test notices if XLA stops needing the workaround."""
+  ours = _kernel_layouts(conv_vjp.conv_general_dilated)
+  theirs = _kernel_layouts(lax.conv_general_dilated)
+  print("lax rule:", theirs, "ours:", ours)
+  assert ours and all("_01io->" in d for d in ours)
+  assert any("_01oi->" in d for d in theirs), "XLA now canonicalises in loops: drop conv_vjp"
+
+
+def test_flax_conv_uses_it_with_same_parameters():
+  x = np.random.default_rng(2).standard_normal((1, 10, 12, 3), np.float32)
+  ours = Conv(6, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
+  plain = nn.Conv(6, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
+  v = ours.init(jax.random.PRNGKey(3), x)
+  assert jax.tree_util.tree_structure(v) == jax.tree_util.tree_structure(
+      plain.init(jax.random.PRNGKey(3), x))
+  ga, gb = jax.jit(lambda x: [jax.grad(lambda x: jnp.sum(jnp.sin(m.apply(v, x))))(x)
+                               for m in (ours, plain)])(x)
+  np.testing.assert_allclose(np.asarray(ga), np.asarray(gb), rtol=1e-5, atol=1e-6)
