@@ -1,0 +1,287 @@
+"""Many streams in one compiled call (`pitta_jax.adapt.streams`): vmap, lambda sweep, sharding.
+
+References: K separate runs of the single-stream engine (`make_step` + `make_chunk_runner`) on
+each stream's frames; the plain engine with `AdaptConfig(lam=0.2)` for the lambda sweep; the
+unsharded vmapped run for the sharded one (in a subprocess with 4 virtual CPU devices).
+Random-weight ResNet-18 at 64x96, 3 frames, keeps the compiles short.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pitta_jax.adapt import (AdaptConfig, StepInput, init_state, make_chunk_runner,
+                             make_optimizer, make_step, monodepth2_model)
+from pitta_jax.adapt import streams
+from pitta_jax.adapt.methods import get_method
+from pitta_jax.models.random_init import random_monodepth2_variables
+
+H, W, S, T = 64, 96, 8, 3
+CAR, PERSON, ROAD = 3, 1, 149
+# the paper's lr 1e-4: Adam moves every coordinate by ~lr per step, so float noise in a gradient
+# coordinate moves parameters by a fraction of lr, which a larger lr would blow up
+CFG = AdaptConfig(chunk_size=T, max_instances=4, window=3)
+
+
+def frames(n: int, seed: int = 0) -> StepInput:
+  """n frames (n, ...): smooth random images, two touching cars and a person on a road."""
+  rng = np.random.default_rng(seed)
+  yy, xx = np.mgrid[0:H, 0:W]
+  images, pans = [], []
+  for t in range(n):
+    base = 0.5 + 0.3 * np.sin(xx / (7 + t) + yy / 11 + rng.uniform(0, 6))[..., None] * np.array(
+        [1, .8, .6])
+    images.append(np.clip(base + 0.05 * rng.normal(size=(H, W, 3)), 0, 1))
+    pan = np.full((H, W), 7, np.int32)
+    o = int(rng.integers(0, 8))
+    pan[30:50, 10 + o:40 + o] = 11
+    pan[30:50, 40 + o:60 + o] = 12
+    pan[20:50, 70:76] = 13
+    pans.append(pan)
+  seg_ids = np.zeros((n, S), np.int32)
+  seg_cls = np.zeros((n, S), np.int32)
+  seg_valid = np.zeros((n, S), bool)
+  seg_ids[:, :4] = [7, 11, 12, 13]
+  seg_cls[:, :4] = [ROAD, CAR, CAR, PERSON]
+  seg_valid[:, :4] = True
+  return StepInput(np.stack(images).astype(np.float32), np.stack(pans), seg_ids, seg_cls,
+                   seg_valid, np.ones((n,), bool))
+
+
+def random_variables(seed: int = 1) -> dict:
+  return random_monodepth2_variables(seed)
+
+
+def fresh(state):
+  """A copy of a state for a chunk runner, which donates (deletes) its carry argument."""
+  return jax.tree_util.tree_map(jnp.copy, state)
+
+
+@pytest.fixture(scope="module")
+def variables():
+  return random_variables()
+
+
+@pytest.fixture(scope="module")
+def single_runner():
+  model, method = monodepth2_model(18), get_method("pitta")
+  return make_chunk_runner(make_step(model, method, CFG, make_optimizer(CFG)))
+
+
+def _max_diff(a, b) -> float:
+  return max(float(np.max(np.abs(np.asarray(x, np.float64) - np.asarray(y, np.float64))))
+             for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
+
+
+def _assert_state_close(got, want, label: str) -> None:
+  """Counters, keys and source parameters exactly; parameters and Adam moments to float noise.
+
+  Tolerances: a batch-K and a batch-1 convolution round differently (depths agree to ~1e-6
+  relative), and eq. 8's gradient is discontinuous: sign(D~ - D~') flips at pixels whose depth is
+  within rounding of its window's median, so a few pixels' contributions to a BN gamma/beta
+  gradient differ. Adam then moves a coordinate by about lr whatever its gradient's size. So
+  parameters agree to 1e-2 * lr and the Adam moments to 1e-2 of each leaf's largest value.
+  """
+  for name in ("source", "step", "rng", "n_skipped", "method_state"):
+    jax.tree_util.tree_map(np.testing.assert_array_equal, getattr(got, name), getattr(want, name))
+  print(f"{label}: trainable max abs diff {_max_diff(got.trainable, want.trainable):.2e} "
+        f"(lr {CFG.lr:g}), adam moments {_max_diff(got.opt_state, want.opt_state):.2e}")
+  jax.tree_util.tree_map(
+      lambda x, y: np.testing.assert_allclose(x, y, rtol=0, atol=1e-2 * CFG.lr),
+      got.trainable, want.trainable)
+  jax.tree_util.tree_map(
+      lambda x, y: np.testing.assert_allclose(
+          x, y, rtol=0, atol=1e-2 * float(np.max(np.abs(np.asarray(y))) + 1e-30)),
+      got.opt_state, want.opt_state)
+
+
+K = 4  # streams; divisible by the 4 devices of the sharding test
+
+
+def stream_frames() -> list[StepInput]:
+  """Each stream's own frames; stream 1 ends with a padding frame (valid=False)."""
+  per_stream = [frames(T, seed=10 + k) for k in range(K)]
+  per_stream[1] = per_stream[1]._replace(valid=np.array([True] * (T - 1) + [False]))
+  return per_stream
+
+
+def run_multi(variables) -> tuple:
+  """K streams, own frames and seeds, one vmapped compiled call: (states, outputs)."""
+  model, method = monodepth2_model(18), get_method("pitta")
+  tx = make_optimizer(CFG)
+  runner = make_chunk_runner(streams.make_multi_stream_step(model, method, CFG, tx))
+  states = streams.init_streams(variables, method, CFG, K, tx)
+  return runner(states, streams.stack_stream_inputs(stream_frames()))
+
+
+@pytest.fixture(scope="module")
+def multi_run(variables):
+  return run_multi(variables)
+
+
+def test_multi_stream_step_equals_separate_runs(variables, single_runner, multi_run):
+  """K = 4 streams with their own frames (one with a padding frame) and seeds, vmapped, vs 4
+  separate runs of the single-stream engine."""
+  method = get_method("pitta")
+  tx = make_optimizer(CFG)
+  states, outs = multi_run
+  assert states.trainable["encoder"]["bn1"]["scale"].shape[0] == K
+  assert states.frozen["encoder"]["conv1"]["kernel"].ndim == 4  # shared: no stream axis
+  assert outs.depth.shape == (T, K, H, W)
+  np.testing.assert_array_equal(np.asarray(states.step), [T, T - 1, T, T])
+
+  bitwise = True
+  for k, own in enumerate(stream_frames()):
+    cfg_k = dataclasses.replace(CFG, seed=CFG.seed + k)
+    ref_state, ref_out = single_runner(fresh(init_state(variables, method, cfg_k, tx)), own)
+    got = streams.stream_state(states, k)
+    d = float(np.max(np.abs(np.asarray(outs.depth[:, k]) - ref_out.depth) / ref_out.depth))
+    print(f"stream {k}: depth max rel diff {d:.2e}, loss {np.asarray(outs.loss[:, k])} "
+          f"vs {np.asarray(ref_out.loss)}")
+    assert d <= 1e-5
+    np.testing.assert_allclose(outs.loss[:, k], ref_out.loss, rtol=1e-5)
+    _assert_state_close(got, ref_state, f"stream {k}")
+    bitwise &= all(np.array_equal(a, b) for a, b in zip(
+        jax.tree_util.tree_leaves((got.trainable, outs.depth[:, k])),
+        jax.tree_util.tree_leaves((ref_state.trainable, ref_out.depth))))
+  print(f"vmapped vs separate runs bitwise identical: {bitwise}")
+  # the streams did adapt, differently
+  a, b = (streams.stream_state(states, k).trainable for k in (0, 2))
+  assert _max_diff(a, b) > 1e-2 * CFG.lr
+
+
+def test_lambda_sweep_equals_plain_engine(variables, single_runner):
+  """Stream lam = 0.2 of a (0, 0.2, inf) sweep equals the plain engine with AdaptConfig(lam=0.2)
+  (= CFG.lam); lam = 0 is L_d alone and lam = inf is L_e alone."""
+  assert CFG.lam == 0.2
+  model = monodepth2_model(18)
+  lams = (0.0, 0.2, math.inf)
+  sweep = make_chunk_runner(streams.make_lambda_sweep_step(model, CFG))
+  states = streams.init_lambda_sweep(variables, lams, CFG)
+  shared = frames(T, seed=4)
+  states, outs = sweep(states, shared)
+  np.testing.assert_array_equal(np.asarray(states.method_state["lam"]), np.float32(lams))
+
+  tx = make_optimizer(CFG)
+  plain = fresh(init_state(variables, get_method("pitta"), CFG, tx))
+  ref_state, ref_out = single_runner(plain, shared)
+  d = float(np.max(np.abs(np.asarray(outs.depth[:, 1]) - ref_out.depth) / ref_out.depth))
+  print(f"lam=0.2 stream vs engine: depth max rel diff {d:.2e}, "
+        f"loss diff {np.max(np.abs(np.asarray(outs.loss[:, 1]) - ref_out.loss)):.2e}")
+  assert d <= 1e-5
+  np.testing.assert_allclose(outs.loss[:, 1], ref_out.loss, rtol=1e-5)
+  got = streams.stream_state(states, 1)
+  _assert_state_close(got.replace(method_state={}), ref_state, "lam=0.2 stream")
+  np.testing.assert_array_equal(outs.loss[:, 0], outs.loss_d[:, 0])  # lam = 0: L = L_d
+  np.testing.assert_array_equal(outs.loss[:, 2], outs.loss_e[:, 2])  # lam = inf: L = L_e
+  assert np.all(np.isfinite(np.asarray(outs.grad_norm))) and np.all(outs.grad_norm[-1] > 0)
+  assert not np.any(np.asarray(outs.skipped))
+
+
+def test_table4_lambdas():
+  assert streams.TABLE4_LAMBDAS == (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0,
+                                    math.inf)
+
+
+def test_axes_and_shardings_by_field():
+  """Shared fields (frozen weights, running statistics) have no stream axis and are replicated;
+  every other field is mapped on axis 0 and split over the "streams" mesh axis."""
+  P = jax.sharding.PartitionSpec
+  axes = streams.state_axes()
+  assert axes.frozen is None and axes.batch_stats is None
+  assert axes.trainable == 0 and axes.opt_state == 0 and axes.method_state == 0
+  shard = streams.state_shardings(streams.stream_mesh(jax.devices()[:1]))
+  assert shard.frozen.spec == P() and shard.trainable.spec == P("streams")
+  mesh = streams.stream_mesh(jax.devices()[:1])
+  assert streams.input_sharding(mesh).spec == P(None, "streams")
+  assert streams.input_sharding(mesh, shared_frames=True).spec == P()
+  with pytest.raises(ValueError, match="unknown AdaptState fields"):
+    streams.state_axes(("frozen", "weights"))
+  with pytest.raises(ValueError, match="cannot be split evenly"):
+    streams._check_divisible(6, type("FakeMesh", (), {"size": 4})())
+
+
+SHARDED_SCRIPT = textwrap.dedent("""
+    import sys
+    import jax, numpy as np
+    sys.path.insert(0, {tests!r})
+    import test_streams as ts
+    from pitta_jax.adapt import make_optimizer, monodepth2_model
+    from pitta_jax.adapt import streams
+    from pitta_jax.adapt.methods import get_method
+
+    assert len(jax.devices()) == 4, jax.devices()
+    model, method, cfg = monodepth2_model(18), get_method("pitta"), ts.CFG
+    tx = make_optimizer(cfg)
+    chunk = streams.stack_stream_inputs(ts.stream_frames())
+    mesh = streams.stream_mesh()
+    runner = streams.make_sharded_chunk_runner(
+        streams.make_multi_stream_step(model, method, cfg, tx), mesh)
+    states = streams.init_streams(ts.random_variables(), method, cfg, ts.K, tx)
+    states, out = runner(streams.shard_streams(states, mesh),
+                         streams.shard_stream_inputs(chunk, mesh))
+    leaf = states.trainable["encoder"]["bn1"]["scale"]
+    assert leaf.sharding.spec == jax.sharding.PartitionSpec("streams"), leaf.sharding
+    assert [s.data.shape[0] for s in leaf.addressable_shards] == [1, 1, 1, 1]
+    assert [s.data.shape[1] for s in out.depth.addressable_shards] == [1, 1, 1, 1]
+    leaves = jax.tree_util.tree_leaves((states, out))
+    np.savez(sys.argv[1], *[np.asarray(x) for x in leaves])
+""")
+
+
+def _tolerance(path: str) -> float:
+  """Scale-relative tolerance of a leaf of (states, outputs) in the sharded comparison."""
+  if any(k in path for k in ("opt_state", "grad_norm", "update_norm")):
+    return 1e-4  # gradient statistics: eq. 8's gradient is discontinuous (`_assert_state_close`)
+  if "trainable" in path:
+    return 1e-6
+  if path.startswith("[1]"):
+    return 2e-6  # depths and loss terms
+  return 0.0  # counters, keys, source/frozen parameters, lambda: exact
+
+
+def test_sharded_streams_equal_unsharded_run(multi_run, tmp_path):
+  """The K = 4 run of `multi_run` with the stream axis over a 4-device mesh ("streams"; 4
+  virtual CPU devices in a subprocess, one stream each) vs the same vmapped run on one device.
+
+  Not bitwise: each device runs batch-1 convolutions where the unsharded run has batch 4, which
+  XLA's CPU convolutions round differently. Measured (scale-relative: max |a - b| / max |b| per
+  leaf): parameters ~3e-7, depths ~7e-7, gradient norms ~1e-6, Adam moments ~2e-5.
+  """
+  env = dict(os.environ)
+  env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "")
+                      + " --xla_force_host_platform_device_count=4").strip()
+  env["JAX_PLATFORMS"] = "cpu"
+  script = SHARDED_SCRIPT.format(tests=str(Path(__file__).parent))
+  out_path = tmp_path / "sharded.npz"
+  proc = subprocess.run([sys.executable, "-c", script, str(out_path)], env=env,
+                        capture_output=True, text=True, timeout=600)
+  assert proc.returncode == 0, proc.stderr[-4000:]
+  with np.load(out_path) as data:
+    got = [data[f"arr_{i}"] for i in range(len(data.files))]
+  with_path = jax.tree_util.tree_leaves_with_path(multi_run)
+  assert len(got) == len(with_path)
+  worst: dict[float, float] = {}
+  bitwise = True
+  for a, (path, b) in zip(got, with_path):
+    b = np.asarray(b)
+    assert a.shape == b.shape and a.dtype == b.dtype
+    bitwise &= bool(np.array_equal(a, b))
+    diff = float(np.max(np.abs(a.astype(np.float64) - b.astype(np.float64)), initial=0.0))
+    rel = diff / max(float(np.max(np.abs(b.astype(np.float64)), initial=0.0)), 1e-30)
+    tol = _tolerance(jax.tree_util.keystr(path))
+    worst[tol] = max(worst.get(tol, 0.0), rel)
+    assert rel <= tol, (jax.tree_util.keystr(path), rel, tol)
+  print(f"sharded vs unsharded: bitwise identical {bitwise}; max scale-relative diff per "
+        f"tolerance class: {worst}")
