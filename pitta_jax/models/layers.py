@@ -6,6 +6,7 @@
 - `Conv`: `flax.linen.Conv` with the loop-friendly input gradient of `conv_vjp` (fast inside
   the engine's `lax.scan` on CPU); `conv`: one with explicit PyTorch-style symmetric padding
   (Flax's 'SAME' pads asymmetrically for stride-2 convolutions).
+- `max_pool_3x3_s2`: the ResNet stem's max pool, with a gradient that is fast on CPU.
 - `reflect_pad`, `upsample_nearest2x`: MonoDepth2's `ReflectionPad2d(1)` and
   `F.interpolate(scale_factor=2, mode="nearest")`.
 """
@@ -73,6 +74,62 @@ def conv(features: int, kernel: int, stride: int = 1, padding: int = 0, use_bias
   """A PyTorch-equivalent `Conv2d(k, stride, padding)` in NHWC (kernel stored as HWIO)."""
   return Conv(features, (kernel, kernel), strides=(stride, stride),
                  padding=((padding, padding), (padding, padding)), use_bias=use_bias, name=name)
+
+
+def _pool_views(x: jax.Array) -> list[jax.Array]:
+  """The 9 strided (stride 2) views of the -inf-padded x, taps in row-major order."""
+  b, h, w, c = x.shape
+  ho, wo = (h + 1) // 2, (w + 1) // 2
+  xp = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), constant_values=-jnp.inf)
+  return [jax.lax.slice(xp, (0, i, j, 0), (b, i + 2 * ho - 1, j + 2 * wo - 1, c), (1, 2, 2, 1))
+          for i in range(3) for j in range(3)]
+
+
+@jax.custom_vjp
+def max_pool_3x3_s2(x: jax.Array) -> jax.Array:
+  """`nn.MaxPool2d(3, stride=2, padding=1)` on NHWC: (B, H, W, C) -> (B, ceil(H/2), ceil(W/2), C).
+
+  Forward: the maximum of the 9 strided views of the -inf-padded input. Backward: PyTorch's
+  rule (the whole gradient to the first maximal tap in row-major order) written as 4 parity
+  planes of the input, each a sum of at most 4 masked output gradients, instead of XLA's
+  select-and-scatter, which XLA:CPU runs ~10x slower (22 ms at 640x192 in the PITTA step).
+  """
+  return _max_pool_fwd(x)[0]
+
+
+def _max_pool_fwd(x):
+  views = _pool_views(x)
+  best, arg = views[0], jnp.zeros(views[0].shape, jnp.int8)
+  for t, v in enumerate(views[1:], start=1):
+    take = v > best  # strict: ties keep the first tap, as PyTorch
+    best = jnp.where(take, v, best)
+    arg = jnp.where(take, jnp.int8(t), arg)
+  return best, (arg, x.shape)
+
+
+def _max_pool_bwd(res, g):
+  arg, (b, h, w, c) = res
+  ho, wo = g.shape[1], g.shape[2]
+
+  def part(tap: int, dy: int, dx: int) -> jax.Array:
+    """Gradient of output (m + dy, n + dx) through `tap`, on the (m, n) grid (zero past the end)."""
+    contrib = jnp.where(arg == tap, g, 0.0)
+    contrib = contrib[:, dy:, dx:]
+    return jnp.pad(contrib, ((0, 0), (0, dy), (0, dx), (0, 0)))
+
+  # input (2m + r, 2n + q) is tap (r + 1, q + 1) of output (m, n), and for r = 1 (q = 1) also
+  # tap (0, .) of output (m + 1, n) (tap (., 0) of output (m, n + 1))
+  ee = part(4, 0, 0)
+  eo = part(5, 0, 0) + part(3, 0, 1)
+  oe = part(7, 0, 0) + part(1, 1, 0)
+  oo = part(8, 0, 0) + part(6, 0, 1) + part(2, 1, 0) + part(0, 1, 1)
+  rows_e = jnp.stack([ee, eo], axis=3).reshape(b, ho, 2 * wo, c)  # interleave columns
+  rows_o = jnp.stack([oe, oo], axis=3).reshape(b, ho, 2 * wo, c)
+  full = jnp.stack([rows_e, rows_o], axis=2).reshape(b, 2 * ho, 2 * wo, c)  # interleave rows
+  return (full[:, :h, :w].astype(g.dtype),)
+
+
+max_pool_3x3_s2.defvjp(_max_pool_fwd, _max_pool_bwd)
 
 
 def reflect_pad(x: jax.Array, pad: int = 1) -> jax.Array:

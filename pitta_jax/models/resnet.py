@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import flax.linen as nn
 
-from pitta_jax.models.layers import BatchNorm, conv
+from pitta_jax.models.layers import BatchNorm, conv, max_pool_3x3_s2
 
 # depth -> (block kind, blocks per stage)
 RESNET_SPECS: dict[int, tuple[str, tuple[int, int, int, int]]] = {
@@ -96,7 +96,7 @@ class ResnetEncoder(nn.Module):
     x = conv(64, 7, 2, 3, name="conv1")(x)
     x = nn.relu(BatchNorm(name="bn1")(x, train))
     features = [x]
-    x = nn.max_pool(x, (3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))
+    x = max_pool_3x3_s2(x)
     in_ch = 64
     for stage, (width, n_blocks) in enumerate(zip(STAGE_WIDTHS, blocks)):
       for b in range(n_blocks):
