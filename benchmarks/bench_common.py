@@ -1,0 +1,152 @@
+"""Shared pieces of the benchmark scripts: synthetic frames, weights for both frameworks, output.
+
+The frames are generated (no data needed): a smooth random image and a panoptic map with a road,
+a sky and N dynamic instances (cars and persons, COCO ids 3 and 1) laid out on a grid in the
+lower part of the image, moving a pixel per frame. The same frames feed the JAX engine (as
+`StepInput`s) and the PyTorch reference (as tensors).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from pitta_jax.adapt.engine import StepInput
+
+ROAD, SKY, CAR, PERSON = 149, 187, 3, 1  # COCO panoptic category ids
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchFrame:
+  """One generated frame. image (H, W, 3) float32 in [0, 1]; panoptic (H, W) int32 ids;
+  segments: (segment id, COCO category id) of every segment in the map."""
+  image: np.ndarray
+  panoptic: np.ndarray
+  segments: tuple[tuple[int, int], ...]
+
+
+def synthetic_frame(t: int, height: int, width: int, instances: int, seed: int = 0) -> BenchFrame:
+  """Frame t of a generated sequence with `instances` dynamic instances (0 allowed)."""
+  rng = np.random.default_rng((seed, t))
+  yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+  phase = rng.uniform(0, 6, size=3)
+  base = 0.5 + 0.25 * np.sin(xx / (9.0 + t % 5) + yy / 13.0 + phase[:, None, None])  # (3, H, W)
+  image = np.clip(np.moveaxis(base, 0, -1) + 0.04 * rng.normal(size=(height, width, 3)), 0, 1)
+  pan = np.full((height, width), 2, np.int32)  # sky
+  pan[height // 3:] = 1  # road
+  segments = [(1, ROAD), (2, SKY)]
+  if instances:
+    cols = int(np.ceil(np.sqrt(instances * 3)))  # wide grid, cells about 3:1
+    rows = int(np.ceil(instances / cols))
+    top, bottom = int(0.4 * height), int(0.97 * height)
+    cell_h, cell_w = (bottom - top) / rows, width / cols
+    for j in range(instances):
+      r, c = divmod(j, cols)
+      y0 = top + int(r * cell_h + 0.1 * cell_h)
+      y1 = top + int((r + 1) * cell_h - 0.1 * cell_h)
+      x0 = int(c * cell_w + 0.1 * cell_w) + t % 3
+      x1 = min(int((c + 1) * cell_w - 0.1 * cell_w) + t % 3, width)
+      seg_id = 10 + j
+      pan[y0:max(y1, y0 + 1), x0:max(x1, x0 + 1)] = seg_id
+      segments.append((seg_id, CAR if j % 3 else PERSON))
+  return BenchFrame(image.astype(np.float32), pan, tuple(segments))
+
+
+def synthetic_frames(n: int, height: int, width: int, instances: int, seed: int = 0,
+                     start: int = 0) -> list[BenchFrame]:
+  return [synthetic_frame(start + t, height, width, instances, seed) for t in range(n)]
+
+
+def step_inputs(frames: list[BenchFrame], max_segments: int, valid: int | None = None
+                ) -> StepInput:
+  """Frames -> a stacked (T, ...) `StepInput`; frames from index `valid` on are padding."""
+  n = len(frames)
+  ids = np.zeros((n, max_segments), np.int32)
+  cls = np.zeros((n, max_segments), np.int32)
+  ok = np.zeros((n, max_segments), bool)
+  for t, f in enumerate(frames):
+    if len(f.segments) > max_segments:
+      raise ValueError(f"{len(f.segments)} segments > max_segments {max_segments}")
+    for k, (seg_id, cat) in enumerate(f.segments):
+      ids[t, k], cls[t, k], ok[t, k] = seg_id, cat, True
+  valid_mask = np.arange(n) < (n if valid is None else valid)
+  return StepInput(np.stack([f.image for f in frames]), np.stack([f.panoptic for f in frames]),
+                   ids, cls, ok, valid_mask)
+
+
+def chunk_stream(n_frames: int, chunk: int, height: int, width: int, instances: int,
+                 max_segments: int, seed: int = 0) -> Iterator[StepInput]:
+  """A long generated sequence as padded chunks, generated lazily (host memory: one chunk)."""
+  for start in range(0, n_frames, chunk):
+    n = min(chunk, n_frames - start)
+    frames = synthetic_frames(n, height, width, instances, seed, start)
+    frames += [frames[-1]] * (chunk - n)
+    yield step_inputs(frames, max_segments, valid=n)
+
+
+def torch_and_jax_weights(seed: int = 0, num_layers: int = 18):
+  """Random MonoDepth2 weights in both frameworks: (torch encoder, torch decoder, jax variables).
+
+  The PyTorch modules (`torch_monodepth2`, upstream layout) are saved as `encoder.pth` /
+  `depth.pth` and converted by the project's converter, so both run the same network.
+  """
+  import torch
+  import torch_reference
+  from weights_convert.monodepth2 import convert_monodepth2
+  encoder, decoder = torch_reference.build(seed, num_layers)
+  with tempfile.TemporaryDirectory() as tmp:
+    torch.save(encoder.state_dict(), Path(tmp) / "encoder.pth")
+    torch.save(decoder.state_dict(), Path(tmp) / "depth.pth")
+    _, variables, _ = convert_monodepth2(Path(tmp) / "encoder.pth", Path(tmp) / "depth.pth",
+                                         num_layers=num_layers)
+  return encoder, decoder, variables
+
+
+def jax_variables(seed: int = 0, num_layers: int = 18) -> dict:
+  """Random MonoDepth2 variables for JAX alone, without torch (`models.random_init`)."""
+  from pitta_jax.models.random_init import random_monodepth2_variables
+  return random_monodepth2_variables(seed, num_layers)
+
+
+CONV_RULES = ("loop_friendly", "jax")
+
+
+def set_conv_rule(rule: str) -> None:
+  """Which input-gradient rule the MonoDepth2 convolutions traced from now on use:
+  "loop_friendly" (the project's `models.conv_vjp`, the default) or "jax" (JAX's own transpose
+  rule, slow inside `lax.scan` on XLA:CPU), so that one run can time both side by side."""
+  import functools
+  import flax.linen as nn
+  from pitta_jax.models import conv_vjp, depth_decoder, layers
+  if rule not in CONV_RULES:
+    raise ValueError(f"conv rule must be one of {CONV_RULES}, got {rule!r}")
+  conv = (functools.partial(nn.Conv, conv_general_dilated=conv_vjp.conv_general_dilated)
+          if rule == "loop_friendly" else nn.Conv)
+  layers.Conv = depth_decoder.Conv = conv
+
+
+def median_time(fn: Callable[[], object], reps: int) -> tuple[float, float]:
+  """(median, min) wall seconds of `fn()` over `reps` calls; fn must block until done."""
+  times = []
+  for _ in range(reps):
+    t0 = time.perf_counter()
+    fn()
+    times.append(time.perf_counter() - t0)
+  return float(np.median(times)), float(np.min(times))
+
+
+def load() -> list[float]:
+  """1, 5, 15 minute load averages (the machine is shared: read timings with them)."""
+  return [round(x, 2) for x in os.getloadavg()]
+
+
+def emit(record: dict) -> None:
+  """One JSON line on stdout."""
+  print(json.dumps(record), flush=True)

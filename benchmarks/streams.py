@@ -1,0 +1,125 @@
+"""Throughput of many adaptation streams in one compiled call (`pitta_jax.adapt.streams`).
+
+    python benchmarks/streams.py                 # 640x192, K = 1, 4, 12 and the lambda sweep
+    python benchmarks/streams.py --quick         # 320x96
+
+Prints JSON lines:
+- `impl: engine`: the plain single-stream engine (`make_chunk_runner(make_step(...))`);
+- `impl: vmap`, K = 1, 4, 12 independent streams (own frames, parameters and Adam state), one
+  `jax.vmap`-ed step scanned over a chunk: total frames/s = K * T / chunk time;
+- `impl: lambda_sweep`: the 12 lambdas of the paper's Table 4 ({0, 0.1, ..., 1.0, inf}) as 12
+  streams on the same frames in one call, vs the same 12 runs one after another (one compiled
+  single-stream runner, reused), and the speedup.
+Steady state: compile and one warm-up chunk first, then the median over `--reps` chunks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+import bench_common as bc  # noqa: E402
+from pitta_jax.adapt import (AdaptConfig, init_state, make_chunk_runner,  # noqa: E402
+                             make_optimizer, make_step, monodepth2_model)
+from pitta_jax.adapt import streams  # noqa: E402
+from pitta_jax.adapt.methods import get_method  # noqa: E402
+
+
+def timed_chunks(runner, state, chunk, reps: int) -> tuple[float, float, object]:
+  """(compile + first chunk s, median steady chunk s, final state); the carry is donated."""
+  t0 = time.perf_counter()
+  state, out = runner(state, chunk)
+  jax.block_until_ready(out)
+  first = time.perf_counter() - t0
+  state, out = runner(state, chunk)  # warm-up
+  jax.block_until_ready(out)
+  holder = [state]
+
+  def one():
+    holder[0], o = runner(holder[0], chunk)
+    jax.block_until_ready(o)
+  med, _ = bc.median_time(one, reps)
+  return first, med, holder[0]
+
+
+def main(argv=None) -> None:
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--height", type=int, default=192)
+  p.add_argument("--width", type=int, default=640)
+  p.add_argument("--instances", type=int, default=8)
+  p.add_argument("--ks", default="1,4,12", help="numbers of independent streams")
+  p.add_argument("--frames", type=int, default=4, help="frames per chunk (per stream)")
+  p.add_argument("--reps", type=int, default=2)
+  p.add_argument("--quick", action="store_true", help="320x96")
+  args = p.parse_args(argv)
+  if args.quick:
+    args.height, args.width = 96, 320
+  common = {"H": args.height, "W": args.width, "instances": args.instances,
+            "frames_per_chunk": args.frames, "devices": len(jax.devices()),
+            "device": jax.devices()[0].platform}
+  cfg = AdaptConfig(chunk_size=args.frames)
+  model, method = monodepth2_model(18), get_method("pitta")
+  tx = make_optimizer(cfg)
+  variables = bc.jax_variables(seed=0)
+  t = args.frames
+
+  def chunk(seed: int):
+    return bc.step_inputs(bc.synthetic_frames(t, args.height, args.width, args.instances, seed),
+                          cfg.max_segments)
+
+  def copy(state):
+    return jax.tree_util.tree_map(jnp.copy, state)
+
+  # plain engine, one stream
+  runner = make_chunk_runner(make_step(model, method, cfg, tx))
+  first, med, _ = timed_chunks(runner, copy(init_state(variables, method, cfg, tx)), chunk(0),
+                               args.reps)
+  base_fps = t / med
+  bc.emit({"impl": "engine", "streams": 1, **common, "frames_per_s": base_fps,
+           "ms_per_frame": 1e3 * med / t, "first_chunk_s": round(first, 1), "load": bc.load()})
+
+  # K independent streams
+  multi = make_chunk_runner(streams.make_multi_stream_step(model, method, cfg, tx))
+  for k in [int(x) for x in args.ks.split(",")]:
+    frames = streams.stack_stream_inputs([chunk(100 + i) for i in range(k)])
+    states = streams.init_streams(variables, method, cfg, k, tx)
+    first, med, _ = timed_chunks(multi, states, frames, args.reps)
+    bc.emit({"impl": "vmap", "streams": k, **common, "frames_per_s": k * t / med,
+             "speedup_vs_engine": k * t / med / base_fps, "first_chunk_s": round(first, 1),
+             "load": bc.load()})
+
+  # Table 4: 12 lambdas, same frames; one call vs one after another
+  lams = streams.TABLE4_LAMBDAS
+  shared = chunk(7)
+  sweep = make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx))
+  first, med_sweep, final = timed_chunks(sweep, streams.init_lambda_sweep(variables, lams, cfg, tx),
+                                         shared, args.reps)
+  one = make_chunk_runner(make_step(model, streams.PITTA_LAMBDA, cfg, tx))
+  singles = [streams.stream_state(streams.init_lambda_sweep(variables, [lam], cfg, tx), 0)
+             for lam in lams]
+  jax.block_until_ready(one(copy(singles[0]), shared))  # compile
+  holder = [copy(s) for s in singles]
+  for i in range(len(lams)):  # warm-up, as for the sweep
+    holder[i], _ = one(holder[i], shared)
+
+  def sequential():
+    for i in range(len(lams)):
+      holder[i], o = one(holder[i], shared)
+      jax.block_until_ready(o)
+  med_seq, _ = bc.median_time(sequential, args.reps)
+  n = len(lams) * t
+  bc.emit({"impl": "lambda_sweep", "streams": len(lams), **common,
+           "lambdas": [str(x) for x in lams],
+           "one_call_frames_per_s": n / med_sweep, "sequential_frames_per_s": n / med_seq,
+           "speedup": med_seq / med_sweep, "first_chunk_s": round(first, 1), "load": bc.load()})
+
+
+if __name__ == "__main__":
+  main()
