@@ -87,6 +87,30 @@ class JaxBench:
             "compile_s": round(self.compile_s, 2), "first_losses": first_losses}
 
 
+def interleaved_ratio(variables, benches: dict, n_lo: int, n_hi: int, args) -> dict:
+  """JAX ms/frame at N = n_lo and n_hi, chunks alternated (lo, hi, hi, lo) `args.reps` times on
+  warm runners: the sequential sweep above is exposed to drift of a shared machine's load."""
+  runs = {}
+  for n in (n_lo, n_hi):
+    cfg = engine_config(n, args.window, args.frames)
+    bench = benches.setdefault(cfg, JaxBench(variables, cfg))
+    chunk = bc.step_inputs(bc.synthetic_frames(args.frames, args.height, args.width, n, seed=1),
+                           cfg.max_segments)
+    state, outs = bench.runner(bench.fresh_state(), chunk)  # compiled already: warm-up
+    jax.block_until_ready(outs)
+    runs[n] = [bench, chunk, state, []]
+  for _ in range(args.reps):
+    for n in (n_lo, n_hi, n_hi, n_lo):
+      run = runs[n]
+      t0 = time.perf_counter()
+      run[2], outs = run[0].runner(run[2], run[1])
+      jax.block_until_ready(outs)
+      run[3].append(1e3 * (time.perf_counter() - t0) / args.frames)
+  lo, hi = np.median(runs[n_lo][3]), np.median(runs[n_hi][3])
+  return {"check": "N sweep, interleaved", "instances": [n_lo, n_hi],
+          "jax_ms_per_frame": [float(lo), float(hi)], "ratio_max_vs_min_N": float(hi / lo)}
+
+
 def torch_frames(frames: list[bc.BenchFrame]) -> list[tuple]:
   return [(torch.from_numpy(f.image).permute(2, 0, 1)[None].contiguous(),
            torch.from_numpy(f.panoptic), list(f.segments)) for f in frames]
@@ -256,6 +280,8 @@ def main(argv=None) -> None:
     for impl in impls:
       summary[f"{impl}_ratio_max_vs_min_N"] = results[impl][max(sweep)] / results[impl][min(sweep)]
     bc.emit(summary)
+    if "jax" in impls:
+      bc.emit(interleaved_ratio(variables, benches, min(sweep), max(sweep), args))
 
   if not args.no_profile:
     n = sweep[0]

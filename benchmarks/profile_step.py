@@ -1,0 +1,117 @@
+"""Where the time of one scanned PITTA step goes: an XLA trace of the engine's chunk runner.
+
+    python benchmarks/profile_step.py                  # 640x192, N = 8 instances
+    python benchmarks/profile_step.py --height 96 --width 320 --top 20
+
+Runs the engine's compiled chunk (`make_chunk_runner`) after warm-up under `jax.profiler`, reads
+the trace's per-operation times, and sorts every compiled operation into a part of the step by
+the JAX call site XLA keeps in its metadata:
+- network forward / network backward (`jvp(DepthNet)` / `transpose(jvp(DepthNet))`), split into
+  convolutions, kernel transposes (the input-gradient kernels of `models.conv_vjp`) and the rest
+  (BatchNorm, ReLU/ELU, pads, upsampling, concatenations);
+- everything else: masks, median filter, edges, losses, optimiser update, loop bookkeeping.
+Prints one JSON line per part (ms per frame, share of the traced time), the wall-clock ms per
+frame, and the `--top` most expensive single operations with their call sites.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+import bench_common as bc  # noqa: E402
+from pitta_jax.adapt import (AdaptConfig, init_state, make_chunk_runner,  # noqa: E402
+                             make_optimizer, make_step, monodepth2_model)
+from pitta_jax.adapt.methods import get_method  # noqa: E402
+
+SKIP = ("ThunkExecutor", "Await", "PjitFunction", "while")
+
+
+def call_sites(hlo_text: str) -> dict[str, str]:
+  """Compiled instruction name -> the JAX op_name in its metadata."""
+  sites = {}
+  for line in hlo_text.splitlines():
+    m = re.match(r"\s*(?:ROOT )?%?([\w.\-]+) = ", line)
+    site = re.search(r'op_name="([^"]*)"', line)
+    if m and site:
+      sites[m.group(1)] = site.group(1)
+  return sites
+
+
+def part_of(name: str, site: str) -> str:
+  if "DepthNet" in site:
+    phase = "network backward" if "transpose(" in site else "network forward"
+    if name.startswith(("ynn_fusion", "conv_general_dilated", "convolution")):
+      return f"{phase}: convolutions"
+    if name.startswith("transpose_copy_fusion") and phase == "network backward":
+      return f"{phase}: kernel transposes"
+    return f"{phase}: other"
+  return "masks, median, edges, losses, update"
+
+
+def main(argv=None) -> None:
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--height", type=int, default=192)
+  p.add_argument("--width", type=int, default=640)
+  p.add_argument("--instances", type=int, default=8)
+  p.add_argument("--frames", type=int, default=4, help="frames in the traced chunk")
+  p.add_argument("--top", type=int, default=12, help="single operations to list")
+  args = p.parse_args(argv)
+
+  cfg = AdaptConfig(chunk_size=args.frames)
+  model, method = monodepth2_model(18), get_method("pitta")
+  tx = make_optimizer(cfg)
+  runner = make_chunk_runner(make_step(model, method, cfg, tx))
+  chunk = bc.step_inputs(bc.synthetic_frames(args.frames, args.height, args.width,
+                                             args.instances, seed=1), cfg.max_segments)
+  state = jax.tree_util.tree_map(jnp.copy, init_state(bc.jax_variables(0), method, cfg, tx))
+  sites = call_sites(runner.lower(state, chunk).compile().as_text())
+  for _ in range(2):  # compile + warm-up
+    state, out = runner(state, chunk)
+    jax.block_until_ready(out)
+  t0 = time.perf_counter()
+  state, out = runner(state, chunk)
+  jax.block_until_ready(out)
+  wall_ms = 1e3 * (time.perf_counter() - t0) / args.frames
+
+  with tempfile.TemporaryDirectory() as tmp:
+    jax.profiler.start_trace(tmp)
+    state, out = runner(state, chunk)
+    jax.block_until_ready(out)
+    jax.profiler.stop_trace()
+    trace_file = glob.glob(f"{tmp}/plugins/profile/*/*.trace.json.gz")[0]
+    events = json.load(gzip.open(trace_file))["traceEvents"]
+
+  per_op: collections.Counter = collections.Counter()
+  for e in events:
+    if e.get("ph") == "X" and not e["name"].startswith("$") and \
+        not any(s in e["name"] for s in SKIP):
+      per_op[e["name"]] += e["dur"] / 1e3 / args.frames  # us -> ms per frame
+  parts: collections.Counter = collections.Counter()
+  for name, ms in per_op.items():
+    parts[part_of(name, sites.get(name, ""))] += ms
+  traced = sum(parts.values())
+  common = {"H": args.height, "W": args.width, "instances": args.instances,
+            "frames": args.frames, "load": bc.load()}
+  bc.emit({"wall_ms_per_frame": wall_ms, "traced_ms_per_frame": traced, **common})
+  for part, ms in sorted(parts.items(), key=lambda kv: -kv[1]):
+    bc.emit({"part": part, "ms_per_frame": round(ms, 2), "share": round(ms / traced, 3)})
+  for name, ms in per_op.most_common(args.top):
+    bc.emit({"op": name, "ms_per_frame": round(ms, 2), "site": sites.get(name, "")[-90:]})
+
+
+if __name__ == "__main__":
+  main()
