@@ -27,36 +27,13 @@ from pitta_jax.adapt import streams
 from pitta_jax.adapt.methods import get_method
 from pitta_jax.models.random_init import random_monodepth2_variables
 
-H, W, S, T = 64, 96, 8, 3
-CAR, PERSON, ROAD = 3, 1, 149
+import adapt_frames
+
+H, W, S, T = adapt_frames.H, adapt_frames.W, adapt_frames.S, 3
 # the paper's lr 1e-4: Adam moves every coordinate by ~lr per step, so float noise in a gradient
 # coordinate moves parameters by a fraction of lr, which a larger lr would blow up
 CFG = AdaptConfig(chunk_size=T, max_instances=4, window=3)
-
-
-def frames(n: int, seed: int = 0) -> StepInput:
-  """n frames (n, ...): smooth random images, two touching cars and a person on a road."""
-  rng = np.random.default_rng(seed)
-  yy, xx = np.mgrid[0:H, 0:W]
-  images, pans = [], []
-  for t in range(n):
-    base = 0.5 + 0.3 * np.sin(xx / (7 + t) + yy / 11 + rng.uniform(0, 6))[..., None] * np.array(
-        [1, .8, .6])
-    images.append(np.clip(base + 0.05 * rng.normal(size=(H, W, 3)), 0, 1))
-    pan = np.full((H, W), 7, np.int32)
-    o = int(rng.integers(0, 8))
-    pan[30:50, 10 + o:40 + o] = 11
-    pan[30:50, 40 + o:60 + o] = 12
-    pan[20:50, 70:76] = 13
-    pans.append(pan)
-  seg_ids = np.zeros((n, S), np.int32)
-  seg_cls = np.zeros((n, S), np.int32)
-  seg_valid = np.zeros((n, S), bool)
-  seg_ids[:, :4] = [7, 11, 12, 13]
-  seg_cls[:, :4] = [ROAD, CAR, CAR, PERSON]
-  seg_valid[:, :4] = True
-  return StepInput(np.stack(images).astype(np.float32), np.stack(pans), seg_ids, seg_cls,
-                   seg_valid, np.ones((n,), bool))
+frames = adapt_frames.make_frames
 
 
 def random_variables(seed: int = 1) -> dict:

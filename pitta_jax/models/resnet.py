@@ -13,7 +13,6 @@ Parameter names mirror torchvision's with `layer1.0.conv1` -> `layer1_0/conv1` a
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import flax.linen as nn
 
 from pitta_jax.models.layers import BatchNorm, conv, max_pool_3x3_s2
