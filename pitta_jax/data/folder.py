@@ -11,11 +11,8 @@ are the stems.
 
 from __future__ import annotations
 
-import functools
-
-from pitta_jax.data.errors import DataError
-from pitta_jax.data.image_io import (DEPTH_PNG_SCALE, PathLike, list_images, read_depth_npy,
-                                     read_depth_png, require_dir)
+from pitta_jax.data.image_io import (DEPTH_PNG_SCALE, PathLike, depth_loader, list_images,
+                                     require_dir)
 from pitta_jax.data.panoptic_io import panoptic_source
 from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
 
@@ -41,15 +38,9 @@ def open_folder(root: PathLike, depth_dir: PathLike | None = None,
   panoptic = panoptic_source(panoptic_dir, panoptic_json)
   files = []
   for stem in sorted(images):
-    depth_loader = None
-    if depth_root is not None:
-      png, npy = depth_root / f"{stem}.png", depth_root / f"{stem}.npy"
-      if png.is_file():
-        depth_loader = functools.partial(read_depth_png, png, depth_scale)
-      elif npy.is_file():
-        depth_loader = functools.partial(read_depth_npy, npy)
-      else:
-        raise DataError(png, f"depth map for image {images[stem].name} not found (nor .npy)")
-    files.append(FrameFiles(name=stem, image=images[stem], depth=depth_loader,
+    depth = None if depth_root is None else depth_loader(
+        depth_root, stem, png_scale=depth_scale,
+        missing=f"depth map for image {images[stem].name} not found (nor .npy)")
+    files.append(FrameFiles(name=stem, image=images[stem], depth=depth,
                             panoptic=None if panoptic is None else panoptic.ref(stem)))
   return FrameSequence(files)

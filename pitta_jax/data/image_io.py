@@ -12,8 +12,10 @@ Conventions (SPEC "Data formats to read"):
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -136,6 +138,19 @@ def read_depth_npy(path: PathLike) -> np.ndarray:
     raise DataError(path, f"depth .npy must be a float (H, W) array, got {array.dtype} "
                           f"{array.shape}")
   return array.astype(np.float32)
+
+
+def depth_loader(depth_dir: Path, stem: str, *, png_scale: float = DEPTH_PNG_SCALE,
+                 read_npy: Callable[[Path], np.ndarray] = read_depth_npy,
+                 missing: str = "depth map not found (nor .npy)") -> Callable[[], np.ndarray]:
+  """The lazy loader of `<depth_dir>/<stem>.png` (uint16 / png_scale), else `<stem>.npy` (read
+  by `read_npy`); DataError(`<stem>.png`, missing) when neither file exists."""
+  png, npy = depth_dir / f"{stem}.png", depth_dir / f"{stem}.npy"
+  if png.is_file():
+    return functools.partial(read_depth_png, png, png_scale)
+  if npy.is_file():
+    return functools.partial(read_npy, npy)
+  raise DataError(png, missing)
 
 
 def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES

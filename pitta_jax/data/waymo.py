@@ -56,8 +56,8 @@ from typing import Sequence
 import numpy as np
 
 from pitta_jax.data.errors import DataError
-from pitta_jax.data.image_io import (PathLike, list_images, load_npy, read_depth_png, read_image, require_dir,
-                                     require_file)
+from pitta_jax.data.image_io import (PathLike, depth_loader, list_images, load_npy, read_image,
+                                     require_dir, require_file)
 from pitta_jax.data.panoptic_io import PanopticSource, panoptic_source
 from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
 
@@ -141,17 +141,11 @@ def _sequence_files(root: Path, seq: str, depth: bool, panoptic: PanopticSource 
     prefix = f"{seq}/"
   files = []
   for stem in sorted(images):
-    depth_loader = None
-    if depth_dir is not None:
-      png, npy = depth_dir / f"{stem}.png", depth_dir / f"{stem}.npy"
-      if png.is_file():
-        depth_loader = functools.partial(read_depth_png, png)
-      elif npy.is_file():
-        depth_loader = functools.partial(read_waymo_depth_npy, npy, images[stem], calib)
-      else:
-        raise DataError(png, "depth map not found (nor .npy)")
+    depth = None if depth_dir is None else depth_loader(
+        depth_dir, stem,
+        read_npy=functools.partial(read_waymo_depth_npy, image=images[stem], calib=calib))
     files.append(FrameFiles(
-        name=f"{seq}/{stem}", image=images[stem], depth=depth_loader,
+        name=f"{seq}/{stem}", image=images[stem], depth=depth,
         panoptic=None if panoptic is None else panoptic.ref(prefix + stem),
         size=None if calib is None else (calib.height, calib.width),
         size_source=None if calib is None else seq_dir / "calib.json"))
