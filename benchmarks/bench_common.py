@@ -16,9 +16,13 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
+import flax.linen as nn
+import jax
 import numpy as np
 
 from pitta_jax.adapt.engine import StepInput
+from pitta_jax.models import depth_decoder, layers
+from pitta_jax.models.random_init import random_monodepth2_variables as jax_variables  # noqa: F401
 
 ROAD, SKY, CAR, PERSON = 149, 187, 3, 1  # COCO panoptic category ids
 
@@ -109,27 +113,35 @@ def torch_and_jax_weights(seed: int = 0, num_layers: int = 18):
   return encoder, decoder, variables
 
 
-def jax_variables(seed: int = 0, num_layers: int = 18) -> dict:
-  """Random MonoDepth2 variables for JAX alone, without torch (`models.random_init`)."""
-  from pitta_jax.models.random_init import random_monodepth2_variables
-  return random_monodepth2_variables(seed, num_layers)
-
-
 CONV_RULES = ("loop_friendly", "jax")
+_LOOP_FRIENDLY_CONV = layers.Conv  # the project's default, kept to switch back
 
 
 def set_conv_rule(rule: str) -> None:
   """Which input-gradient rule the MonoDepth2 convolutions traced from now on use:
   "loop_friendly" (the project's `models.conv_vjp`, the default) or "jax" (JAX's own transpose
   rule, slow inside `lax.scan` on XLA:CPU), so that one run can time both side by side."""
-  import functools
-  import flax.linen as nn
-  from pitta_jax.models import conv_vjp, depth_decoder, layers
   if rule not in CONV_RULES:
     raise ValueError(f"conv rule must be one of {CONV_RULES}, got {rule!r}")
-  conv = (functools.partial(nn.Conv, conv_general_dilated=conv_vjp.conv_general_dilated)
-          if rule == "loop_friendly" else nn.Conv)
-  layers.Conv = depth_decoder.Conv = conv
+  layers.Conv = depth_decoder.Conv = _LOOP_FRIENDLY_CONV if rule == "loop_friendly" else nn.Conv
+
+
+def timed_chunks(runner, state, chunk, reps: int):
+  """Times a chunk runner that donates its carry: the first call (compile + chunk), one
+  warm-up call, then `reps` steady calls. -> (first_s, first_outputs, median_s, min_s, state)."""
+  t0 = time.perf_counter()
+  state, first_outs = runner(state, chunk)
+  jax.block_until_ready(first_outs)
+  first_s = time.perf_counter() - t0
+  state, outs = runner(state, chunk)  # warm-up
+  jax.block_until_ready(outs)
+  holder = [state]
+
+  def one():
+    holder[0], o = runner(holder[0], chunk)
+    jax.block_until_ready(o)
+  med, best = median_time(one, reps)
+  return first_s, first_outs, med, best, holder[0]
 
 
 def median_time(fn: Callable[[], object], reps: int) -> tuple[float, float]:

@@ -66,25 +66,12 @@ class JaxBench:
     return jax.tree_util.tree_map(jnp.copy, state)  # the runner donates its carry
 
   def run(self, chunk: StepInput, reps: int) -> dict:
-    state = self.fresh_state()
-    t0 = time.perf_counter()
-    state, outs = self.runner(state, chunk)  # compile (first use) + first chunk
-    jax.block_until_ready(outs)
-    first_s = time.perf_counter() - t0
+    first_s, outs, med, best, _ = bc.timed_chunks(self.runner, self.fresh_state(), chunk, reps)
     if self.compile_s is None:
       self.compile_s = first_s
-    first_losses = np.asarray(outs.loss).tolist()
-    state, outs = self.runner(state, chunk)  # warm-up
-    jax.block_until_ready(outs)
-    holder = [state]
-
-    def one():
-      holder[0], o = self.runner(holder[0], chunk)
-      jax.block_until_ready(o)
-    med, best = bc.median_time(one, reps)
     n = int(np.asarray(chunk.valid).sum())
     return {"ms_per_frame": 1e3 * med / n, "min_ms_per_frame": 1e3 * best / n,
-            "compile_s": round(self.compile_s, 2), "first_losses": first_losses}
+            "compile_s": round(self.compile_s, 2), "first_losses": np.asarray(outs.loss).tolist()}
 
 
 def interleaved_ratio(variables, benches: dict, n_lo: int, n_hi: int, args) -> dict:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -30,23 +29,6 @@ from pitta_jax.adapt import (AdaptConfig, init_state, make_chunk_runner,  # noqa
                              make_optimizer, make_step, monodepth2_model)
 from pitta_jax.adapt import streams  # noqa: E402
 from pitta_jax.adapt.methods import get_method  # noqa: E402
-
-
-def timed_chunks(runner, state, chunk, reps: int) -> tuple[float, float, object]:
-  """(compile + first chunk s, median steady chunk s, final state); the carry is donated."""
-  t0 = time.perf_counter()
-  state, out = runner(state, chunk)
-  jax.block_until_ready(out)
-  first = time.perf_counter() - t0
-  state, out = runner(state, chunk)  # warm-up
-  jax.block_until_ready(out)
-  holder = [state]
-
-  def one():
-    holder[0], o = runner(holder[0], chunk)
-    jax.block_until_ready(o)
-  med, _ = bc.median_time(one, reps)
-  return first, med, holder[0]
 
 
 def main(argv=None) -> None:
@@ -79,8 +61,8 @@ def main(argv=None) -> None:
 
   # plain engine, one stream
   runner = make_chunk_runner(make_step(model, method, cfg, tx))
-  first, med, _ = timed_chunks(runner, copy(init_state(variables, method, cfg, tx)), chunk(0),
-                               args.reps)
+  first, _, med, _, _ = bc.timed_chunks(runner, copy(init_state(variables, method, cfg, tx)),
+                                        chunk(0), args.reps)
   base_fps = t / med
   bc.emit({"impl": "engine", "streams": 1, **common, "frames_per_s": base_fps,
            "ms_per_frame": 1e3 * med / t, "first_chunk_s": round(first, 1), "load": bc.load()})
@@ -90,7 +72,7 @@ def main(argv=None) -> None:
   for k in [int(x) for x in args.ks.split(",")]:
     frames = streams.stack_stream_inputs([chunk(100 + i) for i in range(k)])
     states = streams.init_streams(variables, method, cfg, k, tx)
-    first, med, _ = timed_chunks(multi, states, frames, args.reps)
+    first, _, med, _, _ = bc.timed_chunks(multi, states, frames, args.reps)
     bc.emit({"impl": "vmap", "streams": k, **common, "frames_per_s": k * t / med,
              "speedup_vs_engine": k * t / med / base_fps, "first_chunk_s": round(first, 1),
              "load": bc.load()})
@@ -99,8 +81,8 @@ def main(argv=None) -> None:
   lams = streams.TABLE4_LAMBDAS
   shared = chunk(7)
   sweep = make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx))
-  first, med_sweep, final = timed_chunks(sweep, streams.init_lambda_sweep(variables, lams, cfg, tx),
-                                         shared, args.reps)
+  first, _, med_sweep, _, _ = bc.timed_chunks(
+      sweep, streams.init_lambda_sweep(variables, lams, cfg, tx), shared, args.reps)
   one = make_chunk_runner(make_step(model, streams.PITTA_LAMBDA, cfg, tx))
   singles = [streams.stream_state(streams.init_lambda_sweep(variables, [lam], cfg, tx), 0)
              for lam in lams]

@@ -36,8 +36,7 @@ CFG = AdaptConfig(chunk_size=T, max_instances=4, window=3)
 frames = adapt_frames.make_frames
 
 
-def random_variables(seed: int = 1) -> dict:
-  return random_monodepth2_variables(seed)
+SEED = 1  # of the random network weights (`models.random_init`)
 
 
 def fresh(state):
@@ -47,7 +46,7 @@ def fresh(state):
 
 @pytest.fixture(scope="module")
 def variables():
-  return random_variables()
+  return random_monodepth2_variables(SEED)
 
 
 @pytest.fixture(scope="module")
@@ -197,6 +196,7 @@ SHARDED_SCRIPT = textwrap.dedent("""
     from pitta_jax.adapt import make_optimizer, monodepth2_model
     from pitta_jax.adapt import streams
     from pitta_jax.adapt.methods import get_method
+    from pitta_jax.models.random_init import random_monodepth2_variables
 
     assert len(jax.devices()) == 4, jax.devices()
     model, method, cfg = monodepth2_model(18), get_method("pitta"), ts.CFG
@@ -205,7 +205,7 @@ SHARDED_SCRIPT = textwrap.dedent("""
     mesh = streams.stream_mesh()
     runner = streams.make_sharded_chunk_runner(
         streams.make_multi_stream_step(model, method, cfg, tx), mesh)
-    states = streams.init_streams(ts.random_variables(), method, cfg, ts.K, tx)
+    states = streams.init_streams(random_monodepth2_variables(ts.SEED), method, cfg, ts.K, tx)
     states, out = runner(streams.shard_streams(states, mesh),
                          streams.shard_stream_inputs(chunk, mesh))
     leaf = states.trainable["encoder"]["bn1"]["scale"]
