@@ -40,6 +40,7 @@ from pitta_jax.models.mask2former import (InferenceConfig, Mask2Former, Mask2For
                                           mask_logits_to_image, network, predict, preprocess,
                                           resized_shape, segment)
 from weights_convert import mask2former as wc
+from weights_convert import rules as R
 from weights_convert.pth import CheckpointError
 
 torch.set_num_threads(2)
@@ -278,7 +279,7 @@ def _pattern(key: str) -> str:
 
 def test_detectron2_key_table_names_and_shapes(converted):
   cfg, variables = converted
-  state = wc.to_state_dict(variables, wc.detectron2_rules(cfg))
+  state = R.to_state_dict(variables, wc.detectron2_rules(cfg))
   assert {_pattern(k) for k in state} == D2_PATTERNS
   backbone = 4 + 13 * sum(cfg.swin.depths) + 3 * 3 + 2 * 4  # embed, blocks, merging, norms
   pixel_decoder = 4 * 3 + 1 + 16 * 6 + 2 + 3 + 3  # input_proj, level_embed, encoder, FPN
@@ -307,7 +308,7 @@ def test_detectron2_pkl_through_the_cli(tmp_path, converted, capsys):
   """A detectron2 checkpoint (model zoo layout, with buffers and the pre-v2 query name),
   converted by the command line into a weights directory that loads the same variables."""
   cfg, variables = converted
-  state = wc.to_state_dict(variables, wc.detectron2_rules(cfg))
+  state = R.to_state_dict(variables, wc.detectron2_rules(cfg))
   state["sem_seg_head.predictor.static_query.weight"] = state.pop(
       "sem_seg_head.predictor.query_feat.weight")
   for i, depth in enumerate(cfg.swin.depths):
@@ -351,13 +352,19 @@ def _legacy_hf_names(state: dict) -> dict:
   return out
 
 
+def _apply_hf(state, cfg, path):
+  """The Hugging Face key table applied strictly, as `convert_mask2former --from hf` does."""
+  return R.apply_rules(state, wc.hf_rules(cfg), lambda k: bool(wc._IGNORED_HF.match(k)), path,
+                       wc.expected_shapes(cfg))
+
+
 def test_hf_legacy_key_names(reference, converted):
   cfg, variables = converted
   legacy = _legacy_hf_names(reference.state)
   assert "model.pixel_level_module.encoder.encoder.layers.0.blocks.0.attention.self.query.weight" \
       in legacy and "model.pixel_level_module.encoder.hidden_states_norms.0.weight" in legacy
   state = wc.normalize_keys(legacy, "hf", "legacy")
-  flat = wc.apply_rules(state, wc.hf_rules(cfg), wc._IGNORED_HF, "legacy", wc.expected_shapes(cfg))
+  flat = _apply_hf(state, cfg, "legacy")
   _equal_trees(unflatten_dict(flat), variables)
 
 
@@ -368,8 +375,7 @@ def test_strict_loading_lists_every_bad_key(reference, converted):
   del state["model.transformer_module.decoder.layers.3.fc1.weight"]
   state["model.extra_head.weight"] = np.zeros(3, np.float32)
   with pytest.raises(CheckpointError) as e:
-    wc.apply_rules(state, wc.hf_rules(cfg), wc._IGNORED_HF, "x.safetensors",
-                   wc.expected_shapes(cfg))
+    _apply_hf(state, cfg, "x.safetensors")
   msg = str(e.value)
   for key in ("class_predictor.bias", "model.transformer_module.decoder.layers.3.fc1.weight",
               "model.extra_head.weight"):
@@ -385,8 +391,7 @@ def test_shape_mismatch_names_the_key(reference, converted):
   key = "model.pixel_level_module.decoder.encoder.layers.2.fc1.weight"
   state[key] = np.zeros((1000, 256), np.float32)
   with pytest.raises(CheckpointError, match=re.escape(key) + r".*\(1000, 256\)"):
-    wc.apply_rules(state, wc.hf_rules(cfg), wc._IGNORED_HF, "x.safetensors",
-                   wc.expected_shapes(cfg))
+    _apply_hf(state, cfg, "x.safetensors")
 
 
 def test_safetensors_reader_matches_the_library(tmp_path):

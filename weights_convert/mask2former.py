@@ -18,8 +18,8 @@ Two explicit key tables map PyTorch names to the Flax paths of `pitta_jax.models
 A rule maps one Flax parameter to its PyTorch source(s) in PyTorch layout: one tensor, the
 row-concatenation of several (HF's separate Swin q/k/v -> our fused `qkv`), or a row slice of
 one (`nn.MultiheadAttention.in_proj_weight` -> our `q_proj`/`k_proj`/`v_proj`); then the
-layout transform: linear `.T`, conv `OIHW -> HWIO`, other tensors as they are. Rules are
-invertible (`to_state_dict`), which the tests use to write a detectron2 checkpoint.
+layout transform: linear `.T`, conv `OIHW -> HWIO`, other tensors as they are. R.Rules are
+invertible (`rules.to_state_dict`), which the tests use to write a detectron2 checkpoint.
 Loading is strict: every key of the file not used by a rule (and not a known buffer such as
 `relative_position_index` or `criterion.empty_weight`) and every key a rule needs but the file
 lacks is listed, and the conversion fails; a shape mismatch names the key.
@@ -30,143 +30,84 @@ lacks is listed, and the conversion fails; a shape mismatch names the key.
 from __future__ import annotations
 
 import argparse
-import collections
-import functools
 import json
 import os
 import re
 import struct
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
-from weights_convert.strict import check_keys
+from weights_convert import rules as R
 from weights_convert.pth import CheckpointError, load_pickle, load_pth
 
 CONFIG_JSON = "config.json"
 PARAMS_DIR = "params"
 
 
-class Rule(NamedTuple):
-  """Flax parameter `flax` (a path under "params") <- PyTorch `sources` (see module docstring).
-
-  kind: "linear" (weight, transposed), "conv" (OIHW -> HWIO) or "param" (as is).
-  rows: (start, stop) row slice of the single source, or None.
-  """
-  flax: tuple[str, ...]
-  kind: str
-  sources: tuple[str, ...]
-  rows: tuple[int, int] | None = None
-
-
-Rules = list[Rule]
-
-
-# ------------------------------------------------------------------------------ rule helpers
-
-
-def _linear(rules: Rules, flax: tuple[str, ...], src: str, bias: bool = True,
-            rows: tuple[int, int] | None = None) -> None:
-  rules.append(Rule(flax + ("kernel",), "linear", (f"{src}.weight",), rows))
-  if bias:
-    rules.append(Rule(flax + ("bias",), "param", (f"{src}.bias",), rows))
-
-
-def _fused_linear(rules: Rules, flax: tuple[str, ...], srcs: list[str]) -> None:
-  rules.append(Rule(flax + ("kernel",), "linear", tuple(f"{s}.weight" for s in srcs)))
-  rules.append(Rule(flax + ("bias",), "param", tuple(f"{s}.bias" for s in srcs)))
-
-
-def _conv(rules: Rules, flax: tuple[str, ...], weight: str, bias: str | None) -> None:
-  rules.append(Rule(flax + ("kernel",), "conv", (weight,)))
-  if bias is not None:
-    rules.append(Rule(flax + ("bias",), "param", (bias,)))
-
-
-def _norm(rules: Rules, flax: tuple[str, ...], src: str) -> None:
-  rules.append(Rule(flax + ("scale",), "param", (f"{src}.weight",)))
-  rules.append(Rule(flax + ("bias",), "param", (f"{src}.bias",)))
-
-
-def _param(rules: Rules, flax: tuple[str, ...], src: str) -> None:
-  rules.append(Rule(flax, "param", (src,)))
-
-
-def _in_proj(rules: Rules, flax: tuple[str, ...], src: str, dim: int) -> None:
-  """`nn.MultiheadAttention` -> q_proj, k_proj, v_proj (rows of in_proj_*), out_proj."""
-  for n, name in enumerate(("q_proj", "k_proj", "v_proj")):
-    rows = (n * dim, (n + 1) * dim)
-    rules.append(Rule(flax + (name, "kernel"), "linear", (f"{src}.in_proj_weight",), rows))
-    rules.append(Rule(flax + (name, "bias"), "param", (f"{src}.in_proj_bias",), rows))
-  _linear(rules, flax + ("out_proj",), f"{src}.out_proj")
-
-
 # ------------------------------------------------------------------------------ key tables
 
 
-def detectron2_rules(cfg) -> Rules:
+def detectron2_rules(cfg) -> R.Rules:
   """Key table of upstream Mask2Former (detectron2) names for `Mask2Former(cfg)`."""
-  r: Rules = []
+  r: R.Rules = []
   bb, c = ("params", "backbone"), cfg.hidden_dim
-  _conv(r, bb + ("patch_embed_proj",), "backbone.patch_embed.proj.weight",
-        "backbone.patch_embed.proj.bias")
-  _norm(r, bb + ("patch_embed_norm",), "backbone.patch_embed.norm")
+  R.conv(r, bb + ("patch_embed_proj",), "backbone.patch_embed.proj")
+  R.layer_norm(r, bb + ("patch_embed_norm",), "backbone.patch_embed.norm")
   for i, depth in enumerate(cfg.swin.depths):
     for j in range(depth):
       s, f = f"backbone.layers.{i}.blocks.{j}", bb + (f"stage{i}_block{j}",)
-      _norm(r, f + ("norm1",), f"{s}.norm1")
-      _linear(r, f + ("attn", "qkv"), f"{s}.attn.qkv")
-      _linear(r, f + ("attn", "proj"), f"{s}.attn.proj")
-      _param(r, f + ("attn", "relative_position_bias_table"),
+      R.layer_norm(r, f + ("norm1",), f"{s}.norm1")
+      R.linear(r, f + ("attn", "qkv"), f"{s}.attn.qkv")
+      R.linear(r, f + ("attn", "proj"), f"{s}.attn.proj")
+      R.param(r, f + ("attn", "relative_position_bias_table"),
              f"{s}.attn.relative_position_bias_table")
-      _norm(r, f + ("norm2",), f"{s}.norm2")
-      _linear(r, f + ("fc1",), f"{s}.mlp.fc1")
-      _linear(r, f + ("fc2",), f"{s}.mlp.fc2")
+      R.layer_norm(r, f + ("norm2",), f"{s}.norm2")
+      R.linear(r, f + ("fc1",), f"{s}.mlp.fc1")
+      R.linear(r, f + ("fc2",), f"{s}.mlp.fc2")
     if i < len(cfg.swin.depths) - 1:
       s, f = f"backbone.layers.{i}.downsample", bb + (f"stage{i}_downsample",)
-      _norm(r, f + ("norm",), f"{s}.norm")
-      _linear(r, f + ("reduction",), f"{s}.reduction", bias=False)
-    _norm(r, bb + (f"norm{i}",), f"backbone.norm{i}")
+      R.layer_norm(r, f + ("norm",), f"{s}.norm")
+      R.linear(r, f + ("reduction",), f"{s}.reduction", bias=False)
+    R.layer_norm(r, bb + (f"norm{i}",), f"backbone.norm{i}")
 
   pd, p = ("params", "pixel_decoder"), "sem_seg_head.pixel_decoder"
   for lvl in range(3):
-    _conv(r, pd + (f"input_proj{lvl}_conv",), f"{p}.input_proj.{lvl}.0.weight",
-          f"{p}.input_proj.{lvl}.0.bias")
-    _norm(r, pd + (f"input_proj{lvl}_norm",), f"{p}.input_proj.{lvl}.1")
-  _param(r, pd + ("level_embed",), f"{p}.transformer.level_embed")
+    R.conv(r, pd + (f"input_proj{lvl}_conv",), f"{p}.input_proj.{lvl}.0")
+    R.layer_norm(r, pd + (f"input_proj{lvl}_norm",), f"{p}.input_proj.{lvl}.1")
+  R.param(r, pd + ("level_embed",), f"{p}.transformer.level_embed")
   for k in range(cfg.enc_layers):
     s, f = f"{p}.transformer.encoder.layers.{k}", pd + (f"encoder_layer{k}",)
     for name in ("sampling_offsets", "attention_weights", "value_proj", "output_proj"):
-      _linear(r, f + ("self_attn", name), f"{s}.self_attn.{name}")
-    _norm(r, f + ("norm1",), f"{s}.norm1")
-    _linear(r, f + ("linear1",), f"{s}.linear1")
-    _linear(r, f + ("linear2",), f"{s}.linear2")
-    _norm(r, f + ("norm2",), f"{s}.norm2")
-  _conv(r, pd + ("adapter1_conv",), f"{p}.adapter_1.weight", None)
-  _norm(r, pd + ("adapter1_norm",), f"{p}.adapter_1.norm")
-  _conv(r, pd + ("layer1_conv",), f"{p}.layer_1.weight", None)
-  _norm(r, pd + ("layer1_norm",), f"{p}.layer_1.norm")
-  _conv(r, pd + ("mask_features",), f"{p}.mask_features.weight", f"{p}.mask_features.bias")
+      R.linear(r, f + ("self_attn", name), f"{s}.self_attn.{name}")
+    R.layer_norm(r, f + ("norm1",), f"{s}.norm1")
+    R.linear(r, f + ("linear1",), f"{s}.linear1")
+    R.linear(r, f + ("linear2",), f"{s}.linear2")
+    R.layer_norm(r, f + ("norm2",), f"{s}.norm2")
+  R.conv(r, pd + ("adapter1_conv",), f"{p}.adapter_1", bias=False)
+  R.layer_norm(r, pd + ("adapter1_norm",), f"{p}.adapter_1.norm")
+  R.conv(r, pd + ("layer1_conv",), f"{p}.layer_1", bias=False)
+  R.layer_norm(r, pd + ("layer1_norm",), f"{p}.layer_1.norm")
+  R.conv(r, pd + ("mask_features",), f"{p}.mask_features")
 
   td, p = ("params", "predictor"), "sem_seg_head.predictor"
   for i in range(cfg.dec_layers):
     f = td + (f"layer{i}",)
     cross = f"{p}.transformer_cross_attention_layers.{i}"
-    _in_proj(r, f + ("cross_attn",), f"{cross}.multihead_attn", c)
-    _norm(r, f + ("cross_norm",), f"{cross}.norm")
-    _in_proj(r, f + ("self_attn",), f"{p}.transformer_self_attention_layers.{i}.self_attn", c)
-    _norm(r, f + ("self_norm",), f"{p}.transformer_self_attention_layers.{i}.norm")
-    _linear(r, f + ("linear1",), f"{p}.transformer_ffn_layers.{i}.linear1")
-    _linear(r, f + ("linear2",), f"{p}.transformer_ffn_layers.{i}.linear2")
-    _norm(r, f + ("ffn_norm",), f"{p}.transformer_ffn_layers.{i}.norm")
-  _norm(r, td + ("decoder_norm",), f"{p}.decoder_norm")
-  _param(r, td + ("query_feat",), f"{p}.query_feat.weight")
-  _param(r, td + ("query_embed",), f"{p}.query_embed.weight")
-  _param(r, td + ("level_embed",), f"{p}.level_embed.weight")
-  _linear(r, td + ("class_embed",), f"{p}.class_embed")
+    R.in_proj(r, f + ("cross_attn",), f"{cross}.multihead_attn", c)
+    R.layer_norm(r, f + ("cross_norm",), f"{cross}.norm")
+    R.in_proj(r, f + ("self_attn",), f"{p}.transformer_self_attention_layers.{i}.self_attn", c)
+    R.layer_norm(r, f + ("self_norm",), f"{p}.transformer_self_attention_layers.{i}.norm")
+    R.linear(r, f + ("linear1",), f"{p}.transformer_ffn_layers.{i}.linear1")
+    R.linear(r, f + ("linear2",), f"{p}.transformer_ffn_layers.{i}.linear2")
+    R.layer_norm(r, f + ("ffn_norm",), f"{p}.transformer_ffn_layers.{i}.norm")
+  R.layer_norm(r, td + ("decoder_norm",), f"{p}.decoder_norm")
+  R.param(r, td + ("query_feat",), f"{p}.query_feat.weight")
+  R.param(r, td + ("query_embed",), f"{p}.query_embed.weight")
+  R.param(r, td + ("level_embed",), f"{p}.level_embed.weight")
+  R.linear(r, td + ("class_embed",), f"{p}.class_embed")
   for n in range(3):
-    _linear(r, td + (f"mask_embed_{n}",), f"{p}.mask_embed.layers.{n}")
+    R.linear(r, td + (f"mask_embed_{n}",), f"{p}.mask_embed.layers.{n}")
   return r
 
 
@@ -175,69 +116,67 @@ HF_PIXEL = "model.pixel_level_module.decoder"
 HF_TRANSFORMER = "model.transformer_module"
 
 
-def hf_rules(cfg) -> Rules:
+def hf_rules(cfg) -> R.Rules:
   """Key table of Hugging Face `Mask2FormerForUniversalSegmentation` (current names)."""
-  r: Rules = []
+  r: R.Rules = []
   bb, c = ("params", "backbone"), cfg.hidden_dim
   e = f"{HF_SWIN}.swin"
-  _conv(r, bb + ("patch_embed_proj",), f"{e}.embeddings.patch_embeddings.projection.weight",
-        f"{e}.embeddings.patch_embeddings.projection.bias")
-  _norm(r, bb + ("patch_embed_norm",), f"{e}.embeddings.norm")
+  R.conv(r, bb + ("patch_embed_proj",), f"{e}.embeddings.patch_embeddings.projection")
+  R.layer_norm(r, bb + ("patch_embed_norm",), f"{e}.embeddings.norm")
   for i, depth in enumerate(cfg.swin.depths):
     for j in range(depth):
       s, f = f"{e}.encoder.layers.{i}.blocks.{j}", bb + (f"stage{i}_block{j}",)
-      _norm(r, f + ("norm1",), f"{s}.layernorm_before")
-      _fused_linear(r, f + ("attn", "qkv"), [f"{s}.attention.{n}_proj" for n in "qkv"])
-      _linear(r, f + ("attn", "proj"), f"{s}.attention.o_proj")
-      _param(r, f + ("attn", "relative_position_bias_table"),
+      R.layer_norm(r, f + ("norm1",), f"{s}.layernorm_before")
+      R.fused_linear(r, f + ("attn", "qkv"), [f"{s}.attention.{n}_proj" for n in "qkv"])
+      R.linear(r, f + ("attn", "proj"), f"{s}.attention.o_proj")
+      R.param(r, f + ("attn", "relative_position_bias_table"),
              f"{s}.attention.relative_position_bias.relative_position_bias_table")
-      _norm(r, f + ("norm2",), f"{s}.layernorm_after")
-      _linear(r, f + ("fc1",), f"{s}.mlp.fc1")
-      _linear(r, f + ("fc2",), f"{s}.mlp.fc2")
+      R.layer_norm(r, f + ("norm2",), f"{s}.layernorm_after")
+      R.linear(r, f + ("fc1",), f"{s}.mlp.fc1")
+      R.linear(r, f + ("fc2",), f"{s}.mlp.fc2")
     if i < len(cfg.swin.depths) - 1:
       s, f = f"{e}.encoder.layers.{i}.downsample", bb + (f"stage{i}_downsample",)
-      _norm(r, f + ("norm",), f"{s}.norm")
-      _linear(r, f + ("reduction",), f"{s}.reduction", bias=False)
-    _norm(r, bb + (f"norm{i}",), f"{HF_SWIN}.hidden_states_norms.stage{i + 1}")
+      R.layer_norm(r, f + ("norm",), f"{s}.norm")
+      R.linear(r, f + ("reduction",), f"{s}.reduction", bias=False)
+    R.layer_norm(r, bb + (f"norm{i}",), f"{HF_SWIN}.hidden_states_norms.stage{i + 1}")
 
   pd, p = ("params", "pixel_decoder"), HF_PIXEL
   for lvl in range(3):
-    _conv(r, pd + (f"input_proj{lvl}_conv",), f"{p}.input_projections.{lvl}.0.weight",
-          f"{p}.input_projections.{lvl}.0.bias")
-    _norm(r, pd + (f"input_proj{lvl}_norm",), f"{p}.input_projections.{lvl}.1")
-  _param(r, pd + ("level_embed",), f"{p}.level_embed")
+    R.conv(r, pd + (f"input_proj{lvl}_conv",), f"{p}.input_projections.{lvl}.0")
+    R.layer_norm(r, pd + (f"input_proj{lvl}_norm",), f"{p}.input_projections.{lvl}.1")
+  R.param(r, pd + ("level_embed",), f"{p}.level_embed")
   for k in range(cfg.enc_layers):
     s, f = f"{p}.encoder.layers.{k}", pd + (f"encoder_layer{k}",)
     for name in ("sampling_offsets", "attention_weights", "value_proj", "output_proj"):
-      _linear(r, f + ("self_attn", name), f"{s}.self_attn.{name}")
-    _norm(r, f + ("norm1",), f"{s}.self_attn_layer_norm")
-    _linear(r, f + ("linear1",), f"{s}.fc1")
-    _linear(r, f + ("linear2",), f"{s}.fc2")
-    _norm(r, f + ("norm2",), f"{s}.final_layer_norm")
-  _conv(r, pd + ("adapter1_conv",), f"{p}.adapter_1.0.weight", None)
-  _norm(r, pd + ("adapter1_norm",), f"{p}.adapter_1.1")
-  _conv(r, pd + ("layer1_conv",), f"{p}.layer_1.0.weight", None)
-  _norm(r, pd + ("layer1_norm",), f"{p}.layer_1.1")
-  _conv(r, pd + ("mask_features",), f"{p}.mask_projection.weight", f"{p}.mask_projection.bias")
+      R.linear(r, f + ("self_attn", name), f"{s}.self_attn.{name}")
+    R.layer_norm(r, f + ("norm1",), f"{s}.self_attn_layer_norm")
+    R.linear(r, f + ("linear1",), f"{s}.fc1")
+    R.linear(r, f + ("linear2",), f"{s}.fc2")
+    R.layer_norm(r, f + ("norm2",), f"{s}.final_layer_norm")
+  R.conv(r, pd + ("adapter1_conv",), f"{p}.adapter_1.0", bias=False)
+  R.layer_norm(r, pd + ("adapter1_norm",), f"{p}.adapter_1.1")
+  R.conv(r, pd + ("layer1_conv",), f"{p}.layer_1.0", bias=False)
+  R.layer_norm(r, pd + ("layer1_norm",), f"{p}.layer_1.1")
+  R.conv(r, pd + ("mask_features",), f"{p}.mask_projection")
 
   td, p = ("params", "predictor"), HF_TRANSFORMER
   for i in range(cfg.dec_layers):
     s, f = f"{p}.decoder.layers.{i}", td + (f"layer{i}",)
-    _in_proj(r, f + ("cross_attn",), f"{s}.cross_attn", c)
-    _norm(r, f + ("cross_norm",), f"{s}.cross_attn_layer_norm")
+    R.in_proj(r, f + ("cross_attn",), f"{s}.cross_attn", c)
+    R.layer_norm(r, f + ("cross_norm",), f"{s}.cross_attn_layer_norm")
     for n in ("q_proj", "k_proj", "v_proj", "out_proj"):
-      _linear(r, f + ("self_attn", n), f"{s}.self_attn.{n}")
-    _norm(r, f + ("self_norm",), f"{s}.self_attn_layer_norm")
-    _linear(r, f + ("linear1",), f"{s}.fc1")
-    _linear(r, f + ("linear2",), f"{s}.fc2")
-    _norm(r, f + ("ffn_norm",), f"{s}.final_layer_norm")
-  _norm(r, td + ("decoder_norm",), f"{p}.decoder.layernorm")
-  _param(r, td + ("query_feat",), f"{p}.queries_features.weight")
-  _param(r, td + ("query_embed",), f"{p}.queries_embedder.weight")
-  _param(r, td + ("level_embed",), f"{p}.level_embed.weight")
-  _linear(r, td + ("class_embed",), "class_predictor")
+      R.linear(r, f + ("self_attn", n), f"{s}.self_attn.{n}")
+    R.layer_norm(r, f + ("self_norm",), f"{s}.self_attn_layer_norm")
+    R.linear(r, f + ("linear1",), f"{s}.fc1")
+    R.linear(r, f + ("linear2",), f"{s}.fc2")
+    R.layer_norm(r, f + ("ffn_norm",), f"{s}.final_layer_norm")
+  R.layer_norm(r, td + ("decoder_norm",), f"{p}.decoder.layernorm")
+  R.param(r, td + ("query_feat",), f"{p}.queries_features.weight")
+  R.param(r, td + ("query_embed",), f"{p}.queries_embedder.weight")
+  R.param(r, td + ("level_embed",), f"{p}.level_embed.weight")
+  R.linear(r, td + ("class_embed",), "class_predictor")
   for n in range(3):
-    _linear(r, td + (f"mask_embed_{n}",), f"{p}.decoder.mask_predictor.mask_embedder.{n}.0")
+    R.linear(r, td + (f"mask_embed_{n}",), f"{p}.decoder.mask_predictor.mask_embedder.{n}.0")
   return r
 
 
@@ -286,86 +225,6 @@ def normalize_keys(state: dict, source: str, path: str) -> dict:
 
 
 # ------------------------------------------------------------------------------ conversion
-
-
-def _to_flax(t: np.ndarray, kind: str) -> np.ndarray:
-  if kind == "linear":
-    return np.ascontiguousarray(t.T)
-  if kind == "conv":
-    return np.ascontiguousarray(np.transpose(t, (2, 3, 1, 0)))
-  return np.ascontiguousarray(t)
-
-
-def _to_torch(a: np.ndarray, kind: str) -> np.ndarray:
-  if kind == "linear":
-    return np.ascontiguousarray(a.T)
-  if kind == "conv":
-    return np.ascontiguousarray(np.transpose(a, (3, 2, 0, 1)))
-  return np.ascontiguousarray(a)
-
-
-def apply_rules(state: dict, rules: Rules, ignored: re.Pattern, path: str,
-                expected: dict[tuple[str, ...], tuple[int, ...]]
-                ) -> dict[tuple[str, ...], np.ndarray]:
-  """Converts a flat PyTorch state dict with `rules`, strictly (see the module docstring).
-
-  Args:
-    state: PyTorch name -> array.
-    rules: the key table.
-    ignored: names of buffers the file may carry and the network does not use.
-    path: file name, for messages.
-    expected: Flax path -> shape of the target model.
-
-  Returns:
-    Flax path ("params", ...) -> float32 array.
-  """
-  used = {s for rule in rules for s in rule.sources}
-  check_keys(path, state, used, lambda k: bool(ignored.match(k)))
-  flat = {}
-  for rule in rules:
-    parts = []
-    for s in rule.sources:
-      value = state[s]
-      if not isinstance(value, np.ndarray):
-        raise CheckpointError(f"{path}: {s} is a {type(value).__name__}, expected a tensor")
-      parts.append(value.astype(np.float32))
-    t = parts[0] if len(parts) == 1 else np.concatenate(parts, 0)
-    if rule.rows is not None:
-      start, stop = rule.rows
-      if t.shape[0] < stop:
-        raise CheckpointError(f"{path}: {rule.sources[0]} has shape {tuple(t.shape)}, expected "
-                              f"at least {stop} rows")
-      t = t[start:stop]
-    arr = _to_flax(t, rule.kind)
-    want = expected.get(rule.flax)
-    name = "+".join(rule.sources) + (f"[{rule.rows[0]}:{rule.rows[1]}]" if rule.rows else "")
-    if want is None:
-      raise AssertionError(f"rule for {name} targets {'/'.join(rule.flax)}, not in the model")
-    if tuple(arr.shape) != tuple(want):
-      raise CheckpointError(f"{path}: {name} has shape {tuple(t.shape)} (-> {tuple(arr.shape)} "
-                            f"in Flax layout), the model expects {tuple(want)} at "
-                            f"{'/'.join(rule.flax[1:])}")
-    flat[rule.flax] = arr
-  uncovered = sorted("/".join(k) for k in expected if k not in flat)
-  if uncovered:  # the tables and the model disagree: a bug here, not in the file
-    raise AssertionError(f"key table does not cover model paths {uncovered}")
-  return flat
-
-
-def to_state_dict(variables: dict, rules: Rules) -> dict[str, np.ndarray]:
-  """Inverse of `apply_rules`: Flax variables -> PyTorch-named float32 arrays."""
-  from flax.traverse_util import flatten_dict
-  flat = {k: np.asarray(v, np.float32) for k, v in flatten_dict(variables).items()}
-  pieces: dict[str, list[tuple[int, np.ndarray]]] = collections.defaultdict(list)
-  for rule in rules:
-    t = _to_torch(flat[rule.flax], rule.kind)
-    if len(rule.sources) > 1:
-      for s, part in zip(rule.sources, np.split(t, len(rule.sources), axis=0)):
-        pieces[s].append((0, part))
-    else:
-      pieces[rule.sources[0]].append((rule.rows[0] if rule.rows else 0, t))
-  return {s: np.concatenate([a for _, a in sorted(ps, key=lambda x: x[0])], 0)
-          if len(ps) > 1 else ps[0][1] for s, ps in pieces.items()}
 
 
 def _count(state: dict, pattern: str) -> int:
@@ -420,16 +279,10 @@ def infer_config(state: dict, source: str, path: str):
                           f"({type(e).__name__}: {e})") from None
 
 
-@functools.lru_cache(maxsize=4)
 def expected_shapes(cfg) -> dict[tuple[str, ...], tuple[int, ...]]:
   """Flax path -> shape of `Mask2Former(cfg)`'s variables (abstract evaluation, no compute)."""
-  import jax
-  import jax.numpy as jnp
-  from flax.traverse_util import flatten_dict
   from pitta_jax.models.mask2former import Mask2Former
-  shapes = jax.eval_shape(Mask2Former(cfg).init, jax.random.PRNGKey(0),
-                          jnp.zeros((1, 64, 64, 3), jnp.float32))
-  return {k: tuple(v.shape) for k, v in flatten_dict(shapes).items()}
+  return R.expected_shapes(Mask2Former(cfg), (1, 64, 64, 3))
 
 
 # ------------------------------------------------------------------------------ file readers
@@ -507,7 +360,8 @@ def convert_mask2former(path: str | os.PathLike, source: str, cfg=None):
   cfg = cfg or infer_config(state, source, str(path))
   rules = detectron2_rules(cfg) if source == "detectron2" else hf_rules(cfg)
   ignored = _IGNORED_D2 if source == "detectron2" else _IGNORED_HF
-  flat = apply_rules(state, rules, ignored, str(path), expected_shapes(cfg))
+  flat = R.apply_rules(state, rules, lambda k: bool(ignored.match(k)), str(path),
+                       expected_shapes(cfg))
   return cfg, unflatten_dict(flat)
 
 

@@ -16,16 +16,10 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
-from typing import Callable
-
 import numpy as np
 
+from weights_convert import rules as R
 from weights_convert.pth import CheckpointError, load_pth
-from weights_convert.strict import check_keys
-
-Transform = Callable[[np.ndarray], np.ndarray]
-# torch key -> (flax path (collection, module..., leaf), transform)
-KeyTable = dict[str, tuple[tuple[str, ...], Transform]]
 
 METADATA_KEYS = ("height", "width", "use_stereo")
 RESNET_BLOCKS = {18: ("basic", (2, 2, 2, 2)), 34: ("basic", (3, 4, 6, 3)),
@@ -36,63 +30,42 @@ DECODER_ORDER = tuple(f"upconv_{i}_{j}" for i in range(4, -1, -1) for j in (0, 1
 POSE_ORDER = ("squeeze", "pose_0", "pose_1", "pose_2")
 
 
-def conv_kernel(w: np.ndarray) -> np.ndarray:
-  """PyTorch conv weight (O, I, kH, kW) -> Flax kernel (kH, kW, I, O)."""
-  return np.ascontiguousarray(np.transpose(w, (2, 3, 1, 0)))
-
-
-def identity(w: np.ndarray) -> np.ndarray:
-  return np.ascontiguousarray(w)
-
-
-def _conv(table: KeyTable, torch_name: str, flax_mod: tuple[str, ...], bias: bool) -> None:
-  table[f"{torch_name}.weight"] = (("params",) + flax_mod + ("kernel",), conv_kernel)
-  if bias:
-    table[f"{torch_name}.bias"] = (("params",) + flax_mod + ("bias",), identity)
-
-
-def _bn(table: KeyTable, torch_name: str, flax_mod: tuple[str, ...]) -> None:
-  table[f"{torch_name}.weight"] = (("params",) + flax_mod + ("scale",), identity)
-  table[f"{torch_name}.bias"] = (("params",) + flax_mod + ("bias",), identity)
-  table[f"{torch_name}.running_mean"] = (("batch_stats",) + flax_mod + ("mean",), identity)
-  table[f"{torch_name}.running_var"] = (("batch_stats",) + flax_mod + ("var",), identity)
-
-
-def encoder_table(num_layers: int, prefix: str = "encoder.") -> KeyTable:
-  """Key table for MonoDepth2's `ResnetEncoder` (torchvision names under `encoder.`)."""
+def encoder_rules(num_layers: int, prefix: str = "encoder.", root: tuple[str, ...] = ("encoder",)
+                  ) -> R.Rules:
+  """Key table of MonoDepth2's `ResnetEncoder` (torchvision names under `prefix`) -> `root`."""
   kind, blocks = RESNET_BLOCKS[num_layers]
-  table: KeyTable = {}
-  root = ("encoder",)
-  _conv(table, f"{prefix}conv1", root + ("conv1",), bias=False)
-  _bn(table, f"{prefix}bn1", root + ("bn1",))
+  rules: R.Rules = []
+  R.conv(rules, ("params",) + root + ("conv1",), f"{prefix}conv1", bias=False)
+  R.batch_norm(rules, root + ("bn1",), f"{prefix}bn1")
   n_convs = 3 if kind == "bottleneck" else 2
   for stage, n_blocks in enumerate(blocks, start=1):
     for b in range(n_blocks):
       tname, fmod = f"{prefix}layer{stage}.{b}", root + (f"layer{stage}_{b}",)
       for c in range(1, n_convs + 1):
-        _conv(table, f"{tname}.conv{c}", fmod + (f"conv{c}",), bias=False)
-        _bn(table, f"{tname}.bn{c}", fmod + (f"bn{c}",))
+        R.conv(rules, ("params",) + fmod + (f"conv{c}",), f"{tname}.conv{c}", bias=False)
+        R.batch_norm(rules, fmod + (f"bn{c}",), f"{tname}.bn{c}")
       if b == 0 and (stage > 1 or kind == "bottleneck"):
-        _conv(table, f"{tname}.downsample.0", fmod + ("downsample_conv",), bias=False)
-        _bn(table, f"{tname}.downsample.1", fmod + ("downsample_bn",))
-  return table
+        R.conv(rules, ("params",) + fmod + ("downsample_conv",), f"{tname}.downsample.0",
+               bias=False)
+        R.batch_norm(rules, fmod + ("downsample_bn",), f"{tname}.downsample.1")
+  return rules
 
 
-def depth_decoder_table() -> KeyTable:
+def depth_decoder_rules(prefix: str = "decoder.", root: tuple[str, ...] = ("decoder",)) -> R.Rules:
   """`decoder.{k}.conv.conv.*` (ConvBlock) for the 10 upconvs, `decoder.{k}.conv.*` (Conv3x3)
   for the 4 dispconvs."""
-  table: KeyTable = {}
+  rules: R.Rules = []
   for k, name in enumerate(DECODER_ORDER):
-    torch_name = f"decoder.{k}.conv.conv" if name.startswith("upconv") else f"decoder.{k}.conv"
-    _conv(table, torch_name, ("decoder", name), bias=True)
-  return table
+    torch_name = f"{prefix}{k}.conv.conv" if name.startswith("upconv") else f"{prefix}{k}.conv"
+    R.conv(rules, ("params",) + root + (name,), torch_name)
+  return rules
 
 
-def pose_decoder_table() -> KeyTable:
-  table: KeyTable = {}
+def pose_decoder_rules() -> R.Rules:
+  rules: R.Rules = []
   for k, name in enumerate(POSE_ORDER):
-    _conv(table, f"net.{k}", ("decoder", name), bias=True)
-  return table
+    R.conv(rules, ("params", "decoder", name), f"net.{k}")
+  return rules
 
 
 def _is_ignorable(key: str) -> bool:
@@ -112,42 +85,6 @@ def infer_num_layers(state: dict, path: str) -> int:
     return 34
   raise CheckpointError(f"{path}: cannot tell the ResNet depth from its keys "
                         f"(encoder.layer3 has {n_layer3} blocks; expected 2 (ResNet-18) or 6 (ResNet-34))")
-
-
-def apply_table(state: dict, table: KeyTable, path: str, expected: dict[tuple[str, ...], tuple]
-                ) -> dict[tuple[str, ...], np.ndarray]:
-  """Maps a flat PyTorch state dict through `table`, strictly.
-
-  Args:
-    state: torch key -> array (as `load_pth` returns it).
-    table: the key table.
-    path: file name, for messages.
-    expected: Flax path -> shape of the target model (from `jax.eval_shape` of its init).
-  """
-  check_keys(path, state, table, _is_ignorable)
-  flat = {}
-  for key, (fpath, transform) in table.items():
-    value = state[key]
-    if not isinstance(value, np.ndarray):
-      raise CheckpointError(f"{path}: {key} is a {type(value).__name__}, expected a tensor")
-    arr = transform(value.astype(np.float32))
-    want = expected.get(fpath)
-    if want is None:
-      raise CheckpointError(f"{path}: {key} maps to {'/'.join(fpath)}, which the model lacks")
-    if tuple(arr.shape) != tuple(want):
-      raise CheckpointError(f"{path}: {key} has shape {tuple(value.shape)} (-> {tuple(arr.shape)} "
-                            f"in Flax layout), the model expects {tuple(want)} at {'/'.join(fpath)}")
-    flat[fpath] = arr
-  return flat
-
-
-def _expected_shapes(module, channels: int, height: int = 64, width: int = 64) -> dict:
-  import jax
-  import jax.numpy as jnp
-  from flax.traverse_util import flatten_dict
-  shapes = jax.eval_shape(module.init, jax.random.PRNGKey(0),
-                          jnp.zeros((1, height, width, channels), jnp.float32))
-  return {k: v.shape for k, v in flatten_dict(shapes).items()}
 
 
 def _read_state(path: str | os.PathLike) -> dict:
@@ -191,12 +128,12 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
   if overlap:
     raise CheckpointError(f"{depth}: keys {sorted(overlap)[:4]} also occur in {encoder}; "
                           f"are the encoder and decoder files swapped or the same file?")
-  expected = _expected_shapes(DepthNet(num_layers), 3)
-  flat = apply_table(enc_state, encoder_table(num_layers), str(encoder), expected)
-  flat.update(apply_table(dec_state, depth_decoder_table(), str(depth), expected))
-  missing = sorted("/".join(k) for k in expected if k not in flat)
-  if missing:  # the tables and the model disagree: a bug here, not in the file
-    raise AssertionError(f"key tables do not cover model paths {missing[:6]}")
+  expected = R.expected_shapes(DepthNet(num_layers), (1, 64, 64, 3))
+  flat = R.apply_rules(enc_state, encoder_rules(num_layers), _is_ignorable, str(encoder),
+                       expected, cover=False)
+  flat.update(R.apply_rules(dec_state, depth_decoder_rules(), _is_ignorable, str(depth),
+                            expected, cover=False))
+  R.check_covered(flat, expected)
   config = ModelConfig(
       num_layers=num_layers,
       height=_meta(enc_state, "height", 192, encoder),
@@ -211,9 +148,12 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
   if pose_encoder is not None:
     pe_state, pd_state = _read_state(pose_encoder), _read_state(pose)
     pose_layers = infer_num_layers(pe_state, str(pose_encoder))
-    expected_pose = _expected_shapes(PoseNet(pose_layers), 6)
-    pflat = apply_table(pe_state, encoder_table(pose_layers), str(pose_encoder), expected_pose)
-    pflat.update(apply_table(pd_state, pose_decoder_table(), str(pose), expected_pose))
+    expected_pose = R.expected_shapes(PoseNet(pose_layers), (1, 64, 64, 6))
+    pflat = R.apply_rules(pe_state, encoder_rules(pose_layers), _is_ignorable,
+                          str(pose_encoder), expected_pose, cover=False)
+    pflat.update(R.apply_rules(pd_state, pose_decoder_rules(), _is_ignorable, str(pose),
+                               expected_pose, cover=False))
+    R.check_covered(pflat, expected_pose)
     pose_vars = unflatten_dict(pflat)
   return config, depth_vars, pose_vars
 

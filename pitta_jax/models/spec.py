@@ -1,0 +1,70 @@
+"""What the rest of the project knows about a depth network: its `ModelSpec`.
+
+Each network lives in its own folder under `pitta_jax/models/` with its Flax modules and a
+`SPEC`; `pitta_jax.models.registry` lists them. The engine, `predict`, the selectors, the
+checkpoint loader and the CLI see a network only through its spec:
+
+* `build(config)` -> the Flax module, from the `config` dict stored in the weights directory's
+  `model.json` (what the converter or `train-source` wrote).
+* The module's call: `module.apply(variables, images, train=use_batch_stats)` with images
+  (B, H, W, 3) RGB in [0, 1] (the module normalises them itself, as its upstream does) returns a
+  tuple of output maps (B, H_s, W_s, 1), the full-resolution one first.
+* `output`: what those maps are, and so how they become depth (`to_depth`):
+  "sigmoid_disparity" (the MonoDepth2 family: depth = 1 / (1/max + (1/min - 1/max) disp)) or
+  "relative_inverse_depth" (affine-invariant, e.g. Depth Anything V2: the engine's depth is
+  1 / max(out, eps), meaningful only up to scale and shift).
+* Input rules: H and W multiples of `size_multiple`; `default_size` is the size the released
+  weights were trained at.
+* `alignment`: the evaluation protocol the network's outputs need ("median" scaling for
+  monocular self-supervised networks, "scale_shift" least squares for relative depth).
+* `encoder`: the top-level module name of the encoder, the part the paper adapts (eq. 11); the
+  selectors find its normalisation and convolution layers in forward order from the module
+  itself (`pitta_jax.trainable`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Mapping
+
+import jax
+import jax.numpy as jnp
+
+OUTPUTS = ("sigmoid_disparity", "relative_inverse_depth")
+ALIGNMENTS = ("median", "scale_shift", "none")
+RELATIVE_EPS = 1e-6  # floor of a relative inverse depth before inverting it
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+  """One depth network as the project sees it (see the module docstring)."""
+  name: str                                  # registry key and model.json "architecture"
+  build: Callable[[Mapping[str, Any]], Any]  # model.json "config" -> flax.linen.Module
+  output: str                                # one of OUTPUTS
+  size_multiple: int                         # input H and W must be multiples of this
+  default_size: tuple[int, int]              # (H, W) of the released weights
+  alignment: str = "median"                  # default evaluation alignment, one of ALIGNMENTS
+  depth_range: tuple[float, float] = (0.1, 100.0)  # disp_to_depth (min, max), sigmoid outputs
+  encoder: str = "encoder"                   # top-level module name of the encoder
+  description: str = ""                      # one line for --help and model listings
+
+  def __post_init__(self):
+    if self.output not in OUTPUTS:
+      raise ValueError(f"{self.name}: output {self.output!r} is not one of {OUTPUTS}")
+    if self.alignment not in ALIGNMENTS:
+      raise ValueError(f"{self.name}: alignment {self.alignment!r} is not one of {ALIGNMENTS}")
+
+  def check_size(self, height: int, width: int) -> None:
+    """Raises ValueError naming the rule when (height, width) is not a valid input size."""
+    m = self.size_multiple
+    if height <= 0 or width <= 0 or height % m or width % m:
+      raise ValueError(f"input size {width}x{height} (WxH) is not supported by {self.name}: "
+                       f"width and height must be positive multiples of {m} "
+                       f"(default {self.default_size[1]}x{self.default_size[0]})")
+
+  def to_depth(self, out: jax.Array) -> jax.Array:
+    """The network's scale-0 output -> the depth the losses see (same shape)."""
+    if self.output == "sigmoid_disparity":
+      from pitta_jax.models.depth_decoder import disp_to_depth
+      return disp_to_depth(out, *self.depth_range)
+    return 1.0 / jnp.maximum(out, RELATIVE_EPS)
