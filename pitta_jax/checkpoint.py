@@ -57,6 +57,25 @@ def load_tree(path: str | os.PathLike) -> Any:
   return _checkpointer().restore(os.path.abspath(path))
 
 
+def save_weights(out_dir: str | os.PathLike, architecture: str, config: dict[str, Any],
+                 depth: Any, pose: Any | None = None, source: dict | None = None) -> Path:
+  """Writes a weights directory for any registered network.
+
+  model.json = {"architecture": NAME, **config, "has_pose": ..., "source": {...}}; `config` holds
+  the JSON fields the network's `ModelSpec.build` reads (with "height"/"width", the input size
+  the weights were trained at); depth/ (and pose/) are orbax checkpoints of Flax variables.
+  """
+  out = Path(out_dir)
+  out.mkdir(parents=True, exist_ok=True)
+  save_tree(out / "depth", depth)
+  if pose is not None:
+    save_tree(out / "pose", pose)
+  meta = {"architecture": architecture, **config, "has_pose": pose is not None,
+          "source": source or {}}
+  (out / MODEL_JSON).write_text(json.dumps(meta, indent=2) + "\n")
+  return out
+
+
 def save_monodepth2(out_dir: str | os.PathLike, config: ModelConfig, depth: dict,
                     pose: dict | None = None) -> Path:
   """Writes a MonoDepth2 weights directory (see the module docstring)."""

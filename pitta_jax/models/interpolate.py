@@ -1,0 +1,91 @@
+"""PyTorch's `F.interpolate` on NHWC arrays: bilinear and bicubic, both align_corners modes.
+
+Each axis is resized by a constant (out, in) interpolation matrix built with NumPy from
+PyTorch's source-coordinate rule, then applied with one einsum per axis; the matrices are
+constants of the compiled program, and the gradient w.r.t. the input is exact.
+
+Source coordinate of output index i (scale = in / out, PyTorch's rule when no scale_factor is
+given):
+  align_corners=True:  x = i * (in - 1) / (out - 1)   (0 when out == 1)
+  align_corners=False: x = (i + 0.5) * scale - 0.5, clamped at 0 for bilinear (not for bicubic)
+Bilinear: linear weights between floor(x) and floor(x) + 1 (index clamped to in - 1).
+Bicubic: Keys' cubic convolution with a = -0.75 (PyTorch's constant) over the 4 neighbours
+floor(x) - 1 .. floor(x) + 2, indices clamped to [0, in - 1] (border replication).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+CUBIC_A = -0.75  # PyTorch's bicubic constant (OpenCV uses the same)
+
+
+def _source_coords(n_in: int, n_out: int, align_corners: bool) -> np.ndarray:
+  i = np.arange(n_out, dtype=np.float64)
+  if align_corners:
+    return i * ((n_in - 1) / (n_out - 1)) if n_out > 1 else np.zeros(n_out)
+  return (i + 0.5) * (n_in / n_out) - 0.5
+
+
+def linear_matrix(n_in: int, n_out: int, align_corners: bool) -> np.ndarray:
+  """(n_out, n_in) float32 weights of PyTorch's 1-D linear interpolation."""
+  x = _source_coords(n_in, n_out, align_corners)
+  if not align_corners:
+    x = np.maximum(x, 0.0)
+  lo = np.minimum(np.floor(x).astype(np.int64), n_in - 1)
+  hi = np.minimum(lo + 1, n_in - 1)
+  frac = x - lo
+  m = np.zeros((n_out, n_in), np.float64)
+  np.add.at(m, (np.arange(n_out), lo), 1.0 - frac)
+  np.add.at(m, (np.arange(n_out), hi), frac)
+  return m.astype(np.float32)
+
+
+def _cubic_weights(t: np.ndarray, a: float) -> np.ndarray:
+  """Weights of the neighbours at offsets -1, 0, 1, 2 for fractional position t, (n, 4)."""
+  def near(d):  # |d| <= 1
+    return ((a + 2) * d - (a + 3)) * d * d + 1
+  def far(d):  # 1 < |d| < 2
+    return ((a * d - 5 * a) * d + 8 * a) * d - 4 * a
+  return np.stack([far(t + 1), near(t), near(1 - t), far(2 - t)], axis=-1)
+
+
+def cubic_matrix(n_in: int, n_out: int, align_corners: bool, a: float = CUBIC_A) -> np.ndarray:
+  """(n_out, n_in) float32 weights of PyTorch's 1-D bicubic interpolation."""
+  x = _source_coords(n_in, n_out, align_corners)
+  base = np.floor(x).astype(np.int64)
+  w = _cubic_weights(x - base, a)  # (n_out, 4)
+  m = np.zeros((n_out, n_in), np.float64)
+  for k in range(4):
+    idx = np.clip(base - 1 + k, 0, n_in - 1)
+    np.add.at(m, (np.arange(n_out), idx), w[:, k])
+  return m.astype(np.float32)
+
+
+def _resize(x: jax.Array, size: tuple[int, int], matrix) -> jax.Array:
+  h, w = x.shape[-3], x.shape[-2]
+  mh = jnp.asarray(matrix(h, size[0]))  # (H', H)
+  mw = jnp.asarray(matrix(w, size[1]))  # (W', W)
+  hp = jax.lax.Precision.HIGHEST
+  y = jnp.einsum("ph,...hwc->...pwc", mh, x, precision=hp)
+  return jnp.einsum("qw,...pwc->...pqc", mw, y, precision=hp)
+
+
+def resize_bilinear(x: jax.Array, size: tuple[int, int], align_corners: bool) -> jax.Array:
+  """`F.interpolate(x, size, mode="bilinear", align_corners=...)` on (..., H, W, C)."""
+  return _resize(x, size, lambda i, o: linear_matrix(i, o, align_corners))
+
+
+def resize_bicubic(x: jax.Array, size: tuple[int, int], align_corners: bool) -> jax.Array:
+  """`F.interpolate(x, size, mode="bicubic", align_corners=...)` on (..., H, W, C), a = -0.75."""
+  return _resize(x, size, lambda i, o: cubic_matrix(i, o, align_corners))
+
+
+def resize_nearest(x: jax.Array, size: tuple[int, int]) -> jax.Array:
+  """`F.interpolate(x, size, mode="nearest")` on (..., H, W, C): source index floor(i * in / out)."""
+  h, w = x.shape[-3], x.shape[-2]
+  rows = np.minimum(np.floor(np.arange(size[0]) * (h / size[0])).astype(np.int64), h - 1)
+  cols = np.minimum(np.floor(np.arange(size[1]) * (w / size[1])).astype(np.int64), w - 1)
+  return x[..., rows, :, :][..., cols, :]

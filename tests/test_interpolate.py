@@ -1,0 +1,42 @@
+"""`pitta_jax.models.interpolate` against PyTorch's `F.interpolate` (values and input gradients)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from pitta_jax.models import interpolate
+
+CASES = [((5, 7), (12, 9)), ((8, 8), (3, 5)), ((37, 37), (16, 24)), ((1, 4), (3, 8))]
+
+
+def _torch(x: np.ndarray, size, mode: str, align_corners):
+  t = torch.from_numpy(x).permute(0, 3, 1, 2).double().requires_grad_(True)
+  kw = {} if mode == "nearest" else {"align_corners": align_corners}
+  y = F.interpolate(t, size=size, mode=mode, **kw)
+  w = torch.from_numpy(np.random.default_rng(1).normal(size=y.shape))
+  (y * w).sum().backward()
+  return y.detach().permute(0, 2, 3, 1).numpy(), t.grad.permute(0, 2, 3, 1).numpy(), w
+
+
+MODES = [("bilinear", False), ("bilinear", True), ("bicubic", False), ("bicubic", True),
+         ("nearest", None)]
+
+
+@pytest.mark.parametrize("mode,align_corners", MODES)
+@pytest.mark.parametrize("src,dst", CASES)
+def test_matches_torch_interpolate(mode, align_corners, src, dst):
+  x = np.random.default_rng(0).normal(size=(2, *src, 3))
+  want, want_grad, w = _torch(x, dst, mode, align_corners)
+  fn = {"bilinear": lambda a: interpolate.resize_bilinear(a, dst, align_corners),
+        "bicubic": lambda a: interpolate.resize_bicubic(a, dst, align_corners),
+        "nearest": lambda a: interpolate.resize_nearest(a, dst)}[mode]
+  got = fn(jnp.asarray(x, jnp.float32))
+  np.testing.assert_allclose(np.asarray(got), want, atol=2e-6)
+  wj = jnp.asarray(w.permute(0, 2, 3, 1).numpy(), jnp.float32)
+  grad = jax.grad(lambda a: jnp.sum(fn(a) * wj))(jnp.asarray(x, jnp.float32))
+  np.testing.assert_allclose(np.asarray(grad), want_grad, atol=2e-5)
