@@ -12,6 +12,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from pitta_jax.dtypes import as_float
+from pitta_jax.nonsmooth import absolute
+
 Array = jax.Array
 
 
@@ -22,10 +25,10 @@ def laplacian(x: Array) -> Array:
     x: (H, W) float map.
 
   Returns:
-    (H, W) float32. The neighbours are summed as (down + up) + (right + left) so that a
+    (H, W) float32 (float64 for a float64 map). The neighbours are summed as (down + up) + (right + left) so that a
     constant map gives exactly 0.
   """
-  x = jnp.asarray(x, jnp.float32)
+  x = as_float(x)
   if x.ndim != 2:
     raise ValueError(f"expected an (H, W) map, got shape {x.shape}")
   p = jnp.pad(x, 1, mode="edge")  # (H + 2, W + 2), clamped indices
@@ -44,10 +47,10 @@ def edge_map(x: Array, weight: Array | float | None = None) -> Array:
   Returns:
     (H, W) float32 `weight * |laplacian(x)|`.
   """
-  mag = jnp.abs(laplacian(x))  # (H, W)
+  mag = absolute(laplacian(x))  # (H, W); d|u|/du = 0 at u = 0, as torch.abs
   if weight is None:
     return mag
-  return jnp.asarray(weight, jnp.float32) * mag
+  return jnp.asarray(weight, mag.dtype) * mag
 
 
 def image_edge_map(image: Array, weight: Array | float | None = None) -> Array:
@@ -60,7 +63,7 @@ def image_edge_map(image: Array, weight: Array | float | None = None) -> Array:
   Returns:
     (H, W) float32.
   """
-  image = jnp.asarray(image, jnp.float32)
+  image = as_float(image)
   if image.ndim != 3:
     raise ValueError(f"expected an (H, W, C) image, got shape {image.shape}")
   return edge_map(jnp.mean(image, axis=-1), weight)  # I_bar: (H, W)

@@ -46,6 +46,8 @@ import jax.numpy as jnp
 
 from pitta_jax import masks as masks_lib
 from pitta_jax.edges import edge_map, image_edge_map
+from pitta_jax.dtypes import as_float
+from pitta_jax.nonsmooth import absolute
 from pitta_jax.median import (INT_PAD, median_filter, median_of_views, middle_order_statistics,
                               middle_ranks, window_views)
 
@@ -71,8 +73,8 @@ class PittaLoss(NamedTuple):
 def _mean_over_instances(total: Array, n: Array) -> Array:
   """total / N, and 0 when N = 0 (no NaN in the value or the gradient)."""
   n = jnp.asarray(n, jnp.int32)
-  safe_n = jnp.maximum(n, 1).astype(jnp.float32)
-  return jnp.where(n > 0, total / safe_n, 0.0)
+  safe_n = jnp.maximum(n, 1).astype(total.dtype)
+  return jnp.where(n > 0, total / safe_n, jnp.zeros((), total.dtype))
 
 
 def depth_refining_loss_literal(depth: Array, masks: Array, inst_valid: Array, s: int = 5) -> Array:
@@ -90,15 +92,15 @@ def depth_refining_loss_literal(depth: Array, masks: Array, inst_valid: Array, s
   Returns:
     scalar float32 L_d (0 when N = 0).
   """
-  depth = jnp.asarray(depth, jnp.float32)
+  depth = as_float(depth)
   inst_valid = jnp.asarray(inst_valid, bool)
 
   def one(m):  # m: (H, W)
     masked = depth * m  # D~_j, eq. 4
     pseudo = median_filter(jax.lax.stop_gradient(masked), s)  # D~'_j, eq. 7
-    return jnp.sum(jnp.abs(masked - pseudo))
+    return jnp.sum(absolute(masked - pseudo))
 
-  per_instance = jax.vmap(one)(jnp.asarray(masks, jnp.float32))  # (N_max,)
+  per_instance = jax.vmap(one)(jnp.asarray(masks, depth.dtype))  # (N_max,)
   total = jnp.sum(jnp.where(inst_valid, per_instance, 0.0))
   return _mean_over_instances(total, jnp.sum(inst_valid))
 
@@ -121,7 +123,7 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int = 
   Returns:
     scalar float32 L_d (0 when N = 0).
   """
-  depth = jnp.asarray(depth, jnp.float32)
+  depth = as_float(depth)
   index_map = jnp.asarray(index_map, jnp.int32)
   if depth.ndim != 2 or depth.shape != index_map.shape:
     raise ValueError(f"depth {depth.shape} and index_map {index_map.shape} must be the same (H, W)")
@@ -147,8 +149,8 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int = 
            for iv, vv in zip(idx_views, val_views)]  # s*s x (2, H, W)
   pseudo_own, pseudo_extra = median_of_views(views, s)  # (H, W) each
 
-  own_term = jnp.where(index_map > 0, jnp.abs(own_masked - pseudo_own), 0.0)
-  extra_term = jnp.where(extra > 0, jnp.abs(pseudo_extra), 0.0)  # |0 - D~'_e|
+  own_term = jnp.where(index_map > 0, absolute(own_masked - pseudo_own), 0.0)
+  extra_term = jnp.where(extra > 0, absolute(pseudo_extra), 0.0)  # |0 - D~'_e|
   return _mean_over_instances(jnp.sum(own_term + extra_term), n)
 
 
@@ -225,7 +227,7 @@ def edge_guided_loss(image: Array, depth: Array, u: Array | float | None = None,
   d_depth = edge_map(depth, v)  # (H, W)
   if d_image.shape != d_depth.shape:
     raise ValueError(f"image {d_image.shape} and depth {d_depth.shape} sizes differ")
-  return jnp.sum(jnp.abs(d_image - d_depth))
+  return jnp.sum(absolute(d_image - d_depth))
 
 
 def pitta_loss(image: Array, depth: Array, panoptic: Array, dynamic_ids: Array, s: int = 5,

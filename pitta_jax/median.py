@@ -25,6 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pitta_jax.dtypes import as_float
+
 Array = jax.Array
 
 # Padding for integer maps: sorts after every real value.
@@ -182,7 +184,7 @@ def median_filter(x: Array, s: int = 5) -> Array:
     (H, W) float32 filtered map.
   """
   _check_window(s)
-  x = jnp.asarray(x, jnp.float32)
+  x = as_float(x)
   if x.ndim != 2:
     raise ValueError(f"median_filter expects an (H, W) map, got shape {x.shape}")
   return median_of_views(window_views(x, s, jnp.inf), s)

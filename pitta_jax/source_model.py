@@ -29,6 +29,7 @@ from tqdm import tqdm
 from pitta_jax.checkpoint import ModelConfig, MonoDepth2Weights, load_monodepth2, save_monodepth2
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
 from pitta_jax.models.depth_decoder import DepthNet, check_input_size, disp_to_depth
+from pitta_jax.nonsmooth import absolute
 
 CACHE_ENV = "PITTA_JAX_CACHE"
 FORMAT_VERSION = 1  # bump when the training recipe changes, so old caches are not reused
@@ -99,7 +100,7 @@ def supervised_loss(disps: tuple[jax.Array, ...], gt: jax.Array) -> jax.Array:
     d = disp[..., 0]
     if s:
       d = jnp.repeat(jnp.repeat(d, 2 ** s, axis=1), 2 ** s, axis=2)
-    err = jnp.abs(jnp.log(disp_to_depth(d)) - log_gt)
+    err = absolute(jnp.log(disp_to_depth(d)) - log_gt)
     total = total + jnp.sum(jnp.where(valid, err, 0.0)) / jnp.maximum(jnp.sum(valid), 1)
   return total / len(disps)
 

@@ -116,8 +116,8 @@ def depth_refining_loss_loop(depth, panoptic, dynamic_ids, s, mode="binary") -> 
 
 def depth_refining_grad_loop(depth, panoptic, dynamic_ids, s, mode="binary") -> np.ndarray:
   """d L_d / d D with the pseudo labels held constant:
-  1/N sum_j M_j(x, y) sign(D~_j(x, y) - D~'_j(x, y)), with JAX's subgradient d|u|/du = 1 at
-  u = 0 (where a pixel equals its own pseudo label)."""
+  1/N sum_j M_j(x, y) sign(D~_j(x, y) - D~'_j(x, y)), with sign(0) = 0 where a pixel equals its
+  own pseudo label (the derivative of |u| at 0 that PyTorch's abs and NumPy's sign use)."""
   depth = np.asarray(depth, np.float32)
   masks = instance_masks_loop(panoptic, dynamic_ids, mode)
   grad = np.zeros(depth.shape, np.float64)
@@ -129,7 +129,7 @@ def depth_refining_grad_loop(depth, panoptic, dynamic_ids, s, mode="binary") -> 
     for x in range(depth.shape[0]):
       for y in range(depth.shape[1]):
         diff = float(masked[x, y]) - float(pseudo[x, y])
-        grad[x, y] += m[x, y] * (1.0 if diff >= 0 else -1.0)
+        grad[x, y] += m[x, y] * float(np.sign(diff))
   return grad / len(masks)
 
 

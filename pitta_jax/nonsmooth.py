@@ -1,0 +1,66 @@
+"""PyTorch's derivative conventions at the non-smooth points of the differentiated path.
+
+A loss built from |.|, clamps and maxima is not differentiable everywhere, and at those points
+the frameworks choose different subgradients. The points are not rare in depth TTA: a pixel
+that equals its median-filtered pseudo label (eq. 7) gives |D~ - D~'| = 0 exactly (a median of
+a locally symmetric window *is* its centre), and on a smooth depth map that is most pixels; a
+planar region has a Laplacian (eqs. 5-6) of exactly 0. The paper's method, its baselines and
+their public code are PyTorch, so the project follows PyTorch's choices everywhere a gradient
+flows:
+
+  |x| at 0                      d/dx = 0         (torch.abs: sgn(0) = 0; jnp.abs gives +1)
+  clamp(x, lo, hi) at a bound   d/dx = 1         (torch.clamp passes lo <= x <= hi;
+                                                  jnp.clip gives 1/2 there)
+  relu(x) at 0                  d/dx = 0         (jax.nn.relu already agrees)
+  maximum(a, b) / max at ties   split evenly     (jnp.maximum, jnp.max already agree)
+  elu(x) at 0                   d/dx = 1         (jax.nn.elu already agrees)
+  the stem's 3x3/2 max pool     first maximum    (`models.layers.max_pool_3x3_s2`)
+
+`absolute` and `clamp` below are the two that differ; every loss uses them instead of jnp.abs /
+jnp.clip. The median filter's selection is never differentiated (pseudo labels are constants).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+Array = jax.Array
+
+
+@jax.custom_jvp
+def absolute(x: Array) -> Array:
+  """|x| with PyTorch's derivative sign(x) (0 at x = 0), any shape."""
+  return jnp.abs(x)
+
+
+@absolute.defjvp
+def _absolute_jvp(primals, tangents):
+  (x,), (t,) = primals, tangents
+  return jnp.abs(x), jnp.sign(x) * t
+
+
+def clamp(x: Array, lo: float | Array | None = None, hi: float | Array | None = None) -> Array:
+  """`torch.clamp(x, lo, hi)`: the gradient passes where lo <= x <= hi, bounds included."""
+  return _clamp(x, -jnp.inf if lo is None else lo, jnp.inf if hi is None else hi)
+
+
+@jax.custom_jvp
+def _clamp(x: Array, lo: Array | float, hi: Array | float) -> Array:
+  return jnp.minimum(jnp.maximum(x, lo), hi)
+
+
+@_clamp.defjvp
+def _clamp_jvp(primals, tangents):
+  x, lo, hi = primals
+  tx, tlo, thi = tangents
+  y = jnp.minimum(jnp.maximum(x, lo), hi)
+  inside = (x >= lo) & (x <= hi)
+  # torch routes the gradient to a tensor bound only where x is strictly past it
+  t = jnp.where(inside, tx, 0.0)
+  t = t + jnp.where(x < lo, _as(tlo, x), 0.0) + jnp.where(x > hi, _as(thi, x), 0.0)
+  return y, t
+
+
+def _as(t, like):
+  return jnp.broadcast_to(jnp.asarray(t, like.dtype), like.shape)
