@@ -1,11 +1,16 @@
-"""A converted MonoDepth2 on disk: orbax variables + a small JSON, loaded with one call.
+"""A network's weights on disk: orbax variables + model.json, loaded and validated with one call.
 
-Layout of a weights directory (written by `weights_convert monodepth2` or `train-source`):
+Layout of a weights directory (written by `pitta-jax convert ...` or `train-source`):
 
-  DIR/model.json        {"architecture": "monodepth2", "num_layers": 18, "height": 192,
-                         "width": 640, "use_stereo": false, "has_pose": true, "source": {...}}
-  DIR/depth/            orbax checkpoint of DepthNet variables {"params", "batch_stats"}
-  DIR/pose/             (optional) orbax checkpoint of PoseNet variables
+  DIR/model.json   {"architecture": "monodepth2", "height": 192, "width": 640, ...network
+                    fields (e.g. "num_layers": 18)..., "has_pose": false, "source": {...}}
+  DIR/depth/       orbax checkpoint of the depth network's Flax variables
+  DIR/pose/        (optional) orbax checkpoint of its pose network's variables
+
+`load_weights` checks everything before returning: model.json is a JSON object naming a
+registered architecture with positive integer sizes the network accepts; the restored trees have
+exactly the leaves and shapes of the network that model.json describes; every value is finite.
+Each problem is a `WeightsError` naming the file.
 """
 
 from __future__ import annotations
@@ -21,23 +26,30 @@ import numpy as np
 MODEL_JSON = "model.json"
 
 
-@dataclasses.dataclass(frozen=True)
-class ModelConfig:
-  """What a weights directory holds. height/width: the input size the network was trained at."""
-  architecture: str = "monodepth2"
-  num_layers: int = 18
-  height: int = 192  # MonoDepth2 mono_640x192
-  width: int = 640
-  use_stereo: bool = False
-  has_pose: bool = False
-  source: dict = dataclasses.field(default_factory=dict)
+class WeightsError(ValueError):
+  """A weights directory that cannot be used (one line, names the file)."""
 
 
 @dataclasses.dataclass
-class MonoDepth2Weights:
-  config: ModelConfig
-  depth: dict  # {"params": ..., "batch_stats": ...} for DepthNet
-  pose: dict | None = None  # same for PoseNet
+class Weights:
+  """A loaded weights directory: its network spec, model.json, and Flax variables."""
+  spec: Any                  # pitta_jax.models.spec.ModelSpec
+  config: dict[str, Any]     # model.json (without "architecture")
+  depth: dict                # {"params": ..., "batch_stats": ...} of the depth network
+  pose: dict | None = None   # same for its pose network
+
+  @property
+  def height(self) -> int:
+    return int(self.config["height"])
+
+  @property
+  def width(self) -> int:
+    return int(self.config["width"])
+
+  def network(self):
+    """The depth network (`pitta_jax.models.registry.Network`) these weights are for."""
+    from pitta_jax.models.registry import network
+    return network(self.spec, self.config)
 
 
 def _checkpointer():
@@ -76,47 +88,91 @@ def save_weights(out_dir: str | os.PathLike, architecture: str, config: dict[str
   return out
 
 
-def save_monodepth2(out_dir: str | os.PathLike, config: ModelConfig, depth: dict,
-                    pose: dict | None = None) -> Path:
-  """Writes a MonoDepth2 weights directory (see the module docstring)."""
-  out = Path(out_dir)
-  out.mkdir(parents=True, exist_ok=True)
-  config = dataclasses.replace(config, has_pose=pose is not None)
-  save_tree(out / "depth", depth)
-  if pose is not None:
-    save_tree(out / "pose", pose)
-  (out / MODEL_JSON).write_text(json.dumps(dataclasses.asdict(config), indent=2) + "\n")
-  return out
-
-
-def load_monodepth2(weights_dir: str | os.PathLike) -> MonoDepth2Weights:
-  """Loads a weights directory written by `save_monodepth2`.
-
-  Raises:
-    FileNotFoundError: the directory or its model.json / depth checkpoint is missing.
-    ValueError: model.json is not a MonoDepth2 description.
-  """
-  root = Path(weights_dir)
-  meta_path = root / MODEL_JSON
-  if not meta_path.is_file():
-    raise FileNotFoundError(
-        f"{meta_path}: not found; a weights directory is made by "
-        f"`pitta-jax convert monodepth2 ...` or `pitta-jax train-source`")
+def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
+  """(spec, config) from DIR/model.json, validated (see the module docstring)."""
+  from pitta_jax.models.registry import MODELS
+  path = Path(weights_dir) / MODEL_JSON
+  if not Path(weights_dir).is_dir():
+    raise WeightsError(f"{weights_dir}: not a weights directory (make one with `pitta-jax "
+                       f"convert ...` or `pitta-jax train-source`)")
+  if not path.is_file():
+    raise WeightsError(f"{path}: not found; a weights directory is made by `pitta-jax convert "
+                       f"...` or `pitta-jax train-source`")
   try:
-    meta = json.loads(meta_path.read_text())
-  except json.JSONDecodeError as e:
-    raise ValueError(f"{meta_path}: not valid JSON ({e})") from e
-  if meta.get("architecture") != "monodepth2":
-    raise ValueError(f"{meta_path}: architecture {meta.get('architecture')!r} is not 'monodepth2'")
-  known = {f.name for f in dataclasses.fields(ModelConfig)}
-  config = ModelConfig(**{k: v for k, v in meta.items() if k in known})
-  if not (root / "depth").is_dir():
-    raise FileNotFoundError(f"{root / 'depth'}: the depth network checkpoint is missing")
-  depth = _as_float32(load_tree(root / "depth"))
-  pose = _as_float32(load_tree(root / "pose")) if config.has_pose else None
-  return MonoDepth2Weights(config, depth, pose)
+    meta = json.loads(path.read_text())
+  except (json.JSONDecodeError, UnicodeDecodeError) as e:
+    raise WeightsError(f"{path}: not valid JSON ({e})") from None
+  if not isinstance(meta, dict):
+    raise WeightsError(f"{path}: expected a JSON object, found {type(meta).__name__}")
+  arch = meta.get("architecture")
+  if arch not in MODELS:
+    raise WeightsError(f"{path}: architecture {arch!r} is not one of {', '.join(sorted(MODELS))}")
+  spec = MODELS[arch]
+  config = {k: v for k, v in meta.items() if k != "architecture"}
+  config.setdefault("height", spec.default_size[0])
+  config.setdefault("width", spec.default_size[1])
+  for key in ("height", "width"):
+    v = config[key]
+    if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
+      raise WeightsError(f"{path}: {key} must be a positive integer, got {v!r}")
+  try:
+    spec.check_size(config["height"], config["width"])
+  except ValueError as e:
+    raise WeightsError(f"{path}: {e}") from None
+  return spec, config
 
 
-def _as_float32(tree: Any) -> Any:
+def _check_tree(tree: Any, module, config: dict, path: Path, channels: int) -> Any:
+  """The restored variables as float32, checked against the module's abstract variables."""
   import jax
-  return jax.tree_util.tree_map(lambda a: np.asarray(a, np.float32), tree)
+  import jax.numpy as jnp
+  from flax.traverse_util import flatten_dict, unflatten_dict
+  h, w = config["height"], config["width"]
+  try:
+    abstract = jax.eval_shape(lambda: module.init(jax.random.PRNGKey(0),
+                                                  jnp.zeros((1, h, w, channels), jnp.float32)))
+  except (ValueError, TypeError) as e:
+    raise WeightsError(f"{path.parent / MODEL_JSON}: cannot build the network it describes "
+                       f"({e})") from None
+  want = {k: tuple(v.shape) for k, v in flatten_dict(abstract).items()}
+  got = flatten_dict(tree) if isinstance(tree, dict) else {}
+  missing = sorted("/".join(k) for k in want if k not in got)
+  extra = sorted("/".join(k) for k in got if k not in want)
+  if missing or extra:
+    raise WeightsError(
+        f"{path}: does not match the network in model.json ({len(missing)} missing, "
+        f"{len(extra)} unexpected arrays, e.g. {(missing + extra)[:3]}); was it written for "
+        f"another architecture or num_layers?")
+  out = {}
+  for k, shape in want.items():
+    arr = np.asarray(got[k], np.float32)
+    if arr.shape != shape:
+      raise WeightsError(f"{path}: {'/'.join(k)} has shape {arr.shape}, the network in "
+                         f"model.json expects {shape}")
+    if not np.all(np.isfinite(arr)):
+      raise WeightsError(f"{path}: {'/'.join(k)} holds non-finite values (NaN/Inf)")
+    out[k] = arr
+  return unflatten_dict(out)
+
+
+def _restore(path: Path) -> Any:
+  if not path.is_dir():
+    raise WeightsError(f"{path}: the checkpoint is missing")
+  try:
+    return load_tree(path)
+  except Exception as e:  # orbax raises many kinds for a corrupt directory
+    raise WeightsError(f"{path}: cannot read the checkpoint ({type(e).__name__}: "
+                       f"{str(e).splitlines()[0] if str(e) else ''})") from None
+
+
+def load_weights(weights_dir: str | os.PathLike) -> Weights:
+  """Loads and validates a weights directory written by `save_weights`."""
+  root = Path(weights_dir)
+  spec, config = read_model_json(root)
+  depth = _check_tree(_restore(root / "depth"), spec.build(config), config, root / "depth", 3)
+  pose = None
+  if config.get("has_pose"):
+    if spec.build_pose is None:
+      raise WeightsError(f"{root / MODEL_JSON}: has_pose is set, but {spec.name} has no pose net")
+    pose = _check_tree(_restore(root / "pose"), spec.build_pose(config), config, root / "pose", 6)
+  return Weights(spec, config, depth, pose)

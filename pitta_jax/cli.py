@@ -76,9 +76,26 @@ def _add_convert(sub) -> None:
   p.set_defaults(func=lambda args: convert_cli.run(args))
 
 
-def _add_demo(sub) -> None:
+def _add_method_configs(p) -> None:
+  """`--adapt.*` and, for every registered method with knobs, `--<method>.*`."""
+  import dataclasses
   from pitta_jax.adapt import AdaptConfig
-  from pitta_jax.config_cli import add_dataclass_arguments
+  from pitta_jax.config_cli import add_config_arguments
+  from pitta_jax.methods import METHODS
+  add_config_arguments(p, AdaptConfig, "adapt", "adaptation (paper defaults)")
+  for name, (cls, _) in METHODS.items():
+    if dataclasses.fields(cls):
+      add_config_arguments(p, cls, name, f"method {name} (used with --method {name})")
+
+
+def _method_from_args(args, cfg):
+  from pitta_jax.config_cli import config_from_args
+  from pitta_jax.methods import build, method_config_class
+  return build(cfg.method, config_from_args(method_config_class(cfg.method), args, cfg.method))
+
+
+def _add_demo(sub) -> None:
+  from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.demo import DemoConfig
   p = sub.add_parser(
       "demo", help="the embedded synthetic benchmark end to end (no downloads, no arguments)",
@@ -86,8 +103,8 @@ def _add_demo(sub) -> None:
                   "driving benchmark, then run No adaptation / BN batch stats / PITTA on fog, "
                   "rain, night and snow sequences; print the 7 metrics and write results.json, "
                   "results.csv, table.md and figures/ to --out.")
-  add_dataclass_arguments(p, DemoConfig, "demo")
-  add_dataclass_arguments(p, AdaptConfig, "adaptation (PITTA row; paper defaults)")
+  add_config_arguments(p, DemoConfig, "demo", "demo")
+  _add_method_configs(p)
   p.add_argument("--retrain", action="store_true", help="retrain the source model (ignore cache)")
   p.add_argument("--quiet", action="store_true", help="no progress bars")
   p.set_defaults(func=_run_demo)
@@ -95,25 +112,29 @@ def _add_demo(sub) -> None:
 
 def _run_demo(args) -> int:
   from pitta_jax.adapt import AdaptConfig
-  from pitta_jax.config_cli import dataclass_from_args
+  from pitta_jax.config_cli import config_from_args
   from pitta_jax.demo import DemoConfig, run_demo
-  from pitta_jax.source_model import SourceConfig, load_or_train_source
+  from pitta_jax.methods.pitta import PittaConfig
+  from pitta_jax.source_model import SourceConfig, enable_compilation_cache, load_or_train_source
+  demo = config_from_args(DemoConfig, args, "demo")  # validated before any work
+  adapt = config_from_args(AdaptConfig, args, "adapt")
+  pitta = config_from_args(PittaConfig, args, "pitta")
+  enable_compilation_cache()  # the process's choice, made here, not by the library
   if args.retrain:
     load_or_train_source(SourceConfig(), quiet=args.quiet, retrain=True)
-  run_demo(dataclass_from_args(DemoConfig, args), dataclass_from_args(AdaptConfig, args),
-           quiet=args.quiet)
+  run_demo(demo, adapt, pitta, quiet=args.quiet)
   return 0
 
 
 def _add_train_source(sub) -> None:
-  from pitta_jax.config_cli import add_dataclass_arguments
+  from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.source_model import SourceConfig
   p = sub.add_parser(
       "train-source", help="train the clear-domain source MonoDepth2 of the synthetic benchmark",
       description="Train MonoDepth2 ResNet-18 from scratch on clear synthetic frames with a "
                   "supervised depth loss; cached under $PITTA_JAX_CACHE or ~/.cache/pitta-jax "
                   "by config hash. Prints the weights directory (usable with --weights).")
-  add_dataclass_arguments(p, SourceConfig, "training")
+  add_config_arguments(p, SourceConfig, "source", "training")
   p.add_argument("--retrain", action="store_true", help="ignore a cached model")
   p.add_argument("--quiet", action="store_true")
   p.set_defaults(func=_run_train_source)
@@ -121,9 +142,9 @@ def _add_train_source(sub) -> None:
 
 def _run_train_source(args) -> int:
   import json
-  from pitta_jax.config_cli import dataclass_from_args
+  from pitta_jax.config_cli import config_from_args
   from pitta_jax.source_model import SourceConfig, load_or_train_source
-  weights, report = load_or_train_source(dataclass_from_args(SourceConfig, args),
+  weights, report = load_or_train_source(config_from_args(SourceConfig, args, "source"),
                                          quiet=args.quiet, retrain=args.retrain)
   print(json.dumps(report, indent=2))
   return 0
@@ -133,8 +154,7 @@ DATASETS = ("drivingstereo", "kitti", "waymo", "folder", "synthetic")
 
 
 def _add_adapt(sub, name: str) -> None:
-  from pitta_jax.adapt import AdaptConfig
-  from pitta_jax.config_cli import add_dataclass_arguments
+  from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.run import EvalConfig
   adapting = name == "adapt"
   p = sub.add_parser(
@@ -158,28 +178,31 @@ def _add_adapt(sub, name: str) -> None:
                  help="save the adaptation state every K frames under OUT/checkpoints")
   p.add_argument("--quiet", action="store_true", help="no progress bars")
   if adapting:
-    add_dataclass_arguments(p, AdaptConfig, "adaptation (paper defaults)")
-  add_dataclass_arguments(p, EvalConfig, "evaluation")
+    _add_method_configs(p)
+  add_config_arguments(p, EvalConfig, "eval", "evaluation")
   p.set_defaults(func=_run_adapt, adapting=adapting)
 
 
 def _run_adapt(args) -> int:
   import dataclasses
   from pitta_jax.adapt import AdaptConfig
-  from pitta_jax.config_cli import dataclass_from_args
+  from pitta_jax.config_cli import config_from_args
+  from pitta_jax.methods import build
   from pitta_jax.report import Row, write_results
   from pitta_jax.run import EvalConfig, run_sequence
   from pitta_jax.sources import open_frames, open_weights
   if args.adapting:
-    cfg = dataclass_from_args(AdaptConfig, args)
+    cfg = config_from_args(AdaptConfig, args, "adapt")
+    method = _method_from_args(args, cfg)
   else:
     cfg = AdaptConfig(method="none", bn_stats="running")
-  eval_cfg = dataclass_from_args(EvalConfig, args)
+    method = build("none")
+  eval_cfg = config_from_args(EvalConfig, args, "eval")
   weights = open_weights(args.weights, args.dataset, quiet=args.quiet)
   frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
-                       weights.config.height, weights.config.width)
+                       weights.height, weights.width)
   out = args.out
-  res = run_sequence(weights, frames, cfg, eval_cfg, name=f"{args.dataset} {cfg.method}",
+  res = run_sequence(weights, frames, cfg, method, eval_cfg, name=f"{args.dataset} {cfg.method}",
                      quiet=args.quiet,
                      checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
                      checkpoint_every=args.checkpoint_every)
@@ -189,6 +212,7 @@ def _run_adapt(args) -> int:
   meta = {"command": args.command, "dataset": args.dataset, "root": args.root,
           "options": args.option, "segmentation": args.segmentation,
           "weights": str(args.weights), "adapt": dataclasses.asdict(cfg),
+          "method": {"name": method.name, **dataclasses.asdict(method.config)},
           "eval": dataclasses.asdict(eval_cfg),
           "per_frame": [{"name": n, **m} for n, m in zip(res.frame_names, res.per_frame)],
           "logs": {k: v.tolist() for k, v in res.logs.items()}}
@@ -219,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
   args = build_parser().parse_args(argv)
   try:
     return args.func(args)
-  except (DataError, FileNotFoundError, ValueError) as e:
+  except (DataError, FileNotFoundError, ValueError, TypeError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
   except KeyboardInterrupt:

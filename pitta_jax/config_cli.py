@@ -1,24 +1,28 @@
-"""Command-line overrides for every field of a frozen config dataclass (`--lr 1e-4 --lam 0.2`).
+"""Command-line flags for every field of the config dataclasses, one namespace per config.
 
-Each field `foo_bar` becomes `--foo-bar`, typed from its default: int, float (`inf` allowed),
-str, bool (`--skip-nonfinite true|false`), tuples of str or int (comma-separated; for
-`dynamic_classes` COCO names are accepted too: `--dynamic-classes person,car`). Only the flags a
-user gives override the dataclass defaults; the resolved config is saved with the results.
+Field `foo_bar` of the config in namespace `adapt` becomes `--adapt.foo-bar`, and also
+`--foo-bar` when no other config of the command has that field (a short alias). A nested config
+field (`PittaConfig.ld`) continues the namespace: `--pitta.ld.window` (alias `--window`). Types
+come from the field annotations: int, float (`inf` allowed), str, bool (`true|false`), tuples of
+str or int (comma-separated; for `dynamic_classes` COCO names are accepted too:
+`person,car`). Help texts come from the fields' metadata (`configs.option`). Only the flags a
+user gives override the defaults; the resolved configs are saved with the results.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import inspect
-import re
+import typing
 from typing import Any, TypeVar
+
+from pitta_jax.configs import help_of
 
 T = TypeVar("T")
 
 
-def _parse_bool(text: str) -> bool:
-  low = text.lower()
+def parse_bool(text: str) -> bool:
+  low = text.strip().lower()
   if low in ("1", "true", "yes", "on"):
     return True
   if low in ("0", "false", "no", "off"):
@@ -34,49 +38,70 @@ def _parse_int_tuple(text: str) -> tuple[int, ...]:
   from pitta_jax.data import coco
   out = []
   for item in (t.strip() for t in text.split(",") if t.strip()):
-    out.append(int(item) if item.lstrip("-").isdigit() else coco.name_to_id(item))
+    if item.lstrip("-").isdigit():
+      out.append(int(item))
+    else:
+      try:
+        out.append(coco.name_to_id(item))
+      except (KeyError, ValueError):
+        raise argparse.ArgumentTypeError(f"{item!r} is neither an integer nor a COCO class "
+                                         f"name") from None
   return tuple(out)
 
 
-def field_comments(cls: type) -> dict[str, str]:
-  """The trailing `# comment` of each field line in the dataclass source (its help text)."""
-  try:
-    source = inspect.getsource(cls)
-  except (OSError, TypeError):
-    return {}
-  found = {}
-  for match in re.finditer(r"^\s+(\w+): [^=\n]+=[^#\n]*#\s*(.+)$", source, re.MULTILINE):
-    found[match.group(1)] = match.group(2).strip()
-  return found
+def parser_for(annotation: Any) -> tuple[Any, str]:
+  """(argparse type, metavar) for a field annotation."""
+  origin = typing.get_origin(annotation)
+  if annotation is bool:
+    return parse_bool, "{true,false}"
+  if annotation is int:
+    return int, "INT"
+  if annotation is float:
+    return float, "FLOAT"
+  if origin is tuple:
+    args = typing.get_args(annotation)
+    return (_parse_int_tuple if args and args[0] is int else _parse_str_tuple), "A,B,..."
+  return str, "STR"
 
 
-def add_dataclass_arguments(parser: argparse.ArgumentParser, cls: type, title: str) -> None:
-  """Adds one optional flag per field of `cls` (default None = keep the dataclass default)."""
-  group = parser.add_argument_group(title)
-  comments = field_comments(cls)
-  for field in dataclasses.fields(cls):
+def _fields(cls: type) -> list[tuple[dataclasses.Field, Any]]:
+  hints = typing.get_type_hints(cls)
+  return [(f, hints[f.name]) for f in dataclasses.fields(cls)]
+
+
+def add_config_arguments(parser: argparse.ArgumentParser, cls: type, namespace: str,
+                         title: str, _group=None) -> None:
+  """Adds `--{namespace}.{field}` (and a unique short alias) for every field of `cls`."""
+  group = _group or parser.add_argument_group(title)
+  for field, annotation in _fields(cls):
+    if dataclasses.is_dataclass(annotation):
+      add_config_arguments(parser, annotation, f"{namespace}.{field.name}", title, group)
+      continue
+    kind, meta = parser_for(annotation)
     default = field.default
-    if isinstance(default, bool):
-      kind, meta = _parse_bool, "{true,false}"
-    elif isinstance(default, int):
-      kind, meta = int, "INT"
-    elif isinstance(default, float):
-      kind, meta = float, "FLOAT"
-    elif isinstance(default, tuple) and all(isinstance(x, str) for x in default):
-      kind, meta = _parse_str_tuple, "A,B,..."
-    elif isinstance(default, tuple):
-      kind, meta = _parse_int_tuple, "A,B,..."
-    else:
-      kind, meta = str, "STR"
     shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
-    group.add_argument(f"--{field.name.replace('_', '-')}", dest=f"cfg_{field.name}", type=kind,
-                       default=None, metavar=meta,
-                       help=f"{comments.get(field.name, '')} (default: {shown})".lstrip())
+    flags = [f"--{namespace}.{field.name.replace('_', '-')}"]
+    alias = f"--{field.name.replace('_', '-')}"
+    if alias not in parser._option_string_actions:  # argparse's own registry of flags
+      flags.append(alias)
+    group.add_argument(*flags, dest=_dest(namespace, field.name), type=kind, default=None,
+                       metavar=meta, help=f"{help_of(field)} (default: {shown})".lstrip())
 
 
-def dataclass_from_args(cls: type[T], args: argparse.Namespace, **fixed: Any) -> T:
-  """Builds `cls` from the defaults, the given flags, then `fixed` values."""
-  values = {f.name: getattr(args, f"cfg_{f.name}") for f in dataclasses.fields(cls)
-            if getattr(args, f"cfg_{f.name}", None) is not None}
+def _dest(namespace: str, name: str) -> str:
+  return f"cfg__{namespace.replace('.', '__')}__{name}"
+
+
+def config_from_args(cls: type[T], args: argparse.Namespace, namespace: str,
+                     **fixed: Any) -> T:
+  """Builds `cls` from its defaults, the flags given in `namespace`, then `fixed` values."""
+  values = {}
+  for field, annotation in _fields(cls):
+    if dataclasses.is_dataclass(annotation):
+      values[field.name] = config_from_args(annotation, args, f"{namespace}.{field.name}")
+      continue
+    value = getattr(args, _dest(namespace, field.name), None)
+    if value is not None:
+      values[field.name] = value
   values.update(fixed)
   return cls(**values)

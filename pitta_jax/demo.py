@@ -5,7 +5,7 @@
    (unseen seeds), plus a clear sequence to show the source accuracy.
 3. Runs three rows per shift: "No adaptation" (the source model as is, running BN statistics),
    "BN batch stats" (no update, the frame's batch statistics: separates their effect from the
-   loss's, SPEC step 10) and "PITTA" (eqs. 3-11, paper defaults), with ground-truth panoptic
+   loss's) and "PITTA" (eqs. 3-11, paper defaults), with ground-truth panoptic
    segmentation standing in for Mask2Former.
 4. Prints a markdown table of the 7 metrics and writes results.json, results.csv, table.md and
    figures to `--out`.
@@ -21,13 +21,15 @@ import numpy as np
 
 from pitta_jax import viz
 from pitta_jax.adapt import AdaptConfig
+from pitta_jax.configs import check, option
+from pitta_jax.methods import build as build_method
+from pitta_jax.methods.pitta import PittaConfig
 from pitta_jax.data.image_io import write_image
 from pitta_jax.data.resize import resize_frame
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
 from pitta_jax.report import Row, curve_figure, write_results
-from pitta_jax.run import EvalConfig, RunResult, run_sequence
-from pitta_jax.source_model import (SourceConfig, enable_compilation_cache,
-                                    load_or_train_source)
+from pitta_jax.run import EvalConfig, RunResult, Runners, run_sequence
+from pitta_jax.source_model import SourceConfig, load_or_train_source
 
 ROWS = {  # row name -> AdaptConfig changes (from the paper defaults)
     "No adaptation": dict(method="none", bn_stats="running"),
@@ -38,29 +40,32 @@ ROWS = {  # row name -> AdaptConfig changes (from the paper defaults)
 
 @dataclasses.dataclass(frozen=True)
 class DemoConfig:
-  shifts: tuple[str, ...] = ("fog", "rain", "night", "snow")
-  severity: float = 0.7        # synthetic weather strength in [0, 1]
-  num_frames: int = 40         # per target sequence (keeps a cached re-run near 2 minutes on CPU)
-  target_seed: int = 100       # target streets (training uses seeds 0..7)
-  out: str = "pitta_out"
+  """What the demo runs (the source model is `SourceConfig`'s, the methods their configs')."""
+  shifts: tuple[str, ...] = option(("fog", "rain", "night", "snow"), "target weather domains")
+  severity: float = option(0.7, "synthetic weather strength in [0, 1]")
+  num_frames: int = option(40, "frames per target sequence (keeps a cached re-run near 2 "
+                               "minutes on CPU)")
+  target_seed: int = option(100, "target streets (training uses seeds 0..7)")
+  out: str = option("pitta_out", "output directory")
 
   def __post_init__(self):
     from pitta_jax.data.synthetic import DOMAINS
     bad = [s for s in self.shifts if s not in DOMAINS[1:]]
-    if bad or not self.shifts:
-      raise ValueError(f"shifts {bad or '()'} invalid: choose from {', '.join(DOMAINS[1:])}")
-    if self.num_frames < 1:
-      raise ValueError(f"num_frames must be >= 1, got {self.num_frames}")
+    check(not bad and bool(self.shifts),
+          f"shifts {bad or '()'} invalid: choose from {', '.join(DOMAINS[1:])}")
+    check(self.num_frames >= 1, f"num_frames must be >= 1, got {self.num_frames}")
+    check(0.0 <= self.severity <= 1.0, f"severity must be in [0, 1], got {self.severity}")
 
 
 def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig(),
-             source: SourceConfig = SourceConfig(), quiet: bool = False) -> dict:
+             pitta: PittaConfig = PittaConfig(), source: SourceConfig = SourceConfig(),
+             quiet: bool = False) -> dict:
   """Runs the demo; returns the results dict (also written to `demo.out`)."""
   t_start = time.perf_counter()
-  enable_compilation_cache()
   out = Path(demo.out)
   weights, train_report = load_or_train_source(source, quiet=quiet)
-  h, w = weights.config.height, weights.config.width
+  h, w = weights.height, weights.width
+  runners = Runners()  # one compile per row serves every shift
   rows: list[Row] = []
   per_frame: dict[str, dict[str, list[float]]] = {}
   domains = ("clear",) + tuple(demo.shifts)
@@ -72,17 +77,20 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
     row_names = ["No adaptation"] if domain == "clear" else list(ROWS)
     for row in row_names:
       cfg = dataclasses.replace(adapt, **ROWS[row])
-      res = run_sequence(weights, frames, cfg, EvalConfig(), name=f"{domain}: {row}",
-                         quiet=quiet, keep=(len(frames) - 1,))
+      method = build_method(cfg.method, pitta if cfg.method == "pitta" else None)
+      res = run_sequence(weights, frames, cfg, method, EvalConfig(), name=f"{domain}: {row}",
+                         quiet=quiet, keep=(len(frames) - 1,), runners=runners)
       results[row] = res
       rows.append(Row(domain, row, res.mean, {
           "fps": round(res.fps, 2), "seconds": round(res.seconds, 2), "frames": len(frames),
-          "n_skipped": res.n_skipped, "mean_instances": float(np.mean(res.logs["n_instances"])),
-          "mean_loss": float(np.mean(res.logs["loss"]))}))
+          "n_skipped": res.n_skipped, "mean_loss": float(np.mean(res.logs["loss"])),
+          **({"mean_instances": float(np.mean(res.logs["n_instances"]))}
+             if "n_instances" in res.logs else {})}))
     per_frame[domain] = {r: [m["abs_rel"] for m in res.per_frame] for r, res in results.items()}
     _figures(out / "figures", domain, frames, results, h, w)
   seconds = time.perf_counter() - t_start
   meta = {"demo": dataclasses.asdict(demo), "adapt": dataclasses.asdict(adapt),
+          "pitta": dataclasses.asdict(pitta),
           "source": train_report, "per_frame_abs_rel": per_frame, "seconds": round(seconds, 1)}
   table = write_results(out, rows, meta)
   for domain, series in per_frame.items():

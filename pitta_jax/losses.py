@@ -48,7 +48,7 @@ from pitta_jax import masks as masks_lib
 from pitta_jax.edges import edge_map, image_edge_map
 from pitta_jax.dtypes import as_float
 from pitta_jax.nonsmooth import absolute
-from pitta_jax.median import (INT_PAD, median_filter, median_of_views, middle_order_statistics,
+from pitta_jax.median import (INT_PAD, WINDOW, median_filter, median_of_views, middle_order_statistics,
                               middle_ranks, window_views)
 
 Array = jax.Array
@@ -60,6 +60,7 @@ __all__ = [
 ]
 
 IMPLS = ("fast", "literal")
+LAMBDA = 0.2   # lambda of eq. 10, the paper's best (Table 4)
 
 
 class PittaLoss(NamedTuple):
@@ -77,7 +78,7 @@ def _mean_over_instances(total: Array, n: Array) -> Array:
   return jnp.where(n > 0, total / safe_n, jnp.zeros((), total.dtype))
 
 
-def depth_refining_loss_literal(depth: Array, masks: Array, inst_valid: Array, s: int = 5) -> Array:
+def depth_refining_loss_literal(depth: Array, masks: Array, inst_valid: Array, s: int = WINDOW) -> Array:
   """Depth-refining loss, eq. 8 term by term (the reference implementation).
 
   `L_d = 1/N sum_j sum_{x,y} |D~_j(x, y) - sg(D~'_j(x, y))|`, D~_j = D * M_j (eq. 4),
@@ -105,8 +106,8 @@ def depth_refining_loss_literal(depth: Array, masks: Array, inst_valid: Array, s
   return _mean_over_instances(total, jnp.sum(inst_valid))
 
 
-def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int = 5,
-                             mode: str = "binary") -> Array:
+def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
+                             mode: str = "binary", inst_ids: Array | None = None) -> Array:
   """Depth-refining loss, eq. 8, at a cost independent of N (see the module docstring).
 
   Same value (up to float summation order) and the same gradient w.r.t. depth as
@@ -118,7 +119,9 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int = 
     index_map: (H, W) int32 instance index, 0 = none, j = instance j (`masks.instance_index_map`).
     n: scalar int, the number of instances N (table rows, with or without pixels).
     s: odd median window (static).
-    mode: "binary" (g_j = 1) or "instance_id" (g_j = j), static.
+    mode: "binary" (g_j = 1), "segment_id" (g_j = the segment id, `inst_ids` required) or
+      "instance_id" (g_j = j), static.
+    inst_ids: (N_max,) the instance table's segment ids (row j - 1 = instance j).
 
   Returns:
     scalar float32 L_d (0 when N = 0).
@@ -127,7 +130,7 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int = 
   index_map = jnp.asarray(index_map, jnp.int32)
   if depth.ndim != 2 or depth.shape != index_map.shape:
     raise ValueError(f"depth {depth.shape} and index_map {index_map.shape} must be the same (H, W)")
-  own_masked = depth * masks_lib.pixel_gain(index_map, mode)  # D~_k0 at each pixel's own k0
+  own_masked = depth * masks_lib.pixel_gain(index_map, mode, inst_ids)  # D~_k0 at each pixel's own k0
 
   # Majority candidates: the window's sorted instance indices at slots (c-1)//2 and c//2.
   idx_views = window_views(index_map, s, INT_PAD)  # s*s x (H, W), INT_PAD outside the image
@@ -154,9 +157,10 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int = 
   return _mean_over_instances(jnp.sum(own_term + extra_term), n)
 
 
-def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, s: int = 5,
+def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, s: int,
                                    mode: str = "binary", impl: str = "fast",
-                                   n_max: int | None = None) -> Array:
+                                   n_max: int | None = None,
+                                   inst_ids: Array | None = None) -> Array:
   """Depth-refining loss, eq. 8, from an instance index map (what the engine holds).
 
   Args:
@@ -164,26 +168,27 @@ def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, 
     index_map: (H, W) int32, 0 or j in 1..N_max.
     n: scalar int N.
     s: odd median window (static).
-    mode: "binary" or "instance_id" (static).
+    mode: "binary", "segment_id" or "instance_id" (static).
     impl: "fast" (default, cost independent of N) or "literal" (eq. 8 term by term).
     n_max: static table size, required by "literal" (rows j > n are invalid).
+    inst_ids: (N_max,) the table's segment ids, required by mode "segment_id".
 
   Returns:
     scalar float32 L_d.
   """
   masks_lib.check_mode(mode)
   if impl == "fast":
-    return depth_refining_loss_fast(depth, index_map, n, s, mode)
+    return depth_refining_loss_fast(depth, index_map, n, s, mode, inst_ids)
   if impl == "literal":
     if n_max is None:
       raise ValueError("impl='literal' needs the static table size n_max")
-    masks = masks_lib.masks_from_index(index_map, n_max, mode)  # (N_max, H, W)
+    masks = masks_lib.masks_from_index(index_map, n_max, mode, inst_ids)  # (N_max, H, W)
     valid = jnp.arange(1, n_max + 1) <= jnp.asarray(n)  # (N_max,)
     return depth_refining_loss_literal(depth, masks, valid, s)
   raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
 
 
-def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: int = 5,
+def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: int = WINDOW,
                         mode: str = "binary", impl: str = "fast") -> Array:
   """Depth-refining loss, eq. 8, from a panoptic id map.
 
@@ -192,8 +197,9 @@ def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: in
     panoptic: (H, W) int segment id map (0 = void).
     dynamic_ids: (N_max,) int segment ids of the dynamic instances, padded with 0 or -1
       (entries <= 0 unused, anywhere); instance j is the j-th used entry (g_j = j).
-    s: odd median window (static), paper default 5.
-    mode: "binary" (g_j = 1, default) or "instance_id" (g_j = j, eq. 3 literally); static.
+    s: odd median window (static), default `WINDOW`.
+    mode: "binary" (g_j = 1, default), "segment_id" (g_j = the segment id i, eq. 3 as
+      written) or "instance_id" (g_j = j); static.
     impl: "fast" (default) or "literal"; static.
 
   Returns:
@@ -206,7 +212,7 @@ def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: in
     return depth_refining_loss_literal(depth, masks, inst_valid, s)
   if impl == "fast":
     index_map = masks_lib.instance_index_map(panoptic, inst_ids, inst_valid)  # (H, W)
-    return depth_refining_loss_fast(depth, index_map, jnp.sum(inst_valid), s, mode)
+    return depth_refining_loss_fast(depth, index_map, jnp.sum(inst_valid), s, mode, inst_ids)
   raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
 
 
@@ -230,8 +236,8 @@ def edge_guided_loss(image: Array, depth: Array, u: Array | float | None = None,
   return jnp.sum(absolute(d_image - d_depth))
 
 
-def pitta_loss(image: Array, depth: Array, panoptic: Array, dynamic_ids: Array, s: int = 5,
-               lam: float | Array = 0.2, mode: str = "binary", impl: str = "fast",
+def pitta_loss(image: Array, depth: Array, panoptic: Array, dynamic_ids: Array, s: int = WINDOW,
+               lam: float | Array = LAMBDA, mode: str = "binary", impl: str = "fast",
                u: Array | float | None = None, v: Array | float | None = None) -> PittaLoss:
   """PITTA's total loss, eq. 10: `L = L_d + lambda * L_e`.
 
@@ -241,10 +247,10 @@ def pitta_loss(image: Array, depth: Array, panoptic: Array, dynamic_ids: Array, 
     panoptic: (H, W) int segment id map.
     dynamic_ids: (N_max,) int dynamic segment ids padded with 0 or -1 (see
       `depth_refining_loss`).
-    s: odd median window (static), default 5.
-    lam: lambda >= 0, default 0.2 (the paper's best, Table 4); a float or a traced scalar.
+    s: odd median window (static), default `WINDOW`.
+    lam: lambda >= 0, default `LAMBDA` (the paper's best, Table 4); a float or a traced scalar.
       inf means "L_e only" (Table 4's last column): total = L_e.
-    mode: "binary" or "instance_id" (static).
+    mode: "binary", "segment_id" or "instance_id" (static).
     impl: "fast" or "literal" for L_d (static).
     u, v: edge weights U, V (None = 1).
 
@@ -270,19 +276,21 @@ def combine(l_d: Array, l_e: Array, lam: float | Array) -> Array:
   return jnp.where(is_inf, l_e, l_d + jnp.where(is_inf, 0.0, lam) * l_e)
 
 
-def pitta_loss_from_index(image: Array, depth: Array, index_map: Array, n: Array, *, s: int = 5,
-                          lam: float | Array = 0.2, mode: str = "binary", impl: str = "fast",
-                          n_max: int | None = None, u: Array | float | None = None,
+def pitta_loss_from_index(image: Array, depth: Array, index_map: Array, n: Array, *, s: int,
+                          lam: float | Array, mode: str = "binary", impl: str = "fast",
+                          n_max: int | None = None, inst_ids: Array | None = None,
+                          u: Array | float | None = None,
                           v: Array | float | None = None) -> PittaLoss:
   """Eq. 10 from an instance index map (what the adaptation engine holds per frame).
 
   Args:
     image: (H, W, 3) float image; depth: (H, W) float depth.
     index_map: (H, W) int32, 0 = no dynamic instance, j = instance j (`masks.instance_index_map`).
-    n: scalar int N; other arguments as `pitta_loss` (`n_max` for impl="literal").
+    n: scalar int N; other arguments as `pitta_loss` (`n_max` for impl="literal", `inst_ids`
+      for mode="segment_id").
   """
   l_d = depth_refining_loss_from_index(depth, index_map, n, s=s, mode=mode, impl=impl,
-                                       n_max=n_max)
+                                       n_max=n_max, inst_ids=inst_ids)
   l_e = edge_guided_loss(image, depth, u, v)
   return PittaLoss(total=combine(l_d, l_e, lam), l_d=l_d, l_e=l_e,
                    n=jnp.asarray(n, jnp.int32))

@@ -7,8 +7,9 @@ never in a Python list, so that everything stays jittable:
   inst_valid (N_max,) bool   which rows hold an instance; N = inst_valid.sum()
 
 Instance j (1-based, j = row + 1) has the mask `M_j(x, y) = g_j` on its segment and 0 elsewhere
-(eq. 3), with `g_j = 1` ("binary", the default) or `g_j = j` ("instance_id", eq. 3 literally: the
-instance's index in the table). The masked depth is `D~_j = D * M_j` (eq. 4). The per-pixel
+(eq. 3), with `g_j = 1` ("binary", the default), `g_j = i` ("segment_id": eq. 3 as written,
+`g_i(x, y) = i` on segment R_i, i the segmenter's own segment id) or `g_j = j` ("instance_id":
+the instance's index among the frame's dynamic instances). The masked depth is `D~_j = D * M_j` (eq. 4). The per-pixel
 instance index map (0 = no dynamic instance, j = instance j) carries the same information in
 (H, W), which is what the fast depth-refining loss uses.
 
@@ -23,11 +24,11 @@ import numpy as np
 
 Array = jax.Array
 
-# COCO category ids of the dynamic set O (paper Sec. 3.1; SPEC item 3): person, bicycle, car,
-# motorcycle, bus, train, truck.
+# COCO category ids of the dynamic set O (paper Sec. 3.1: the classes that move in driving
+# scenes): person, bicycle, car, motorcycle, bus, train, truck.
 DEFAULT_DYNAMIC_COCO_IDS = (1, 2, 3, 4, 6, 7, 8)
 
-MASK_MODES = ("binary", "instance_id")
+MASK_MODES = ("binary", "segment_id", "instance_id")
 
 
 def check_mode(mode: str) -> None:
@@ -115,37 +116,54 @@ def instance_index_map(panoptic: Array, inst_ids: Array, inst_valid: Array) -> A
   return index
 
 
-def instance_gains(n_max: int, mode: str = "binary") -> Array:
-  """g_j of eq. 3 for j = 1..N_max: 1 ("binary") or j ("instance_id").  # (N_max,) float32"""
+def instance_gains(n_max: int, mode: str = "binary", inst_ids: Array | None = None) -> Array:
+  """g_j of eq. 3 for rows j = 1..N_max.  # (N_max,) float32
+
+  "binary": 1; "instance_id": j; "segment_id": the row's segment id `inst_ids[j - 1]` (required).
+  """
   check_mode(mode)
   if mode == "binary":
     return jnp.ones((n_max,), jnp.float32)
-  return jnp.arange(1, n_max + 1, dtype=jnp.float32)
+  if mode == "instance_id":
+    return jnp.arange(1, n_max + 1, dtype=jnp.float32)
+  if inst_ids is None:
+    raise ValueError("mask mode 'segment_id' needs the instance table's segment ids")
+  return jnp.asarray(inst_ids, jnp.int32).reshape(n_max).astype(jnp.float32)
 
 
-def pixel_gain(index_map: Array, mode: str = "binary") -> Array:
-  """g of the instance at each pixel, 0 off the instances: sum_j M_j.  # (H, W) float32"""
+def pixel_gain(index_map: Array, mode: str = "binary", inst_ids: Array | None = None) -> Array:
+  """g of the instance at each pixel, 0 off the instances: sum_j M_j.  # (H, W) float32
+
+  inst_ids: (N_max,) the table's segment ids, required by mode "segment_id".
+  """
   check_mode(mode)
   index_map = jnp.asarray(index_map, jnp.int32)
   if mode == "binary":
     return (index_map > 0).astype(jnp.float32)
-  return index_map.astype(jnp.float32)
+  if mode == "instance_id":
+    return index_map.astype(jnp.float32)
+  if inst_ids is None:
+    raise ValueError("mask mode 'segment_id' needs the instance table's segment ids")
+  table = jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.asarray(inst_ids, jnp.int32)])
+  return table[index_map].astype(jnp.float32)  # index 0 -> 0
 
 
-def masks_from_index(index_map: Array, n_max: int, mode: str = "binary") -> Array:
+def masks_from_index(index_map: Array, n_max: int, mode: str = "binary",
+                     inst_ids: Array | None = None) -> Array:
   """Instance-wise masks M_j (eq. 3) from the index map.
 
   Args:
     index_map: (H, W) int32, 0 or j in 1..n_max.
     n_max: static number of rows.
-    mode: "binary" (g_j = 1) or "instance_id" (g_j = j).
+    mode: "binary" (g_j = 1), "segment_id" (g_j = the segment id) or "instance_id" (g_j = j).
+    inst_ids: (N_max,) segment ids of the rows, required by "segment_id".
 
   Returns:
     (N_max, H, W) float32, M_j in row j - 1 (all zero for instances without pixels).
   """
   index_map = jnp.asarray(index_map, jnp.int32)
   j = jnp.arange(1, n_max + 1, dtype=jnp.int32)[:, None, None]  # (N_max, 1, 1)
-  gains = instance_gains(n_max, mode)[:, None, None]  # (N_max, 1, 1)
+  gains = instance_gains(n_max, mode, inst_ids)[:, None, None]  # (N_max, 1, 1)
   return jnp.where(index_map[None] == j, gains, 0.0).astype(jnp.float32)
 
 
@@ -157,7 +175,8 @@ def instance_masks(panoptic: Array, inst_ids: Array, inst_valid: Array,
     panoptic: (H, W) int segment id map.
     inst_ids: (N_max,) int32 table ids.
     inst_valid: (N_max,) bool; invalid rows give all-zero masks.
-    mode: "binary" (g_j = 1) or "instance_id" (g_j = j, the 1-based row).
+    mode: "binary" (g_j = 1), "segment_id" (g_j = the segment id) or "instance_id"
+      (g_j = j, the 1-based row).
 
   Returns:
     (N_max, H, W) float32 masks.
@@ -167,7 +186,7 @@ def instance_masks(panoptic: Array, inst_ids: Array, inst_valid: Array,
   inst_valid = jnp.asarray(inst_valid, bool)
   n_max = inst_ids.shape[0]
   inside = (panoptic[None] == inst_ids[:, None, None]) & inst_valid[:, None, None]  # (N_max, H, W)
-  gains = instance_gains(n_max, mode)[:, None, None]
+  gains = instance_gains(n_max, mode, inst_ids)[:, None, None]
   return jnp.where(inside, gains, 0.0).astype(jnp.float32)
 
 

@@ -29,6 +29,8 @@ from pitta_jax.dtypes import as_float
 
 Array = jax.Array
 
+WINDOW = 5  # the window s of eq. 7; not stated in the paper (see docs/method.md)
+
 # Padding for integer maps: sorts after every real value.
 INT_PAD = np.iinfo(np.int32).max
 
@@ -167,7 +169,7 @@ def median_of_views(views: list[Array], s: int) -> Array:
   return jnp.where(even, (lower + upper) / 2, lower)
 
 
-def median_filter(x: Array, s: int = 5) -> Array:
+def median_filter(x: Array, s: int = WINDOW) -> Array:
   """Median filter with a border-shrunk window, paper eq. 7.
 
   Equals a loop of `np.median(x[max(i-r,0):min(i+r,H-1)+1, max(j-r,0):min(j+r,W-1)+1])` over

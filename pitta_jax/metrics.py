@@ -24,6 +24,7 @@ from typing import Iterable, Mapping
 import cv2
 import numpy as np
 
+MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0  # valid ground truth and cap, MonoDepth2's evaluation
 METRIC_NAMES = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
 
 # Garg/Eigen crop fractions of MonoDepth2 (rows top, bottom; cols left, right).
@@ -69,8 +70,8 @@ def compute_errors(gt: np.ndarray, pred: np.ndarray) -> dict[str, float]:
   return {k: float(out[k]) for k in METRIC_NAMES}
 
 
-def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = 1e-3,
-                  max_depth: float = 80.0, median_scaling: bool = True, garg_crop: bool = False,
+def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DEPTH,
+                  max_depth: float = MAX_DEPTH, median_scaling: bool = True, garg_crop: bool = False,
                   clamp: bool = True, pred_is_disparity: bool = False) -> dict[str, float]:
   """The 7 depth metrics of one frame, MonoDepth2 protocol.
 

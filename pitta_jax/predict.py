@@ -19,11 +19,10 @@ import numpy as np
 from tqdm import tqdm
 
 from pitta_jax import viz
-from pitta_jax.checkpoint import load_monodepth2
+from pitta_jax.checkpoint import load_weights
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import IMAGE_SUFFIXES, list_images, read_image, write_image
 from pitta_jax.data.resize import resize_image
-from pitta_jax.models.depth_decoder import DepthNet, check_input_size, disp_to_depth
 
 
 def expand_images(spec: str) -> list[Path]:
@@ -40,10 +39,13 @@ def expand_images(spec: str) -> list[Path]:
   return paths
 
 
-def make_predictor(num_layers: int):
-  """Jitted (variables, images (B, H, W, 3)) -> scale-0 disparity (B, H, W), eval mode."""
-  net = DepthNet(num_layers)
-  return jax.jit(lambda v, x: net.apply(v, x, train=False)[0][..., 0])
+def make_predictor(network):
+  """Jitted (variables, images (B, H, W, 3)) -> (the network's own full-resolution output
+  (B, H, W), its depth (B, H, W)), eval mode."""
+  def predict(v, x):
+    out = network.outputs(v, x, False)[0][..., 0]
+    return out, network.spec.to_depth(out)
+  return jax.jit(predict)
 
 
 def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_dir: str | Path,
@@ -53,20 +55,18 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   images: paths, or a spec for `expand_images` (expanded after the weights load, so a bad
   weights directory is reported first).
   """
-  weights = load_monodepth2(weights_dir)
+  weights = load_weights(weights_dir)
   images = expand_images(images) if isinstance(images, str) else list(images)
-  h, w = weights.config.height, weights.config.width
-  check_input_size(h, w)
-  predict = make_predictor(weights.config.num_layers)
+  h, w = weights.height, weights.width
+  predict = make_predictor(weights.network())
   out = Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
   written = []
   for path in tqdm(images, desc="predict", unit="img", disable=quiet):
     image = resize_image(read_image(path), h, w)
-    disp = np.asarray(predict(weights.depth, jnp.asarray(image[None])))[0]
+    disp, depth = (np.asarray(a)[0] for a in predict(weights.depth, jnp.asarray(image[None])))
     if not np.all(np.isfinite(disp)):
       raise FloatingPointError(f"{path}: the network produced non-finite disparities")
-    depth = np.asarray(disp_to_depth(disp))
     np.save(out / f"{path.stem}_disp.npy", disp.astype(np.float32))
     np.save(out / f"{path.stem}_depth.npy", depth.astype(np.float32))
     png = out / f"{path.stem}_disp.png"

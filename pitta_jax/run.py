@@ -1,14 +1,14 @@
 """One adaptation run, evaluated: a method over a frame sequence -> per-frame metrics and logs.
 
-This is what `pitta-jax adapt`, `pitta-jax evaluate`, the demo and the experiments call. The
-compiled chunk runner is cached per (network, config, input size), so the same compile serves
-every sequence of a sweep (e.g. the four weather shifts of the demo).
+This is what `pitta-jax adapt`, `pitta-jax evaluate`, the demo and the experiments call. A
+caller running many sequences passes one `Runners` (its own cache of compiled chunk runners,
+keyed by network, method and config), so the same compile serves every sequence of a sweep (e.g.
+the four weather shifts of the demo); nothing is cached at module level.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from pathlib import Path
 from typing import Sequence
@@ -17,22 +17,29 @@ import numpy as np
 from tqdm import tqdm
 
 from pitta_jax import metrics as metrics_lib
-from pitta_jax.adapt import (AdaptConfig, StepOutput, adapt_stream, init_state,
-                             make_chunk_runner, make_optimizer, make_step, monodepth2_model)
+from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, make_chunk_runner,
+                             make_optimizer, make_step)
 from pitta_jax.adapt.inputs import chunks
-from pitta_jax.adapt.methods import get_method
-from pitta_jax.checkpoint import MonoDepth2Weights
+from pitta_jax.checkpoint import Weights
+from pitta_jax.configs import check, option
+from pitta_jax.methods import Method, build as build_method
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame
 
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
-  """MonoDepth2 evaluation protocol (SPEC "Evaluation")."""
-  min_depth: float = 1e-3
-  max_depth: float = 80.0
-  median_scaling: bool = True   # monocular models: per-image median scaling
-  garg_crop: bool = False       # KITTI Eigen split only
+  """The evaluation protocol (MonoDepth2's, paper Sec. 5 and its Appendix D)."""
+  min_depth: float = option(metrics_lib.MIN_DEPTH, "ground truth below this is invalid (metres)")
+  max_depth: float = option(metrics_lib.MAX_DEPTH, "cap of ground truth and prediction (metres)")
+  median_scaling: bool = option(True, "per-image median scaling (monocular models)")
+  garg_crop: bool = option(False, "Garg/Eigen crop (KITTI Eigen split only)")
+
+  def __post_init__(self):
+    check(isinstance(self.min_depth, (int, float)) and isinstance(self.max_depth, (int, float))
+          and 0 <= self.min_depth < self.max_depth < float("inf"),
+          f"need 0 <= min_depth < max_depth < inf, got min_depth={self.min_depth} "
+          f"max_depth={self.max_depth}")
 
 
 @dataclasses.dataclass
@@ -52,30 +59,47 @@ class RunResult:
     return len(self.frame_names) / self.seconds if self.seconds > 0 else float("nan")
 
 
-@functools.lru_cache(maxsize=16)
-def _runner(num_layers: int, cfg: AdaptConfig):
-  model, method = monodepth2_model(num_layers), get_method(cfg.method)
-  tx = make_optimizer(cfg)
-  return model, method, tx, make_chunk_runner(make_step(model, method, cfg, tx))
+class Runners:
+  """A caller-owned cache of compiled chunk runners, keyed by (network, method, config).
+
+  Pass one instance to every `run_sequence` of a sweep so that sequences with the same network
+  and configs share one compile.
+  """
+
+  def __init__(self):
+    self._cache: dict = {}
+
+  def get(self, weights: Weights, method: Method, cfg: AdaptConfig):
+    key = (weights.spec.name, tuple(sorted((k, str(v)) for k, v in weights.config.items()
+                                           if k != "source")), method.name, method.config, cfg)
+    if key not in self._cache:
+      model = weights.network()
+      tx = make_optimizer(cfg)
+      self._cache[key] = (model, tx, make_chunk_runner(make_step(model, method, cfg, tx)))
+    return self._cache[key]
 
 
-def run_sequence(weights: MonoDepth2Weights, frames: Sequence[Frame], cfg: AdaptConfig,
-                 eval_cfg: EvalConfig = EvalConfig(), name: str = "", quiet: bool = False,
-                 keep: Sequence[int] = (), checkpoint_dir: str | Path | None = None,
-                 checkpoint_every: int = 0) -> RunResult:
-  """Runs `cfg.method` online over `frames` (predict-then-adapt) and evaluates each prediction
+def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
+                 method: Method | None = None, eval_cfg: EvalConfig = EvalConfig(),
+                 name: str = "", quiet: bool = False, keep: Sequence[int] = (),
+                 checkpoint_dir: str | Path | None = None, checkpoint_every: int = 0,
+                 runners: Runners | None = None) -> RunResult:
+  """Runs a method online over `frames` (predict-then-adapt) and evaluates each prediction
   against the frame's ground truth (when it has one).
 
   Args:
     weights: the network to adapt (its config gives the input size).
     frames: the sequence, any length; read lazily chunk by chunk.
+    cfg: the run's config; method: the method (default: `cfg.method` with its paper defaults).
     keep: frame indices whose predicted depth is returned (for figures).
+    runners: a shared cache of compiled runners (default: a fresh one, compiled for this call).
   """
   if len(frames) == 0:
     raise DataError(name or "sequence", "no frames to adapt on")
-  h, w = weights.config.height, weights.config.width
-  model, method, tx, runner = _runner(weights.config.num_layers, cfg)
-  state = init_state(weights.depth, method, cfg, tx)
+  method = method if method is not None else build_method(cfg.method)
+  h, w = weights.height, weights.width
+  model, tx, runner = (runners or Runners()).get(weights, method, cfg)
+  state, consts = init_state(weights.depth, method, cfg, tx, model)
   per_frame, names, kept, logs = [], [], {}, []
   keep = set(keep)
   bar = tqdm(total=len(frames), desc=name or cfg.method, unit="frame", disable=quiet)
@@ -90,7 +114,8 @@ def run_sequence(weights: MonoDepth2Weights, frames: Sequence[Frame], cfg: Adapt
       yield chunk
 
   index = 0
-  for state, out in adapt_stream(state, inputs(), runner, checkpoint_dir, checkpoint_every):
+  for state, out in adapt_stream(state, consts, inputs(), runner, checkpoint_dir,
+                                 checkpoint_every):
     originals = chunk_frames.pop(0)
     for k, frame in enumerate(originals):
       depth = out.depth[k]
@@ -108,8 +133,9 @@ def run_sequence(weights: MonoDepth2Weights, frames: Sequence[Frame], cfg: Adapt
     bar.set_postfix(abs_rel=f"{running:.4f}", loss=f"{float(np.mean(out.loss)):.3g}")
   bar.close()
   seconds = time.perf_counter() - t0
-  log_arrays = {f: np.concatenate([getattr(o, f) for o in logs]) for f in StepOutput._fields
-                if f != "depth"}
+  log_arrays = {f: np.concatenate([getattr(o, f) for o in logs])
+                for f in ("loss", "skipped", "grad_norm", "update_norm")}
+  log_arrays.update({k: np.concatenate([o.logs[k] for o in logs]) for k in logs[0].logs})
   mean = metrics_lib.mean_metrics(per_frame) if per_frame else {}
   return RunResult(name=name, per_frame=per_frame, mean=mean, logs=log_arrays,
                    frame_names=names, seconds=seconds, kept_depths=kept,

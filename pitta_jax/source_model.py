@@ -26,7 +26,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from pitta_jax.checkpoint import ModelConfig, MonoDepth2Weights, load_monodepth2, save_monodepth2
+from pitta_jax.checkpoint import Weights, load_weights, save_weights
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
 from pitta_jax.models.depth_decoder import DepthNet, check_input_size, disp_to_depth
 from pitta_jax.nonsmooth import absolute
@@ -158,19 +158,20 @@ def train_source(cfg: SourceConfig = SourceConfig(), quiet: bool = False) -> tup
 
 
 def load_or_train_source(cfg: SourceConfig = SourceConfig(), quiet: bool = False,
-                         retrain: bool = False) -> tuple[MonoDepth2Weights, dict]:
+                         retrain: bool = False) -> tuple[Weights, dict]:
   """The cached source model for `cfg`, training (and caching) it on the first call."""
   directory = cached_dir(cfg)
   report_path = directory / "train_report.json"
   if not retrain and report_path.is_file():
     try:
-      return load_monodepth2(directory), json.loads(report_path.read_text())
+      return load_weights(directory), json.loads(report_path.read_text())
     except (OSError, ValueError) as e:  # a broken cache is rebuilt, not fatal
       print(f"warning: cached source model at {directory} unreadable ({e}); retraining")
   variables, report = train_source(cfg, quiet)
-  model_cfg = ModelConfig(num_layers=cfg.num_layers, height=cfg.height, width=cfg.width,
-                          source={"trained_by": "pitta-jax train-source", "key": cfg.key()})
-  save_monodepth2(directory, model_cfg, jax.tree_util.tree_map(np.asarray, variables))
+  save_weights(directory, "monodepth2",
+               {"num_layers": cfg.num_layers, "height": cfg.height, "width": cfg.width},
+               jax.tree_util.tree_map(np.asarray, variables),
+               source={"trained_by": "pitta-jax train-source", "key": cfg.key()})
   report["weights_dir"] = str(directory)
   report_path.write_text(json.dumps(report, indent=2) + "\n")
-  return load_monodepth2(directory), report
+  return load_weights(directory), report

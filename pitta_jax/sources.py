@@ -1,37 +1,88 @@
-"""Resolving the CLI's `--dataset/--root/--option/--segmentation/--weights` into frames and weights."""
+"""Resolving the CLI's `--dataset/--root/--option/--segmentation/--weights` into frames and weights.
+
+`--option KEY=VALUE` values are typed from the target's annotations (the reader function's
+parameters, or `SyntheticConfig`'s fields): `sequences=0001` stays the string "0001" for a str
+option, `num_frames=3.5` is refused for an int one, and an unknown key lists the valid ones.
+"""
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+import inspect
+import types
+import typing
+from typing import Any, Callable, Mapping, Sequence
 
-from pitta_jax.checkpoint import MonoDepth2Weights, load_monodepth2
+from pitta_jax.checkpoint import Weights, load_weights
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame
 
+SEGMENTATIONS = ("gt", "png", "mask2former")
 
-def parse_options(items: Sequence[str]) -> dict[str, object]:
-  """["weather=foggy", "num_frames=100"] -> {"weather": "foggy", "num_frames": 100}."""
-  options: dict[str, object] = {}
+
+def split_options(items: Sequence[str]) -> dict[str, str]:
+  """["weather=foggy", "num_frames=100"] -> {"weather": "foggy", "num_frames": "100"} (text)."""
+  options: dict[str, str] = {}
   for item in items:
     key, sep, value = item.partition("=")
     if not sep or not key:
       raise DataError(None, f"--option {item!r} is not KEY=VALUE")
-    for cast in (int, float):
-      try:
-        options[key] = cast(value)
-        break
-      except ValueError:
-        continue
-    else:
-      options[key] = {"true": True, "false": False, "none": None}.get(value.lower(), value)
+    options[key.strip()] = value.strip()
   return options
 
 
-def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False) -> MonoDepth2Weights:
+def _coerce(key: str, text: str, annotation: Any) -> Any:
+  """`text` as the type `annotation` names (Optional and unions tried in order)."""
+  from pitta_jax.config_cli import parse_bool, parser_for
+  if isinstance(annotation, str) or annotation is inspect.Parameter.empty or annotation is Any:
+    annotation = str
+  origin = typing.get_origin(annotation)
+  if origin in (typing.Union, types.UnionType):
+    args = typing.get_args(annotation)
+    if type(None) in args and text.lower() == "none":
+      return None
+    errors = []
+    for arg in (a for a in args if a is not type(None)):
+      try:
+        return _coerce(key, text, arg)
+      except DataError as e:
+        errors.append(str(e))
+    raise DataError(None, errors[0] if errors else f"--option {key}={text!r}: invalid")
+  kind, _ = parser_for(annotation) if annotation is not bool else (parse_bool, "")
+  if annotation not in (int, float, bool, str) and origin is not tuple:
+    kind = str  # paths and other objects are given as text
+  try:
+    return kind(text)
+  except (ValueError, TypeError, Exception) as e:  # argparse.ArgumentTypeError included
+    want = getattr(annotation, "__name__", str(annotation))
+    raise DataError(None, f"--option {key}={text!r}: expected {want} ({e})") from None
+
+
+def typed_options(raw: Mapping[str, str], annotations: Mapping[str, Any], target: str
+                  ) -> dict[str, Any]:
+  """Coerces `raw` option texts with `annotations` (name -> type); DataError on unknown keys."""
+  unknown = sorted(set(raw) - set(annotations))
+  if unknown:
+    raise DataError(None, f"{target} has no option {', '.join(unknown)} (options: "
+                          f"{', '.join(sorted(annotations))})")
+  return {k: _coerce(k, v, annotations[k]) for k, v in raw.items()}
+
+
+def function_annotations(fn: Callable, skip: Sequence[str] = ("root",)) -> dict[str, Any]:
+  """Keyword parameter name -> resolved annotation of a reader function."""
+  hints = typing.get_type_hints(fn)
+  return {p: hints.get(p, str) for p in inspect.signature(fn).parameters if p not in skip}
+
+
+def dataclass_annotations(cls: type) -> dict[str, Any]:
+  hints = typing.get_type_hints(cls)
+  return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False) -> Weights:
   """The given weights directory; for the synthetic benchmark, the cached source model."""
   if weights_dir:
-    return load_monodepth2(weights_dir)
+    return load_weights(weights_dir)
   if dataset != "synthetic":
     raise DataError(None, "--weights is required for real datasets (convert a checkpoint with "
                           "`pitta-jax convert monodepth2 ...`)")
@@ -39,31 +90,39 @@ def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False) -> 
   return load_or_train_source(SourceConfig(), quiet=quiet)[0]
 
 
+def parse_segmentation(segmentation: str) -> tuple[str, str]:
+  """`gt`, `png:DIR`, `mask2former:DIR` -> (kind, argument); DataError otherwise."""
+  kind, _, arg = segmentation.partition(":")
+  if kind not in SEGMENTATIONS:
+    raise DataError(None, f"--segmentation {segmentation!r}: use gt, png:DIR or mask2former:DIR")
+  if kind != "gt" and not arg:
+    raise DataError(None, f"--segmentation {kind}:DIR needs a directory")
+  return kind, arg
+
+
 def open_frames(dataset: str, root: str | None, option_items: Sequence[str], segmentation: str,
                 height: int, width: int) -> Sequence[Frame]:
   """The frame sequence of a dataset with its panoptic maps chosen by `segmentation`."""
-  options = parse_options(option_items)
-  kind, _, arg = segmentation.partition(":")
-  if kind not in ("gt", "png", "mask2former"):
-    raise DataError(None, f"--segmentation {segmentation!r}: use gt, png:DIR or mask2former:DIR")
+  raw = split_options(option_items)
+  kind, arg = parse_segmentation(segmentation)
   if dataset == "synthetic":
     if kind != "gt":
       raise DataError(None, "the synthetic benchmark carries exact panoptic maps: use "
                             "--segmentation gt")
     from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-    known = {f.name for f in dataclasses.fields(SyntheticConfig)}
-    unknown = sorted(set(options) - known)
-    if unknown:
-      raise DataError(None, f"synthetic has no option {', '.join(unknown)} "
-                            f"(options: {', '.join(sorted(known))})")
-    cfg = SyntheticConfig(**{"height": height, "width": width, "seed": 100, **options})
+    options = typed_options(raw, dataclass_annotations(SyntheticConfig), "synthetic")
+    try:
+      cfg = SyntheticConfig(**{"height": height, "width": width, "seed": 100, **options})
+    except (TypeError, ValueError) as e:
+      raise DataError(None, f"synthetic options: {e}") from None
     return generate_sequence(cfg)
   if not root:
     raise DataError(None, f"--root is required for dataset {dataset}")
-  from pitta_jax.data.readers import open_dataset
+  from pitta_jax.data.readers import READERS, open_dataset
+  if dataset not in READERS:
+    raise DataError(None, f"unknown dataset {dataset!r}; choose from {', '.join(READERS)}")
+  options = typed_options(raw, function_annotations(READERS[dataset]), dataset)
   if kind == "png":
-    if not arg:
-      raise DataError(None, "--segmentation png:DIR needs a directory")
     options["panoptic_dir"] = arg
   frames = open_dataset(dataset, root, **options)
   if kind == "mask2former":

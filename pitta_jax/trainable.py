@@ -7,9 +7,12 @@ frozen leaves). `merge` puts the three parts back into Flax variables.
 
 Selectors (parameter paths are `/`-joined, e.g. `encoder/layer1_0/bn1/scale`):
   encoder_bn           every encoder BN scale/bias (default; 20 layers, 9,600 values in ResNet-18)
+  encoder_ln           every encoder LayerNorm scale/bias (transformer encoders)
   all                  every parameter of the network
   fraction(cnn=a,bn=b) kernels of the last a% of encoder conv layers + scale/bias of the last
-                       b% of encoder BN layers, in forward order (Table 5: "CNN a% + BN b%")
+                       b% of encoder BN layers (LN where the encoder has no BN), in forward
+                       order (Table 5: "CNN a% + BN b%")
+A BatchNorm is a layer with running statistics in `batch_stats`; a LayerNorm has none.
 """
 
 from __future__ import annotations
@@ -22,21 +25,19 @@ from flax.traverse_util import flatten_dict, unflatten_dict
 
 Tree = dict[str, Any]
 
-_BLOCK_RE = re.compile(r"^encoder/layer(\d+)_(\d+)/([a-z_]+?)(\d*)/")
-# order of a block's layers in PyTorch's forward: convs/BNs by index, then the downsample branch
-_POSITION = {"conv": 0, "bn": 0, "downsample_conv": 10, "downsample_bn": 10}
+SELECTOR_KINDS = ("encoder_bn", "encoder_ln", "all", "fraction")
 
 
 @dataclasses.dataclass(frozen=True)
 class Selector:
-  """Which parameters adapt. kind: "encoder_bn" | "all" | "fraction"; cnn/bn: percentages."""
+  """Which parameters adapt. kind: one of SELECTOR_KINDS; cnn/bn: percentages (fraction)."""
   kind: str = "encoder_bn"  # paper Sec. 4.1: BN gamma/beta of the encoder
   cnn: float = 0.0
   bn: float = 100.0
 
   def __post_init__(self):
-    if self.kind not in ("encoder_bn", "all", "fraction"):
-      raise ValueError(f"unknown selector kind {self.kind!r}; use encoder_bn, all or fraction")
+    if self.kind not in SELECTOR_KINDS:
+      raise ValueError(f"unknown selector kind {self.kind!r}; use {', '.join(SELECTOR_KINDS)}")
     for name, v in (("cnn", self.cnn), ("bn", self.bn)):
       if not 0.0 <= v <= 100.0:
         raise ValueError(f"selector {name}={v} is not a percentage in [0, 100]")
@@ -48,39 +49,51 @@ class Selector:
 
 
 def parse_selector(text: str) -> Selector:
-  """Parses `encoder_bn`, `all`, or `fraction(cnn=20,bn=80)` (also `cnn20_bn80`)."""
+  """Parses `encoder_bn`, `encoder_ln`, `all`, or `fraction(cnn=20,bn=80)` (also `cnn20_bn80`)."""
   text = text.strip().replace(" ", "")
-  if text in ("encoder_bn", "all"):
+  if text in ("encoder_bn", "encoder_ln", "all"):
     return Selector(text)
   m = re.fullmatch(r"fraction\(cnn=([\d.]+),bn=([\d.]+)\)|cnn([\d.]+)_bn([\d.]+)", text)
   if not m:
-    raise ValueError(f"cannot parse selector {text!r}; use encoder_bn, all, "
+    raise ValueError(f"cannot parse selector {text!r}; use encoder_bn, encoder_ln, all, "
                      f"or fraction(cnn=A,bn=B) with percentages A, B")
   a, b = (m.group(1), m.group(2)) if m.group(1) is not None else (m.group(3), m.group(4))
   return Selector("fraction", float(a), float(b))
 
 
-def _forward_key(module_path: str) -> tuple:
-  """Sort key giving the forward order of an encoder conv/BN module path."""
-  if module_path.startswith("encoder/conv1") or module_path.startswith("encoder/bn1"):
-    return (0, 0, 0)
-  m = _BLOCK_RE.match(module_path + "/")
-  if not m:
-    raise ValueError(f"not an encoder layer path: {module_path}")
-  stage, block, kind, idx = int(m.group(1)), int(m.group(2)), m.group(3), m.group(4)
-  return (stage, block, _POSITION[kind] + (int(idx) if idx else 0))
+def _natural_key(path: str) -> list:
+  """Sort key that orders `layer2_10` after `layer2_9`."""
+  return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path)]
 
 
-def encoder_layers(params: Tree, kind: str) -> list[str]:
-  """Module paths of the encoder's conv ("conv") or BN ("bn") layers, in forward order."""
-  flat = flatten_dict(params, sep="/")
+def encoder_layers(variables: Tree, kind: str, encoder: str = "encoder",
+                   order: list[str] | None = None) -> list[str]:
+  """Module paths of the encoder's layers of one kind, in forward order.
+
+  kind: "conv" (a 4-D `kernel`), "bn" (scale/bias with BatchNorm running statistics in
+  `batch_stats`), "ln" (scale/bias without running statistics: LayerNorm/GroupNorm).
+  order: module paths in forward order (`registry.Network.forward_order()`); without it, a
+  natural sort of the paths, which is the forward order for ResNet names (stem, then
+  layer{stage}_{block} with conv1, conv2, [conv3], downsample).
+  """
+  params = flatten_dict(variables["params"], sep="/")
+  stats = {k.rsplit("/", 1)[0] for k in flatten_dict(variables.get("batch_stats", {}), sep="/")}
+  prefix = encoder + "/"
   if kind == "conv":
-    mods = {k[: -len("/kernel")] for k in flat if k.startswith("encoder/") and k.endswith("/kernel")}
-  elif kind == "bn":
-    mods = {k[: -len("/scale")] for k in flat if k.startswith("encoder/") and k.endswith("/scale")}
+    mods = {k[: -len("/kernel")] for k, v in params.items()
+            if k.startswith(prefix) and k.endswith("/kernel") and getattr(v, "ndim", 0) == 4}
+  elif kind in ("bn", "ln"):
+    mods = {k[: -len("/scale")] for k in params if k.startswith(prefix) and k.endswith("/scale")}
+    mods = {m for m in mods if (m in stats) == (kind == "bn")}
   else:
-    raise ValueError(kind)
-  return sorted(mods, key=_forward_key)
+    raise ValueError(f"layer kind must be conv, bn or ln, got {kind!r}")
+  if order is None:
+    return sorted(mods, key=_natural_key)
+  rank = {m: i for i, m in enumerate(order)}
+  missing = sorted(m for m in mods if m not in rank)
+  if missing:
+    raise ValueError(f"forward order lacks layers {missing[:3]}")
+  return sorted(mods, key=rank.__getitem__)
 
 
 def _last_percent(layers: list[str], percent: float) -> list[str]:
@@ -88,20 +101,30 @@ def _last_percent(layers: list[str], percent: float) -> list[str]:
   return layers[len(layers) - n:] if n else []
 
 
-def selected_paths(params: Tree, selector: Selector) -> list[str]:
-  """The `/`-joined parameter leaf paths the selector adapts (asserts each rule matched)."""
-  flat = flatten_dict(params, sep="/")
+def selected_paths(variables: Tree, selector: Selector, encoder: str = "encoder",
+                   order: list[str] | None = None) -> list[str]:
+  """The `/`-joined parameter leaf paths the selector adapts (asserts each rule matched).
+
+  variables: {"params": ..., "batch_stats": ...} (BatchNorm layers are the ones with running
+  statistics; a LayerNorm is never taken for a BatchNorm). encoder, order: see `encoder_layers`.
+  """
+  flat = flatten_dict(variables["params"], sep="/")
   if selector.kind == "all":
     return sorted(flat)
-  bn_layers = encoder_layers(params, "bn")
-  if not bn_layers:
-    raise ValueError("selector found no BatchNorm layer under encoder/; is this a MonoDepth2?")
-  if selector.kind == "encoder_bn":
-    bns, convs = bn_layers, []
+  norm_kind = "ln" if selector.kind == "encoder_ln" else "bn"
+  norms = encoder_layers(variables, norm_kind, encoder, order)
+  if not norms and selector.kind != "fraction":
+    name = "LayerNorm" if norm_kind == "ln" else "BatchNorm"
+    raise ValueError(f"selector {selector} found no {name} layer under {encoder}/ "
+                     f"(try encoder_ln or encoder_bn)")
+  if selector.kind in ("encoder_bn", "encoder_ln"):
+    convs = []
   else:
-    bns = _last_percent(bn_layers, selector.bn)
-    convs = _last_percent(encoder_layers(params, "conv"), selector.cnn)
-  paths = [f"{m}/{leaf}" for m in bns for leaf in ("scale", "bias")]
+    if not norms:
+      norms = encoder_layers(variables, "ln", encoder, order)  # fraction over LN networks
+    norms = _last_percent(norms, selector.bn)
+    convs = _last_percent(encoder_layers(variables, "conv", encoder, order), selector.cnn)
+  paths = [f"{m}/{leaf}" for m in norms for leaf in ("scale", "bias")]
   paths += [f"{m}/kernel" for m in convs]
   for p in paths:
     assert p in flat, p
@@ -116,10 +139,11 @@ class Split(NamedTuple):
   batch_stats: Tree
 
 
-def split(variables: Tree, selector: Selector = Selector()) -> Split:
+def split(variables: Tree, selector: Selector = Selector(), encoder: str = "encoder",
+          order: list[str] | None = None) -> Split:
   """Splits Flax variables {"params", "batch_stats"} into trainable / frozen / batch_stats."""
   params = variables["params"]
-  chosen = set(selected_paths(params, selector))
+  chosen = set(selected_paths(variables, selector, encoder, order))
   flat = flatten_dict(params, sep="/")
   trainable = unflatten_dict({k: v for k, v in flat.items() if k in chosen}, sep="/")
   frozen = unflatten_dict({k: v for k, v in flat.items() if k not in chosen}, sep="/")

@@ -9,6 +9,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from pitta_jax.metrics import MAX_DEPTH
+
 
 def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None = None,
              colormap: int = cv2.COLORMAP_MAGMA) -> np.ndarray:
@@ -24,7 +26,7 @@ def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None =
   return bgr[..., ::-1].copy()
 
 
-def colorize_depth(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
+def colorize_depth(depth: np.ndarray, max_depth: float = MAX_DEPTH) -> np.ndarray:
   """Depth (H, W) metres -> RGB via its disparity (near = bright), 0/invalid -> black."""
   depth = np.asarray(depth, np.float64)
   valid = depth > 0

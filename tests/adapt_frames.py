@@ -30,4 +30,5 @@ def make_frames(n: int, seed: int = 0) -> StepInput:
   seg_cls[:, :4] = [ROAD, CAR, CAR, PERSON]
   seg_valid[:, :4] = True
   return StepInput(np.stack(images).astype(np.float32), np.stack(pans), seg_ids, seg_cls,
-                   seg_valid, np.ones((n,), bool))
+                   seg_valid, np.ones((n,), bool), np.zeros((n, 3, 3), np.float32),
+                   np.zeros((n,), bool))

@@ -17,10 +17,12 @@ import pytest
 
 from pitta_jax import losses, trainable
 from pitta_jax.adapt import (AdaptConfig, StepInput, adapt_stream, init_state, load_state,
-                             make_chunk_runner, make_optimizer, make_step, monodepth2_model,
-                             save_state)
-from pitta_jax.adapt.methods import get_method
+                             make_chunk_runner, make_optimizer, make_step)
+from pitta_jax.methods import build
+from pitta_jax.methods.depth_refining import DepthRefiningConfig
+from pitta_jax.methods.pitta import PittaConfig
 from pitta_jax.models.depth_decoder import DepthNet, disp_to_depth
+from pitta_jax.models.registry import network
 
 import adapt_frames
 
@@ -40,22 +42,29 @@ def variables():
       lambda p, a: a + 0.1 if "mean" in jax.tree_util.keystr(p) else a, v)
 
 
-CFG = AdaptConfig(lr=1e-2, chunk_size=2, max_instances=4, window=3)
+CFG = AdaptConfig(lr=1e-2, chunk_size=2)
+PITTA = PittaConfig(ld=DepthRefiningConfig(max_instances=4, window=3))
+
+
+def _model():
+  return network("monodepth2", {"num_layers": 18})
 
 
 @pytest.fixture(scope="module")
 def engine(variables):
   """One compiled chunk runner shared by the tests that use the default config."""
-  model, method = monodepth2_model(18), get_method("pitta")
+  model, method = _model(), build("pitta", PITTA)
   tx = make_optimizer(CFG)
   runner = make_chunk_runner(make_step(model, method, CFG, tx))
   return model, method, tx, runner
 
 
-def _run(state, frames, runner, chunk, **kw):
+def _run(init, frames, runner, chunk, **kw):
+  """init: (state, consts) as `init_state` returns them."""
+  state, consts = init
   outs, n = [], frames.image.shape[0]
   chunks = (_slice(frames, a, a + chunk) for a in range(0, n, chunk))
-  for state, out in adapt_stream(state, chunks, runner, **kw):
+  for state, out in adapt_stream(state, consts, chunks, runner, **kw):
     outs.append(out)
   stacked = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *outs)
   return state, stacked
@@ -88,7 +97,7 @@ def test_predict_then_adapt_matches_manual_adam_steps(variables, engine):
     print(f"frame {t}: loss engine {out.loss[t]:.6f} manual {float(loss):.6f}, depth rel diff {d:.1e}")
     assert d < 1e-5
     np.testing.assert_allclose(out.loss[t], float(loss), rtol=1e-5)
-    assert out.n_instances[t] == 3
+    assert out.logs["n_instances"][t] == 3
     updates, opt_state = opt.update(g, opt_state, tr)
     tr = optax.apply_updates(tr, updates)
 
@@ -120,9 +129,10 @@ def test_checkpoint_resume_is_bitwise_identical(variables, engine, tmp_path):
   first_state, first = _run(init_state(variables, method, CFG, tx), _slice(frames, 0, 4), runner,
                             2, checkpoint_dir=tmp_path, checkpoint_every=4)
   assert (tmp_path / "state_000004").is_dir()
-  restored = load_state(tmp_path / "state_000004", like=init_state(variables, method, CFG, tx))
+  fresh, consts = init_state(variables, method, CFG, tx)
+  restored = load_state(tmp_path / "state_000004", like=fresh)
   assert int(restored.step) == 4
-  last_state, last = _run(restored, _slice(frames, 4, 6), runner, 2)
+  last_state, last = _run((restored, consts), _slice(frames, 4, 6), runner, 2)
   np.testing.assert_array_equal(np.concatenate([first.depth, last.depth]), full.depth)
   for a, b in zip(jax.tree_util.tree_leaves(last_state), jax.tree_util.tree_leaves(full_state)):
     np.testing.assert_array_equal(a, b)
@@ -162,7 +172,7 @@ def test_nonfinite_guard_skips_and_counts(variables, engine):
 
 def test_reset_policy_restores_source_parameters(variables):
   cfg = dataclasses.replace(CFG, reset_every=2)
-  model, method = monodepth2_model(18), get_method("pitta")
+  model, method = _model(), build("pitta", PITTA)
   tx = make_optimizer(cfg)
   runner = make_chunk_runner(make_step(model, method, cfg, tx))
   frames = _frames(4, seed=6)
@@ -174,7 +184,7 @@ def test_reset_policy_restores_source_parameters(variables):
 
 def test_no_adaptation_is_the_released_model(variables):
   cfg = dataclasses.replace(CFG, method="none", bn_stats="running")
-  model, method = monodepth2_model(18), get_method("none")
+  model, method = _model(), build("none")
   tx = make_optimizer(cfg)
   runner = make_chunk_runner(make_step(model, method, cfg, tx))
   frames = _frames(2, seed=7)
@@ -182,8 +192,8 @@ def test_no_adaptation_is_the_released_model(variables):
   state, out = _run(state0, frames, runner, 2)
   ref = disp_to_depth(DepthNet(18).apply(variables, frames.image, train=False)[0][..., 0])
   np.testing.assert_allclose(out.depth, np.asarray(ref), rtol=1e-6)
-  for a, b in zip(jax.tree_util.tree_leaves((state.trainable, state.batch_stats)),
-                  jax.tree_util.tree_leaves((state0.trainable, state0.batch_stats))):
+  for a, b in zip(jax.tree_util.tree_leaves(state.trainable),
+                  jax.tree_util.tree_leaves(state0[0].trainable)):
     np.testing.assert_array_equal(a, b)
 
 
@@ -202,6 +212,6 @@ def test_running_a_fresh_state_does_not_consume_the_callers_variables(variables,
   """The chunk runner donates its carry; init_state must hold copies of the variables."""
   model, method, tx, runner = engine
   v = jax.tree_util.tree_map(jnp.asarray, variables)
-  state = init_state(v, method, CFG, tx)
-  runner(state, _frames(2, seed=9))  # direct call: `state` is donated here
+  state, consts = init_state(v, method, CFG, tx)
+  runner(state, _frames(2, seed=9), consts)  # direct call: `state` is donated here
   assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(v))

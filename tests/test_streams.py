@@ -1,7 +1,7 @@
 """Many streams in one compiled call (`pitta_jax.adapt.streams`): vmap, lambda sweep, sharding.
 
 References: K separate runs of the single-stream engine (`make_step` + `make_chunk_runner`) on
-each stream's frames; the plain engine with `AdaptConfig(lam=0.2)` for the lambda sweep; the
+each stream's frames; the plain engine with `PittaConfig(lam=0.2)` for the lambda sweep; the
 unsharded vmapped run for the sharded one (in a subprocess with 4 virtual CPU devices).
 Random-weight ResNet-18 at 64x96, 3 frames, keeps the compiles short.
 """
@@ -22,18 +22,26 @@ import numpy as np
 import pytest
 
 from pitta_jax.adapt import (AdaptConfig, StepInput, init_state, make_chunk_runner,
-                             make_optimizer, make_step, monodepth2_model)
+                             make_optimizer, make_step)
 from pitta_jax.adapt import streams
-from pitta_jax.adapt.methods import get_method
+from pitta_jax.methods import build
+from pitta_jax.methods.depth_refining import DepthRefiningConfig
+from pitta_jax.methods.pitta import PittaConfig
 from pitta_jax.models.random_init import random_monodepth2_variables
+from pitta_jax.models.registry import network
 
 import adapt_frames
 
 H, W, S, T = adapt_frames.H, adapt_frames.W, adapt_frames.S, 3
 # the paper's lr 1e-4: Adam moves every coordinate by ~lr per step, so float noise in a gradient
 # coordinate moves parameters by a fraction of lr, which a larger lr would blow up
-CFG = AdaptConfig(chunk_size=T, max_instances=4, window=3)
+CFG = AdaptConfig(chunk_size=T)
+PITTA = PittaConfig(ld=DepthRefiningConfig(max_instances=4, window=3))
 frames = adapt_frames.make_frames
+
+
+def model_and_method():
+  return network("monodepth2", {"num_layers": 18}), build("pitta", PITTA)
 
 
 SEED = 1  # of the random network weights (`models.random_init`)
@@ -51,7 +59,7 @@ def variables():
 
 @pytest.fixture(scope="module")
 def single_runner():
-  model, method = monodepth2_model(18), get_method("pitta")
+  model, method = model_and_method()
   return make_chunk_runner(make_step(model, method, CFG, make_optimizer(CFG)))
 
 
@@ -67,14 +75,18 @@ def _assert_state_close(got, want, label: str) -> None:
   relative), and eq. 8's gradient is discontinuous: sign(D~ - D~') flips at pixels whose depth is
   within rounding of its window's median, so a few pixels' contributions to a BN gamma/beta
   gradient differ. Adam then moves a coordinate by about lr whatever its gradient's size. So
-  parameters agree to 1e-2 * lr and the Adam moments to 1e-2 of each leaf's largest value.
+  the Adam moments agree to 1e-2 of each leaf's largest value, and parameters to 0.2 * lr:
+  with PyTorch's derivative of |x| (0 at x = 0, so a pixel exactly at its pseudo label adds
+  nothing) a coordinate whose gradient is small (a few % of its leaf's largest) moves by
+  lr * m / sqrt(v), and batch-K vs batch-1 rounding of its few contributions changes that ratio
+  by up to ~8% of lr (measured: 8.5e-6 at lr 1e-4, encoder/layer4_0/bn2/bias, stream 1).
   """
   for name in ("source", "step", "rng", "n_skipped", "method_state"):
     jax.tree_util.tree_map(np.testing.assert_array_equal, getattr(got, name), getattr(want, name))
   print(f"{label}: trainable max abs diff {_max_diff(got.trainable, want.trainable):.2e} "
         f"(lr {CFG.lr:g}), adam moments {_max_diff(got.opt_state, want.opt_state):.2e}")
   jax.tree_util.tree_map(
-      lambda x, y: np.testing.assert_allclose(x, y, rtol=0, atol=1e-2 * CFG.lr),
+      lambda x, y: np.testing.assert_allclose(x, y, rtol=0, atol=0.2 * CFG.lr),
       got.trainable, want.trainable)
   jax.tree_util.tree_map(
       lambda x, y: np.testing.assert_allclose(
@@ -94,11 +106,11 @@ def stream_frames() -> list[StepInput]:
 
 def run_multi(variables) -> tuple:
   """K streams, own frames and seeds, one vmapped compiled call: (states, outputs)."""
-  model, method = monodepth2_model(18), get_method("pitta")
+  model, method = model_and_method()
   tx = make_optimizer(CFG)
   runner = make_chunk_runner(streams.make_multi_stream_step(model, method, CFG, tx))
-  states = streams.init_streams(variables, method, CFG, K, tx)
-  return runner(states, streams.stack_stream_inputs(stream_frames()))
+  states, consts = streams.init_streams(variables, method, CFG, K, tx)
+  return runner(states, streams.stack_stream_inputs(stream_frames()), consts)
 
 
 @pytest.fixture(scope="module")
@@ -109,18 +121,18 @@ def multi_run(variables):
 def test_multi_stream_step_equals_separate_runs(variables, single_runner, multi_run):
   """K = 4 streams with their own frames (one with a padding frame) and seeds, vmapped, vs 4
   separate runs of the single-stream engine."""
-  method = get_method("pitta")
+  _, method = model_and_method()
   tx = make_optimizer(CFG)
   states, outs = multi_run
   assert states.trainable["encoder"]["bn1"]["scale"].shape[0] == K
-  assert states.frozen["encoder"]["conv1"]["kernel"].ndim == 4  # shared: no stream axis
   assert outs.depth.shape == (T, K, H, W)
   np.testing.assert_array_equal(np.asarray(states.step), [T, T - 1, T, T])
 
   bitwise = True
   for k, own in enumerate(stream_frames()):
     cfg_k = dataclasses.replace(CFG, seed=CFG.seed + k)
-    ref_state, ref_out = single_runner(fresh(init_state(variables, method, cfg_k, tx)), own)
+    ref_init, consts = init_state(variables, method, cfg_k, tx)
+    ref_state, ref_out = single_runner(fresh(ref_init), own, consts)
     got = streams.stream_state(states, k)
     d = float(np.max(np.abs(np.asarray(outs.depth[:, k]) - ref_out.depth) / ref_out.depth))
     print(f"stream {k}: depth max rel diff {d:.2e}, loss {np.asarray(outs.loss[:, k])} "
@@ -138,52 +150,42 @@ def test_multi_stream_step_equals_separate_runs(variables, single_runner, multi_
 
 
 def test_lambda_sweep_equals_plain_engine(variables, single_runner):
-  """Stream lam = 0.2 of a (0, 0.2, inf) sweep equals the plain engine with AdaptConfig(lam=0.2)
-  (= CFG.lam); lam = 0 is L_d alone and lam = inf is L_e alone."""
-  assert CFG.lam == 0.2
-  model = monodepth2_model(18)
+  """Stream lam = 0.2 of a (0, 0.2, inf) sweep equals the plain engine with PittaConfig(lam=0.2)
+  (= PITTA.lam); lam = 0 is L_d alone and lam = inf is L_e alone."""
+  assert PITTA.lam == 0.2
+  model, method = model_and_method()
   lams = (0.0, 0.2, math.inf)
-  sweep = make_chunk_runner(streams.make_lambda_sweep_step(model, CFG))
-  states = streams.init_lambda_sweep(variables, lams, CFG)
+  sweep = make_chunk_runner(streams.make_lambda_sweep_step(model, CFG, pitta=PITTA))
+  states, sweep_consts = streams.init_lambda_sweep(variables, lams, CFG, pitta=PITTA)
   shared = frames(T, seed=4)
-  states, outs = sweep(states, shared)
+  states, outs = sweep(states, shared, sweep_consts)
   np.testing.assert_array_equal(np.asarray(states.method_state["lam"]), np.float32(lams))
 
   tx = make_optimizer(CFG)
-  plain = fresh(init_state(variables, get_method("pitta"), CFG, tx))
-  ref_state, ref_out = single_runner(plain, shared)
+  plain, consts = init_state(variables, method, CFG, tx)
+  ref_state, ref_out = single_runner(fresh(plain), shared, consts)
   d = float(np.max(np.abs(np.asarray(outs.depth[:, 1]) - ref_out.depth) / ref_out.depth))
   print(f"lam=0.2 stream vs engine: depth max rel diff {d:.2e}, "
         f"loss diff {np.max(np.abs(np.asarray(outs.loss[:, 1]) - ref_out.loss)):.2e}")
   assert d <= 1e-5
   np.testing.assert_allclose(outs.loss[:, 1], ref_out.loss, rtol=1e-5)
   got = streams.stream_state(states, 1)
-  _assert_state_close(got.replace(method_state={}), ref_state, "lam=0.2 stream")
-  np.testing.assert_array_equal(outs.loss[:, 0], outs.loss_d[:, 0])  # lam = 0: L = L_d
-  np.testing.assert_array_equal(outs.loss[:, 2], outs.loss_e[:, 2])  # lam = inf: L = L_e
+  _assert_state_close(got, ref_state, "lam=0.2 stream")
+  np.testing.assert_array_equal(outs.loss[:, 0], outs.logs["loss_d"][:, 0])  # lam = 0: L = L_d
+  np.testing.assert_array_equal(outs.loss[:, 2], outs.logs["loss_e"][:, 2])  # lam = inf: L = L_e
   assert np.all(np.isfinite(np.asarray(outs.grad_norm))) and np.all(outs.grad_norm[-1] > 0)
   assert not np.any(np.asarray(outs.skipped))
 
 
-def test_table4_lambdas():
-  assert streams.TABLE4_LAMBDAS == (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0,
-                                    math.inf)
-
-
-def test_axes_and_shardings_by_field():
-  """Shared fields (frozen weights, running statistics) have no stream axis and are replicated;
-  every other field is mapped on axis 0 and split over the "streams" mesh axis."""
+def test_shardings_by_field():
+  """Every carried field is split over the "streams" mesh axis; the constants are not carried."""
   P = jax.sharding.PartitionSpec
-  axes = streams.state_axes()
-  assert axes.frozen is None and axes.batch_stats is None
-  assert axes.trainable == 0 and axes.opt_state == 0 and axes.method_state == 0
-  shard = streams.state_shardings(streams.stream_mesh(jax.devices()[:1]))
-  assert shard.frozen.spec == P() and shard.trainable.spec == P("streams")
   mesh = streams.stream_mesh(jax.devices()[:1])
+  shard = streams.state_shardings(mesh)
+  assert shard.trainable.spec == P("streams") and shard.opt_state.spec == P("streams")
+  assert not hasattr(shard, "frozen")
   assert streams.input_sharding(mesh).spec == P(None, "streams")
   assert streams.input_sharding(mesh, shared_frames=True).spec == P()
-  with pytest.raises(ValueError, match="unknown AdaptState fields"):
-    streams.state_axes(("frozen", "weights"))
   with pytest.raises(ValueError, match="cannot be split evenly"):
     streams._check_divisible(6, type("FakeMesh", (), {"size": 4})())
 
@@ -193,21 +195,21 @@ SHARDED_SCRIPT = textwrap.dedent("""
     import jax, numpy as np
     sys.path.insert(0, {tests!r})
     import test_streams as ts
-    from pitta_jax.adapt import make_optimizer, monodepth2_model
+    from pitta_jax.adapt import make_optimizer
     from pitta_jax.adapt import streams
-    from pitta_jax.adapt.methods import get_method
     from pitta_jax.models.random_init import random_monodepth2_variables
 
     assert len(jax.devices()) == 4, jax.devices()
-    model, method, cfg = monodepth2_model(18), get_method("pitta"), ts.CFG
+    (model, method), cfg = ts.model_and_method(), ts.CFG
     tx = make_optimizer(cfg)
     chunk = streams.stack_stream_inputs(ts.stream_frames())
     mesh = streams.stream_mesh()
     runner = streams.make_sharded_chunk_runner(
         streams.make_multi_stream_step(model, method, cfg, tx), mesh)
-    states = streams.init_streams(random_monodepth2_variables(ts.SEED), method, cfg, ts.K, tx)
+    states, consts = streams.init_streams(random_monodepth2_variables(ts.SEED), method, cfg,
+                                          ts.K, tx)
     states, out = runner(streams.shard_streams(states, mesh),
-                         streams.shard_stream_inputs(chunk, mesh))
+                         streams.shard_stream_inputs(chunk, mesh), streams.replicate(consts, mesh))
     leaf = states.trainable["encoder"]["bn1"]["scale"]
     assert leaf.sharding.spec == jax.sharding.PartitionSpec("streams"), leaf.sharding
     assert [s.data.shape[0] for s in leaf.addressable_shards] == [1, 1, 1, 1]
@@ -220,9 +222,10 @@ SHARDED_SCRIPT = textwrap.dedent("""
 def _tolerance(path: str) -> float:
   """Scale-relative tolerance of a leaf of (states, outputs) in the sharded comparison."""
   if any(k in path for k in ("opt_state", "grad_norm", "update_norm")):
-    return 1e-4  # gradient statistics: eq. 8's gradient is discontinuous (`_assert_state_close`)
+    return 5e-3  # gradient statistics: eq. 8's gradient is discontinuous (`_assert_state_close`);
+    # measured 1.1e-3 with PyTorch's |x| derivative (a tie adds 0, a near-tie +-1)
   if "trainable" in path:
-    return 1e-6
+    return 1e-4  # Adam-normalised small gradients (`_assert_state_close`): measured 2.4e-5
   if path.startswith("[1]"):
     return 2e-6  # depths and loss terms
   return 0.0  # counters, keys, source/frozen parameters, lambda: exact
@@ -234,7 +237,7 @@ def test_sharded_streams_equal_unsharded_run(multi_run, tmp_path):
 
   Not bitwise: each device runs batch-1 convolutions where the unsharded run has batch 4, which
   XLA's CPU convolutions round differently. Measured (scale-relative: max |a - b| / max |b| per
-  leaf): parameters ~3e-7, depths ~7e-7, gradient norms ~1e-6, Adam moments ~2e-5.
+  leaf): parameters ~2.4e-5 (one small-gradient coordinate, see `_assert_state_close`), depths ~7e-7, gradient norms ~1e-6, Adam moments ~1.1e-3.
   """
   env = dict(os.environ)
   env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "")

@@ -47,7 +47,7 @@ def test_all_selects_every_parameter(variables):
 
 def test_fraction_follows_forward_order(variables):
   sel = trainable.parse_selector("fraction(cnn=20, bn=50)")
-  paths = trainable.selected_paths(variables["params"], sel)
+  paths = trainable.selected_paths(variables, sel)
   convs = [p for p in paths if p.endswith("/kernel")]
   # last 4 of 20 convs; in a block PyTorch runs conv1, conv2, then the downsample branch
   assert convs == ["encoder/layer4_0/conv2/kernel", "encoder/layer4_0/downsample_conv/kernel",
@@ -83,4 +83,5 @@ def test_bad_selectors_fail_clearly():
   with pytest.raises(ValueError, match="percentage"):
     trainable.Selector("fraction", cnn=120, bn=0)
   with pytest.raises(ValueError, match="no BatchNorm"):
-    trainable.selected_paths({"decoder": {"w": {"kernel": np.zeros(1)}}}, trainable.Selector())
+    trainable.selected_paths({"params": {"decoder": {"w": {"kernel": np.zeros(1)}}}},
+                             trainable.Selector())

@@ -111,12 +111,13 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
   """Converts MonoDepth2 checkpoint files to Flax variables.
 
   Returns:
-    (ModelConfig, depth_variables, pose_variables or None); variables are nested dicts
-    {"params": ..., "batch_stats": ...} of float32 NumPy arrays.
+    (config, depth_variables, pose_variables or None): config is the model.json dict of the
+    MonoDepth2 registry entry (num_layers, height, width, use_stereo[, pose_num_layers]);
+    variables are nested dicts {"params": ..., "batch_stats": ...} of float32 NumPy arrays.
   """
   from flax.traverse_util import unflatten_dict
-  from pitta_jax.checkpoint import ModelConfig
   from pitta_jax.models.depth_decoder import DepthNet
+  from pitta_jax.models.monodepth2 import DEFAULT_SIZE
   from pitta_jax.models.pose import PoseNet
 
   if (pose_encoder is None) != (pose is None):
@@ -134,14 +135,10 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
   flat.update(R.apply_rules(dec_state, depth_decoder_rules(), _is_ignorable, str(depth),
                             expected, cover=False))
   R.check_covered(flat, expected)
-  config = ModelConfig(
-      num_layers=num_layers,
-      height=_meta(enc_state, "height", 192, encoder),
-      width=_meta(enc_state, "width", 640, encoder),
-      use_stereo=_meta(enc_state, "use_stereo", False, encoder),
-      source={"encoder": str(encoder), "depth": str(depth),
-              "pose_encoder": str(pose_encoder) if pose_encoder else None,
-              "pose": str(pose) if pose else None})
+  config = {"num_layers": num_layers,
+            "height": _meta(enc_state, "height", DEFAULT_SIZE[0], encoder),
+            "width": _meta(enc_state, "width", DEFAULT_SIZE[1], encoder),
+            "use_stereo": _meta(enc_state, "use_stereo", False, encoder)}
   depth_vars = unflatten_dict(flat)
 
   pose_vars = None
@@ -155,6 +152,7 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
                                expected_pose, cover=False))
     R.check_covered(pflat, expected_pose)
     pose_vars = unflatten_dict(pflat)
+    config["pose_num_layers"] = pose_layers
   return config, depth_vars, pose_vars
 
 
@@ -170,13 +168,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> Path:
-  from pitta_jax.checkpoint import save_monodepth2
+  from pitta_jax.checkpoint import save_weights
   config, depth_vars, pose_vars = convert_monodepth2(
       args.encoder, args.depth, args.pose_encoder, args.pose, args.num_layers)
-  out = save_monodepth2(args.out, config, depth_vars, pose_vars)
+  source = {"encoder": str(args.encoder), "depth": str(args.depth),
+            "pose_encoder": args.pose_encoder and str(args.pose_encoder),
+            "pose": args.pose and str(args.pose)}
+  out = save_weights(args.out, "monodepth2", config, depth_vars, pose_vars, source)
   import jax
   n = sum(a.size for a in jax.tree_util.tree_leaves((depth_vars, pose_vars)))
-  print(f"converted MonoDepth2 ResNet-{config.num_layers} ({config.width}x{config.height}, "
+  print(f"converted MonoDepth2 ResNet-{config['num_layers']} ({config['width']}x{config['height']}, "
         f"{'with' if pose_vars else 'no'} pose net, {n:,} values) -> {out}")
   return out
 

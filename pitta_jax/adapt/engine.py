@@ -1,7 +1,7 @@
 """The online adaptation engine: one pure `adapt_step`, scanned over frames in chunks.
 
-Per frame (predict-then-adapt, SPEC "The method"): the method's loss is evaluated on the
-frame; the depth returned for evaluation comes from that same forward pass, i.e. *before* the
+Per frame (predict-then-adapt, as every TTA paper evaluates): the method's loss is evaluated on
+the frame; the depth returned for evaluation comes from that same forward pass, i.e. *before* the
 update the frame causes; then the method updates its state (paper eq. 11 for PITTA). A
 sequence is `jax.lax.scan(adapt_step, state, frames)`; long sequences stream through one compiled
 scan of `chunk_size` frames at a time, so memory does not grow with the sequence length, and the
@@ -26,6 +26,7 @@ from flax import struct
 
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.adapt.config import AdaptConfig
+from pitta_jax.methods.base import Method
 
 Tree = Any
 
@@ -39,6 +40,8 @@ class StepInput(NamedTuple):
   seg_classes:  (S,) int32 COCO category ids of those segments.
   seg_valid:    (S,) bool, False for padding.
   valid:        () bool, False for a padding frame at the end of the last chunk (no-op step).
+  intrinsics:   (3, 3) float32 camera matrix K at the network's input size (zeros if unknown).
+  has_intrinsics: () bool, whether the dataset gave K for this frame.
   """
   image: jax.Array
   panoptic: jax.Array
@@ -46,16 +49,26 @@ class StepInput(NamedTuple):
   seg_classes: jax.Array
   seg_valid: jax.Array
   valid: jax.Array
+  intrinsics: jax.Array
+  has_intrinsics: jax.Array
+
+
+class Consts(NamedTuple):
+  """The network's weights that do not adapt: an argument of the compiled chunk, not carried.
+
+  frozen: the parameters outside the selector; batch_stats: BN running statistics (PITTA and
+  the baselines leave them untouched: batch statistics are used, not accumulated).
+  """
+  frozen: Tree
+  batch_stats: Tree
 
 
 @struct.dataclass
 class AdaptState:
-  """The scan carry. `trainable` alone is differentiated and updated by the optimiser."""
-  trainable: Tree
-  frozen: Tree
-  batch_stats: Tree
+  """The scan carry: only what changes from frame to frame."""
+  trainable: Tree      # the adapted parameters (differentiated and updated)
   opt_state: Tree
-  method_state: Tree   # method-specific (e.g. an EMA teacher); {} for PITTA
+  method_state: Tree   # method-specific (lambda for PITTA, an EMA teacher, a frame ring, ...)
   source: Tree         # the trainable parameters at the start, for the reset policy
   step: jax.Array      # () int32, frames processed
   rng: jax.Array       # base PRNG key; per frame: fold_in(rng, step)
@@ -65,65 +78,11 @@ class AdaptState:
 class StepOutput(NamedTuple):
   """Per-frame measurements returned by the step (stacked by the scan)."""
   depth: jax.Array        # (H, W) depth predicted before this frame's update
-  loss: jax.Array         # () L (eq. 10), or the method's loss
-  loss_d: jax.Array       # () L_d (eq. 8)
-  loss_e: jax.Array       # () L_e (eq. 9)
-  n_instances: jax.Array  # () int32 N
+  loss: jax.Array         # () the method's loss (0 for `none`)
+  logs: dict              # () scalars: the method's own terms (PITTA: loss_d, loss_e, n_instances)
   skipped: jax.Array      # () bool, the update was skipped (non-finite)
   grad_norm: jax.Array    # () global norm of the gradient w.r.t. the trainable tree
   update_norm: jax.Array  # () global norm of the applied update
-
-
-@dataclasses.dataclass(frozen=True)
-class DepthModel:
-  """A depth network as the engine sees it: variables + images -> depth.
-
-  apply_disp: (variables, images (B, H, W, 3), use_batch_stats) -> scale-0 disparity (B, H, W).
-  """
-  apply_disp: Callable[[Tree, jax.Array, bool], jax.Array]
-  min_depth: float = 0.1   # MonoDepth2's disp_to_depth range (SPEC step 1)
-  max_depth: float = 100.0
-
-  def depth(self, variables: Tree, images: jax.Array, use_batch_stats: bool) -> jax.Array:
-    from pitta_jax.models.depth_decoder import disp_to_depth
-    return disp_to_depth(self.apply_disp(variables, images, use_batch_stats),
-                         self.min_depth, self.max_depth)
-
-
-def monodepth2_model(num_layers: int = 18) -> DepthModel:
-  """The MonoDepth2 `DepthNet` wrapped for the engine (scale 0 only, as the loss uses)."""
-  from pitta_jax.models.depth_decoder import DepthNet
-  net = DepthNet(num_layers)
-
-  def apply_disp(variables, images, use_batch_stats):
-    return net.apply(variables, images, train=use_batch_stats)[0][..., 0]
-  return DepthModel(apply_disp)
-
-
-class LossAux(NamedTuple):
-  """What a method's loss returns beside the scalar (all stop-gradient)."""
-  depth: jax.Array        # (H, W)
-  loss_d: jax.Array
-  loss_e: jax.Array
-  n_instances: jax.Array
-
-
-@dataclasses.dataclass(frozen=True)
-class Method:
-  """A test-time adaptation method plugged into the engine.
-
-  init: (split: trainable.Split, cfg) -> method_state pytree.
-  loss: (trainable, state, frame, rng, model, cfg) -> (scalar loss, LossAux); differentiable in
-        `trainable`. Also produces the evaluated depth.
-  update: (state, grads, loss, aux, rng, tx, cfg) -> (state, skipped, update_norm); None = the
-        default `optax_update` (one optimiser step with the non-finite guard).
-  adapts: False for methods that never update (no gradient is computed).
-  """
-  name: str
-  init: Callable[..., Tree]
-  loss: Callable[..., tuple[jax.Array, LossAux]]
-  update: Callable[..., AdaptState] | None = None
-  adapts: bool = True
 
 
 def make_optimizer(cfg: AdaptConfig) -> optax.GradientTransformation:
@@ -134,26 +93,39 @@ def make_optimizer(cfg: AdaptConfig) -> optax.GradientTransformation:
 
 
 def init_state(variables: Tree, method: Method, cfg: AdaptConfig,
-               tx: optax.GradientTransformation) -> AdaptState:
-  """Splits the variables with the configured selector and builds the initial carry."""
-  parts = trainable_lib.split(variables, trainable_lib.parse_selector(cfg.selector))
+               tx: optax.GradientTransformation, model: Any = None,
+               resources: dict[str, Any] | None = None) -> tuple[AdaptState, Consts]:
+  """Splits the variables with the configured selector: the initial carry and the constants.
+
+  model: the `Network` (passed to `method.init`); resources: host-side inputs of the method.
+  """
+  selector = trainable_lib.parse_selector(cfg.selector)
+  order = model.forward_order() if model is not None and selector.kind == "fraction" else None
+  parts = trainable_lib.split(variables, selector,
+                              encoder=model.spec.encoder if model is not None else "encoder",
+                              order=order)
   # private copies: the runner donates the carry, which must never alias the caller's arrays
   to_jnp = functools.partial(jax.tree_util.tree_map, lambda x: jnp.array(x, copy=True))
   tr = to_jnp(parts.trainable)
-  return AdaptState(
-      trainable=tr, frozen=to_jnp(parts.frozen), batch_stats=to_jnp(parts.batch_stats),
-      opt_state=tx.init(tr), method_state=method.init(parts, cfg),
+  state = AdaptState(
+      trainable=tr, opt_state=tx.init(tr),
+      method_state=method.init(model, parts, cfg, dict(resources or {})),
       source=jax.tree_util.tree_map(jnp.copy, tr),  # distinct buffers: the carry is donated
       step=jnp.zeros((), jnp.int32), rng=jax.random.PRNGKey(cfg.seed),
       n_skipped=jnp.zeros((), jnp.int32))
+  consts = Consts(jax.tree_util.tree_map(jnp.asarray, parts.frozen),
+                  jax.tree_util.tree_map(jnp.asarray, parts.batch_stats))
+  return state, consts
 
 
-def _all_finite(tree: Tree) -> jax.Array:
+def all_finite(tree: Tree) -> jax.Array:
+  """() bool: every leaf of `tree` is finite."""
   leaves = jax.tree_util.tree_leaves(tree)
   return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.array(True)
 
 
-def _select(pred: jax.Array, on_true: Tree, on_false: Tree) -> Tree:
+def select(pred: jax.Array, on_true: Tree, on_false: Tree) -> Tree:
+  """Leafwise `where(pred, on_true, on_false)` of two trees of the same structure."""
   return jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
 
 
@@ -161,15 +133,16 @@ def optax_update(state: AdaptState, grads: Tree, loss: jax.Array, tx: optax.Grad
                  cfg: AdaptConfig) -> tuple[AdaptState, jax.Array, jax.Array]:
   """One optimiser step on the trainable tree, with the non-finite guard.
 
-  Returns (state, skipped, update_norm). When the guard trips, trainable and optimiser state stay
+  Returns (state, skipped, update_norm). The guard rejects a step whose loss, gradient, new
+  parameters or new optimiser state is not finite: trainable and optimiser state then stay
   exactly as they were and `n_skipped` counts it.
   """
   updates, new_opt = tx.update(grads, state.opt_state, state.trainable)
   new_tr = optax.apply_updates(state.trainable, updates)
   if cfg.skip_nonfinite:
-    ok = jnp.isfinite(loss) & _all_finite(grads)
-    new_tr = _select(ok, new_tr, state.trainable)
-    new_opt = _select(ok, new_opt, state.opt_state)
+    ok = (jnp.isfinite(loss) & all_finite(grads) & all_finite(new_tr) & all_finite(new_opt))
+    new_tr = select(ok, new_tr, state.trainable)
+    new_opt = select(ok, new_opt, state.opt_state)
     skipped = ~ok
   else:
     skipped = jnp.array(False)
@@ -179,8 +152,8 @@ def optax_update(state: AdaptState, grads: Tree, loss: jax.Array, tx: optax.Grad
   return state, skipped, unorm
 
 
-def adapt_step(state: AdaptState, frame: StepInput, *, model: DepthModel, method: Method,
-               cfg: AdaptConfig, tx: optax.GradientTransformation
+def adapt_step(state: AdaptState, frame: StepInput, consts: Consts, *, model: Any,
+               method: Method, cfg: AdaptConfig, tx: optax.GradientTransformation
                ) -> tuple[AdaptState, StepOutput]:
   """One frame: predict, compute the method's loss, update (pure; `lax.scan`-able).
 
@@ -190,8 +163,9 @@ def adapt_step(state: AdaptState, frame: StepInput, *, model: DepthModel, method
   before = state
   if cfg.reset_every > 0:
     reset = (state.step > 0) & (state.step % cfg.reset_every == 0)
-    state = _select(reset, state.replace(trainable=state.source, opt_state=tx.init(state.source)),
-                    state)
+    restored = select(reset, (state.source, tx.init(state.source)),
+                      (state.trainable, state.opt_state))
+    state = state.replace(trainable=restored[0], opt_state=restored[1])
 
   def update(state, grads, loss, aux, key):
     if method.update is None:
@@ -200,8 +174,8 @@ def adapt_step(state: AdaptState, frame: StepInput, *, model: DepthModel, method
 
   outputs = None
   for k in range(cfg.steps_per_frame if method.adapts else 1):
-    loss_fn = functools.partial(method.loss, state=state, frame=frame, rng=rng, model=model,
-                                cfg=cfg)
+    loss_fn = functools.partial(method.loss, state=state, consts=consts, frame=frame, rng=rng,
+                                model=model, cfg=cfg, mcfg=method.config)
     if method.adapts:
       (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.trainable)
       gnorm = optax.tree.norm(grads)
@@ -211,30 +185,30 @@ def adapt_step(state: AdaptState, frame: StepInput, *, model: DepthModel, method
       gnorm = unorm = jnp.zeros(())
       skipped = jnp.array(False)
     if k == 0:  # predict-then-adapt: report the first forward pass
-      outputs = StepOutput(aux.depth, loss, aux.loss_d, aux.loss_e,
-                           aux.n_instances.astype(jnp.int32), skipped, gnorm, unorm)
+      outputs = StepOutput(aux.depth, loss, aux.logs, skipped, gnorm, unorm)
   state = state.replace(step=state.step + 1)
   # a padding frame leaves the state untouched
-  state = _select(frame.valid, state, before)
+  state = select(frame.valid, state, before)
   return state, outputs
 
 
-def make_step(model: DepthModel, method: Method, cfg: AdaptConfig,
+def make_step(model: Any, method: Method, cfg: AdaptConfig,
               tx: optax.GradientTransformation | None = None):
-  """`adapt_step` with its static arguments bound: `step(state, frame) -> (state, outputs)`."""
+  """`adapt_step` with its static arguments bound: `step(state, frame, consts)`."""
   return functools.partial(adapt_step, model=model, method=method, cfg=cfg,
                            tx=tx or make_optimizer(cfg))
 
 
 def make_chunk_runner(step):
-  """jit(lax.scan(step)) over a chunk of frames, carry donated: `(state, frames) -> (state, outs)`."""
+  """jit(lax.scan(step)) over a chunk of frames, carry donated:
+  `(state, frames, consts) -> (state, outputs)`; `consts` is an ordinary (not donated) input."""
   @functools.partial(jax.jit, donate_argnums=0)
-  def run_chunk(state, frames):
-    return jax.lax.scan(step, state, frames)
+  def run_chunk(state, frames, consts):
+    return jax.lax.scan(lambda s, f: step(s, f, consts), state, frames)
   return run_chunk
 
 
-def adapt_stream(state: AdaptState, chunks: Iterable[StepInput], run_chunk,
+def adapt_stream(state: AdaptState, consts: Consts, chunks: Iterable[StepInput], run_chunk,
                  checkpoint_dir: str | Path | None = None, checkpoint_every: int = 0
                  ) -> Iterator[tuple[AdaptState, StepOutput]]:
   """Runs the compiled chunk over a stream of stacked chunks; yields (state, host outputs).
@@ -247,9 +221,9 @@ def adapt_stream(state: AdaptState, chunks: Iterable[StepInput], run_chunk,
   last_saved = int(state.step)
   for chunk in chunks:
     # run_chunk donates the carry: work on a copy so the caller's state stays valid
-    state, outs = run_chunk(jax.tree_util.tree_map(jnp.copy, state), chunk)
+    state, outs = run_chunk(jax.tree_util.tree_map(jnp.copy, state), chunk, consts)
     valid = np.asarray(chunk.valid)
-    host = StepOutput(*(np.asarray(o)[valid] for o in outs))
+    host = jax.tree_util.tree_map(lambda o: np.asarray(o)[valid], outs)
     done = int(state.step)
     if checkpoint_dir and checkpoint_every and done // checkpoint_every > last_saved // checkpoint_every:
       save_state(Path(checkpoint_dir) / f"state_{done:06d}", state)

@@ -38,8 +38,10 @@ def step_input(frame: Frame, height: int, width: int, max_segments: int) -> Step
   valid = np.zeros((max_segments,), bool)
   for k, seg in enumerate(segments):
     ids[k], classes[k], valid[k] = seg.id, seg.category_id, True
+  has_k = frame.intrinsics is not None
+  K = np.asarray(frame.intrinsics, np.float32) if has_k else np.zeros((3, 3), np.float32)
   return StepInput(np.asarray(frame.image, np.float32), panoptic, ids, classes, valid,
-                   np.array(True))
+                   np.array(True), K, np.array(has_k))
 
 
 def stack(inputs: list[StepInput], size: int) -> StepInput:

@@ -1,15 +1,11 @@
 """Many adaptation streams in one compiled call: `jax.vmap` of `adapt_step`, and its sharding.
 
-A *multi-stream state* is an `AdaptState` whose per-stream fields carry a leading stream axis K
-(trainable parameters, optimiser state, method state, source parameters, step, rng, skip counter)
-while the `shared` fields (by default `frozen` and `batch_stats`: the network's frozen weights
-and running statistics, the same for every stream) are held once, without that axis. Keeping the
-frozen convolution kernels unbatched is what makes the vmapped network a batch-K network with one
-set of kernels (convolutions with batch K), instead of K sets of kernels (grouped convolutions).
-Shared fields are constants of the run: any change a method would make to them is discarded
-(PITTA and `none` never change them: the engine only passes them through). With
-`AdaptConfig.reset_every > 0` the engine's reset select covers the whole state, which makes the
-frozen kernels per-stream inside the step: still correct, but the convolutions become grouped.
+A *multi-stream state* is an `AdaptState` whose every field carries a leading stream axis K
+(trainable parameters, optimiser state, method state, source parameters, step, rng, skip
+counter). The network's constants (`engine.Consts`: frozen weights and running statistics) are
+not part of the carry and are passed once, unbatched, to every stream: the vmapped network is a
+batch-K network with one set of kernels (convolutions with batch K), not K sets of kernels
+(grouped convolutions).
 
 Two uses:
 
@@ -18,22 +14,20 @@ Two uses:
   parameters and optimiser state. Stream k of the result equals a single-stream engine run on
   stream k's frames, up to float rounding (XLA rounds a batch-K convolution differently from K
   batch-1 ones: depths agree to ~1e-6 relative).
-- One stream, many loss weights (`make_lambda_sweep_step`, `init_lambda_sweep`): the paper's
-  Table 4 sweeps lambda of eq. 10 over `TABLE4_LAMBDAS`; all streams see the same frames
-  (shared, `(T, ...)`), and lambda is a traced per-stream value read from
-  `state.method_state["lam"]` by the `PITTA_LAMBDA` method (inf = L_e only). Stream k equals the
-  plain engine with `AdaptConfig(lam=lams[k])`.
+- One stream, many loss weights (`make_lambda_sweep_step`, `init_lambda_sweep`): Table 4 sweeps
+  lambda of eq. 10; all streams see the same frames (shared, `(T, ...)`), and lambda is PITTA's
+  per-stream `method_state["lam"]` (inf = L_e only). Stream k equals the plain engine with
+  `PittaConfig(lam=lams[k])`.
 
 Sharding: `stream_mesh` builds a 1-D device mesh with axis "streams"; `shard_streams` /
-`shard_stream_inputs` place the per-stream axis over it (shared fields replicated), and
-`make_sharded_chunk_runner` compiles the scanned chunk with those input and output shardings, so
-each device runs K / devices streams and the carry stays where it is between chunks.
+`shard_stream_inputs` place the stream axis over it (constants replicated), and
+`make_sharded_chunk_runner` compiles the scanned chunk with those shardings, so each device runs
+K / devices streams and the carry stays where it is between chunks.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Any, Sequence
 
 import jax
@@ -42,71 +36,31 @@ import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from pitta_jax import trainable as trainable_lib
 from pitta_jax.adapt.config import AdaptConfig
-from pitta_jax.adapt.engine import (AdaptState, DepthModel, LossAux, Method, StepInput,
-                                    init_state, make_optimizer, make_step)
-from pitta_jax.adapt.methods import forward_and_loss
+from pitta_jax.adapt.engine import (AdaptState, Consts, StepInput, init_state, make_optimizer,
+                                    make_step)
+from pitta_jax.methods import build as build_method
+from pitta_jax.methods.base import Method
+from pitta_jax.methods.pitta import PittaConfig
 
 Tree = Any
 
-# Fields of AdaptState that every stream shares (no stream axis); see the module docstring.
-SHARED_FIELDS: tuple[str, ...] = ("frozen", "batch_stats")
 STREAM_AXIS = "streams"
-# Paper Table 4: lambda of eq. 10 in {0, 0.1, ..., 1.0, inf} (inf = L_e only).
-TABLE4_LAMBDAS: tuple[float, ...] = tuple(round(0.1 * i, 1) for i in range(11)) + (math.inf,)
-
-
-def _field_names() -> list[str]:
-  return [f.name for f in dataclasses.fields(AdaptState)]
-
-
-def _check_shared(shared: Sequence[str]) -> tuple[str, ...]:
-  unknown = set(shared) - set(_field_names())
-  if unknown:
-    raise ValueError(f"unknown AdaptState fields {sorted(unknown)}; fields: {_field_names()}")
-  return tuple(shared)
-
-
-def state_axes(shared: Sequence[str] = SHARED_FIELDS) -> AdaptState:
-  """The `vmap` axes of a multi-stream state: None for the shared fields, 0 for the others."""
-  shared = _check_shared(shared)
-  return AdaptState(**{f: (None if f in shared else 0) for f in _field_names()})
 
 
 # ----------------------------------------------------------------------------- building states
 
 
-def stack_streams(states: Sequence[AdaptState], shared: Sequence[str] = SHARED_FIELDS
-                  ) -> AdaptState:
-  """K single-stream states -> one multi-stream state (per-stream fields stacked on axis 0).
-
-  The shared fields are copied from `states[0]`; they must be the same in every state (not
-  checked leaf by leaf: they are the network's frozen weights, built once).
-  """
-  shared = _check_shared(shared)
+def stack_streams(states: Sequence[AdaptState]) -> AdaptState:
+  """K single-stream states -> one multi-stream state (every field stacked on axis 0)."""
   if not states:
     raise ValueError("no state to stack")
-  fields = {}
-  for name in _field_names():
-    parts = [getattr(s, name) for s in states]
-    if name in shared:
-      # a copy: the chunk runners donate the whole carry, and these are often the caller's
-      # network variables (`init_state` does not copy them)
-      fields[name] = jax.tree_util.tree_map(jnp.copy, parts[0])
-    else:
-      fields[name] = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *parts)
-  return AdaptState(**fields)
+  return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
 
 
-def stream_state(states: AdaptState, k: int, shared: Sequence[str] = SHARED_FIELDS
-                 ) -> AdaptState:
+def stream_state(states: AdaptState, k: int) -> AdaptState:
   """Stream k of a multi-stream state, as a plain single-stream `AdaptState`."""
-  shared = _check_shared(shared)
-  return AdaptState(**{
-      name: (getattr(states, name) if name in shared
-             else jax.tree_util.tree_map(lambda x: x[k], getattr(states, name)))
-      for name in _field_names()})
+  return jax.tree_util.tree_map(lambda x: x[k], states)
 
 
 def num_streams(states: AdaptState) -> int:
@@ -116,25 +70,25 @@ def num_streams(states: AdaptState) -> int:
 
 def init_streams(variables: Tree, method: Method, cfg: AdaptConfig, num: int,
                  tx: optax.GradientTransformation | None = None,
-                 seeds: Sequence[int] | None = None) -> AdaptState:
+                 seeds: Sequence[int] | None = None, model: Any = None
+                 ) -> tuple[AdaptState, Consts]:
   """K streams starting from the same network, each with its own optimiser state and PRNG seed.
 
   Args:
     variables: Flax variables {"params", "batch_stats"} of the source network.
-    method, cfg, tx: as `engine.init_state` (tx defaults to `make_optimizer(cfg)`).
+    method, cfg, tx, model: as `engine.init_state` (tx defaults to `make_optimizer(cfg)`).
     num: number of streams K.
     seeds: K seeds (default cfg.seed + k); only methods that draw random numbers see them.
 
   Returns:
-    multi-stream AdaptState (per-stream fields (K, ...), `SHARED_FIELDS` unbatched).
+    (multi-stream AdaptState with (K, ...) fields, the shared Consts).
   """
   tx = tx or make_optimizer(cfg)
   seeds = list(seeds) if seeds is not None else [cfg.seed + k for k in range(num)]
   if len(seeds) != num:
     raise ValueError(f"{len(seeds)} seeds for {num} streams")
-  base = init_state(variables, method, cfg, tx)
-  states = [base.replace(rng=jax.random.PRNGKey(s)) for s in seeds]
-  return stack_streams(states)
+  base, consts = init_state(variables, method, cfg, tx, model)
+  return stack_streams([base.replace(rng=jax.random.PRNGKey(s)) for s in seeds]), consts
 
 
 def stack_stream_inputs(inputs: Sequence[StepInput]) -> StepInput:
@@ -150,78 +104,52 @@ def stack_stream_inputs(inputs: Sequence[StepInput]) -> StepInput:
 # ----------------------------------------------------------------------------- the vmapped step
 
 
-def make_multi_stream_step(model: DepthModel, method: Method, cfg: AdaptConfig,
+def make_multi_stream_step(model: Any, method: Method, cfg: AdaptConfig,
                            tx: optax.GradientTransformation | None = None, *,
-                           shared_frames: bool = False,
-                           shared: Sequence[str] = SHARED_FIELDS):
-  """`adapt_step` vmapped over the streams: `step(states, frames) -> (states, outputs)`.
+                           shared_frames: bool = False):
+  """`adapt_step` vmapped over the streams: `step(states, frames, consts)`.
 
   Args:
     model, method, cfg, tx: as `engine.make_step` (the same for every stream).
     shared_frames: False: `frames` holds one frame per stream, (K, ...) per field; True: every
       stream sees the same frame, (...) per field (e.g. a lambda sweep).
-    shared: AdaptState fields without a stream axis (constants of the run).
 
   Returns:
-    step(states, frames) -> (states, StepOutput with a leading K axis); scan it over time with
-    `engine.make_chunk_runner` (chunks (T, K, ...), or (T, ...) with shared frames) or
-    `make_sharded_chunk_runner`.
+    step(states, frames, consts) -> (states, StepOutput with a leading K axis); scan it over
+    time with `engine.make_chunk_runner` (chunks (T, K, ...), or (T, ...) with shared frames)
+    or `make_sharded_chunk_runner`. `consts` are shared by every stream (no stream axis).
   """
-  shared = _check_shared(shared)
   single = make_step(model, method, cfg, tx)
-
-  def one(state: AdaptState, frame: StepInput):
-    new, out = single(state, frame)
-    # shared fields stay the unbatched inputs (the engine's valid-frame select would otherwise
-    # broadcast them over the streams)
-    return new.replace(**{f: getattr(state, f) for f in shared}), out
-
-  axes = state_axes(shared)
-  return jax.vmap(one, in_axes=(axes, None if shared_frames else 0), out_axes=(axes, 0))
+  return jax.vmap(single, in_axes=(0, None if shared_frames else 0, None))
 
 
 # ----------------------------------------------------------------------------- lambda sweep
 
 
-def lambda_loss(trainable: Tree, *, state: AdaptState, frame: StepInput, rng: jax.Array,
-                model: DepthModel, cfg: AdaptConfig) -> tuple[jax.Array, LossAux]:
-  """PITTA's eq. 10 with lambda read from `state.method_state["lam"]` (a traced scalar).
-
-  Same forward pass and loss terms as the `pitta` method; only `cfg.lam` is replaced, so that
-  lambda can differ between vmapped streams. lambda = inf means L_e only (Table 4).
-  """
-  del rng
-  return forward_and_loss(trainable, state, frame, model, cfg, lam=state.method_state["lam"])
-
-
-def _lambda_init(split: trainable_lib.Split, cfg: AdaptConfig) -> dict[str, jax.Array]:
-  return {"lam": jnp.asarray(cfg.lam, jnp.float32)}
-
-
-# PITTA with lambda as state: method_state = {"lam": () float32}, initialised from cfg.lam.
-PITTA_LAMBDA = Method("pitta_lambda", init=_lambda_init, loss=lambda_loss)
-
-
 def init_lambda_sweep(variables: Tree, lams: Sequence[float], cfg: AdaptConfig,
-                      tx: optax.GradientTransformation | None = None) -> AdaptState:
-  """One stream per lambda, all from the same network and seed (method `PITTA_LAMBDA`).
+                      tx: optax.GradientTransformation | None = None,
+                      pitta: PittaConfig = PittaConfig(), model: Any = None
+                      ) -> tuple[AdaptState, Consts]:
+  """One PITTA stream per lambda, all from the same network and seed.
 
   Returns:
-    multi-stream AdaptState with method_state {"lam": (K,) float32}.
+    (multi-stream AdaptState with method_state {"lam": (K,) float32}, the shared Consts).
   """
   tx = tx or make_optimizer(cfg)
-  base = init_state(variables, PITTA_LAMBDA, cfg, tx)
+  base, consts = init_state(variables, build_method("pitta", pitta), cfg, tx, model)
   states = [base.replace(method_state={"lam": jnp.asarray(lam, jnp.float32)}) for lam in lams]
-  return stack_streams(states)
+  return stack_streams(states), consts
 
 
-def make_lambda_sweep_step(model: DepthModel, cfg: AdaptConfig,
-                           tx: optax.GradientTransformation | None = None):
+def make_lambda_sweep_step(model: Any, cfg: AdaptConfig,
+                           tx: optax.GradientTransformation | None = None,
+                           pitta: PittaConfig = PittaConfig()):
   """The vmapped PITTA step over per-stream lambdas, every stream on the same frames.
 
   Frames are (...) per field (scan chunks (T, ...)), states from `init_lambda_sweep`.
   """
-  return make_multi_stream_step(model, PITTA_LAMBDA, cfg, tx, shared_frames=True)
+  return make_multi_stream_step(model, build_method("pitta", pitta), cfg, tx,
+                                shared_frames=True)
 
 
 # ----------------------------------------------------------------------------- sharding
@@ -233,16 +161,14 @@ def stream_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
   return Mesh(np.array(devices), (STREAM_AXIS,))
 
 
-def state_shardings(mesh: Mesh, shared: Sequence[str] = SHARED_FIELDS) -> AdaptState:
-  """Per-field shardings of a multi-stream state: stream axis over the mesh, shared replicated.
+def state_shardings(mesh: Mesh) -> AdaptState:
+  """Per-field shardings of a multi-stream state: the stream axis over the mesh.
 
   An AdaptState of `NamedSharding`s (a pytree prefix of the state, for `jax.device_put` and
   `jax.jit`'s in/out shardings).
   """
-  shared = _check_shared(shared)
   by_stream = NamedSharding(mesh, PartitionSpec(STREAM_AXIS))
-  replicated = NamedSharding(mesh, PartitionSpec())
-  return AdaptState(**{f: (replicated if f in shared else by_stream) for f in _field_names()})
+  return AdaptState(**{f.name: by_stream for f in dataclasses.fields(AdaptState)})
 
 
 def input_sharding(mesh: Mesh, shared_frames: bool = False) -> NamedSharding:
@@ -258,11 +184,15 @@ def _check_divisible(k: int, mesh: Mesh) -> None:
                      f"multiple of {mesh.size} streams (or fewer devices)")
 
 
-def shard_streams(states: AdaptState, mesh: Mesh, shared: Sequence[str] = SHARED_FIELDS
-                  ) -> AdaptState:
-  """Places a multi-stream state on the mesh (stream axis split, shared fields replicated)."""
+def shard_streams(states: AdaptState, mesh: Mesh) -> AdaptState:
+  """Places a multi-stream state on the mesh (stream axis split)."""
   _check_divisible(num_streams(states), mesh)
-  return jax.device_put(states, state_shardings(mesh, shared))
+  return jax.device_put(states, state_shardings(mesh))
+
+
+def replicate(consts: Consts, mesh: Mesh) -> Consts:
+  """Places the shared constants on every device of the mesh."""
+  return jax.device_put(consts, NamedSharding(mesh, PartitionSpec()))
 
 
 def shard_stream_inputs(frames: StepInput, mesh: Mesh, shared_frames: bool = False) -> StepInput:
@@ -272,25 +202,25 @@ def shard_stream_inputs(frames: StepInput, mesh: Mesh, shared_frames: bool = Fal
   return jax.device_put(frames, input_sharding(mesh, shared_frames))
 
 
-def make_sharded_chunk_runner(multi_step, mesh: Mesh, *, shared_frames: bool = False,
-                              shared: Sequence[str] = SHARED_FIELDS):
+def make_sharded_chunk_runner(multi_step, mesh: Mesh, *, shared_frames: bool = False):
   """jit(lax.scan(multi_step)) with the stream axis sharded over `mesh`, carry donated.
 
-  `(states, frames) -> (states, outputs)`; outputs are (T, K, ...) split on K. Inputs placed by
-  `shard_streams` / `shard_stream_inputs` stay where they are; others are moved on the call.
+  `(states, frames, consts) -> (states, outputs)`; outputs are (T, K, ...) split on K; consts
+  replicated. Inputs placed by `shard_streams` / `shard_stream_inputs` / `replicate` stay where
+  they are; others are moved on the call.
   """
-  st = state_shardings(mesh, shared)
+  st = state_shardings(mesh)
   out = NamedSharding(mesh, PartitionSpec(None, STREAM_AXIS))
+  replicated = NamedSharding(mesh, PartitionSpec())
 
-  def run_chunk(states, frames):
-    return jax.lax.scan(multi_step, states, frames)
+  def run_chunk(states, frames, consts):
+    return jax.lax.scan(lambda s, f: multi_step(s, f, consts), states, frames)
 
-  return jax.jit(run_chunk, in_shardings=(st, input_sharding(mesh, shared_frames)),
+  return jax.jit(run_chunk, in_shardings=(st, input_sharding(mesh, shared_frames), replicated),
                  out_shardings=(st, out), donate_argnums=0)
 
 
-__all__ = ["SHARED_FIELDS", "STREAM_AXIS", "TABLE4_LAMBDAS", "PITTA_LAMBDA", "state_axes",
-           "stack_streams", "stream_state", "num_streams", "init_streams", "stack_stream_inputs",
-           "make_multi_stream_step", "lambda_loss", "init_lambda_sweep", "make_lambda_sweep_step",
-           "stream_mesh", "state_shardings", "input_sharding", "shard_streams",
-           "shard_stream_inputs", "make_sharded_chunk_runner"]
+__all__ = ["STREAM_AXIS", "stack_streams", "stream_state", "num_streams", "init_streams",
+           "stack_stream_inputs", "make_multi_stream_step", "init_lambda_sweep",
+           "make_lambda_sweep_step", "stream_mesh", "state_shardings", "input_sharding",
+           "shard_streams", "replicate", "shard_stream_inputs", "make_sharded_chunk_runner"]

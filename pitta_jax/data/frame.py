@@ -34,9 +34,12 @@ class Frame:
   panoptic: (H, W) int32 segment id map (0 = void), or None.
   segments: the segments present in `panoptic`.
   name:     a stable identifier (file stem, or "<seq>/<index>").
+  intrinsics: (3, 3) float64 camera matrix K of `image` in pixels, or None when the dataset
+            gives none (methods that reproject, e.g. CoMoDa, need it).
   """
   image: np.ndarray
   depth: np.ndarray | None = None
   panoptic: np.ndarray | None = None
   segments: tuple[Segment, ...] = ()
   name: str = ""
+  intrinsics: np.ndarray | None = None

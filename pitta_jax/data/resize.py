@@ -25,7 +25,7 @@ import numpy as np
 
 from pitta_jax.data.frame import Frame
 
-MONODEPTH2_SIZE = (192, 640)  # (H, W) of MonoDepth2's KITTI models (SPEC step 1)
+MONODEPTH2_SIZE = (192, 640)  # (H, W) of MonoDepth2's KITTI models
 
 
 def resize_image(image: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -60,4 +60,21 @@ def resize_frame(frame: Frame, height: int = MONODEPTH2_SIZE[0], width: int = MO
     panoptic = resize_ids(panoptic, height, width)
     present = set(np.unique(panoptic).tolist())
     segments = tuple(s for s in segments if s.id in present)
-  return dataclasses.replace(frame, image=image, panoptic=panoptic, segments=segments)
+  intrinsics = frame.intrinsics
+  if intrinsics is not None:
+    intrinsics = scale_intrinsics(intrinsics, frame.image.shape[:2], (height, width))
+  return dataclasses.replace(frame, image=image, panoptic=panoptic, segments=segments,
+                             intrinsics=intrinsics)
+
+
+def scale_intrinsics(K: np.ndarray, size_in: tuple[int, int], size_out: tuple[int, int]
+                     ) -> np.ndarray:
+  """K of an image resized from size_in to size_out (H, W), pixel-centre convention: row 0 of K
+  scales by W'/W, row 1 by H'/H (the principal point moves with the pixel grid)."""
+  K = np.array(K, np.float64)
+  sy, sx = size_out[0] / size_in[0], size_out[1] / size_in[1]
+  K[0, :] *= sx
+  K[1, :] *= sy
+  K[0, 2] += 0.5 * sx - 0.5
+  K[1, 2] += 0.5 * sy - 0.5
+  return K

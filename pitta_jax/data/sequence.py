@@ -30,6 +30,7 @@ class FrameFiles:
   panoptic: the panoptic files, or None.
   size: the (H, W) the image must have (e.g. from a calibration file), or None.
   size_source: the file that fixes `size`, named when the image disagrees.
+  intrinsics: the camera matrix K (3, 3) of the image, or None.
   """
   name: str
   image: Path
@@ -37,6 +38,7 @@ class FrameFiles:
   panoptic: PanopticRef | None = None
   size: tuple[int, int] | None = None
   size_source: Path | None = None
+  intrinsics: np.ndarray | None = None
 
   def load(self) -> Frame:
     """Reads the frame; DataError when a file is unreadable or a size disagrees."""
@@ -51,7 +53,8 @@ class FrameFiles:
       if panoptic.shape != image.shape[:2]:
         raise DataError(self.panoptic.png, f"panoptic map is {_wh(panoptic.shape)} but its image "
                                            f"{self.image.name} is {_wh(image.shape)} (W x H)")
-    return Frame(image=image, depth=depth, panoptic=panoptic, segments=segments, name=self.name)
+    return Frame(image=image, depth=depth, panoptic=panoptic, segments=segments, name=self.name,
+                 intrinsics=self.intrinsics)
 
 
 def _wh(shape: tuple[int, ...]) -> str:

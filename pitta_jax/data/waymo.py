@@ -148,7 +148,8 @@ def _sequence_files(root: Path, seq: str, depth: bool, panoptic: PanopticSource 
         name=f"{seq}/{stem}", image=images[stem], depth=depth,
         panoptic=None if panoptic is None else panoptic.ref(prefix + stem),
         size=None if calib is None else (calib.height, calib.width),
-        size_source=None if calib is None else seq_dir / "calib.json"))
+        size_source=None if calib is None else seq_dir / "calib.json",
+        intrinsics=None if calib is None else calib.K))
   return files
 
 

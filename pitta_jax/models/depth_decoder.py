@@ -7,7 +7,7 @@ Channels (16, 32, 64, 128, 256). A sigmoid disparity head `dispconv_s` (3x3 conv
 padding) at scales s = 0..3, scale s at 1/2**s of the input resolution.
 
 `DepthNet` = `ResnetEncoder` (name "encoder") + `DepthDecoder` (name "decoder"); its variables
-are what `weights_convert monodepth2` writes. `disp_to_depth` is MonoDepth2's (SPEC step 1).
+are what `weights_convert monodepth2` writes. `disp_to_depth` is MonoDepth2's.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import flax.linen as nn
 
-from pitta_jax.models.layers import Conv, reflect_pad, upsample_nearest2x
+from pitta_jax.models.layers import Conv, ModuleDef, reflect_pad, upsample_nearest2x
 from pitta_jax.models.resnet import ResnetEncoder, encoder_channels
 
 DECODER_CHANNELS = (16, 32, 64, 128, 256)
@@ -24,15 +24,16 @@ SCALES = (0, 1, 2, 3)
 MIN_DEPTH, MAX_DEPTH = 0.1, 100.0  # MonoDepth2's defaults
 
 
-def conv3x3_reflect(x: jax.Array, features: int, name: str) -> jax.Array:
+def conv3x3_reflect(x: jax.Array, features: int, name: str, module: ModuleDef = Conv) -> jax.Array:
   """MonoDepth2's `Conv3x3(use_refl=True)`: ReflectionPad2d(1) then a 3x3 VALID conv with bias."""
-  return Conv(features, (3, 3), padding="VALID", use_bias=True, name=name)(reflect_pad(x))
+  return module(features, (3, 3), padding="VALID", use_bias=True, name=name)(reflect_pad(x))
 
 
 class DepthDecoder(nn.Module):
   """MonoDepth2's `DepthDecoder(num_ch_enc, scales=range(4), num_output_channels=1, use_skips=True)`."""
   scales: tuple[int, ...] = SCALES
   num_output_channels: int = 1
+  conv: ModuleDef = Conv  # the convolution class of every layer
 
   @nn.compact
   def __call__(self, features: list[jax.Array]) -> tuple[jax.Array, ...]:
@@ -41,13 +42,13 @@ class DepthDecoder(nn.Module):
     x = features[-1]
     disps = {}
     for i in range(4, -1, -1):
-      x = nn.elu(conv3x3_reflect(x, DECODER_CHANNELS[i], f"upconv_{i}_0"))
+      x = nn.elu(conv3x3_reflect(x, DECODER_CHANNELS[i], f"upconv_{i}_0", self.conv))
       x = upsample_nearest2x(x)
       if i > 0:
         x = jnp.concatenate([x, features[i - 1]], axis=-1)
-      x = nn.elu(conv3x3_reflect(x, DECODER_CHANNELS[i], f"upconv_{i}_1"))
+      x = nn.elu(conv3x3_reflect(x, DECODER_CHANNELS[i], f"upconv_{i}_1", self.conv))
       if i in self.scales:
-        disps[i] = nn.sigmoid(conv3x3_reflect(x, self.num_output_channels, f"dispconv_{i}"))
+        disps[i] = nn.sigmoid(conv3x3_reflect(x, self.num_output_channels, f"dispconv_{i}", self.conv))
     return tuple(disps[s] for s in self.scales)
 
 
@@ -58,6 +59,7 @@ class DepthNet(nn.Module):
     num_layers: ResNet depth of the encoder (18, 34, 50).
   """
   num_layers: int = 18
+  conv: ModuleDef = Conv  # the convolution class of every layer (benchmarks swap it)
 
   @nn.compact
   def __call__(self, images: jax.Array, train: bool = False) -> tuple[jax.Array, ...]:
@@ -68,8 +70,8 @@ class DepthNet(nn.Module):
     updated only when `batch_stats` is passed as mutable.
     """
     check_input_size(images.shape[1], images.shape[2])
-    features = ResnetEncoder(self.num_layers, 1, name="encoder")(images, train)
-    return DepthDecoder(name="decoder")(features)
+    features = ResnetEncoder(self.num_layers, 1, self.conv, name="encoder")(images, train)
+    return DepthDecoder(conv=self.conv, name="decoder")(features)
 
 
 def check_input_size(height: int, width: int) -> None:
@@ -82,7 +84,7 @@ def check_input_size(height: int, width: int) -> None:
 
 def disp_to_depth(disp: jax.Array, min_depth: float = MIN_DEPTH,
                   max_depth: float = MAX_DEPTH) -> jax.Array:
-  """Sigmoid disparity -> depth, MonoDepth2's `disp_to_depth` (SPEC step 1).
+  """Sigmoid disparity -> depth, MonoDepth2's `disp_to_depth`.
 
   depth = 1 / (1 / max_depth + (1 / min_depth - 1 / max_depth) * disp).
   """

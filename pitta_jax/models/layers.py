@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -21,8 +22,10 @@ import flax.linen as nn
 
 from pitta_jax.models import conv_vjp
 
-# Every convolution of the adapted networks: same parameters and values as nn.Conv.
+# Every convolution of the adapted networks: same parameters and values as nn.Conv. Networks
+# take it as their `conv` attribute (flax's ModuleDef pattern), so a caller can swap it.
 Conv = functools.partial(nn.Conv, conv_general_dilated=conv_vjp.conv_general_dilated)
+ModuleDef = Any
 
 
 class BatchNorm(nn.Module):
@@ -70,9 +73,12 @@ class BatchNorm(nn.Module):
 
 
 def conv(features: int, kernel: int, stride: int = 1, padding: int = 0, use_bias: bool = False,
-         name: str | None = None) -> nn.Conv:
-  """A PyTorch-equivalent `Conv2d(k, stride, padding)` in NHWC (kernel stored as HWIO)."""
-  return Conv(features, (kernel, kernel), strides=(stride, stride),
+         name: str | None = None, module: ModuleDef = Conv) -> nn.Conv:
+  """A PyTorch-equivalent `Conv2d(k, stride, padding)` in NHWC (kernel stored as HWIO).
+
+  module: the convolution class (a network's `conv` attribute; default `Conv`).
+  """
+  return module(features, (kernel, kernel), strides=(stride, stride),
                  padding=((padding, padding), (padding, padding)), use_bias=use_bias, name=name)
 
 

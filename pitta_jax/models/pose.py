@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import flax.linen as nn
 
-from pitta_jax.models.layers import conv
+from pitta_jax.models.layers import Conv, ModuleDef, conv
 from pitta_jax.models.resnet import ResnetEncoder
 
 
@@ -21,6 +21,7 @@ class PoseDecoder(nn.Module):
   num_input_features: int = 1
   num_frames_to_predict_for: int = 2
   stride: int = 1
+  conv: ModuleDef = Conv
 
   @nn.compact
   def __call__(self, features_per_input: list[list[jax.Array]]) -> tuple[jax.Array, jax.Array]:
@@ -28,11 +29,11 @@ class PoseDecoder(nn.Module):
 
     Returns (axisangle, translation), each (B, num_frames_to_predict_for, 1, 3).
     """
-    squeeze = conv(256, 1, use_bias=True, name="squeeze")
+    squeeze = conv(256, 1, use_bias=True, name="squeeze", module=self.conv)
     x = jnp.concatenate([nn.relu(squeeze(f[-1])) for f in features_per_input], axis=-1)
-    x = nn.relu(conv(256, 3, self.stride, 1, use_bias=True, name="pose_0")(x))
-    x = nn.relu(conv(256, 3, self.stride, 1, use_bias=True, name="pose_1")(x))
-    x = conv(6 * self.num_frames_to_predict_for, 1, use_bias=True, name="pose_2")(x)
+    x = nn.relu(conv(256, 3, self.stride, 1, use_bias=True, name="pose_0", module=self.conv)(x))
+    x = nn.relu(conv(256, 3, self.stride, 1, use_bias=True, name="pose_1", module=self.conv)(x))
+    x = conv(6 * self.num_frames_to_predict_for, 1, use_bias=True, name="pose_2", module=self.conv)(x)
     x = 0.01 * jnp.mean(x, axis=(1, 2)).reshape(-1, self.num_frames_to_predict_for, 1, 6)
     return x[..., :3], x[..., 3:]
 
@@ -41,12 +42,14 @@ class PoseNet(nn.Module):
   """MonoDepth2's separate-ResNet pose network ("pose_model_type == separate_resnet")."""
   num_layers: int = 18
   num_frames_to_predict_for: int = 2
+  conv: ModuleDef = Conv
 
   @nn.compact
   def __call__(self, frame_pair: jax.Array, train: bool = False) -> tuple[jax.Array, jax.Array]:
     """frame_pair: (B, H, W, 6), two RGB frames in [0, 1] stacked along channels."""
-    features = ResnetEncoder(self.num_layers, 2, name="encoder")(frame_pair, train)
-    return PoseDecoder(1, self.num_frames_to_predict_for, name="decoder")([features])
+    features = ResnetEncoder(self.num_layers, 2, self.conv, name="encoder")(frame_pair, train)
+    return PoseDecoder(1, self.num_frames_to_predict_for, conv=self.conv,
+                       name="decoder")([features])
 
 
 def rot_from_axisangle(vec: jax.Array) -> jax.Array:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import jax
 import flax.linen as nn
 
-from pitta_jax.models.layers import BatchNorm, conv, max_pool_3x3_s2
+from pitta_jax.models.layers import BatchNorm, Conv, ModuleDef, conv, max_pool_3x3_s2
 
 # depth -> (block kind, blocks per stage)
 RESNET_SPECS: dict[int, tuple[str, tuple[int, int, int, int]]] = {
@@ -38,15 +38,16 @@ class BasicBlock(nn.Module):
   features: int
   stride: int
   downsample: bool
+  conv: ModuleDef = Conv
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
-    y = conv(self.features, 3, self.stride, 1, name="conv1")(x)
+    y = conv(self.features, 3, self.stride, 1, name="conv1", module=self.conv)(x)
     y = nn.relu(BatchNorm(name="bn1")(y, train))
-    y = conv(self.features, 3, 1, 1, name="conv2")(y)
+    y = conv(self.features, 3, 1, 1, name="conv2", module=self.conv)(y)
     y = BatchNorm(name="bn2")(y, train)
     if self.downsample:
-      x = conv(self.features, 1, self.stride, 0, name="downsample_conv")(x)
+      x = conv(self.features, 1, self.stride, 0, name="downsample_conv", module=self.conv)(x)
       x = BatchNorm(name="downsample_bn")(x, train)
     return nn.relu(y + x)
 
@@ -56,14 +57,15 @@ class Bottleneck(nn.Module):
   features: int
   stride: int
   downsample: bool
+  conv: ModuleDef = Conv
 
   @nn.compact
   def __call__(self, x: jax.Array, train: bool) -> jax.Array:
-    y = nn.relu(BatchNorm(name="bn1")(conv(self.features, 1, name="conv1")(x), train))
-    y = nn.relu(BatchNorm(name="bn2")(conv(self.features, 3, self.stride, 1, name="conv2")(y), train))
-    y = BatchNorm(name="bn3")(conv(self.features * 4, 1, name="conv3")(y), train)
+    y = nn.relu(BatchNorm(name="bn1")(conv(self.features, 1, name="conv1", module=self.conv)(x), train))
+    y = nn.relu(BatchNorm(name="bn2")(conv(self.features, 3, self.stride, 1, name="conv2", module=self.conv)(y), train))
+    y = BatchNorm(name="bn3")(conv(self.features * 4, 1, name="conv3", module=self.conv)(y), train)
     if self.downsample:
-      x = conv(self.features * 4, 1, self.stride, 0, name="downsample_conv")(x)
+      x = conv(self.features * 4, 1, self.stride, 0, name="downsample_conv", module=self.conv)(x)
       x = BatchNorm(name="downsample_bn")(x, train)
     return nn.relu(y + x)
 
@@ -77,6 +79,7 @@ class ResnetEncoder(nn.Module):
   """
   num_layers: int = 18
   num_input_images: int = 1
+  conv: ModuleDef = Conv  # the convolution class of every layer
 
   @nn.compact
   def __call__(self, images: jax.Array, train: bool = False) -> list[jax.Array]:
@@ -92,7 +95,7 @@ class ResnetEncoder(nn.Module):
     expansion = 4 if kind == "bottleneck" else 1
 
     x = (images - 0.45) / 0.225
-    x = conv(64, 7, 2, 3, name="conv1")(x)
+    x = conv(64, 7, 2, 3, name="conv1", module=self.conv)(x)
     x = nn.relu(BatchNorm(name="bn1")(x, train))
     features = [x]
     x = max_pool_3x3_s2(x)
@@ -101,7 +104,7 @@ class ResnetEncoder(nn.Module):
       for b in range(n_blocks):
         stride = 2 if (stage > 0 and b == 0) else 1
         downsample = b == 0 and (stride != 1 or in_ch != width * expansion)
-        x = block_cls(width, stride, downsample, name=f"layer{stage + 1}_{b}")(x, train)
+        x = block_cls(width, stride, downsample, self.conv, name=f"layer{stage + 1}_{b}")(x, train)
         in_ch = width * expansion
       features.append(x)
     return features

@@ -30,6 +30,8 @@ from typing import Any, Callable, Mapping
 import jax
 import jax.numpy as jnp
 
+from pitta_jax.models.depth_decoder import MAX_DEPTH, MIN_DEPTH, disp_to_depth
+
 OUTPUTS = ("sigmoid_disparity", "relative_inverse_depth")
 ALIGNMENTS = ("median", "scale_shift", "none")
 RELATIVE_EPS = 1e-6  # floor of a relative inverse depth before inverting it
@@ -44,9 +46,10 @@ class ModelSpec:
   size_multiple: int                         # input H and W must be multiples of this
   default_size: tuple[int, int]              # (H, W) of the released weights
   alignment: str = "median"                  # default evaluation alignment, one of ALIGNMENTS
-  depth_range: tuple[float, float] = (0.1, 100.0)  # disp_to_depth (min, max), sigmoid outputs
+  depth_range: tuple[float, float] = (MIN_DEPTH, MAX_DEPTH)  # disp_to_depth range, sigmoid outputs
   encoder: str = "encoder"                   # top-level module name of the encoder
   description: str = ""                      # one line for --help and model listings
+  build_pose: Callable[[Mapping[str, Any]], Any] | None = None  # its pose network, if any
 
   def __post_init__(self):
     if self.output not in OUTPUTS:
@@ -65,6 +68,5 @@ class ModelSpec:
   def to_depth(self, out: jax.Array) -> jax.Array:
     """The network's scale-0 output -> the depth the losses see (same shape)."""
     if self.output == "sigmoid_disparity":
-      from pitta_jax.models.depth_decoder import disp_to_depth
       return disp_to_depth(out, *self.depth_range)
     return 1.0 / jnp.maximum(out, RELATIVE_EPS)

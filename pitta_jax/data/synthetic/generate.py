@@ -23,9 +23,11 @@ def ground_truth_depth(r: Render, max_depth: float) -> np.ndarray:
 
 
 def _frame(cfg: C.SyntheticConfig, r: Render, domain: str, severity: float, index: int) -> Frame:
+  fx, fy, cx, cy = C.intrinsics(cfg.height, cfg.width)
+  K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
   return Frame(image=apply_weather(r, domain, severity, cfg.seed, index),
                depth=ground_truth_depth(r, cfg.max_depth), panoptic=r.panoptic,
-               segments=r.segments, name=frame_name(domain, cfg.seed, index))
+               segments=r.segments, name=frame_name(domain, cfg.seed, index), intrinsics=K)
 
 
 def render_clear(cfg: C.SyntheticConfig, index: int, street: Street | None = None) -> Render:

@@ -1,0 +1,43 @@
+"""Test-time adaptation methods: one module each, with its own config, and this registry.
+
+`METHODS[name] = (ConfigClass, build)`; `build(config) -> Method` (see `methods.base`). Adding a
+method is one module plus one line here.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+from pitta_jax.methods import none, pitta
+from pitta_jax.methods.base import Aux, Method
+from pitta_jax.methods.depth_refining import DepthRefiningConfig
+
+METHODS: dict[str, tuple[type, Callable[[Any], Method]]] = {
+    "pitta": (pitta.PittaConfig, pitta.build),
+    "none": (none.NoneConfig, none.build),
+}
+
+
+def method_config_class(name: str) -> type:
+  """The config dataclass of method `name`."""
+  _check(name)
+  return METHODS[name][0]
+
+
+def build(name: str, config: Any | None = None) -> Method:
+  """Method `name` with `config` (default: its paper defaults)."""
+  _check(name)
+  cls, make = METHODS[name]
+  if config is None:
+    config = cls()
+  if not isinstance(config, cls):
+    raise TypeError(f"method {name} takes a {cls.__name__}, got {type(config).__name__}")
+  return make(config)
+
+
+def _check(name: str) -> None:
+  if name not in METHODS:
+    raise ValueError(f"unknown method {name!r}; available: {', '.join(sorted(METHODS))}")
+
+
+__all__ = ["METHODS", "Aux", "Method", "DepthRefiningConfig", "build", "method_config_class"]

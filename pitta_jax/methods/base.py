@@ -1,0 +1,84 @@
+"""The method API: what a test-time adaptation method gives the engine.
+
+A method is a `Method` value built from its own config dataclass (`pitta_jax.methods.build`):
+
+  init(model, parts, cfg, resources) -> method_state
+      Anything the method carries from frame to frame besides the adapted parameters: an EMA
+      teacher, source statistics, a ring of previous frames (`ring_init`/`ring_push`), a
+      per-stream loss weight. `parts` is the trainable/frozen/batch_stats split of the source
+      network, `resources` optional host-side inputs loaded before the run (source
+      statistics, a replay set), keyed by name.
+  loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg) -> (loss, Aux)
+      Differentiable in `trainable`. It also produces the depth that is evaluated for this
+      frame (predict-then-adapt: the depth before this frame's update) and an open dict of
+      scalar logs (PITTA logs L, L_d, L_e, N; another method logs its own terms).
+  update(state, grads, loss, aux, rng, tx, cfg) -> (state, skipped, update_norm)   [optional]
+      Replaces the default single optimiser step (`engine.optax_update`), e.g. to also move an
+      EMA teacher or restore weights stochastically; it must keep the non-finite guard.
+  adapts: False for a method that never updates (no gradient is computed).
+
+The engine (`pitta_jax.adapt.engine`) knows only this interface, never a method's name.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from pitta_jax import trainable as trainable_lib
+
+Tree = Any
+
+
+class Aux(NamedTuple):
+  """What a method's loss returns beside the scalar (all stop-gradient)."""
+  depth: jax.Array               # (H, W) the evaluated depth of this frame
+  logs: dict[str, jax.Array]     # () scalars, the method's own per-frame measurements
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+  """A test-time adaptation method plugged into the engine (see the module docstring)."""
+  name: str
+  config: Any
+  init: Callable[..., Tree]
+  loss: Callable[..., tuple[jax.Array, Aux]]
+  update: Callable[..., Any] | None = None
+  adapts: bool = True
+
+
+def variables_of(trainable: Tree, consts) -> Tree:
+  """The network's Flax variables from the adapted leaves and the run's constants."""
+  return trainable_lib.merge(trainable, consts.frozen, consts.batch_stats)
+
+
+def predict(trainable: Tree, consts, frame, model, cfg) -> jax.Array:
+  """The frame's depth (H, W) with BN statistics per `cfg.bn_stats` (one forward pass)."""
+  variables = variables_of(trainable, consts)
+  return model.depth(variables, frame.image[None], cfg.bn_stats == "batch")[0]
+
+
+# ----------------------------------------------------------------------------- previous frames
+
+
+def ring_init(example: jax.Array, size: int) -> dict[str, jax.Array]:
+  """An empty ring of the `size` most recent arrays shaped like `example` (for method_state).
+
+  {"items": (size, *shape), "count": () int32}; `items[0]` is the most recent once filled.
+  """
+  return {"items": jnp.zeros((size,) + tuple(example.shape), example.dtype),
+          "count": jnp.zeros((), jnp.int32)}
+
+
+def ring_push(ring: dict[str, jax.Array], item: jax.Array) -> dict[str, jax.Array]:
+  """The ring with `item` as the most recent entry (the oldest drops out); jittable."""
+  items = jnp.concatenate([item[None].astype(ring["items"].dtype), ring["items"][:-1]], axis=0)
+  return {"items": items, "count": jnp.minimum(ring["count"] + 1, ring["items"].shape[0])}
+
+
+def ring_valid(ring: dict[str, jax.Array]) -> jax.Array:
+  """(size,) bool: which ring slots hold a frame (slot k = k frames ago, 0 = the last one)."""
+  return jnp.arange(ring["items"].shape[0]) < ring["count"]

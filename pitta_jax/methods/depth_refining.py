@@ -1,0 +1,69 @@
+"""The depth-refining term (paper eqs. 3-8) on an engine frame, and its config.
+
+PITTA's L_d; the paper adds the same term, with the same instance masks, to every baseline it
+compares with (Sec. 5: "these competing methods are adjusted to accommodate our depth-refining
+loss with instance-aware masking strategy"), so it lives here, shared, with one config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from pitta_jax import losses, masks
+from pitta_jax.configs import check, option
+from pitta_jax.median import WINDOW
+
+
+@dataclasses.dataclass(frozen=True)
+class DepthRefiningConfig:
+  """Eqs. 3-8: which instances, which masks, which median window."""
+  window: int = option(WINDOW, "median window s of eq. 7 (odd); the paper does not state it")
+  mask_mode: str = option("binary", "mask value g of eq. 3: binary (1), segment_id (the "
+                                    "segmenter's id i, eq. 3 as written) or instance_id (j)")
+  dynamic_classes: tuple[int, ...] = option(
+      masks.DEFAULT_DYNAMIC_COCO_IDS, "COCO ids (or names) of the dynamic class set O (Sec. 3.1)")
+  max_instances: int = option(32, "N_max: size of the padded instance table (static shape)")
+  loss_impl: str = option("fast", "fast | literal L_d (same value and gradient; literal costs "
+                                  "O(N_max))")
+
+  def __post_init__(self):
+    check(self.window >= 1 and self.window % 2 == 1,
+          f"window must be odd and >= 1, got {self.window}")
+    check(self.mask_mode in masks.MASK_MODES,
+          f"mask_mode must be one of {', '.join(masks.MASK_MODES)}, got {self.mask_mode!r}")
+    check(self.loss_impl in losses.IMPLS,
+          f"loss_impl must be one of {', '.join(losses.IMPLS)}, got {self.loss_impl!r}")
+    check(self.max_instances >= 1, f"max_instances must be >= 1, got {self.max_instances}")
+    check(len(self.dynamic_classes) > 0, "dynamic_classes must name at least one class")
+
+
+def frame_instances(frame, cfg: DepthRefiningConfig) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """The frame's dynamic instances (eq. 3): (index_map (H, W) int32, n () int32,
+  inst_ids (N_max,) int32 segment ids)."""
+  inst_ids, inst_valid = masks.instance_table(
+      frame.seg_ids, frame.seg_classes, frame.seg_valid,
+      jnp.asarray(cfg.dynamic_classes, jnp.int32), cfg.max_instances)
+  index_map = masks.instance_index_map(frame.panoptic, inst_ids, inst_valid)  # (H, W)
+  return index_map, jnp.sum(inst_valid.astype(jnp.int32)), inst_ids
+
+
+def frame_loss(depth: jax.Array, frame, cfg: DepthRefiningConfig,
+               lam: float | jax.Array) -> losses.PittaLoss:
+  """Eq. 10 on an engine frame: L_d (eqs. 3-8) + lam * L_e (eqs. 5-6, 9) of `depth` (H, W)."""
+  index_map, n, inst_ids = frame_instances(frame, cfg)
+  return losses.pitta_loss_from_index(
+      frame.image, depth, index_map, n, s=cfg.window, lam=lam, mode=cfg.mask_mode,
+      impl=cfg.loss_impl, n_max=cfg.max_instances, inst_ids=inst_ids)
+
+
+def depth_refining_term(depth: jax.Array, frame, cfg: DepthRefiningConfig
+                        ) -> tuple[jax.Array, jax.Array]:
+  """L_d (eq. 8) of `depth` (H, W) on an engine frame, and N."""
+  index_map, n, inst_ids = frame_instances(frame, cfg)
+  l_d = losses.depth_refining_loss_from_index(
+      depth, index_map, n, s=cfg.window, mode=cfg.mask_mode, impl=cfg.loss_impl,
+      n_max=cfg.max_instances, inst_ids=inst_ids)
+  return l_d, n

@@ -1,0 +1,94 @@
+"""The depth networks the project knows, by name, and `Network`: a spec with its built module.
+
+`MODELS[name]` is the network's `ModelSpec` (`models/<name>/`); a weights directory's
+model.json names its architecture, so `pitta_jax.checkpoint.load_weights` finds the spec here.
+Adding a network is one folder plus one line in `MODELS`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from typing import Any, Callable, Mapping
+
+import jax
+import flax.linen as nn
+from flax.traverse_util import flatten_dict
+
+from pitta_jax.models import monodepth2
+from pitta_jax.models.spec import ModelSpec
+
+MODELS: dict[str, ModelSpec] = {
+    "monodepth2": monodepth2.SPEC,
+}
+
+
+def get_spec(name: str) -> ModelSpec:
+  """The spec of network `name` (ValueError listing the known names otherwise)."""
+  if name not in MODELS:
+    raise ValueError(f"unknown model {name!r}; available: {', '.join(sorted(MODELS))}")
+  return MODELS[name]
+
+
+@dataclasses.dataclass(frozen=True)
+class Network:
+  """A depth network as the engine sees it: its spec and its Flax module.
+
+  depth(variables, images, use_batch_stats) -> (B, H, W) depth from the full-resolution output;
+  outputs(...) -> the module's output maps; capture(...) -> outputs and named intermediate
+  activations (e.g. every encoder BatchNorm's output, which ActMAD aligns).
+  """
+  spec: ModelSpec
+  module: nn.Module
+
+  def outputs(self, variables: Any, images: jax.Array, use_batch_stats: bool) -> tuple:
+    return self.module.apply(variables, images, train=use_batch_stats)
+
+  def depth(self, variables: Any, images: jax.Array, use_batch_stats: bool) -> jax.Array:
+    """images (B, H, W, 3) in [0, 1] -> depth (B, H, W) (relative for affine-invariant nets)."""
+    return self.spec.to_depth(self.outputs(variables, images, use_batch_stats)[0][..., 0])
+
+  def capture(self, variables: Any, images: jax.Array, use_batch_stats: bool,
+              pattern: str) -> tuple[tuple, dict[str, jax.Array]]:
+    """The outputs and the output of every submodule whose `/`-joined path matches `pattern`
+    (a regular expression, e.g. r"encoder/.*bn\\d*$"), keyed by path, in call order."""
+    rx = re.compile(pattern)
+
+    def keep(module: nn.Module, method_name: str) -> bool:
+      return method_name == "__call__" and bool(rx.fullmatch("/".join(module.path)))
+
+    out, state = self.module.apply(variables, images, train=use_batch_stats,
+                                   capture_intermediates=keep, mutable=["intermediates"])
+    flat = flatten_dict(state.get("intermediates", {}), sep="/")
+    return out, {k[: -len("/__call__")]: v[0] for k, v in flat.items()}
+
+  def forward_order(self) -> list[str]:
+    """Module paths that own parameters, in forward (creation) order (fraction selector)."""
+    return _forward_order(self.module, *self.spec.default_size)
+
+
+def _forward_order(module: nn.Module, height: int, width: int) -> list[str]:
+  """Module paths owning parameters, in the order the forward pass creates them."""
+  import jax.numpy as jnp
+  order: list[str] = []
+
+  def init():
+    variables = module.init(jax.random.PRNGKey(0), jnp.zeros((1, height, width, 3), jnp.float32))
+    for key in flatten_dict(variables["params"]):  # a plain dict in creation order
+      path = "/".join(key[:-1])
+      if path not in order:
+        order.append(path)
+    return variables
+
+  jax.eval_shape(init)  # traces only: no compute
+  return order
+
+
+def network(spec: ModelSpec | str, config: Mapping[str, Any] | None = None,
+            module: nn.Module | None = None) -> Network:
+  """The network `spec` built from a model.json `config` (or an explicit `module`)."""
+  spec = get_spec(spec) if isinstance(spec, str) else spec
+  return Network(spec, module if module is not None else spec.build(dict(config or {})))
+
+
+__all__ = ["MODELS", "ModelSpec", "Network", "get_spec", "network"]
