@@ -93,8 +93,8 @@ def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]
   from pitta_jax.models.registry import MODELS
   path = Path(weights_dir) / MODEL_JSON
   if not Path(weights_dir).is_dir():
-    raise WeightsError(f"{weights_dir}: not a weights directory (make one with `pitta-jax "
-                       f"convert ...` or `pitta-jax train-source`)")
+    raise WeightsError(f"{weights_dir}: not a weights directory with a {MODEL_JSON} (make one "
+                       f"with `pitta-jax convert ...` or `pitta-jax train-source`)")
   if not path.is_file():
     raise WeightsError(f"{path}: not found; a weights directory is made by `pitta-jax convert "
                        f"...` or `pitta-jax train-source`")

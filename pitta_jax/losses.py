@@ -157,7 +157,7 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
   return _mean_over_instances(jnp.sum(own_term + extra_term), n)
 
 
-def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, s: int,
+def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, s: int = WINDOW,
                                    mode: str = "binary", impl: str = "fast",
                                    n_max: int | None = None,
                                    inst_ids: Array | None = None) -> Array:

@@ -1,6 +1,6 @@
 """Panoptic maps from the frozen Mask2Former: frames on the fly, or COCO panoptic files on disk.
 
-PITTA's instance masks come from a frozen Mask2Former (Swin-T, COCO panoptic; SPEC step 2).
+PITTA's instance masks come from a frozen Mask2Former (Swin-T, COCO panoptic; paper Sec. 3.1).
 Two ways to use it:
 
 - `segmented_frames(frames, DIR)`: a lazy sequence whose frames carry `panoptic` + `segments`
@@ -39,9 +39,9 @@ from pitta_jax.data.frame import Frame, Segment
 from pitta_jax.data.image_io import read_image
 from pitta_jax.data.panoptic_io import write_panoptic
 from pitta_jax.data.sequence import FrameSequence
-from pitta_jax.models.mask2former import InferenceConfig, segment
+from pitta_jax.models.mask2former import CONFIG_JSON, InferenceConfig, load_mask2former, segment
 from pitta_jax.predict import expand_images
-from weights_convert.mask2former import CONFIG_JSON, load_mask2former
+
 
 PathLike = str | os.PathLike[str]
 CONVERT_HINT = ("make one with `pitta-jax convert mask2former --from {detectron2,hf} CKPT "

@@ -82,12 +82,13 @@ def used_ids(dynamic_ids) -> list[int]:
 
 
 def instance_masks_loop(panoptic, dynamic_ids, mode="binary") -> list[np.ndarray]:
-  """Eq. 3: M_j(x, y) = g_j on segment j, else 0; g_j = 1 (binary) or j (instance_id)."""
+  """Eq. 3: M_j(x, y) = g_j on segment j, else 0; g_j = 1 (binary), the segment id i
+  (segment_id: eq. 3 as written, g_i = i on R_i) or j (instance_id)."""
   panoptic = np.asarray(panoptic)
   h, w = panoptic.shape
   masks = []
   for j, sid in enumerate(used_ids(dynamic_ids), start=1):
-    g = 1.0 if mode == "binary" else float(j)
+    g = {"binary": 1.0, "segment_id": float(sid), "instance_id": float(j)}[mode]
     m = np.zeros((h, w), np.float32)
     for x in range(h):
       for y in range(w):

@@ -31,7 +31,7 @@ def demo_out(tmp_path_factory):
   mp.setenv(source_model.CACHE_ENV, str(cache))
   out = tmp_path_factory.mktemp("demo")
   result = run_demo(DemoConfig(shifts=("fog",), num_frames=3, out=str(out)), AdaptConfig(),
-                    TINY, quiet=True)
+                    source=TINY, quiet=True)
   yield out, result, cache
   mp.undo()
 
@@ -47,7 +47,7 @@ def test_demo_writes_results_table_and_figures(demo_out):
     assert len(per_frame) == 3
     np.testing.assert_allclose(r["metrics"]["abs_rel"], np.mean(per_frame), rtol=1e-6)
     assert set(r["metrics"]) == set(METRIC_NAMES) and r["extra"]["frames"] == 3
-  assert data["adapt"]["lam"] == 0.2 and data["adapt"]["lr"] == 1e-4  # the paper's defaults
+  assert data["pitta"]["lam"] == 0.2 and data["adapt"]["lr"] == 1e-4  # the paper's defaults
   with open(out / "results.csv") as f:
     assert len(list(csv.reader(f))) == 5
   assert (out / "table.md").read_text() == result["table"]
@@ -68,7 +68,7 @@ def test_adapt_and_evaluate_on_synthetic(demo_out, tmp_path, monkeypatch):
   assert main(["evaluate", *common, "--out", str(tmp_path / "e")]) == 0
   adapt = json.loads((tmp_path / "a" / "results.json").read_text())
   evaluate = json.loads((tmp_path / "e" / "results.json").read_text())
-  assert adapt["adapt"]["lam"] == 0.5 and adapt["adapt"]["method"] == "pitta"
+  assert adapt["method"]["lam"] == 0.5 and adapt["adapt"]["method"] == "pitta"
   assert evaluate["adapt"]["method"] == "none" and evaluate["adapt"]["bn_stats"] == "running"
   assert len(adapt["per_frame"]) == 3 and len(adapt["logs"]["loss"]) == 3
   # evaluate on the demo's fog sequence (same seed) gives the demo's No adaptation numbers

@@ -67,12 +67,13 @@ def assert_ld_matches_loop(ld, depth, pan, dyn, s, mode):
 
 
 @pytest.mark.parametrize("s,mode", [(1, "binary"), (3, "binary"), (5, "binary"), (7, "binary"),
-                                    (3, "instance_id"), (5, "instance_id")])
+                                    (3, "instance_id"), (5, "instance_id"),
+                                    (3, "segment_id"), (5, "segment_id")])
 def test_fast_and_literal_match_loop(ld, s, mode):
   # Reference: literal NumPy loops of eqs. 3, 4, 7, 8 (value) and of the sign formula for the
   # gradient, on random id maps where instances touch (block 1: every pixel random; blocks of
   # 2-3 pixels: larger touching instances), tolerance 1e-5 relative.
-  rng = np.random.default_rng(s + (10 if mode == "binary" else 20))
+  rng = np.random.default_rng(s + {"binary": 10, "instance_id": 20, "segment_id": 30}[mode])
   for block in (1, 2, 3):
     pan = random_panoptic(rng, SHAPE, 6, block)
     depth = rng.uniform(0.5, 80.0, SHAPE).astype(np.float32)

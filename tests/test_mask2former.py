@@ -35,10 +35,11 @@ import transformers  # test extra: the reference model
 from flax.traverse_util import flatten_dict, unflatten_dict
 
 from pitta_jax import panoptic
-from pitta_jax.models import msdeform
+from pitta_jax.models.mask2former import msdeform
 from pitta_jax.models.mask2former import (InferenceConfig, Mask2Former, Mask2FormerConfig,
                                           mask_logits_to_image, network, predict, preprocess,
-                                          resized_shape, segment)
+                                          load_mask2former, resized_shape, segment)
+
 from weights_convert import mask2former as wc
 from weights_convert import rules as R
 from weights_convert.pth import CheckpointError
@@ -322,7 +323,7 @@ def test_detectron2_pkl_through_the_cli(tmp_path, converted, capsys):
   out = tmp_path / "m2f"
   assert wc.main(["--from", "detectron2", str(path), "--out", str(out)]) == 0
   assert (out / "config.json").is_file()
-  module, loaded = wc.load_mask2former(out)
+  module, loaded = load_mask2former(out)
   assert isinstance(module, Mask2Former) and module.config == cfg
   _equal_trees(loaded, variables)
   assert wc.main(["--from", "detectron2", str(tmp_path / "missing.pkl"), "--out",

@@ -31,7 +31,7 @@ def jitted():
 
 
 def test_default_dynamic_set():
-  # Hand value: COCO ids of person, bicycle, car, motorcycle, bus, train, truck (SPEC item 3).
+  # Hand value: COCO ids of person, bicycle, car, motorcycle, bus, train, truck (paper Sec. 3.1).
   assert masks.DEFAULT_DYNAMIC_COCO_IDS == (1, 2, 3, 4, 6, 7, 8)
 
 
@@ -94,7 +94,7 @@ def test_index_map_hand(jitted):
 @given(pan=hnp.arrays(np.int32, SHAPE, elements=st.integers(0, 9)),
        dyn=hnp.arrays(np.int32, 6, elements=st.integers(-1, 12), unique=True))
 def test_index_map_and_masks_match_loops(jitted, pan, dyn):
-  # Reference: index_map_loop and instance_masks_loop (eq. 3) in both g_j modes; the masks
+  # Reference: index_map_loop and instance_masks_loop (eq. 3) in every g_j mode; the masks
   # built from the panoptic map and from the index map agree.
   inst_ids, inst_valid = jitted["compact"](dyn)
   index = np.asarray(jitted["index"](pan, inst_ids, inst_valid))
@@ -107,7 +107,8 @@ def test_index_map_and_masks_match_loops(jitted, pan, dyn):
     assert got.shape == (dyn.shape[0],) + SHAPE
     for j in range(dyn.shape[0]):
       np.testing.assert_array_equal(got[j], want[j] if j < n else 0.0)
-    np.testing.assert_array_equal(np.asarray(jitted["from_index"](index, dyn.shape[0], mode)), got)
+    np.testing.assert_array_equal(
+        np.asarray(jitted["from_index"](index, dyn.shape[0], mode, inst_ids)), got)
 
 
 def test_instance_id_mode_hand(jitted):
@@ -121,9 +122,11 @@ def test_instance_id_mode_hand(jitted):
 def test_pixel_gain_is_sum_of_masks():
   # Reference: sum_j M_j from masks_from_index.
   index = jnp.array([[0, 1, 2], [2, 0, 3]], jnp.int32)
+  ids = jnp.array([7, 12, 30], jnp.int32)  # segment ids of rows 1..3 ("segment_id": g = id)
   for mode in masks.MASK_MODES:
-    np.testing.assert_array_equal(masks.pixel_gain(index, mode),
-                                  masks.masks_from_index(index, 3, mode).sum(0))
+    np.testing.assert_array_equal(masks.pixel_gain(index, mode, ids),
+                                  masks.masks_from_index(index, 3, mode, ids).sum(0))
+  np.testing.assert_array_equal(masks.pixel_gain(index, "segment_id", ids), [[0, 7, 12], [12, 0, 30]])
 
 
 def test_bad_mode():

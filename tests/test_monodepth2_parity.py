@@ -19,7 +19,7 @@ import torch
 
 import torch_monodepth2 as tm
 from pitta_jax import trainable
-from pitta_jax.checkpoint import load_monodepth2
+from pitta_jax.checkpoint import load_weights
 from pitta_jax.models.depth_decoder import DepthNet
 from pitta_jax.models.pose import PoseNet, transformation_from_parameters
 from weights_convert.monodepth2 import convert_monodepth2
@@ -88,7 +88,8 @@ def test_legacy_and_zip_convert_identically(r18):
   for a, b in zip(jax.tree_util.tree_leaves((vz, pz)), jax.tree_util.tree_leaves((vl, pl))):
     np.testing.assert_array_equal(a, b)
   config = r18["zip"][0]
-  assert (config.num_layers, config.height, config.width, config.use_stereo) == (18, 192, 640, False)
+  assert (config["num_layers"], config["height"], config["width"], config["use_stereo"]) == (
+      18, 192, 640, False)
 
 
 @pytest.mark.parametrize("hw", [(192, 640), (96, 320)])
@@ -230,7 +231,7 @@ def test_bn_gradient_matches_torch_autograd(r18):
 def test_deeper_resnets_convert_and_match(tmp_path, num_layers):
   enc, dec, _, _ = _save_mono_folder(tmp_path, num_layers, legacy=False, seed=num_layers)
   config, variables, _ = convert_monodepth2(tmp_path / "encoder.pth", tmp_path / "depth.pth")
-  assert config.num_layers == num_layers
+  assert config["num_layers"] == num_layers
   x = _image(64, 96, seed=1)
   ref = _torch_disps(enc, dec, x)
   out = DepthNet(num_layers).apply(variables, x)
@@ -245,7 +246,7 @@ def test_input_size_must_be_multiple_of_32(r18):
 
 
 def test_cli_convert_and_load_in_one_call(r18, depth_fns, tmp_path):
-  """`python -m weights_convert monodepth2 ...` writes a directory `load_monodepth2` reads."""
+  """`python -m weights_convert monodepth2 ...` writes a directory `load_weights` reads."""
   root = r18["root"] / "legacy"
   enc, depth, penc, pose = _paths(root)
   out = tmp_path / "converted"
@@ -253,8 +254,9 @@ def test_cli_convert_and_load_in_one_call(r18, depth_fns, tmp_path):
                         "--depth", depth, "--pose-encoder", penc, "--pose", pose, "--out", out],
                        capture_output=True, text=True)
   assert res.returncode == 0, res.stderr
-  loaded = load_monodepth2(out)
-  assert loaded.config.has_pose and loaded.config.height == 192 and loaded.config.width == 640
+  loaded = load_weights(out)
+  assert loaded.config["has_pose"] and loaded.height == 192 and loaded.width == 640
+  assert loaded.spec.name == "monodepth2" and loaded.pose is not None
   for a, b in zip(jax.tree_util.tree_leaves((loaded.depth, loaded.pose)),
                   jax.tree_util.tree_leaves((r18["zip"][1], r18["zip"][2]))):
     np.testing.assert_array_equal(a, b)

@@ -1,7 +1,7 @@
 """Dataset readers on tiny fixtures written in each dataset's real layout.
 
 References: the values written with cv2/NumPy by the fixtures themselves (images uint8 / 255,
-depth uint16 / 256), the layouts of SPEC "Data formats to read", and for Waymo's sparse depth a
+depth uint16 / 256), the layouts of docs/datasets.md, and for Waymo's sparse depth a
 literal per-point loop (nearest point per pixel).
 """
 

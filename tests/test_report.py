@@ -10,10 +10,12 @@ import math
 import pytest
 
 from pitta_jax.adapt import AdaptConfig
-from pitta_jax.config_cli import add_dataclass_arguments, dataclass_from_args
+from pitta_jax.config_cli import add_config_arguments, config_from_args
+from pitta_jax.methods.pitta import PittaConfig
 from pitta_jax.data.errors import DataError
 from pitta_jax.report import Row, markdown_table, write_results
-from pitta_jax.sources import parse_options
+from pitta_jax.sources import (dataclass_annotations, function_annotations, parse_segmentation,
+                               split_options, typed_options)
 
 M1 = dict(abs_rel=0.2, sq_rel=2.0, rmse=9.0, rmse_log=0.3, a1=0.7, a2=0.9, a3=0.95)
 M2 = dict(abs_rel=0.1, sq_rel=3.0, rmse=8.0, rmse_log=0.2, a1=0.8, a2=0.85, a3=0.97)
@@ -31,9 +33,9 @@ def test_markdown_table_bolds_the_best_per_group():
 
 def test_write_results_files(tmp_path):
   rows = [Row("fog", "PITTA", M2, {"fps": 3.5})]
-  write_results(tmp_path, rows, {"adapt": AdaptConfig()})
+  write_results(tmp_path, rows, {"adapt": AdaptConfig(), "pitta": PittaConfig()})
   data = json.loads((tmp_path / "results.json").read_text())
-  assert data["adapt"]["lam"] == 0.2 and data["rows"][0]["metrics"]["abs_rel"] == 0.1
+  assert data["pitta"]["lam"] == 0.2 and data["pitta"]["ld"]["window"] == 5 and data["rows"][0]["metrics"]["abs_rel"] == 0.1
   with open(tmp_path / "results.csv") as f:
     lines = list(csv.reader(f))
   assert lines[0] == ["shift", "method", "abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2",
@@ -42,32 +44,77 @@ def test_write_results_files(tmp_path):
   assert (tmp_path / "table.md").read_text().count("\n") == 3
 
 
-def test_every_adapt_config_field_is_a_flag():
+def _parser():
   parser = argparse.ArgumentParser()
-  add_dataclass_arguments(parser, AdaptConfig, "adapt")
+  add_config_arguments(parser, AdaptConfig, "adapt", "adapt")
+  add_config_arguments(parser, PittaConfig, "pitta", "pitta")
+  return parser
+
+
+def test_every_config_field_is_a_flag_with_namespace_and_alias():
+  parser = _parser()
   args = parser.parse_args(["--lr", "3e-4", "--lam", "inf", "--window", "7", "--skip-nonfinite",
                             "false", "--dynamic-classes", "person,car,8", "--selector",
-                            "fraction(cnn=20,bn=80)"])
-  cfg = dataclass_from_args(AdaptConfig, args)
-  assert cfg.lr == 3e-4 and math.isinf(cfg.lam) and cfg.window == 7
-  assert cfg.skip_nonfinite is False and cfg.dynamic_classes == (1, 3, 8)
+                            "fraction(cnn=20,bn=80)", "--pitta.ld.mask-mode", "segment_id"])
+  cfg = config_from_args(AdaptConfig, args, "adapt")
+  pitta = config_from_args(PittaConfig, args, "pitta")
+  assert cfg.lr == 3e-4 and math.isinf(pitta.lam) and pitta.ld.window == 7
+  assert cfg.skip_nonfinite is False and pitta.ld.dynamic_classes == (1, 3, 8)
+  assert pitta.ld.mask_mode == "segment_id"
   assert cfg.selector == "fraction(cnn=20,bn=80)" and cfg.optimizer == "adam"
+  same = config_from_args(AdaptConfig, parser.parse_args(["--adapt.lr", "3e-4"]), "adapt")
+  assert same.lr == 3e-4
   with pytest.raises(SystemExit):
     parser.parse_args(["--window", "five"])
+  with pytest.raises(SystemExit):
+    parser.parse_args(["--dynamic-classes", "person,unicorn"])  # one line from argparse
   with pytest.raises(ValueError, match="window must be odd"):
-    dataclass_from_args(AdaptConfig, parser.parse_args(["--window", "4"]))
+    config_from_args(PittaConfig, parser.parse_args(["--window", "4"]), "pitta")
+  for bad, match in ((["--lr", "inf"], "lr must be a finite"), (["--lr", "1e30x"], None),
+                     (["--momentum", "-5"], "momentum must be a finite")):
+    if match is None:
+      with pytest.raises(SystemExit):
+        parser.parse_args(bad)
+    else:
+      with pytest.raises(ValueError, match=match):
+        config_from_args(AdaptConfig, parser.parse_args(bad), "adapt")
 
 
-def test_reader_options_parse():
-  assert parse_options(["weather=foggy", "num_frames=12", "severity=0.5", "depth=false"]) == {
-      "weather": "foggy", "num_frames": 12, "severity": 0.5, "depth": False}
+def test_help_comes_from_field_metadata():
+  text = _parser().format_help()
+  assert "learning rate alpha of eq. 11" in text and "--pitta.lam" in text
+  assert "SPEC" not in text
+
+
+def test_reader_options_are_typed_from_annotations():
+  from pitta_jax.data.readers import READERS
+  from pitta_jax.data.synthetic import SyntheticConfig
+  raw = split_options(["sequences=0001", "depth=false"])
+  got = typed_options(raw, function_annotations(READERS["waymo"]), "waymo")
+  assert got == {"sequences": "0001", "depth": False}  # "0001" stays a string
+  syn = typed_options(split_options(["num_frames=12", "severity=0.5", "domain=fog"]),
+                      dataclass_annotations(SyntheticConfig), "synthetic")
+  assert syn == {"num_frames": 12, "severity": 0.5, "domain": "fog"}
+  with pytest.raises(DataError, match="expected int"):
+    typed_options({"num_frames": "3.5"}, dataclass_annotations(SyntheticConfig), "synthetic")
+  with pytest.raises(DataError, match="has no option colour"):
+    typed_options({"colour": "red"}, function_annotations(READERS["waymo"]), "waymo")
   with pytest.raises(DataError, match="KEY=VALUE"):
-    parse_options(["foggy"])
+    split_options(["foggy"])
+
+
+def test_segmentation_sources_parse():
+  assert parse_segmentation("gt") == ("gt", "")
+  assert parse_segmentation("png:pan/dir") == ("png", "pan/dir")
+  assert parse_segmentation("mask2former:w") == ("mask2former", "w")
+  for bad in ("png", "png:", "detectron:x"):
+    with pytest.raises(DataError):
+      parse_segmentation(bad)
 
 
 def test_string_tuples_parse_as_strings():
   from pitta_jax.demo import DemoConfig
   parser = argparse.ArgumentParser()
-  add_dataclass_arguments(parser, DemoConfig, "demo")
-  cfg = dataclass_from_args(DemoConfig, parser.parse_args(["--shifts", "fog, night"]))
+  add_config_arguments(parser, DemoConfig, "demo", "demo")
+  cfg = config_from_args(DemoConfig, parser.parse_args(["--shifts", "fog, night"]), "demo")
   assert cfg.shifts == ("fog", "night") and cfg.num_frames == 40

@@ -27,7 +27,7 @@ from pitta_jax.data.image_io import read_image, write_image
 from pitta_jax.data.readers import open_dataset
 from pitta_jax.models.mask2former import (InferenceConfig, Mask2Former, Mask2FormerConfig,
                                           segment)
-from pitta_jax.models.swin import SwinConfig
+from pitta_jax.models.mask2former.swin import SwinConfig
 from pitta_jax.segment import MappedFrames, Segmenter, segment_images, segmented_frames
 from pitta_jax.sources import open_frames
 from weights_convert.mask2former import save_mask2former

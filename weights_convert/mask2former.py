@@ -41,8 +41,7 @@ import numpy as np
 from weights_convert import rules as R
 from weights_convert.pth import CheckpointError, load_pickle, load_pth
 
-CONFIG_JSON = "config.json"
-PARAMS_DIR = "params"
+from pitta_jax.models.mask2former.load import CONFIG_JSON, PARAMS_DIR
 
 
 # ------------------------------------------------------------------------------ key tables
@@ -236,7 +235,7 @@ def _count(state: dict, pattern: str) -> int:
 def infer_config(state: dict, source: str, path: str):
   """Architecture (`Mask2FormerConfig`) from the checkpoint's keys and shapes."""
   from pitta_jax.models.mask2former import Mask2FormerConfig
-  from pitta_jax.models.swin import SwinConfig
+  from pitta_jax.models.mask2former.swin import SwinConfig
   if source == "detectron2":
     bb, pd, td = "backbone", "sem_seg_head.pixel_decoder", "sem_seg_head.predictor"
     layers, blocks = rf"{bb}\.layers\.", "blocks"
@@ -379,30 +378,6 @@ def save_mask2former(out_dir: str | os.PathLike, cfg, variables: dict, source: d
   meta = {"architecture": "mask2former", "config": cfg.to_dict(), "source": source or {}}
   (out / CONFIG_JSON).write_text(json.dumps(meta, indent=2) + "\n")
   return out
-
-
-def load_mask2former(weights_dir: str | os.PathLike):
-  """Loads a directory written by `save_mask2former` -> (Mask2Former module, variables).
-
-  The variables are float32 device arrays {"params": ...}, ready for
-  `pitta_jax.models.mask2former.segment(module, variables, image)`.
-  """
-  import jax
-  from pitta_jax.checkpoint import load_tree
-  from pitta_jax.models.mask2former import Mask2Former, Mask2FormerConfig
-  root = Path(weights_dir)
-  meta_path = root / CONFIG_JSON
-  if not meta_path.is_file():
-    raise FileNotFoundError(f"{meta_path}: not found; a Mask2Former weights directory is made by "
-                            f"`python -m weights_convert mask2former --from ... CKPT --out DIR`")
-  meta = json.loads(meta_path.read_text())
-  if meta.get("architecture") != "mask2former":
-    raise ValueError(f"{meta_path}: architecture {meta.get('architecture')!r} is not 'mask2former'")
-  cfg = Mask2FormerConfig.from_dict(meta["config"])
-  variables = load_tree(root / PARAMS_DIR)
-  # on the device once, so that every `segment` call does not copy the weights again
-  variables = jax.device_put(jax.tree_util.tree_map(lambda a: np.asarray(a, np.float32), variables))
-  return Mask2Former(cfg), variables
 
 
 # ------------------------------------------------------------------------------ command line

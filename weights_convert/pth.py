@@ -639,6 +639,16 @@ def load_pth(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
     raise _reraise(path, error) from error
 
 
+def unpickle_arrays(stream: BinaryIO, name: str) -> Any:
+  """Unpickles a stream that may hold only containers, numbers, strings and NumPy arrays (the
+  allow-list of `load_pickle`), e.g. the object array inside a `.npz` member.
+
+  Raises:
+    ForbiddenGlobalError: the pickle references a global outside the allow-list.
+  """
+  return _unpickle(stream, name, _allowed(torch=False, numpy=True))
+
+
 def load_pickle(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
   """Loads a plain pickle (e.g. detectron2 / Mask2Former `.pkl` weights) with the allow-list.
 

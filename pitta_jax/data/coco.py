@@ -6,7 +6,7 @@ Facts from panopticapi's `panoptic_coco_categories.json` as ordered by detectron
 predicts the *contiguous* index (0..132, the position in this table); COCO panoptic JSON files
 and `pitta_jax.data.frame.Segment` carry the COCO *category id* (1..200, with gaps).
 
-The dynamic set O of the paper (SPEC step 3) is `DYNAMIC_NAMES`: COCO ids 1, 2, 3, 4, 6, 7, 8,
+The dynamic set O of the paper (Sec. 3.1) is `DYNAMIC_NAMES`: COCO ids 1, 2, 3, 4, 6, 7, 8,
 contiguous 0, 1, 2, 3, 5, 6, 7. COCO has no `rider` class.
 """
 
@@ -170,7 +170,7 @@ CATEGORIES: tuple[Category, ...] = (
 NUM_CLASSES = len(CATEGORIES)  # 133
 NUM_THINGS = sum(c.isthing for c in CATEGORIES)  # 80
 
-# The paper's dynamic object classes O (SPEC step 3): vehicles and people.
+# The paper's dynamic object classes O (Sec. 3.1): vehicles and people.
 DYNAMIC_NAMES: tuple[str, ...] = ("person", "bicycle", "car", "motorcycle", "bus", "train", "truck")
 
 _BY_ID: dict[int, Category] = {c.id: c for c in CATEGORIES}

@@ -1,6 +1,6 @@
 """DrivingStereo weather subsets (left images + projected LiDAR depth), the paper's Table 1.
 
-Layout of the weather archives (SPEC "Data formats to read"):
+Layout of the weather archives (see docs/datasets.md):
 
   <root>/<weather>/left-image-{half,full}-size/<stem>.{jpg,png}
   <root>/<weather>/depth-map-{half,full}-size/<stem>.png

@@ -1,6 +1,6 @@
 """Reading and writing the image and depth files every reader shares (OpenCV, host side).
 
-Conventions (SPEC "Data formats to read"):
+Conventions (see docs/datasets.md):
 - Images are read with OpenCV (BGR on disk order) and returned RGB, float32 in [0, 1]
   (8-bit / 255, 16-bit / 65535). Grayscale images are rejected (the network needs colour and
   a grayscale file in a colour dataset is a sign of a wrong directory); RGBA/BGRA images lose

@@ -28,7 +28,6 @@ relative path without suffix, `<folder>/image_0{2,3}/data/{frame:010d}`, in `pan
 
 from __future__ import annotations
 
-import codecs
 import functools
 import pickle
 import zipfile
@@ -37,38 +36,14 @@ from typing import Any
 
 import numpy as np
 
+from weights_convert.pth import CheckpointError, ForbiddenGlobalError, unpickle_arrays
+
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import PathLike, read_depth_png, require_dir, require_file
 from pitta_jax.data.panoptic_io import panoptic_source
 from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
 
 SIDE_TO_CAMERA = {"l": 2, "r": 3, "2": 2, "3": 3}
-
-# The only globals an object array of float arrays needs: numpy's array/scalar reconstructors
-# (module numpy.core.* in files written by NumPy 1.x, numpy._core.* by NumPy 2), ndarray, dtype,
-# and for pickle protocol 2, `_codecs.encode` (how it stores bytes; a pure data transform).
-_RECONSTRUCT = np.empty(0).__reduce__()[0]
-_SCALAR = np.float64(0).__reduce__()[0]
-_ALLOWED_GLOBALS = {
-    ("numpy.core.multiarray", "_reconstruct"): _RECONSTRUCT,
-    ("numpy._core.multiarray", "_reconstruct"): _RECONSTRUCT,
-    ("numpy.core.multiarray", "scalar"): _SCALAR,
-    ("numpy._core.multiarray", "scalar"): _SCALAR,
-    ("numpy", "ndarray"): np.ndarray,
-    ("numpy", "dtype"): np.dtype,
-    ("_codecs", "encode"): codecs.encode,
-}
-
-
-class _ArrayUnpickler(pickle.Unpickler):
-  """Unpickler that can build NumPy arrays and nothing else."""
-
-  def find_class(self, module: str, name: str) -> Any:
-    try:
-      return _ALLOWED_GLOBALS[(module, name)]
-    except KeyError:
-      raise pickle.UnpicklingError(f"refusing to load global {module}.{name}") from None
-
 
 def _open_npy_member(path: Path, archive: zipfile.ZipFile, key: str):
   member = f"{key}.npy"
@@ -113,12 +88,15 @@ def load_gt_depths(path: PathLike, key: str = "data") -> np.ndarray:
       stream, shape, fortran, dtype = _open_npy_member(path, archive, key)
       with stream:
         if dtype.hasobject:
-          array = _ArrayUnpickler(stream, encoding="latin1").load()
+          array = unpickle_arrays(stream, f"{path}:{key}")
         else:
           count = int(np.prod(shape))
           flat = np.frombuffer(stream.read(count * dtype.itemsize), dtype, count)
           array = flat.reshape(shape[::-1]).T if fortran else flat.reshape(shape)
-  except pickle.UnpicklingError as e:
+  except ForbiddenGlobalError as e:
+    raise DataError(path, f"unsafe or corrupt pickle in '{key}' (refusing to load global "
+                          f"{e.global_name})") from None
+  except (pickle.UnpicklingError, CheckpointError) as e:
     raise DataError(path, f"unsafe or corrupt pickle in '{key}' ({e})") from None
   except (zipfile.BadZipFile, ValueError, OSError, EOFError, TypeError, AttributeError,
           IndexError, KeyError) as e:

@@ -1,6 +1,6 @@
 """COCO panoptic files: the RGB-encoded id PNG and its `segments_info` JSON.
 
-Format (panopticapi, SPEC "Data formats to read"): an RGB PNG whose pixel value encodes the
+Format (panopticapi, see docs/datasets.md): an RGB PNG whose pixel value encodes the
 segment id as `id = R + 256 G + 256^2 B` (0 = void), and per image a list `segments_info` of
 `{"id", "category_id", "iscrowd", "bbox": [x, y, w, h], "area"}` (optionally `"isthing"`),
 `category_id` being a COCO category id (`pitta_jax.data.coco`). Two JSON layouts are read:

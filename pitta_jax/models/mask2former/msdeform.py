@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pitta_jax.models.swin import layer_norm
+from pitta_jax.models.mask2former.swin import layer_norm
 
 
 def group_norm(name: str, groups: int = 32) -> nn.GroupNorm:

@@ -1,6 +1,6 @@
 """Mask2Former (Cheng et al. 2022) for COCO panoptic segmentation, inference only, NHWC.
 
-The frozen instance segmenter of PITTA (SPEC step 2). Implements upstream
+The frozen instance segmenter of PITTA (paper Sec. 3.1, eq. 3). Implements upstream
 facebookresearch/Mask2Former: `MultiScaleMaskedTransformerDecoder`
 (`transformer_decoder/mask2former_transformer_decoder.py`) on top of the Swin backbone
 (`swin.py`) and the deformable-attention pixel decoder (`msdeform.py`), and the inference path
@@ -29,9 +29,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pitta_jax.models.msdeform import (MSDeformPixelDecoder, position_embedding_sine,
+from pitta_jax.models.mask2former.msdeform import (MSDeformPixelDecoder, position_embedding_sine,
                                        resize_bilinear)
-from pitta_jax.models.swin import SwinConfig, SwinTransformer, layer_norm
+from pitta_jax.models.mask2former.swin import SwinConfig, SwinTransformer, layer_norm
 
 # detectron2 cfg.MODEL.PIXEL_MEAN / PIXEL_STD of the Swin configs, RGB order, 0-255 pixels.
 PIXEL_MEAN = (123.675, 116.28, 103.53)
@@ -309,10 +309,10 @@ def predict(module: Mask2Former, variables, image, cfg: InferenceConfig = Infere
 
 def segment(module: Mask2Former, variables, image, cfg: InferenceConfig = InferenceConfig(),
             is_thing: np.ndarray | None = None, contiguous_to_id: np.ndarray | None = None):
-  """Panoptic segmentation of one image (the PITTA integration API, SPEC step 2).
+  """Panoptic segmentation of one image (the PITTA integration API, paper Sec. 3.1).
 
   Args:
-    module, variables: from `weights_convert.mask2former.load_mask2former(dir)`.
+    module, variables: from `pitta_jax.models.mask2former.load_mask2former(dir)`.
     image: (H, W, 3) float32 RGB in [0, 1].
     cfg: preprocessing and post-processing thresholds.
     is_thing: (K,) bool per contiguous class; default COCO panoptic's (`coco.is_thing_table`).

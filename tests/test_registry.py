@@ -1,0 +1,111 @@
+"""The model registry, `Network`, and weights directories (`load_weights` validation).
+
+References: MonoDepth2's disp_to_depth written out here; hand-counted ResNet-18 layers (20 BN);
+each bad weights directory must give one WeightsError naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pitta_jax.checkpoint import WeightsError, load_weights, save_weights
+from pitta_jax.models.depth_decoder import DepthNet
+from pitta_jax.models.random_init import random_monodepth2_variables
+from pitta_jax.models.registry import MODELS, get_spec, network
+
+H, W = 64, 96
+
+
+@pytest.fixture(scope="module")
+def variables():
+  return random_monodepth2_variables(0)
+
+
+@pytest.fixture(scope="module")
+def weights_dir(tmp_path_factory, variables):
+  root = tmp_path_factory.mktemp("w") / "r18"
+  save_weights(root, "monodepth2", {"num_layers": 18, "height": H, "width": W}, variables)
+  return root
+
+
+def test_registry_lists_monodepth2_and_rejects_unknown_names():
+  assert "monodepth2" in MODELS and get_spec("monodepth2").output == "sigmoid_disparity"
+  with pytest.raises(ValueError, match="unknown model 'resnet'.*monodepth2"):
+    get_spec("resnet")
+
+
+def test_network_depth_is_monodepth2_disp_to_depth(variables):
+  net = network("monodepth2", {"num_layers": 18})
+  x = jnp.asarray(np.random.default_rng(0).uniform(size=(1, H, W, 3)), jnp.float32)
+  disp = np.asarray(DepthNet(18).apply(variables, x, train=False)[0][..., 0], np.float64)
+  want = 1.0 / (1.0 / 100.0 + (1.0 / 0.1 - 1.0 / 100.0) * disp)  # MonoDepth2, min 0.1, max 100
+  np.testing.assert_allclose(np.asarray(net.depth(variables, x, False)), want, rtol=1e-5)
+
+
+def test_capture_returns_every_encoder_batchnorm_output(variables):
+  net = network("monodepth2", {"num_layers": 18})
+  x = jnp.zeros((1, H, W, 3), jnp.float32)
+  _, acts = net.capture(variables, x, False, r"encoder/(bn1|.*/(bn\d|downsample_bn))")
+  assert len(acts) == 20  # ResNet-18: stem + 16 block BNs + 3 downsample BNs
+  assert list(acts)[0] == "encoder/bn1" and acts["encoder/bn1"].shape == (1, H // 2, W // 2, 64)
+
+
+def test_forward_order_starts_at_the_stem():
+  order = network("monodepth2", {"num_layers": 18}).forward_order()
+  assert order[:3] == ["encoder/conv1", "encoder/bn1", "encoder/layer1_0/conv1"]
+  assert order.index("encoder/layer2_0/conv2") < order.index("encoder/layer2_0/downsample_conv")
+
+
+def test_load_weights_round_trip(weights_dir, variables):
+  w = load_weights(weights_dir)
+  assert w.spec.name == "monodepth2" and (w.height, w.width) == (H, W)
+  for a, b in zip(jax.tree_util.tree_leaves(w.depth), jax.tree_util.tree_leaves(variables)):
+    np.testing.assert_array_equal(a, np.asarray(b, np.float32))
+
+
+def _edit_json(root, **changes):
+  meta = json.loads((root / "model.json").read_text())
+  meta.update(changes)
+  (root / "model.json").write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("change,match", [
+    ({"height": "64"}, "height must be a positive integer"),
+    ({"height": 70}, "multiples of 32"),
+    ({"architecture": "resnet"}, "architecture 'resnet' is not one of"),
+    ({"num_layers": 34}, "does not match the network in model.json"),
+])
+def test_bad_model_json_is_one_error_naming_the_file(weights_dir, tmp_path, change, match):
+  import shutil
+  root = tmp_path / "w"
+  shutil.copytree(weights_dir, root)
+  _edit_json(root, **change)
+  with pytest.raises(WeightsError, match=re.escape(str(root)) + ".*" + match):
+    load_weights(root)
+
+
+def test_not_an_object_corrupt_or_nonfinite_weights(weights_dir, tmp_path, variables):
+  import shutil
+  root = tmp_path / "list"
+  shutil.copytree(weights_dir, root)
+  (root / "model.json").write_text("[1, 2]")
+  with pytest.raises(WeightsError, match="expected a JSON object"):
+    load_weights(root)
+  bad = jax.tree_util.tree_map(np.array, variables)
+  bad["params"]["encoder"]["bn1"]["scale"][0] = np.nan
+  save_weights(tmp_path / "nan", "monodepth2", {"num_layers": 18, "height": H, "width": W}, bad)
+  with pytest.raises(WeightsError, match="encoder/bn1/scale holds non-finite"):
+    load_weights(tmp_path / "nan")
+  corrupt = tmp_path / "corrupt"
+  shutil.copytree(weights_dir, corrupt)
+  for f in (corrupt / "depth").rglob("*"):
+    if f.is_file():
+      f.write_bytes(b"garbage")
+  with pytest.raises(WeightsError, match="cannot read the checkpoint"):
+    load_weights(corrupt)
