@@ -183,11 +183,11 @@ def test_training_size_selects_upstream_dilations(tmp_path, base):
   config, variables = convert_litemono(tmp_path / "encoder.pth", base["paths"][1])
   assert (config["height"], config["width"]) == (320, 1024)
   module = SPEC.build(config)
-  rates = [m.kernel_dilation for m in _bound_convs(module, variables, "ddwconv")]
-  assert rates == [(d, d) for stage in dilations_for("lite-mono", 320, 1024) for d in stage]
+  rates = [m.dilation for m in _bound_modules(module, variables, "ddwconv")]
+  assert rates == [d for stage in dilations_for("lite-mono", 320, 1024) for d in stage]
 
 
-def _bound_convs(module, variables, name: str) -> list:
+def _bound_modules(module, variables, name: str) -> list:
   """The submodules called `name`, in creation order, of `module` run once on a tiny input."""
   found = []
 
