@@ -8,6 +8,8 @@ Two released layouts (upstream zxcqlf/MonoViT, README's Google Drive folders):
   keys `module.encoder.*` and `module.decoder.*` (upstream's `evaluate_hr_depth.py` strips the
   first 7 characters); no size entries, so `--height`/`--width` are required.
 
+The MPViT layout (paths, MHCA layers, widths, MLP ratios and heads per stage; MPViT-small in
+every MonoViT release) is read from the encoder's keys and shapes and recorded in the config.
 A `module.` prefix is stripped when every key of a file carries it (a file that mixes both is an
 error). An explicit key table (`weights_convert.rules`) maps each PyTorch name to a Flax path:
 conv OIHW -> HWIO, Linear transposed, BN `weight/bias` -> `scale/bias` and `running_mean/var` ->
@@ -33,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -43,10 +46,7 @@ from weights_convert.strict import check_keys
 
 METADATA_KEYS = ("height", "width", "use_stereo")
 DATA_PARALLEL_PREFIX = "module."
-# MPViT-small (upstream `mpvit_small`): paths and MHCA layers per stage
-NUM_PATH = (2, 3, 3, 3)
-NUM_LAYERS = (1, 3, 6, 3)
-NUM_CRPE_CONVS = 3  # ConvRelPosEnc windows {3: 2, 5: 3, 7: 3}
+NUM_STAGES = 4  # the decoder takes the stem and four stage outputs
 DECODER_UNUSED = ("X_00_Conv_0", "X_01_Conv_0", "X_02_Conv_0", "X_03_Conv_0")
 DISP_CONVS = tuple(f"dispconv{i}" for i in range(4))
 
@@ -68,6 +68,52 @@ def decoder_module_order() -> tuple[str, ...]:
   return tuple(names) + DISP_CONVS
 
 
+# ------------------------------------------------------------------------------ layout
+
+
+def _indices(state: dict, pattern: str) -> list[int]:
+  """Sorted distinct integers N of the keys matching `pattern` (a regex with one `(\\d+)`)."""
+  regex = re.compile(pattern)
+  return sorted({int(m.group(1)) for k in state if (m := regex.match(k))})
+
+
+def _shape(state: dict, key: str, path: str) -> tuple[int, ...]:
+  if key not in state or not hasattr(state[key], "shape"):
+    raise CheckpointError(f"{path}: missing key {key} (needed to tell the MPViT layout)")
+  return tuple(state[key].shape)
+
+
+def infer_layout(state: dict, path: str, prefix: str = "") -> dict[str, tuple[int, ...]]:
+  """The MPViT layout (the `MonoViT` fields of `ARCH_FIELDS`) from the encoder's keys and shapes.
+
+  Paths and layers are counted; widths read from the first patch embedding's BN; the MLP ratio
+  from `fc1`; the heads from the first ConvRelPosEnc conv, which covers CRPE_WINDOW[0][1] heads.
+  """
+  from pitta_jax.models.monovit import ARCH_FIELDS
+  from pitta_jax.models.monovit.mpvit import CRPE_WINDOW
+  p = re.escape(prefix)
+  stages = _indices(state, rf"{p}patch_embed_stages\.(\d+)\.")
+  if stages != list(range(NUM_STAGES)):
+    raise CheckpointError(f"{path}: expected MPViT patch_embed_stages.0..{NUM_STAGES - 1} keys"
+                          f"{f' under {prefix!r}' if prefix else ''}, found stages {stages}; is "
+                          f"this a MonoViT encoder?")
+  per_stage = []
+  for s in stages:
+    stage, blk = f"{prefix}mhca_stages.{s}", f"{prefix}mhca_stages.{s}.mhca_blks.0"
+    dim = _shape(state, f"{prefix}patch_embed_stages.{s}.patch_embeds.0.patch_conv.bn.weight",
+                 path)[0]
+    hidden = _shape(state, f"{blk}.MHCA_layers.0.mlp.fc1.weight", path)[0]
+    head_ch = _shape(state, f"{blk}.crpe.conv_list.0.weight", path)[0] // CRPE_WINDOW[0][1]
+    if hidden % dim or head_ch == 0 or dim % head_ch:
+      raise CheckpointError(f"{path}: {stage} has width {dim}, MLP width {hidden} and "
+                            f"{head_ch} channels per head; not an MPViT stage")
+    per_stage.append({
+        "num_path": len(_indices(state, rf"{p}patch_embed_stages\.{s}\.patch_embeds\.(\d+)\.")),
+        "num_layers": len(_indices(state, rf"{re.escape(blk)}\.MHCA_layers\.(\d+)\.")),
+        "embed_dims": dim, "mlp_ratios": hidden // dim, "num_heads": dim // head_ch})
+  return {k: tuple(st[k] for st in per_stage) for k in ARCH_FIELDS}
+
+
 # ------------------------------------------------------------------------------ key tables
 
 
@@ -77,12 +123,14 @@ def _conv2d_bn(rules: R.Rules, module: tuple[str, ...], src: str) -> None:
   R.batch_norm(rules, module + ("bn",), f"{src}.bn")
 
 
-def encoder_rules(prefix: str = "", root: tuple[str, ...] = ("encoder",)) -> R.Rules:
-  """Key table of upstream's `MPViT` (mpvit_small) under `prefix` -> Flax `root` (`MPViT`)."""
+def encoder_rules(layout: dict, prefix: str = "", root: tuple[str, ...] = ("encoder",)
+                  ) -> R.Rules:
+  """Key table of upstream's `MPViT` (`infer_layout`'s layout) under `prefix` -> Flax `root`."""
+  from pitta_jax.models.monovit.mpvit import CRPE_WINDOW
   rules: R.Rules = []
   for i in range(2):
     _conv2d_bn(rules, root + (f"stem_{i}",), f"{prefix}stem.{i}")
-  for s, (n_path, n_layers) in enumerate(zip(NUM_PATH, NUM_LAYERS)):
+  for s, (n_path, n_layers) in enumerate(zip(layout["num_path"], layout["num_layers"])):
     for p in range(n_path):
       src = f"{prefix}patch_embed_stages.{s}.patch_embeds.{p}.patch_conv"
       mod = root + (f"patch_embed_stages_{s}", f"patch_embeds_{p}")
@@ -98,7 +146,7 @@ def encoder_rules(prefix: str = "", root: tuple[str, ...] = ("encoder",)) -> R.R
     for p in range(n_path):
       blk_src, blk = f"{stage_src}.mhca_blks.{p}", ("params",) + stage + (f"mhca_blks_{p}",)
       R.conv(rules, blk + ("cpe", "proj"), f"{blk_src}.cpe.proj")
-      for k in range(NUM_CRPE_CONVS):
+      for k in range(len(CRPE_WINDOW)):
         R.conv(rules, blk + ("crpe", f"conv_list_{k}"), f"{blk_src}.crpe.conv_list.{k}")
       for l in range(n_layers):
         lsrc, lay = f"{blk_src}.MHCA_layers.{l}", blk + (f"MHCA_layers_{l}",)
@@ -112,14 +160,15 @@ def encoder_rules(prefix: str = "", root: tuple[str, ...] = ("encoder",)) -> R.R
   return rules
 
 
-def encoder_aliases(prefix: str = "") -> dict[str, tuple[str, ...]]:
+def encoder_aliases(layout: dict, prefix: str = "") -> dict[str, tuple[str, ...]]:
   """Canonical key -> its other names: each MHCAEncoder's shared `cpe` and `crpe`, also
   registered in every MHCABlock (`cpe`, `crpe`) and its attention (`factoratt_crpe.crpe`)."""
+  from pitta_jax.models.monovit.mpvit import CRPE_WINDOW
   aliases: dict[str, tuple[str, ...]] = {}
-  for s, (n_path, n_layers) in enumerate(zip(NUM_PATH, NUM_LAYERS)):
+  for s, (n_path, n_layers) in enumerate(zip(layout["num_path"], layout["num_layers"])):
     for p in range(n_path):
       blk = f"{prefix}mhca_stages.{s}.mhca_blks.{p}"
-      suffixes = ["cpe.proj"] + [f"crpe.conv_list.{k}" for k in range(NUM_CRPE_CONVS)]
+      suffixes = ["cpe.proj"] + [f"crpe.conv_list.{k}" for k in range(len(CRPE_WINDOW))]
       for suffix in suffixes:
         owners = [f"MHCA_layers.{l}" for l in range(n_layers)]
         if suffix.startswith("crpe"):
@@ -180,26 +229,23 @@ def _ignorable(prefix: str):
 
 
 def fold_aliases(state: dict, aliases: dict[str, tuple[str, ...]], path: str) -> dict:
-  """`state` without the alias keys, after checking each equals its canonical key.
+  """`state` without the alias keys, after checking each equals its canonical key (a missing
+  alias is `check_keys`'s to report).
 
   Raises:
-    CheckpointError: an alias is missing, or holds a different tensor than its canonical key
-      (the file's copies of one shared module disagree).
+    CheckpointError: an alias holds a different tensor than its canonical key (the file's copies
+      of one shared module disagree).
   """
   out = dict(state)
-  missing = []
   for canonical, names in aliases.items():
     for alias in names:
       if alias not in out:
-        missing.append(alias)
         continue
       value = out.pop(alias)
       ref = state.get(canonical)
       if ref is not None and not (np.shape(value) == np.shape(ref) and np.array_equal(value, ref)):
         raise CheckpointError(f"{path}: {alias} differs from {canonical}; both name one shared "
                               f"module and must hold the same tensor")
-  if missing:
-    raise CheckpointError(f"{path}: {len(missing)} missing keys: {', '.join(sorted(missing))}")
   return out
 
 
@@ -251,7 +297,8 @@ def convert_monovit(encoder: str | os.PathLike | None, depth: str | os.PathLike,
     height, width: the training size; required when the files do not record it.
 
   Returns:
-    (config, variables): config {"height", "width"[, "use_stereo"]} for `SPEC.build`;
+    (config, variables): config {"height", "width"[, "use_stereo"], and the MPViT layout lists
+    "num_path", "num_layers", "embed_dims", "mlp_ratios", "num_heads"} for `SPEC.build`;
     variables {"params": ..., "batch_stats": ...}, nested dicts of float32 NumPy arrays.
   """
   from flax.traverse_util import unflatten_dict
@@ -259,32 +306,40 @@ def convert_monovit(encoder: str | os.PathLike | None, depth: str | os.PathLike,
 
   if encoder is None:  # one DeepNet file
     state = _read_state(depth)
-    enc_rules, dec_rules = encoder_rules("encoder."), decoder_rules("decoder.")
-    aliases = {**encoder_aliases("encoder."), **decoder_aliases(dec_rules, "decoder.")}
-    parts = [(str(depth), fold_aliases(state, aliases, str(depth)), enc_rules + dec_rules,
-              _ignorable("decoder."))]
+    layout = infer_layout(state, str(depth), "encoder.")
+    enc_rules, dec_rules = encoder_rules(layout, "encoder."), decoder_rules("decoder.")
+    aliases = {**encoder_aliases(layout, "encoder."), **decoder_aliases(dec_rules, "decoder.")}
+    parts = [(str(depth), state, enc_rules + dec_rules, aliases, _ignorable("decoder."))]
     meta_state, meta_path = state, str(depth)
   else:
     enc_state, dec_state = _read_state(encoder), _read_state(depth)
+    if any(k.startswith("encoder.") for k in dec_state):
+      raise CheckpointError(f"{depth}: holds a whole DeepNet (`encoder.*` keys); convert it "
+                            f"without --encoder")
     overlap = set(enc_state) & set(dec_state) - set(METADATA_KEYS)
     if overlap:
       raise CheckpointError(f"{depth}: keys {sorted(overlap)[:4]} also occur in {encoder}; are the "
                             f"encoder and decoder files swapped or the same file?")
+    layout = infer_layout(enc_state, str(encoder))
     dec_rules = decoder_rules()
-    parts = [(str(encoder), fold_aliases(enc_state, encoder_aliases(), str(encoder)),
-              encoder_rules(), _ignorable("")),
-             (str(depth), fold_aliases(dec_state, decoder_aliases(dec_rules), str(depth)),
-              dec_rules, _ignorable(""))]
+    parts = [(str(encoder), enc_state, encoder_rules(layout), encoder_aliases(layout),
+              _ignorable("")),
+             (str(depth), dec_state, dec_rules, decoder_aliases(dec_rules), _ignorable(""))]
     meta_state, meta_path = enc_state, str(encoder)
-  # key and metadata errors before tracing the model for its shapes (seconds)
-  for path, state, rules, ignorable in parts:
-    check_keys(path, state, {s for rule in rules for s in rule.sources}, ignorable)
+  # key, duplicate and metadata errors before tracing the model for its shapes (seconds)
+  for path, state, rules, aliases, ignorable in parts:
+    used = {s for rule in rules for s in rule.sources}
+    used.update(a for names in aliases.values() for a in names)
+    check_keys(path, state, used, ignorable)
+  parts = [(path, fold_aliases(state, aliases, path), rules, ignorable)
+           for path, state, rules, aliases, ignorable in parts]
   config = {"height": _size(meta_state, "height", height, meta_path),
             "width": _size(meta_state, "width", width, meta_path)}
   if "use_stereo" in meta_state:
     config["use_stereo"] = bool(np.asarray(meta_state["use_stereo"]).item())
+  config.update({k: list(v) for k, v in layout.items()})
 
-  expected = R.expected_shapes(MonoViT(), (1, 64, 64, 3))
+  expected = R.expected_shapes(MonoViT(**layout), (1, 64, 64, 3))
   flat = {}
   for path, state, rules, ignorable in parts:
     flat.update(R.apply_rules(state, rules, ignorable, path, expected, cover=False))
@@ -311,6 +366,6 @@ def run(args: argparse.Namespace) -> Path:
                      source={"encoder": str(args.encoder) if args.encoder else None,
                              "depth": str(args.depth)})
   n = sum(a.size for a in jax.tree_util.tree_leaves(variables))
-  print(f"converted MonoViT MPViT-small ({config['width']}x{config['height']}, {n:,} values) "
-        f"-> {out}")
+  print(f"converted MonoViT (MPViT widths {config['embed_dims']}, layers {config['num_layers']}, "
+        f"{config['width']}x{config['height']}, {n:,} values) -> {out}")
   return out

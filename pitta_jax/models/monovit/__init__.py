@@ -8,11 +8,13 @@ from pitta_jax.models.monovit.network import SIZE_MULTIPLE, MonoViT, check_input
 from pitta_jax.models.spec import ModelSpec
 
 
+ARCH_FIELDS = ("num_path", "num_layers", "embed_dims", "mlp_ratios", "num_heads")
+
+
 def build(config: Mapping[str, Any]) -> MonoViT:
-  """model.json config -> module. Every MonoViT release is MPViT-small + the HR decoder; the
-  config's height/width (the training size) do not change the module."""
-  del config
-  return MonoViT()
+  """model.json config -> module: the MPViT layout fields the converter recorded (per-stage
+  lists; absent ones keep MonoViT's MPViT-small defaults). height/width do not change it."""
+  return MonoViT(**{k: tuple(config[k]) for k in ARCH_FIELDS if k in config})
 
 
 SPEC = ModelSpec(
@@ -27,4 +29,4 @@ SPEC = ModelSpec(
     description="MonoViT (3DV 2022): MPViT-small + HR-Depth decoder, self-supervised on KITTI",
 )
 
-__all__ = ["MonoViT", "SPEC", "build", "check_input_size"]
+__all__ = ["ARCH_FIELDS", "MonoViT", "SPEC", "build", "check_input_size"]

@@ -17,7 +17,8 @@ Implements upstream zxcqlf/MonoViT `networks/mpvit.py` (`MPViT`, built by `mpvit
   window 3 for 2 heads, 5 for 3 heads, 7 for 3 heads, multiplied by the queries).
 
 The encoder returns the stem output (1/2) and the four stage outputs (1/4 .. 1/32); channels
-(64, 128, 216, 288, 288) for MPViT-small. There is no input normalisation: upstream feeds the
+(64, 128, 216, 288, 288) for MPViT-small (the defaults; the layout fields also describe upstream's
+mpvit_tiny/xsmall/base). There is no input normalisation: upstream feeds the
 [0, 1] images to the stem as they are. Tokens are kept as (B, H, W, C) maps: every token-wise
 op (LayerNorm, Linear) acts on the last axis, so no flatten/unflatten is needed around them.
 Stochastic depth (drop path, rate 0.2 in training upstream) is not implemented: `train` only
@@ -37,7 +38,7 @@ import flax.linen as nn
 
 from pitta_jax.models.layers import BatchNorm, Conv
 
-# mpvit_small in upstream's networks/mpvit.py (the only variant MonoViT uses)
+# mpvit_small in upstream's networks/mpvit.py, the layout of every MonoViT release
 NUM_PATH = (2, 3, 3, 3)
 NUM_LAYERS = (1, 3, 6, 3)
 EMBED_DIMS = (64, 128, 216, 288)
@@ -45,12 +46,6 @@ MLP_RATIOS = (4, 4, 4, 4)
 NUM_HEADS = (8, 8, 8, 8)
 CRPE_WINDOW = ((3, 2), (5, 3), (7, 3))  # (window, heads) of ConvRelPosEnc, in upstream's dict order
 LN_EPS = 1e-6  # MHCABlock's norm_layer = partial(nn.LayerNorm, eps=1e-6)
-
-
-def encoder_channels(embed_dims: tuple[int, ...] = EMBED_DIMS) -> tuple[int, ...]:
-  """Channels of the 5 feature maps: the stem's embed_dims[0], then each stage's aggregate
-  output (embed_dims[s + 1], the last stage keeping its own width)."""
-  return (embed_dims[0],) + tuple(embed_dims[1:]) + (embed_dims[-1],)
 
 
 def conv2d(features: int, kernel: int, stride: int = 1, groups: int = 1, use_bias: bool = False,
@@ -121,6 +116,9 @@ class ConvRelPosEnc(nn.Module):
   def __call__(self, q: jax.Array, v: jax.Array) -> jax.Array:
     """q, v: (B, H, W, h, Ch) -> (B, H, W, h, Ch)."""
     b, hh, ww, heads, ch = v.shape
+    if sum(n for _, n in self.window) != heads:
+      raise ValueError(f"ConvRelPosEnc windows {self.window} cover "
+                       f"{sum(n for _, n in self.window)} heads, the attention has {heads}")
     v_img = v.reshape(b, hh, ww, heads * ch)  # channel index = head * Ch + c, as upstream
     outs, start = [], 0
     for i, (win, n_heads) in enumerate(self.window):
@@ -231,7 +229,8 @@ class MHCAStage(nn.Module):
 class MPViT(nn.Module):
   """Upstream `MPViT` as MonoViT's depth encoder (defaults: `mpvit_small`).
 
-  Returns the 5 feature maps of `encoder_channels(embed_dims)`.
+  Returns 5 feature maps: the stem's (embed_dims[0] channels) and each stage's aggregate
+  (embed_dims[s + 1] channels, the last stage keeping embed_dims[-1]).
   """
   num_path: tuple[int, ...] = NUM_PATH
   num_layers: tuple[int, ...] = NUM_LAYERS
@@ -241,8 +240,9 @@ class MPViT(nn.Module):
 
   @nn.compact
   def __call__(self, images: jax.Array, train: bool = False) -> list[jax.Array]:
-    """images: (B, H, W, 3) RGB in [0, 1] (not normalised, as upstream) -> [(B, H/2, W/2, 64),
-    (B, H/4, W/4, 128), (B, H/8, W/8, 216), (B, H/16, W/16, 288), (B, H/32, W/32, 288)]."""
+    """images: (B, H, W, 3) RGB in [0, 1] (not normalised, as upstream) -> for MPViT-small
+    [(B, H/2, W/2, 64), (B, H/4, W/4, 128), (B, H/8, W/8, 216), (B, H/16, W/16, 288),
+    (B, H/32, W/32, 288)]."""
     if images.ndim != 4 or images.shape[-1] != 3:
       raise ValueError(f"encoder input must be (B, H, W, 3) NHWC, got {images.shape}")
     dims = self.embed_dims

@@ -36,7 +36,8 @@ import flax.linen as nn
 
 from pitta_jax.models.depth_decoder import conv3x3_reflect
 from pitta_jax.models.layers import conv, upsample_nearest2x
-from pitta_jax.models.monovit.mpvit import MPViT
+from pitta_jax.models.monovit.mpvit import (EMBED_DIMS, MLP_RATIOS, NUM_HEADS, NUM_LAYERS,
+                                            NUM_PATH, MPViT)
 
 NUM_CH_ENC = (64, 64, 128, 256, 512)  # fused feature channels (upstream's `num_ch_enc`)
 NUM_CH_DEC = (16, 32, 64, 128, 256)
@@ -137,7 +138,17 @@ def check_input_size(height: int, width: int) -> None:
 
 
 class MonoViT(nn.Module):
-  """MonoViT: `MPViT` encoder + `HRDepthDecoder`, as upstream's `DeepNet('mpvitnet')`."""
+  """MonoViT: `MPViT` encoder + `HRDepthDecoder`, as upstream's `DeepNet('mpvitnet')`.
+
+  The encoder layout defaults to MPViT-small, the only one MonoViT releases; the fields allow
+  the other MPViT variants (upstream `mpvit_tiny/xsmall/base`), whose widths the decoder takes
+  from the feature maps.
+  """
+  num_path: tuple[int, ...] = NUM_PATH
+  num_layers: tuple[int, ...] = NUM_LAYERS
+  embed_dims: tuple[int, ...] = EMBED_DIMS
+  mlp_ratios: tuple[int, ...] = MLP_RATIOS
+  num_heads: tuple[int, ...] = NUM_HEADS
 
   @nn.compact
   def __call__(self, images: jax.Array, train: bool = False) -> tuple[jax.Array, ...]:
@@ -148,5 +159,6 @@ class MonoViT(nn.Module):
     are updated only when `batch_stats` is mutable). Drop path is never applied.
     """
     check_input_size(images.shape[1], images.shape[2])
-    features = MPViT(name="encoder")(images, train)
+    features = MPViT(self.num_path, self.num_layers, self.embed_dims, self.mlp_ratios,
+                     self.num_heads, name="encoder")(images, train)
     return HRDepthDecoder(name="decoder")(features)
