@@ -282,6 +282,14 @@ def test_shared_module_copies_must_agree(tiny, tmp_path):
     convert_monovit(root / "encoder.pth", tmp_path / "depth.pth")
 
 
+def test_wrong_files_are_named(tiny):
+  root = tiny["root"]
+  with pytest.raises(CheckpointError, match=r"depth.pth: expected MPViT patch_embed_stages"):
+    convert_monovit(root / "depth.pth", root / "encoder.pth")  # swapped
+  with pytest.raises(CheckpointError, match=r"deepnet.pth: holds a whole DeepNet"):
+    convert_monovit(root / "encoder.pth", root / "deepnet.pth")
+
+
 def test_partial_data_parallel_prefix_is_an_error(tiny, tmp_path):
   state = torch.load(tiny["root"] / "depth.pth")
   state = {("module." + k if k.startswith("convs.") else k): v for k, v in state.items()}

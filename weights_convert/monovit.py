@@ -37,6 +37,7 @@ import argparse
 import os
 import re
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -78,6 +79,7 @@ def _indices(state: dict, pattern: str) -> list[int]:
 
 
 def _shape(state: dict, key: str, path: str) -> tuple[int, ...]:
+  """Shape of `state[key]`, a CheckpointError naming the key when it is absent."""
   if key not in state or not hasattr(state[key], "shape"):
     raise CheckpointError(f"{path}: missing key {key} (needed to tell the MPViT layout)")
   return tuple(state[key].shape)
@@ -214,7 +216,7 @@ def decoder_aliases(rules: R.Rules, prefix: str = "") -> dict[str, tuple[str, ..
   return aliases
 
 
-def _ignorable(prefix: str):
+def _ignorable(prefix: str) -> Callable[[str], bool]:
   unused_idx = [k for k, n in enumerate(decoder_module_order()) if n in DECODER_UNUSED]
   unused = tuple(f"{prefix}convs.{n}." for n in DECODER_UNUSED) + tuple(
       f"{prefix}decoder.{k}." for k in unused_idx)
@@ -264,6 +266,7 @@ def strip_data_parallel(state: dict, path: str) -> dict:
 
 
 def _read_state(path: str | os.PathLike) -> dict:
+  """The state dict of a .pth file, without a DataParallel `module.` prefix."""
   state = load_pth(path)
   if not isinstance(state, dict):
     raise CheckpointError(f"{path}: expected a state dict, found a {type(state).__name__}")

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
+from pitta_jax.models.depth_decoder import MAX_DEPTH, MIN_DEPTH
 from pitta_jax.models.monovit.network import SIZE_MULTIPLE, MonoViT, check_input_size
 from pitta_jax.models.spec import ModelSpec
-
 
 ARCH_FIELDS = ("num_path", "num_layers", "embed_dims", "mlp_ratios", "num_heads")
 
@@ -24,7 +24,7 @@ SPEC = ModelSpec(
     size_multiple=SIZE_MULTIPLE,
     default_size=(192, 640),
     alignment="median",
-    depth_range=(0.1, 100.0),
+    depth_range=(MIN_DEPTH, MAX_DEPTH),  # MonoDepth2's disp_to_depth(0.1, 100), as upstream
     encoder="encoder",
     description="MonoViT (3DV 2022): MPViT-small + HR-Depth decoder, self-supervised on KITTI",
 )
