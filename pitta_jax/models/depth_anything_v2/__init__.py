@@ -24,11 +24,14 @@ from pitta_jax.models.spec import ModelSpec
 ARCH_FIELDS = tuple(f.name for f in dataclasses.fields(DepthAnythingV2)
                     if f.name not in ("parent", "name"))
 _TUPLE_FIELDS = ("layer_idx", "out_channels")
+# model.json entries that describe the weights rather than the module
+_META_FIELDS = ("height", "width", "encoder", "architecture", "has_pose", "source")
 
 
 def build(config: Mapping[str, Any]) -> DepthAnythingV2:
-  """model.json config -> `DepthAnythingV2`; JSON lists become tuples (hashable attributes)."""
-  unknown = sorted(set(config) - set(ARCH_FIELDS) - {"height", "width", "encoder"})
+  """model.json config (or the whole model.json) -> `DepthAnythingV2`; JSON lists become tuples
+  (hashable attributes); a missing field takes the module's (ViT-S) default."""
+  unknown = sorted(set(config) - set(ARCH_FIELDS) - set(_META_FIELDS))
   if unknown:
     raise ValueError(f"unknown Depth Anything V2 config fields {unknown}; known: {ARCH_FIELDS}")
   kwargs = {k: (tuple(config[k]) if k in _TUPLE_FIELDS else config[k])

@@ -174,7 +174,8 @@ class DinoVisionTransformer(nn.Module):
     `layer_idx` entry, each (B, H/14, W/14, embed_dim), final LayerNorm applied."""
     if sorted(set(self.layer_idx)) != list(self.layer_idx) or not (
         0 <= self.layer_idx[0] and self.layer_idx[-1] < self.depth):
-      raise ValueError(f"layer_idx {self.layer_idx} must be increasing block indices < {self.depth}")
+      raise ValueError(f"layer_idx {self.layer_idx} must be increasing block indices below "
+                       f"the depth {self.depth}")
     b, h, w, _ = x.shape
     gh, gw = h // PATCH_SIZE, w // PATCH_SIZE
     c = self.embed_dim
