@@ -48,6 +48,7 @@ from typing import Any, Mapping, NamedTuple
 from weights_convert import rules as R
 from weights_convert.mask2former import read_safetensors
 from weights_convert.pth import CheckpointError, load_pth
+from weights_convert.strict import check_keys
 
 FORMATS = ("official", "hf")
 # keys the network does not use (see the module docstring)
@@ -219,12 +220,18 @@ def _hf_config_beside(path: str) -> dict | None:
   if cfg.get("depth_estimation_type", "relative") != "relative":
     raise CheckpointError(f"{cfg_path}: depth_estimation_type {cfg['depth_estimation_type']!r}; "
                           f"only the relative-depth model (ReLU output) is supported")
+  if cfg.get("max_depth") not in (None, 1):  # transformers multiplies even the ReLU output by it
+    raise CheckpointError(f"{cfg_path}: max_depth {cfg['max_depth']!r} scales the output; only "
+                          f"1 (upstream's relative model) is supported")
   backbone = cfg.get("backbone_config") or {}
   arch = {}
   if "num_attention_heads" in backbone:
     arch["num_heads"] = int(backbone["num_attention_heads"])
-  if backbone.get("out_indices"):  # hidden-state indices: 0 is the embeddings, i the block i - 1
-    arch["layer_idx"] = [int(i) - 1 for i in backbone["out_indices"]]
+  # hidden-state indices (stage names "stageK"): 0 is the embeddings, K the output of block K - 1
+  stages = backbone.get("out_indices") or [
+      int(name[len("stage"):]) for name in backbone.get("out_features") or []]
+  if stages:
+    arch["layer_idx"] = [int(i) - 1 for i in stages]
   return arch
 
 
@@ -291,14 +298,15 @@ def convert_depth_anything_v2(path: str | os.PathLike, source: str = "official",
   from pitta_jax.models.depth_anything_v2 import build
   state = read_state(path, source)
   config = infer_config(state, source, str(path), arch)
+  rules = official_rules(config) if source == "official" else hf_rules(config)
+  ignorable = lambda k: bool(_IGNORED[source].match(k))
+  # the key check first: it needs no trace of the model (`apply_rules` repeats it)
+  check_keys(str(path), state, {s for rule in rules for s in rule.sources}, ignorable)
   try:
-    module = build(config)
-    expected = R.expected_shapes(module, (1, 28, 28, 3))
+    expected = R.expected_shapes(build(config), (1, 28, 28, 3))
   except ValueError as e:  # e.g. a layer_idx beyond the depth
     raise CheckpointError(f"{path}: {e}") from None
-  rules = official_rules(config) if source == "official" else hf_rules(config)
-  flat = R.apply_rules(state, rules, lambda k: bool(_IGNORED[source].match(k)), str(path),
-                       expected)
+  flat = R.apply_rules(state, rules, ignorable, str(path), expected)
   return config, unflatten_dict(flat)
 
 
