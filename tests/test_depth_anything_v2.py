@@ -1,0 +1,404 @@
+"""Parity of the Flax Depth Anything V2 + converter with PyTorch, for both checkpoint formats.
+
+References: transformers' `DepthAnythingForDepthEstimation` (the `hf` format) and
+`tests/torch_depth_anything_v2.py`, upstream's architecture with its state_dict names (the
+`official` format; transformers lacks upstream's position-embedding resize). One set of random
+weights (scaled so that activations stay O(1)) is drawn in upstream's layout and written as
+upstream's `.pth` and as a Hub-style `model.safetensors` (+ `config.json`); each file is
+converted by `weights_convert.depth_anything_v2` (torch-free) and compared with its own
+reference: outputs within 1e-4 max abs (float32), at 518x518 (the stored 37x37 position grid,
+no resize) and 644x196 (resized), and the gradient of a scalar loss w.r.t. every encoder
+LayerNorm gamma/beta in float64 within 1e-3 relative. The tests use a narrow 4-block ViT
+(width 48, 3 heads) for time; the real ViT-S/14 + DPT sizes are checked by conversion (key
+tables, sizes inferred from the weights), and their full-size parity (518x518 and 644x196, both
+formats, float64 gradients) is `test_full_size_vits_matches_torch`, opt-in (PITTA_DAV2_FULL=1,
+about a minute of CPU).
+
+float32: torch's own float32 output is further from its float64 one than ours (measured at
+518x518: torch 7.2e-5, JAX 8.0e-6 max abs), so the float32 differences printed here are mostly
+torch's rounding. float64: both torch models resize the position embeddings in float32
+(upstream's `.float()`, transformers' `.to(torch.float32)`), which bounds the float64 agreement
+at ~1e-6 relative in outputs and up to ~2e-4 in the smallest gradient leaves of the full ViT-S.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+from flax.traverse_util import flatten_dict, unflatten_dict
+from safetensors.torch import save_file
+
+import torch_depth_anything_v2 as tda
+from pitta_jax.checkpoint import load_tree
+from pitta_jax.models.depth_anything_v2 import SPEC, build
+from pitta_jax.models.depth_anything_v2.dinov2 import pos_embed_matrix
+from weights_convert import depth_anything_v2 as conv
+from weights_convert.pth import CheckpointError
+
+torch.set_num_threads(2)
+
+MEAN = np.array([0.485, 0.456, 0.406])
+STD = np.array([0.229, 0.224, 0.225])
+# the narrow test network: (width, blocks, heads, HF out_indices, features, neck widths, head width)
+SMALL = dict(hidden=48, depth=4, heads=3, out_indices=[1, 2, 3, 4], features=16,
+             neck=[8, 16, 24, 32], head_hidden=8)
+VITS = dict(hidden=384, depth=12, heads=6, out_indices=[3, 6, 9, 12], features=64,
+            neck=[48, 96, 192, 384], head_hidden=32)
+VITS_CONFIG = dict(encoder="vits", embed_dim=384, depth=12, num_heads=6, mlp_ratio=4.0,
+                   layer_idx=[2, 5, 8, 11], pos_grid=37, features=64,
+                   out_channels=[48, 96, 192, 384], head_features=32, height=518, width=518)
+HUB_NAMES = ((".attention.q_proj.", ".attention.attention.query."),
+             (".attention.k_proj.", ".attention.attention.key."),
+             (".attention.v_proj.", ".attention.attention.value."),
+             (".attention.o_proj.", ".attention.output.dense."))
+
+
+def _hf_model(arch: dict, state: dict):
+  """transformers' Depth Anything (V2 layout) holding `state` (transformers 5 names), eval mode."""
+  from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config
+  backbone = Dinov2Config(image_size=518, patch_size=14, hidden_size=arch["hidden"],
+                          num_hidden_layers=arch["depth"], num_attention_heads=arch["heads"],
+                          mlp_ratio=4, out_indices=arch["out_indices"], apply_layernorm=True,
+                          reshape_hidden_states=False, layer_norm_eps=1e-6, hidden_act="gelu")
+  config = DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=arch["hidden"],
+                               patch_size=14, neck_hidden_sizes=arch["neck"],
+                               fusion_hidden_size=arch["features"],
+                               head_hidden_size=arch["head_hidden"])
+  model = DepthAnythingForDepthEstimation(config).eval()
+  model.load_state_dict(state, strict=True)
+  return model
+
+
+def _write_checkpoints(root, arch: dict, seed: int):
+  """Random weights in upstream's layout -> root/official/depth_anything_v2.pth and
+  root/hf/model.safetensors (Hub names). Returns (upstream torch model, transformers-5 state)."""
+  off = tda.randomize_(tda.DepthAnythingV2(
+      arch["hidden"], arch["depth"], arch["heads"], [i - 1 for i in arch["out_indices"]],
+      arch["features"], arch["neck"], arch["head_hidden"]), seed)
+  official_state = off.state_dict()
+  (root / "official").mkdir(parents=True)
+  torch.save(official_state, root / "official" / "depth_anything_v2.pth")
+  state = tda.hf_state_from_official(official_state, arch["depth"])
+  hub = {}
+  for k, v in state.items():
+    for new, old in HUB_NAMES:
+      k = k.replace(new, old)
+    hub[k] = v
+  (root / "hf").mkdir()
+  save_file(hub, str(root / "hf" / "model.safetensors"))
+  return off, state
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+  """The narrow network in both formats, its torch references and both conversions."""
+  root = tmp_path_factory.mktemp("dav2_small")
+  off, state = _write_checkpoints(root, SMALL, seed=0)
+  hf = _hf_model(SMALL, state)
+  hf.config.to_json_file(str(root / "hf" / "config.json"))  # as a Hub snapshot has it
+  arch = {"num_heads": SMALL["heads"], "layer_idx": [i - 1 for i in SMALL["out_indices"]]}
+  converted = {"hf": conv.convert_depth_anything_v2(root / "hf" / "model.safetensors", "hf"),
+               "official": conv.convert_depth_anything_v2(
+                   root / "official" / "depth_anything_v2.pth", "official", arch)}
+  fns = {fmt: jax.jit(lambda v, x, m=build(cfg): m.apply(v, x)[0])
+         for fmt, (cfg, _) in converted.items()}
+  return {"root": root, "torch": {"hf": hf, "official": off}, "state": state,
+          "converted": converted, "fns": fns, "cache": {}}
+
+
+def _image(h, w, seed=0, batch=1):
+  return np.random.default_rng(seed).uniform(0, 1, (batch, h, w, 3)).astype(np.float32)
+
+
+def _torch_input(x: np.ndarray, dtype=torch.float32) -> torch.Tensor:
+  return torch.from_numpy((x.astype(np.float64) - MEAN) / STD).to(dtype).permute(0, 3, 1, 2)
+
+
+def _torch_depth(model, fmt: str, x: np.ndarray) -> np.ndarray:
+  """(B, H, W, 1) relative inverse depth of a torch reference."""
+  with torch.no_grad():
+    out = model(_torch_input(x))
+    out = out.predicted_depth if fmt == "hf" else out
+  return out[..., None].numpy()
+
+
+def _reference(small, fmt, hw):
+  key = (fmt, hw)
+  if key not in small["cache"]:
+    small["cache"][key] = _torch_depth(small["torch"][fmt], fmt, _image(*hw, seed=hw[1]))
+  return small["cache"][key]
+
+
+def test_torch_references_agree_without_resize(small):
+  """Sanity of the test's own official -> hf renaming (`tda.hf_state_from_official`, loaded
+  strictly): at the stored grid both torch models, holding the same weights, compute the same
+  function."""
+  d = float(np.max(np.abs(_reference(small, "hf", (518, 518)) -
+                          _reference(small, "official", (518, 518)))))
+  print(f"518x518 transformers vs upstream-layout torch: max abs diff {d:.2e}")
+  assert d < 1e-5
+
+
+@pytest.mark.parametrize("hw", [(518, 518), (196, 644)])
+@pytest.mark.parametrize("fmt", ["official", "hf"])
+def test_outputs_match_torch(small, fmt, hw):
+  x = _image(*hw, seed=hw[1])
+  ref = _reference(small, fmt, hw)
+  # at the stored 37x37 grid the resize rule (the configs' only difference) is not used, so the
+  # program compiled for the official config serves the hf variables too
+  fn = small["fns"]["official" if hw == (518, 518) else fmt]
+  out = np.asarray(fn(small["converted"][fmt][1], x))
+  diff = float(np.max(np.abs(out - ref)))
+  scale = float(np.max(np.abs(ref)))
+  print(f"{fmt} {hw[1]}x{hw[0]}: max abs diff {diff:.2e} (output max {scale:.3f}, "
+        f"relative {diff / scale:.2e}, {np.mean(ref > 0):.0%} positive)")
+  assert out.shape == ref.shape == (1, *hw, 1)
+  assert diff < 1e-4 * max(1.0, scale)
+
+
+def test_resize_rules_differ_between_formats(small):
+  """Off the stored grid the two upstreams differ (0.1 offset or not): each conversion records
+  its rule, and the torch references disagree measurably where the rules are not matched."""
+  cfg_o, cfg_h = small["converted"]["official"][0], small["converted"]["hf"][0]
+  assert (cfg_o["pos_offset"], cfg_h["pos_offset"]) == (0.1, 0.0)
+  assert dict(cfg_o, pos_offset=0.0) == cfg_h  # config.json gave the hf file's heads and layers
+  d = float(np.max(np.abs(_reference(small, "hf", (196, 644)) -
+                          _reference(small, "official", (196, 644)))))
+  print(f"644x196 transformers vs upstream resize rule: max abs diff {d:.2e}")
+  assert d > 1e-3
+
+
+@pytest.mark.parametrize("grid", [(5, 7), (14, 46), (40, 37)])
+def test_pos_embed_resize_matches_torch(grid):
+  table = np.random.default_rng(1).normal(size=(1, 4, 9, 9)).astype(np.float32)  # (1, C, g, g)
+  for offset in (0.1, 0.0):
+    if offset:
+      kw = {"scale_factor": ((grid[0] + offset) / 9, (grid[1] + offset) / 9)}
+    else:
+      kw = {"size": grid}
+    ref = torch.nn.functional.interpolate(torch.from_numpy(table), mode="bicubic",
+                                          antialias=False, **kw).numpy()[0]
+    mh, mw = pos_embed_matrix(9, grid[0], offset), pos_embed_matrix(9, grid[1], offset)
+    out = np.einsum("ph,chw,qw->cpq", mh, table[0], mw)
+    assert out.shape == ref.shape
+    np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)  # torch weights in float32
+
+
+def _ln_grads_torch(model, fmt, x, weights):
+  """Torch float64 autograd of mean(out * weights) w.r.t. every encoder LayerNorm gamma/beta,
+  keyed by the Flax path (blocks_i/norm1|norm2, norm) and scale|bias."""
+  model = model.to(torch.float64)
+  model.zero_grad()
+  out = model(_torch_input(x, torch.float64))
+  out = out.predicted_depth if fmt == "hf" else out
+  loss = (out * torch.from_numpy(weights[..., 0])).mean()
+  loss.backward()
+  if fmt == "hf":
+    pattern = r"^backbone\.(?:encoder\.layer\.(\d+)\.(norm[12])|(layernorm))\.(weight|bias)$"
+  else:
+    pattern = r"^pretrained\.(?:blocks\.(\d+)\.(norm[12])|(norm))\.(weight|bias)$"
+  grads = {}
+  for name, p in model.named_parameters():
+    m = re.match(pattern, name)
+    if m:
+      module = f"blocks_{m.group(1)}/{m.group(2)}" if m.group(1) else "norm"
+      leaf = "scale" if m.group(4) == "weight" else "bias"
+      grads[f"{module}/{leaf}"] = p.grad.numpy().copy()
+  model.to(torch.float32)
+  return loss.item(), grads
+
+
+def _ln_grads_jax(cfg, variables, x, weights):
+  """JAX float64 value and gradient of the same loss w.r.t. the encoder LayerNorm gamma/beta
+  (only those leaves are differentiated, as in adaptation)."""
+  module = build(cfg)
+  with jax.enable_x64(True):
+    flat = {k: jnp.asarray(v, jnp.float64)
+            for k, v in flatten_dict(variables["params"], sep="/").items()}
+    is_ln = lambda k: re.fullmatch(r"encoder/(blocks_\d+/)?norm\d?/(scale|bias)", k) is not None
+    ln = {k: v for k, v in flat.items() if is_ln(k)}
+    rest = {k: v for k, v in flat.items() if not is_ln(k)}
+
+    def loss_fn(ln, rest, x, w):
+      params = unflatten_dict({**ln, **rest}, sep="/")
+      return jnp.mean(module.apply({"params": params}, x)[0] * w)
+
+    loss, grads = jax.jit(jax.value_and_grad(loss_fn))(
+        ln, rest, jnp.asarray(x, jnp.float64), jnp.asarray(weights, jnp.float64))
+    return float(loss), {k[len("encoder/"):]: np.asarray(v) for k, v in grads.items()}
+
+
+@pytest.mark.parametrize("fmt", ["official", "hf"])
+def test_layernorm_gradients_match_torch_float64(small, fmt):
+  """d mean(w * depth) / d(encoder LayerNorm gamma, beta) at 98x70 (position grid resized)."""
+  x = _image(70, 98, seed=3).astype(np.float64)
+  w = np.random.default_rng(4).normal(size=(1, 70, 98, 1))
+  loss_t, ref = _ln_grads_torch(small["torch"][fmt], fmt, x, w)
+  loss_j, grads = _ln_grads_jax(*small["converted"][fmt], x, w)
+  assert set(grads) == set(ref) and len(ref) == 2 * 2 * SMALL["depth"] + 2
+  rel = max(float(np.max(np.abs(grads[k] - ref[k])) / np.max(np.abs(ref[k]))) for k in ref)
+  print(f"{fmt} float64: loss jax {loss_j:.12f} torch {loss_t:.12f}; LayerNorm gamma/beta "
+        f"grads, worst max-relative diff over {len(ref)} leaves {rel:.2e}")
+  # not 1e-12: both torch models resize the position embeddings in float32 (upstream's
+  # `.float()`, transformers' `.to(torch.float32)`), models.interpolate's matrices are float32
+  # constants, and the random-sign weights cancel ~1000x in the mean
+  np.testing.assert_allclose(loss_j, loss_t, rtol=1e-5)
+  assert rel < 1e-3
+
+
+def test_train_flag_changes_nothing(small):
+  """No BatchNorm, no dropout: train=True traces to the same program as train=False."""
+  cfg, variables = small["converted"]["hf"]
+  module, x = build(cfg), jnp.zeros((1, 28, 42, 3))
+  jaxprs = [str(jax.make_jaxpr(lambda v, x, t=t: module.apply(v, x, train=t))(variables, x))
+            for t in (False, True)]
+  assert jaxprs[0] == jaxprs[1]
+
+
+def test_vits_converts_from_either_format_with_upstream_sizes(tmp_path):
+  """The real ViT-S/14 + DPT widths: sizes inferred from the weights without overrides (no
+  config.json) and both formats give bitwise the same variables. (Its forward parity at full
+  size runs in `test_full_size_vits_matches_torch`, opt-in for time.)"""
+  _write_checkpoints(tmp_path, VITS, seed=1)
+  cfg_o, var_o = conv.convert_depth_anything_v2(tmp_path / "official" / "depth_anything_v2.pth")
+  cfg_h, var_h = conv.convert_depth_anything_v2(tmp_path / "hf" / "model.safetensors", "hf")
+  assert cfg_o == dict(VITS_CONFIG, pos_offset=0.1) and cfg_h == dict(VITS_CONFIG, pos_offset=0.0)
+  flat_o, flat_h = flatten_dict(var_o), flatten_dict(var_h)
+  assert flat_o.keys() == flat_h.keys()
+  for k in flat_o:
+    np.testing.assert_array_equal(flat_o[k], flat_h[k])
+  # upstream's ViT-S model holds 24,785,089 values (the paper's 24.8M); the converted ones lack
+  # the unused mask token (384) and refinenet4.resConfUnit1 (2 x (64 * 64 * 9 + 64))
+  official = torch.load(tmp_path / "official" / "depth_anything_v2.pth")
+  n_file = sum(v.numel() for v in official.values())
+  assert n_file == 24_785_089
+  assert sum(a.size for a in flat_o.values()) == n_file - 384 - 2 * (64 * 64 * 9 + 64)
+
+
+@pytest.mark.skipif(not os.environ.get("PITTA_DAV2_FULL"),
+                    reason="full-size ViT-S parity (~1 min CPU): set PITTA_DAV2_FULL=1")
+def test_full_size_vits_matches_torch(tmp_path):
+  """Real ViT-S/14 + DPT at 518x518 (stored grid) and 644x196 (resized), both formats, against
+  transformers and upstream's layout; LayerNorm gradients in float64 at 182x126."""
+  off, state = _write_checkpoints(tmp_path, VITS, seed=1)
+  refs = {"official": off, "hf": _hf_model(VITS, state)}
+  converted = {
+      "official": conv.convert_depth_anything_v2(tmp_path / "official" / "depth_anything_v2.pth"),
+      "hf": conv.convert_depth_anything_v2(tmp_path / "hf" / "model.safetensors", "hf")}
+  for fmt, (cfg, variables) in converted.items():
+    fn = jax.jit(lambda v, x, m=build(cfg): m.apply(v, x)[0])
+    for hw in ((518, 518), (196, 644)):
+      x = _image(*hw, seed=hw[1])
+      ref = _torch_depth(refs[fmt], fmt, x)
+      out = np.asarray(fn(variables, x))
+      diff, scale = float(np.max(np.abs(out - ref))), float(np.max(np.abs(ref)))
+      print(f"ViT-S {fmt} {hw[1]}x{hw[0]}: max abs diff {diff:.2e} (output max {scale:.3f}, "
+            f"relative {diff / scale:.2e})")
+      assert diff < 1e-4 * max(1.0, scale)
+    x = _image(126, 182, seed=3).astype(np.float64)
+    w = np.random.default_rng(4).normal(size=(1, 126, 182, 1))
+    _, ref = _ln_grads_torch(refs[fmt], fmt, x, w)
+    _, grads = _ln_grads_jax(cfg, variables, x, w)
+    rel = max(float(np.max(np.abs(grads[k] - ref[k])) / np.max(np.abs(ref[k]))) for k in ref)
+    print(f"ViT-S {fmt} float64 LayerNorm grads ({len(ref)} leaves): worst max-relative "
+          f"diff {rel:.2e}")
+    assert len(ref) == 50 and rel < 1e-3
+
+
+def test_transformers5_names_convert_like_hub_names(small, tmp_path):
+  """A state dict saved from transformers >= 5 (attention.q_proj ...) converts identically."""
+  save_file(small["state"], str(tmp_path / "model.safetensors"))
+  cfg, variables = conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf",
+                                                  {"num_heads": 3, "layer_idx": [0, 1, 2, 3]})
+  ref_cfg, ref = small["converted"]["hf"]
+  assert dict(cfg, encoder="custom") == dict(ref_cfg, encoder="custom")
+  for a, b in zip(jax.tree_util.tree_leaves(variables), jax.tree_util.tree_leaves(ref)):
+    np.testing.assert_array_equal(a, b)
+
+
+def test_hf_config_json_is_read_and_metric_models_refused(small, tmp_path):
+  cfg = small["converted"]["hf"][0]
+  assert cfg["num_heads"] == 3 and cfg["layer_idx"] == [0, 1, 2, 3]  # from config.json
+  meta = json.loads((small["root"] / "hf" / "config.json").read_text())
+  (tmp_path / "model.safetensors").write_bytes(
+      (small["root"] / "hf" / "model.safetensors").read_bytes())
+  (tmp_path / "config.json").write_text(json.dumps(dict(meta, depth_estimation_type="metric")))
+  with pytest.raises(CheckpointError, match="metric"):
+    conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf")
+
+
+def test_unknown_vit_size_needs_heads_and_layers(small):
+  with pytest.raises(CheckpointError, match=r"\['num_heads', 'layer_idx'\]"):
+    conv.convert_depth_anything_v2(small["root"] / "official" / "depth_anything_v2.pth")
+
+
+def test_wrong_format_is_named(small):
+  with pytest.raises(CheckpointError, match="use --from official"):
+    conv.convert_depth_anything_v2(small["root"] / "official" / "depth_anything_v2.pth", "hf")
+
+
+def test_unexpected_missing_and_misshapen_keys_are_named(small, tmp_path):
+  arch = {"num_heads": 3, "layer_idx": [0, 1, 2, 3]}
+  state = torch.load(small["root"] / "official" / "depth_anything_v2.pth")
+
+  def convert(s):
+    torch.save(s, tmp_path / "ckpt.pth")
+    return conv.convert_depth_anything_v2(tmp_path / "ckpt.pth", "official", arch)
+
+  with pytest.raises(CheckpointError,
+                     match=r"1 unexpected keys: depth_head\.readout_projects\.0\.weight"):
+    convert(dict(state, **{"depth_head.readout_projects.0.weight": torch.zeros(1)}))
+  with pytest.raises(CheckpointError, match=r"2 missing keys: pretrained\.blocks\.1\.ls1\.gamma, "
+                                            r"pretrained\.blocks\.2\.norm2\.bias"):
+    convert({k: v for k, v in state.items()
+             if k not in ("pretrained.blocks.1.ls1.gamma", "pretrained.blocks.2.norm2.bias")})
+  key = "depth_head.scratch.refinenet2.out_conv.weight"
+  with pytest.raises(CheckpointError, match=re.escape(key) + r" has shape \(16, 16, 3, 3\)"):
+    convert(dict(state, **{key: torch.zeros(16, 16, 3, 3)}))
+  # the unused upstream modules are ignorable (the fixture converted them), look-alikes are not
+  assert "depth_head.scratch.refinenet4.resConfUnit1.conv1.weight" in state
+  with pytest.raises(CheckpointError, match=r"1 unexpected keys: pretrained\.mask_tokens"):
+    convert(dict(state, **{"pretrained.mask_tokens": torch.zeros(1, 48)}))
+  key = "backbone.encoder.layer.3.attention.attention.key.bias"
+  hub = conv.read_state(small["root"] / "hf" / "model.safetensors", "hf")
+  save_file({k: torch.from_numpy(v) for k, v in hub.items() if k != key},
+            str(tmp_path / "model.safetensors"))
+  with pytest.raises(CheckpointError, match=r"1 missing keys: " + re.escape(key)):
+    conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf", arch)
+
+
+def test_cli_writes_a_weights_directory_spec_builds(small, tmp_path):
+  parser = argparse.ArgumentParser()
+  conv.add_arguments(parser)
+  args = parser.parse_args(["--from", "official", str(small["root"] / "official" /
+                            "depth_anything_v2.pth"), "--num-heads", "3", "--layer-idx", "0,1,2,3",
+                            "--out", str(tmp_path / "out")])
+  out = conv.run(args)
+  meta = json.loads((out / "model.json").read_text())
+  assert meta["architecture"] == SPEC.name == "depth_anything_v2"
+  assert meta["source"]["format"] == "official" and (meta["height"], meta["width"]) == (518, 518)
+  cfg, variables = small["converted"]["official"]
+  assert build(meta).layer_idx == build(cfg).layer_idx == (0, 1, 2, 3)
+  for a, b in zip(jax.tree_util.tree_leaves(load_tree(out / "depth")),
+                  jax.tree_util.tree_leaves(variables)):
+    np.testing.assert_array_equal(a, b)
+
+
+def test_spec_and_input_sizes(small):
+  assert (SPEC.output, SPEC.alignment, SPEC.size_multiple, SPEC.default_size, SPEC.encoder) == (
+      "relative_inverse_depth", "scale_shift", 14, (518, 518), "encoder")
+  SPEC.check_size(196, 644)
+  with pytest.raises(ValueError, match="multiples of 14"):
+    SPEC.check_size(192, 640)
+  cfg, variables = small["converted"]["hf"]
+  with pytest.raises(ValueError, match="multiples of 14"):
+    build(cfg).apply(variables, np.zeros((1, 192, 640, 3), np.float32))
+  assert "encoder" in variables["params"] and "depth_head" in variables["params"]

@@ -1,0 +1,342 @@
+"""Depth Anything V2 checkpoints (upstream `.pth`, Hugging Face `.safetensors`) -> Flax variables.
+
+Two explicit key tables map PyTorch names to the Flax paths of
+`pitta_jax.models.depth_anything_v2.DepthAnythingV2`:
+
+* upstream DepthAnything/Depth-Anything-V2 (`depth_anything_v2_vits.pth`, a plain state dict of
+  `DepthAnythingV2`): `pretrained.*` (DINOv2, fused `attn.qkv`, `ls1.gamma`) and `depth_head.*`
+  (`projects.i`, `resize_layers.{0,1,3}`, `scratch.layer{i}_rn`, `scratch.refinenet{1..4}`,
+  `scratch.output_conv1`, `scratch.output_conv2.{0,2}`);
+* Hugging Face `DepthAnythingForDepthEstimation` (`model.safetensors` or `pytorch_model.bin`):
+  `backbone.*` (Dinov2Backbone: separate `attention.attention.query/key/value`, fused here with
+  `rules.fused_linear`; `attention.output.dense`; `layer_scale1.lambda1`), `neck.*`
+  (`reassemble_stage.layers.i.projection/resize`, `convs.i`, `fusion_stage.layers.k` = upstream
+  `refinenet{4 - k}`, i.e. in reverse order) and `head.conv1..3`. Hub files carry these
+  (transformers 4.x) names; transformers >= 5 holds the attention as `attention.q_proj/k_proj/
+  v_proj/o_proj` in memory, and a state dict saved from it is renamed to the Hub names first.
+
+Layouts: linear weight transposed, conv OIHW -> HWIO, ConvTranspose2d (in, out, k, k) read as
+OIHW -> (k, k, out, in) (`dpt.ConvTransposeNoOverlap`), everything else as it is.
+
+Ignored keys, each unused by the network: the DINOv2 `mask_token` (masked-image pretraining
+only), and upstream's `refinenet4.resConfUnit1` / HF's `fusion_stage.layers.0.residual_layer1`
+(built but never called: the first fusion block has no skip input). No module is registered
+under two names in either format. Every other key must be used; loading is strict (unexpected,
+missing and misshapen keys are named).
+
+The architecture comes from the weights' shapes (width, depth, MLP width, position grid, head
+widths); the number of heads and the blocks the head reads are not in the weights: they come
+from upstream's table for ViT-S/B/L (`VIT_VARIANTS`), from a `config.json` beside an HF file
+when there is one, or from `arch` overrides (`--num-heads`, `--layer-idx`). Depth Anything V1
+checkpoints have the same keys but read the last four blocks: give `--layer-idx` for them.
+The position-embedding resize rule differs between the two implementations (see
+`models/depth_anything_v2/dinov2.py`) and is recorded as config["pos_offset"]: 0.1 upstream, 0 HF.
+
+    python -m weights_convert depth_anything_v2 --from {official,hf} CKPT --out DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+from pathlib import Path
+from typing import Any, Mapping, NamedTuple
+
+from weights_convert import rules as R
+from weights_convert.mask2former import read_safetensors
+from weights_convert.pth import CheckpointError, load_pth
+from weights_convert.strict import check_keys
+
+FORMATS = ("official", "hf")
+# keys the network does not use (see the module docstring)
+_IGNORED = {
+    "official": re.compile(r"^pretrained\.mask_token$"
+                           r"|^depth_head\.scratch\.refinenet4\.resConfUnit1\."),
+    "hf": re.compile(r"^backbone\.embeddings\.mask_token$"
+                     r"|^neck\.fusion_stage\.layers\.0\.residual_layer1\."),
+}
+# transformers >= 5 in-memory attention names -> Hub (transformers 4.x) names
+_HF5_RENAMES = (
+    (".attention.q_proj.", ".attention.attention.query."),
+    (".attention.k_proj.", ".attention.attention.key."),
+    (".attention.v_proj.", ".attention.attention.value."),
+    (".attention.o_proj.", ".attention.output.dense."),
+)
+RESIZED = (0, 1, 3)  # resize_layers with parameters (2 is the identity)
+ENC, HEAD = ("params", "encoder"), ("params", "depth_head")
+
+
+# ------------------------------------------------------------------------------ key tables
+
+
+def official_rules(cfg: Mapping[str, Any]) -> R.Rules:
+  """Key table of upstream `DepthAnythingV2` names."""
+  r: R.Rules = []
+  R.conv(r, ENC + ("patch_embed",), "pretrained.patch_embed.proj")
+  R.param(r, ENC + ("cls_token",), "pretrained.cls_token")
+  R.param(r, ENC + ("pos_embed",), "pretrained.pos_embed")
+  for i in range(cfg["depth"]):
+    s, f = f"pretrained.blocks.{i}", ENC + (f"blocks_{i}",)
+    R.layer_norm(r, f + ("norm1",), f"{s}.norm1")
+    R.linear(r, f + ("attn", "qkv"), f"{s}.attn.qkv")
+    R.linear(r, f + ("attn", "proj"), f"{s}.attn.proj")
+    R.param(r, f + ("ls1", "gamma"), f"{s}.ls1.gamma")
+    R.layer_norm(r, f + ("norm2",), f"{s}.norm2")
+    R.linear(r, f + ("mlp", "fc1"), f"{s}.mlp.fc1")
+    R.linear(r, f + ("mlp", "fc2"), f"{s}.mlp.fc2")
+    R.param(r, f + ("ls2", "gamma"), f"{s}.ls2.gamma")
+  R.layer_norm(r, ENC + ("norm",), "pretrained.norm")
+
+  h = "depth_head"
+  for i in range(4):
+    R.conv(r, HEAD + (f"projects_{i}",), f"{h}.projects.{i}")
+    if i in RESIZED:
+      R.conv(r, HEAD + (f"resize_layers_{i}",), f"{h}.resize_layers.{i}")
+    R.conv(r, HEAD + (f"layer{i + 1}_rn",), f"{h}.scratch.layer{i + 1}_rn", bias=False)
+  for n in range(1, 5):
+    s, f = f"{h}.scratch.refinenet{n}", HEAD + (f"refinenet{n}",)
+    for unit in (("resConfUnit1", "resConfUnit2") if n < 4 else ("resConfUnit2",)):
+      R.conv(r, f + (unit, "conv1"), f"{s}.{unit}.conv1")
+      R.conv(r, f + (unit, "conv2"), f"{s}.{unit}.conv2")
+    R.conv(r, f + ("out_conv",), f"{s}.out_conv")
+  R.conv(r, HEAD + ("output_conv1",), f"{h}.scratch.output_conv1")
+  R.conv(r, HEAD + ("output_conv2_0",), f"{h}.scratch.output_conv2.0")
+  R.conv(r, HEAD + ("output_conv2_2",), f"{h}.scratch.output_conv2.2")
+  return r
+
+
+def hf_rules(cfg: Mapping[str, Any]) -> R.Rules:
+  """Key table of Hugging Face `DepthAnythingForDepthEstimation` (Hub) names."""
+  r: R.Rules = []
+  e = "backbone.embeddings"
+  R.conv(r, ENC + ("patch_embed",), f"{e}.patch_embeddings.projection")
+  R.param(r, ENC + ("cls_token",), f"{e}.cls_token")
+  R.param(r, ENC + ("pos_embed",), f"{e}.position_embeddings")
+  for i in range(cfg["depth"]):
+    s, f = f"backbone.encoder.layer.{i}", ENC + (f"blocks_{i}",)
+    R.layer_norm(r, f + ("norm1",), f"{s}.norm1")
+    R.fused_linear(r, f + ("attn", "qkv"),
+                   [f"{s}.attention.attention.{n}" for n in ("query", "key", "value")])
+    R.linear(r, f + ("attn", "proj"), f"{s}.attention.output.dense")
+    R.param(r, f + ("ls1", "gamma"), f"{s}.layer_scale1.lambda1")
+    R.layer_norm(r, f + ("norm2",), f"{s}.norm2")
+    R.linear(r, f + ("mlp", "fc1"), f"{s}.mlp.fc1")
+    R.linear(r, f + ("mlp", "fc2"), f"{s}.mlp.fc2")
+    R.param(r, f + ("ls2", "gamma"), f"{s}.layer_scale2.lambda1")
+  R.layer_norm(r, ENC + ("norm",), "backbone.layernorm")
+
+  for i in range(4):
+    s = f"neck.reassemble_stage.layers.{i}"
+    R.conv(r, HEAD + (f"projects_{i}",), f"{s}.projection")
+    if i in RESIZED:
+      R.conv(r, HEAD + (f"resize_layers_{i}",), f"{s}.resize")
+    R.conv(r, HEAD + (f"layer{i + 1}_rn",), f"neck.convs.{i}", bias=False)
+  for k in range(4):  # fusion_stage.layers.k is upstream's refinenet{4 - k}
+    s, f = f"neck.fusion_stage.layers.{k}", HEAD + (f"refinenet{4 - k}",)
+    units = (("residual_layer1", "resConfUnit1"), ("residual_layer2", "resConfUnit2"))
+    for hf_unit, unit in (units if k > 0 else units[1:]):
+      R.conv(r, f + (unit, "conv1"), f"{s}.{hf_unit}.convolution1")
+      R.conv(r, f + (unit, "conv2"), f"{s}.{hf_unit}.convolution2")
+    R.conv(r, f + ("out_conv",), f"{s}.projection")
+  R.conv(r, HEAD + ("output_conv1",), "head.conv1")
+  R.conv(r, HEAD + ("output_conv2_0",), "head.conv2")
+  R.conv(r, HEAD + ("output_conv2_2",), "head.conv3")
+  return r
+
+
+# ------------------------------------------------------------------------------ reading
+
+
+def read_state(path: str | os.PathLike, source: str) -> dict:
+  """A flat name -> array dict; HF names of transformers >= 5 renamed to the Hub names."""
+  path = str(path)
+  if source not in FORMATS:
+    raise ValueError(f"unknown source {source!r}; expected one of {FORMATS}")
+  obj = read_safetensors(path) if path.endswith(".safetensors") else load_pth(path)
+  if not isinstance(obj, dict):
+    raise CheckpointError(f"{path}: expected a state dict, found a {type(obj).__name__}")
+  if source == "official":
+    return obj
+  state = {}
+  for key, value in obj.items():
+    new = key
+    for old, hub in _HF5_RENAMES:
+      new = new.replace(old, hub)
+    if new in state:
+      raise CheckpointError(f"{path}: {key} and {new} both present (the same attention weight "
+                            f"under its transformers 5 and 4 names)")
+    state[new] = value
+  return state
+
+
+class _ShapeKeys(NamedTuple):
+  """The keys whose shapes tell a format's architecture."""
+  cls_token: str
+  pos_embed: str
+  block_norm1: str  # regex, group 1 = block index
+  fc1: str  # MLP input layer of block 0
+  project: str  # projects.{i}, formatted with i
+  layer1_rn: str
+  output_conv2_0: str
+
+
+_SHAPE_KEYS = {
+    "official": _ShapeKeys(
+        "pretrained.cls_token", "pretrained.pos_embed",
+        r"^pretrained\.blocks\.(\d+)\.norm1\.weight$", "pretrained.blocks.0.mlp.fc1.weight",
+        "depth_head.projects.{}.weight", "depth_head.scratch.layer1_rn.weight",
+        "depth_head.scratch.output_conv2.0.weight"),
+    "hf": _ShapeKeys(
+        "backbone.embeddings.cls_token", "backbone.embeddings.position_embeddings",
+        r"^backbone\.encoder\.layer\.(\d+)\.norm1\.weight$",
+        "backbone.encoder.layer.0.mlp.fc1.weight",
+        "neck.reassemble_stage.layers.{}.projection.weight", "neck.convs.0.weight",
+        "head.conv2.weight"),
+}
+
+
+def _shape(state: dict, key: str, path: str, source: str) -> tuple[int, ...]:
+  if key not in state:
+    other = [f for f in FORMATS if f != source][0]
+    hint = (f" (its keys look like the {other!r} format: use --from {other})"
+            if _SHAPE_KEYS[other].cls_token in state else "")
+    raise CheckpointError(f"{path}: {key} not found; not a Depth Anything V2 {source!r} "
+                          f"checkpoint{hint}")
+  return tuple(getattr(state[key], "shape", ()))
+
+
+def _hf_config_beside(path: str) -> dict | None:
+  """The `config.json` next to an HF weights file (a Hub snapshot), or None."""
+  cfg_path = Path(path).with_name("config.json")
+  if not cfg_path.is_file():
+    return None
+  try:
+    cfg = json.loads(cfg_path.read_text())
+  except (OSError, json.JSONDecodeError) as e:
+    raise CheckpointError(f"{cfg_path}: unreadable ({e})") from None
+  if cfg.get("depth_estimation_type", "relative") != "relative":
+    raise CheckpointError(f"{cfg_path}: depth_estimation_type {cfg['depth_estimation_type']!r}; "
+                          f"only the relative-depth model (ReLU output) is supported")
+  if cfg.get("max_depth") not in (None, 1):  # transformers multiplies even the ReLU output by it
+    raise CheckpointError(f"{cfg_path}: max_depth {cfg['max_depth']!r} scales the output; only "
+                          f"1 (upstream's relative model) is supported")
+  backbone = cfg.get("backbone_config") or {}
+  arch = {}
+  if "num_attention_heads" in backbone:
+    arch["num_heads"] = int(backbone["num_attention_heads"])
+  # hidden-state indices (stage names "stageK"): 0 is the embeddings, K the output of block K - 1
+  stages = backbone.get("out_indices") or [
+      int(name[len("stage"):]) for name in backbone.get("out_features") or []]
+  if stages:
+    arch["layer_idx"] = [int(i) - 1 for i in stages]
+  return arch
+
+
+def infer_config(state: dict, source: str, path: str, arch: Mapping[str, Any] | None = None
+                 ) -> dict[str, Any]:
+  """The model.json config (architecture of `DepthAnythingV2`, height/width, encoder name)."""
+  from pitta_jax.models.depth_anything_v2 import VIT_VARIANTS
+  from pitta_jax.models.depth_anything_v2 import dinov2
+  keys = _SHAPE_KEYS[source]
+  embed_dim = _shape(state, keys.cls_token, path, source)[-1]
+  n_pos = _shape(state, keys.pos_embed, path, source)[1] - 1
+  grid = math.isqrt(n_pos)
+  if grid * grid != n_pos:
+    raise CheckpointError(f"{path}: {keys.pos_embed} holds {n_pos} patch positions, not a "
+                          f"square grid")
+  depth = len({m.group(1) for k in state if (m := re.match(keys.block_norm1, k))})
+  mlp_hidden = _shape(state, keys.fc1, path, source)[0]
+
+  variant = next((n for n, v in VIT_VARIANTS.items()
+                  if (v.embed_dim, v.depth) == (embed_dim, depth)), None)
+  known = dict(num_heads=VIT_VARIANTS[variant].num_heads,
+               layer_idx=list(VIT_VARIANTS[variant].layer_idx)) if variant else {}
+  if source == "hf":
+    known.update(_hf_config_beside(path) or {})
+  unknown = sorted(set(arch or {}) - {"num_heads", "layer_idx"})
+  if unknown:
+    raise ValueError(f"arch overrides {unknown} are not num_heads / layer_idx")
+  known.update(arch or {})
+  missing = [k for k in ("num_heads", "layer_idx") if k not in known]
+  if missing:
+    raise CheckpointError(f"{path}: a ViT with width {embed_dim} and {depth} blocks is not one "
+                          f"of {sorted(VIT_VARIANTS)}; give {missing} explicitly "
+                          f"(--num-heads, --layer-idx)")
+  standard = variant is not None and (known["num_heads"], tuple(known["layer_idx"])) == (
+      VIT_VARIANTS[variant].num_heads, VIT_VARIANTS[variant].layer_idx)
+  return {
+      "encoder": variant if standard else "custom",
+      "embed_dim": int(embed_dim), "depth": depth, "num_heads": int(known["num_heads"]),
+      "mlp_ratio": mlp_hidden / embed_dim, "layer_idx": [int(i) for i in known["layer_idx"]],
+      "pos_grid": grid,
+      "pos_offset": dinov2.OFFICIAL_POS_OFFSET if source == "official" else dinov2.HF_POS_OFFSET,
+      "features": int(_shape(state, keys.layer1_rn, path, source)[0]),
+      "out_channels": [int(_shape(state, keys.project.format(i), path, source)[0])
+                       for i in range(4)],
+      "head_features": int(_shape(state, keys.output_conv2_0, path, source)[0]),
+      "height": grid * dinov2.PATCH_SIZE, "width": grid * dinov2.PATCH_SIZE,
+  }
+
+
+def convert_depth_anything_v2(path: str | os.PathLike, source: str = "official",
+                              arch: Mapping[str, Any] | None = None):
+  """Converts a Depth Anything V2 checkpoint file.
+
+  Args:
+    path: upstream `.pth`, or HF `.safetensors` / `pytorch_model.bin`.
+    source: "official" (upstream) or "hf".
+    arch: overrides of the fields the weights cannot tell, {"num_heads": ..., "layer_idx": [...]}.
+
+  Returns:
+    (config dict for model.json / `SPEC.build`, variables {"params": ...} of float32 NumPy
+    arrays; the network has no batch statistics).
+  """
+  from flax.traverse_util import unflatten_dict
+  from pitta_jax.models.depth_anything_v2 import build
+  state = read_state(path, source)
+  config = infer_config(state, source, str(path), arch)
+  rules = official_rules(config) if source == "official" else hf_rules(config)
+  ignorable = lambda k: bool(_IGNORED[source].match(k))
+  # the key check first: it needs no trace of the model (`apply_rules` repeats it)
+  check_keys(str(path), state, {s for rule in rules for s in rule.sources}, ignorable)
+  try:
+    expected = R.expected_shapes(build(config), (1, 28, 28, 3))
+  except ValueError as e:  # e.g. a layer_idx beyond the depth
+    raise CheckpointError(f"{path}: {e}") from None
+  flat = R.apply_rules(state, rules, ignorable, str(path), expected)
+  return config, unflatten_dict(flat)
+
+
+# ------------------------------------------------------------------------------ command line
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+  parser.add_argument("--from", dest="source", required=True, choices=FORMATS,
+                      help="checkpoint kind: upstream depth_anything_v2_vits.pth (official), or "
+                           "Hugging Face DepthAnythingForDepthEstimation .safetensors / .bin (hf)")
+  parser.add_argument("checkpoint", help="the checkpoint file")
+  parser.add_argument("--num-heads", type=int,
+                      help="attention heads (default: from the ViT size, or the HF config.json)")
+  parser.add_argument("--layer-idx", type=lambda s: [int(i) for i in s.split(",")],
+                      help="comma-separated 0-based blocks the DPT head reads (default: upstream's "
+                           "2,5,8,11 for ViT-S/B, 4,11,17,23 for ViT-L)")
+  parser.add_argument("--out", required=True, help="output weights directory")
+
+
+def run(args: argparse.Namespace) -> Path:
+  import jax
+  from pitta_jax.checkpoint import save_weights
+  from pitta_jax.models.depth_anything_v2 import SPEC
+  arch = {k: v for k, v in (("num_heads", args.num_heads), ("layer_idx", args.layer_idx))
+          if v is not None}
+  config, variables = convert_depth_anything_v2(args.checkpoint, args.source, arch or None)
+  out = save_weights(args.out, SPEC.name, config, variables,
+                     source={"file": str(args.checkpoint), "format": args.source})
+  n = sum(a.size for a in jax.tree_util.tree_leaves(variables))
+  print(f"converted Depth Anything V2 ({config['encoder']}: width {config['embed_dim']}, "
+        f"{config['depth']} blocks, {n:,} values, trained at {config['width']}x{config['height']}) "
+        f"-> {out}")
+  return out
