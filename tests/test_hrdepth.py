@@ -57,8 +57,10 @@ def released(tmp_path_factory):
   tm.randomize_(dec, 1)
   enc_state = dict(enc.state_dict())
   enc_state.update(height=TRAIN_SIZE[0], width=TRAIN_SIZE[1], use_stereo=True)
-  torch.save(enc_state, root / "encoder.pth")
-  torch.save(dec.state_dict(), root / "depth.pth")
+  # torch's pre-1.6 serialisation, as the released files (PyTorch 1.5); in it the two names of a
+  # decoder tensor share one storage
+  torch.save(enc_state, root / "encoder.pth", _use_new_zipfile_serialization=False)
+  torch.save(dec.state_dict(), root / "depth.pth", _use_new_zipfile_serialization=False)
   config, variables = conv.convert_hrdepth(root / "encoder.pth", root / "depth.pth")
   return {"root": root, "torch": (enc.eval(), dec.eval()), "config": config,
           "variables": variables}

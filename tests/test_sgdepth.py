@@ -29,14 +29,17 @@ torch.set_num_threads(2)
 H, W = 64, 96
 
 
-def _save(root, split_pos=1, resolutions=4, seed=0, grad_scale_depth=1.0):
-  """A random upstream SGDepth saved as upstream saves it; returns (module, model.pth path)."""
+def _save(root, split_pos=1, resolutions=4, seed=0, grad_scale_depth=1.0, legacy=False):
+  """A random upstream SGDepth saved as upstream saves it; returns (module, model.pth path).
+
+  legacy: torch's pre-1.6 serialisation, which the released files (PyTorch 1.1) use.
+  """
   model = ts.SGDepth(split_pos=split_pos, resolutions_depth=resolutions,
                      grad_scale_depth=grad_scale_depth)
   tm.randomize_(model, seed)
   root.mkdir(parents=True, exist_ok=True)
   path = root / "model.pth"
-  torch.save(model.state_dict(), path)
+  torch.save(model.state_dict(), path, _use_new_zipfile_serialization=not legacy)
   return model.eval(), path
 
 
@@ -52,8 +55,8 @@ def _torch_disps(model, x):
 
 @pytest.fixture(scope="module")
 def released(tmp_path_factory):
-  """The released layout: split position 1, 4 depth resolutions, ResNet-18."""
-  model, path = _save(tmp_path_factory.mktemp("sgdepth"))
+  """The released layout: split position 1, 4 depth resolutions, ResNet-18, legacy format."""
+  model, path = _save(tmp_path_factory.mktemp("sgdepth"), legacy=True)
   config, variables = conv.convert_sgdepth(path)
   return {"torch": model, "path": path, "config": config, "variables": variables}
 
