@@ -142,8 +142,10 @@ def test_encoder_bn_gradient_matches_torch_float64(released):
 def test_run_writes_a_weights_directory(released, tmp_path):
   from pitta_jax.checkpoint import load_tree
   root = released["root"]
-  out = conv.run(argparse.Namespace(encoder=root / "encoder.pth", depth=root / "depth.pth",
-                                    out=tmp_path / "w"))
+  parser = argparse.ArgumentParser()
+  conv.add_arguments(parser)
+  out = conv.run(parser.parse_args(["--encoder", str(root / "encoder.pth"),
+                                    "--depth", str(root / "depth.pth"), "--out", str(tmp_path / "w")]))
   meta = json.loads((out / "model.json").read_text())
   assert meta["architecture"] == "hrdepth"
   assert (meta["num_layers"], meta["height"], meta["width"]) == (18, 320, 1024)

@@ -186,8 +186,9 @@ def test_fewer_depth_resolutions(tmp_path):
 
 def test_run_writes_a_weights_directory(released, tmp_path):
   from pitta_jax.checkpoint import load_tree
-  out = conv.run(argparse.Namespace(model=released["path"], height=None, width=None,
-                                    out=tmp_path / "w"))
+  parser = argparse.ArgumentParser()
+  conv.add_arguments(parser)
+  out = conv.run(parser.parse_args(["--model", str(released["path"]), "--out", str(tmp_path / "w")]))
   meta = json.loads((out / "model.json").read_text())
   assert meta["architecture"] == "sgdepth" and meta["num_layers"] == 18
   assert (meta["height"], meta["width"]) == (192, 640)

@@ -139,6 +139,7 @@ def convert_hrdepth(encoder: str | os.PathLike, depth: str | os.PathLike) -> tup
                             f"training input size as 'height' and 'width'")
   config = {"num_layers": num_layers, "height": _meta(enc_state, "height", None, encoder),
             "width": _meta(enc_state, "width", None, encoder)}
+  SPEC.check_size(config["height"], config["width"])
   expected = R.expected_shapes(SPEC.build(config), (1, 64, 64, 3))
   flat = R.apply_rules(enc_state, encoder_rules(num_layers), _encoder_ignorable, str(encoder),
                        expected, cover=False)

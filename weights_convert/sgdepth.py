@@ -31,8 +31,8 @@ import re
 from pathlib import Path
 
 from weights_convert import rules as R
-from weights_convert.monodepth2 import encoder_rules, infer_num_layers
-from weights_convert.pth import CheckpointError, load_pth
+from weights_convert.monodepth2 import _read_state, encoder_rules, infer_num_layers
+from weights_convert.pth import CheckpointError
 
 ENCODER_PREFIX = "common.encoder.encoder."
 COMMON_DECODER, DEPTH_DECODER = "common.decoder.blocks.", "depth.decoder.blocks."
@@ -104,10 +104,7 @@ def convert_sgdepth(model: str | os.PathLike, height: int | None = None,
   from flax.traverse_util import unflatten_dict
   from pitta_jax.models.sgdepth import SPEC
 
-  state = load_pth(model)
-  path = str(model)
-  if not isinstance(state, dict):
-    raise CheckpointError(f"{path}: expected a state dict, found a {type(state).__name__}")
+  state, path = _read_state(model), str(model)
   encoder_view = {k[len("common.encoder."):]: v for k, v in state.items()
                   if k.startswith(ENCODER_PREFIX)}  # MonoDepth2's `encoder.*` layout
   num_layers = infer_num_layers(encoder_view, path)
@@ -115,6 +112,7 @@ def convert_sgdepth(model: str | os.PathLike, height: int | None = None,
   config = {"num_layers": num_layers, "num_scales": num_scales,
             "height": int(height or SPEC.default_size[0]),
             "width": int(width or SPEC.default_size[1])}
+  SPEC.check_size(config["height"], config["width"])
   expected = R.expected_shapes(SPEC.build(config), (1, 64, 64, 3))
   flat = R.apply_rules(state, depth_rules(num_layers, split, num_scales), _is_ignorable, path,
                        expected)
@@ -122,11 +120,13 @@ def convert_sgdepth(model: str | os.PathLike, height: int | None = None,
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+  from pitta_jax.models.sgdepth import SPEC
+  height, width = SPEC.default_size
   parser.add_argument("--model", required=True, help="SGDepth model.pth (state dict of the whole "
                       "SGDepth: common.*, depth.*, seg.*, pose.*)")
-  parser.add_argument("--height", type=int, help="training input height (default 192, the "
-                      "released models')")
-  parser.add_argument("--width", type=int, help="training input width (default 640)")
+  parser.add_argument("--height", type=int, help=f"training input height (default {height}, "
+                      f"the released models')")
+  parser.add_argument("--width", type=int, help=f"training input width (default {width})")
   parser.add_argument("--out", required=True, help="output weights directory")
 
 
