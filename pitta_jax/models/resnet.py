@@ -4,7 +4,9 @@ torchvision's ResNet-18/34 (BasicBlock) and ResNet-50 (Bottleneck, stride on the
 torchvision >= 0.2 "v1.5"), without the classifier, returning the 5 feature maps MonoDepth2's
 decoders consume: after conv1+bn1+relu (1/2), and after layer1..layer4 (1/4 .. 1/32).
 `num_input_images > 1` widens the first convolution to 3 * n channels (the pose encoder takes
-two stacked frames). The input normalisation `(x - 0.45) / 0.225` happens inside, as upstream.
+two stacked frames). The input normalisation `(x - 0.45) / 0.225` happens inside, as upstream;
+`input_mean`/`input_std` replace it for networks that normalise otherwise (SGDepth: torchvision's
+per-channel ImageNet statistics).
 
 Parameter names mirror torchvision's with `layer1.0.conv1` -> `layer1_0/conv1` and
 `downsample.0/1` -> `downsample_conv` / `downsample_bn`.
@@ -13,7 +15,9 @@ Parameter names mirror torchvision's with `layer1.0.conv1` -> `layer1_0/conv1` a
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import flax.linen as nn
+import numpy as np
 
 from pitta_jax.models.layers import BatchNorm, Conv, ModuleDef, conv, max_pool_3x3_s2
 
@@ -24,6 +28,9 @@ RESNET_SPECS: dict[int, tuple[str, tuple[int, int, int, int]]] = {
     50: ("bottleneck", (3, 4, 6, 3)),
 }
 STAGE_WIDTHS = (64, 128, 256, 512)
+MONODEPTH2_MEAN, MONODEPTH2_STD = 0.45, 0.225  # MonoDepth2's input normalisation
+IMAGENET_MEAN = (0.485, 0.456, 0.406)  # torchvision's Normalize statistics, RGB
+IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def encoder_channels(num_layers: int) -> tuple[int, ...]:
@@ -76,10 +83,14 @@ class ResnetEncoder(nn.Module):
   Attributes:
     num_layers: 18, 34 or 50.
     num_input_images: frames stacked along channels (1 for depth, 2 for the pose encoder).
+    input_mean, input_std: `(x - mean) / std` on the RGB input, one value or one per channel
+      (repeated for each stacked frame).
   """
   num_layers: int = 18
   num_input_images: int = 1
   conv: ModuleDef = Conv  # the convolution class of every layer
+  input_mean: float | tuple[float, ...] = MONODEPTH2_MEAN
+  input_std: float | tuple[float, ...] = MONODEPTH2_STD
 
   @nn.compact
   def __call__(self, images: jax.Array, train: bool = False) -> list[jax.Array]:
@@ -94,7 +105,10 @@ class ResnetEncoder(nn.Module):
     block_cls = Bottleneck if kind == "bottleneck" else BasicBlock
     expansion = 4 if kind == "bottleneck" else 1
 
-    x = (images - 0.45) / 0.225
+    # one value, or one per RGB channel repeated for each stacked frame
+    mean, std = (jnp.tile(jnp.asarray(v, images.dtype), self.num_input_images if np.ndim(v) else 1)
+                 for v in (self.input_mean, self.input_std))
+    x = (images - mean) / std
     x = conv(64, 7, 2, 3, name="conv1", module=self.conv)(x)
     x = nn.relu(BatchNorm(name="bn1")(x, train))
     features = [x]
