@@ -14,21 +14,28 @@ from pitta_jax.data.errors import DataError
 
 def _add_predict(sub) -> None:
   p = sub.add_parser(
-      "predict", help="run a converted MonoDepth2 on images, write depth .npy and colour PNGs",
-      description="Run a MonoDepth2 weights directory (from `pitta-jax convert monodepth2` or "
+      "predict", help="run a converted depth network on images, write .npy and colour PNGs",
+      description="Run a weights directory (from `pitta-jax convert NETWORK` or "
                   "`train-source`) on images: each is resized to the network's input size; "
-                  "writes <stem>_disp.npy, <stem>_depth.npy (network resolution) and "
-                  "<stem>_disp.png.")
+                  "writes <stem>_disp.npy (the network's own output: sigmoid disparity for the "
+                  "MonoDepth2 family, relative inverse depth for Depth Anything V2), "
+                  "<stem>_depth.npy (network resolution) and <stem>_disp.png.")
   p.add_argument("--weights", required=True, help="weights directory (holds model.json)")
   p.add_argument("--images", required=True, help="an image file, a directory, or a glob (quote it)")
   p.add_argument("--out", required=True, help="output directory")
+  p.add_argument("--height", type=int, help="input height (default: the weights' training size; "
+                 "must follow the network's size rule, e.g. a multiple of 32 or 14)")
+  p.add_argument("--width", type=int, help="input width (with --height)")
   p.add_argument("--quiet", action="store_true", help="no progress bar")
   p.set_defaults(func=_run_predict)
 
 
 def _run_predict(args) -> int:
   from pitta_jax.predict import predict_images
-  written = predict_images(args.weights, args.images, args.out, args.quiet)
+  if (args.height is None) != (args.width is None):
+    raise ValueError("give both --height and --width, or neither")
+  size = None if args.height is None else (args.height, args.width)
+  written = predict_images(args.weights, args.images, args.out, args.quiet, size)
   print(f"wrote {len(written)} predictions to {args.out}")
   return 0
 
@@ -153,6 +160,11 @@ def _run_train_source(args) -> int:
 DATASETS = ("drivingstereo", "kitti", "waymo", "folder", "synthetic")
 
 
+def _model_names() -> list[str]:
+  from pitta_jax.models.registry import MODELS
+  return sorted(MODELS)
+
+
 def _add_adapt(sub, name: str) -> None:
   from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.run import EvalConfig
@@ -166,7 +178,10 @@ def _add_adapt(sub, name: str) -> None:
   p.add_argument("--dataset", choices=DATASETS, required=True)
   p.add_argument("--root", help="dataset root (not needed for synthetic)")
   p.add_argument("--weights", help="weights directory; default for synthetic: the cached "
-                 "source model (trained on first use)")
+                 "source model of --model (trained on first use)")
+  p.add_argument("--model", choices=_model_names(),
+                 help="the network (default: the one the weights' model.json names; on synthetic "
+                      "without --weights: monodepth2). depth_anything_v2 needs --weights")
   p.add_argument("--segmentation", default="gt",
                  help="gt (the dataset's own panoptic maps), png:DIR (COCO-panoptic PNG + JSON "
                       "per frame stem), or mask2former:DIR (converted Mask2Former weights)")
@@ -198,7 +213,7 @@ def _run_adapt(args) -> int:
     cfg = AdaptConfig(method="none", bn_stats="running")
     method = build("none")
   eval_cfg = config_from_args(EvalConfig, args, "eval")
-  weights = open_weights(args.weights, args.dataset, quiet=args.quiet)
+  weights = open_weights(args.weights, args.dataset, quiet=args.quiet, model=args.model)
   frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
                        weights.height, weights.width)
   out = args.out

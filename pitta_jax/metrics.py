@@ -72,7 +72,8 @@ def compute_errors(gt: np.ndarray, pred: np.ndarray) -> dict[str, float]:
 
 def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DEPTH,
                   max_depth: float = MAX_DEPTH, median_scaling: bool = True, garg_crop: bool = False,
-                  clamp: bool = True, pred_is_disparity: bool = False) -> dict[str, float]:
+                  clamp: bool = True, pred_is_disparity: bool = False,
+                  alignment: str | None = None) -> dict[str, float]:
   """The 7 depth metrics of one frame, MonoDepth2 protocol.
 
   Args:
@@ -85,6 +86,11 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
     clamp: clamp pred to [min_depth, max_depth] after scaling.
     pred_is_disparity: pred is a disparity; resize it, then take depth = 1 / disparity
       (MonoDepth2's order).
+    alignment: overrides `median_scaling` when given: "median" (MonoDepth2's per-image median
+      scaling), "scale_shift" (per-image least squares of scale s and shift t in inverse depth,
+      s / pred + t ~ 1 / gt on the valid pixels, then inverted with the inverse depth floored at
+      1 / max_depth: the protocol of affine-invariant relative depth networks such as Depth
+      Anything V2), or "none".
 
   Returns:
     dict with `METRIC_NAMES` keys, Python floats.
@@ -119,14 +125,27 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
     raise ValueError(f"no valid ground-truth pixel in ({min_depth}, {max_depth})"
                      + (" inside the Garg crop" if garg_crop else ""))
   gt_v, pred_v = gt[valid], pred[valid]  # (P,)
-  if median_scaling:
+  if alignment is None:
+    alignment = "median" if median_scaling else "none"
+  if alignment == "median":
     pred_v = pred_v * (np.median(gt_v) / np.median(pred_v))
+  elif alignment == "scale_shift":
+    pred_v = 1.0 / np.maximum(scale_shift_inverse(1.0 / pred_v, 1.0 / gt_v), 1.0 / max_depth)
+  elif alignment != "none":
+    raise ValueError(f"alignment must be median, scale_shift or none, got {alignment!r}")
   if clamp:
     pred_v = np.clip(pred_v, min_depth, max_depth)
   if not (np.isfinite(pred_v).all() and (pred_v > 0).all()):
     raise ValueError("pred must be positive and finite on the valid pixels (after scaling); "
                      "use clamp=True or check the prediction")
   return compute_errors(gt_v, pred_v)
+
+
+def scale_shift_inverse(pred_inv: np.ndarray, gt_inv: np.ndarray) -> np.ndarray:
+  """s * pred_inv + t with (s, t) = argmin sum (s pred_inv + t - gt_inv)^2 (closed form), (P,)."""
+  a = np.stack([pred_inv, np.ones_like(pred_inv)], axis=1)  # (P, 2)
+  (s, t), *_ = np.linalg.lstsq(a, gt_inv, rcond=None)
+  return s * pred_inv + t
 
 
 def mean_metrics(per_frame: Iterable[Mapping[str, float]]) -> dict[str, float]:

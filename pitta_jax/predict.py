@@ -1,4 +1,4 @@
-"""Depth prediction with a converted (or trained) MonoDepth2: `pitta-jax predict`.
+"""Depth prediction with a converted (or trained) depth network: `pitta-jax predict`.
 
 Each image is read, resized to the network's input size (`resize_image`, as the readers do),
 run in eval mode (running BN statistics), and written as `<stem>_disp.npy` (scale-0 sigmoid
@@ -49,15 +49,17 @@ def make_predictor(network):
 
 
 def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_dir: str | Path,
-                   quiet: bool = False) -> list[Path]:
+                   quiet: bool = False, size: tuple[int, int] | None = None) -> list[Path]:
   """Writes disparity/depth .npy and a colour PNG per image; returns the PNG paths.
 
   images: paths, or a spec for `expand_images` (expanded after the weights load, so a bad
   weights directory is reported first).
+  size: (H, W) network input size (default: the size the weights were trained at).
   """
   weights = load_weights(weights_dir)
+  h, w = size if size is not None else (weights.height, weights.width)
+  weights.spec.check_size(h, w)  # ValueError naming the network's rule
   images = expand_images(images) if isinstance(images, str) else list(images)
-  h, w = weights.height, weights.width
   predict = make_predictor(weights.network())
   out = Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)

@@ -32,7 +32,9 @@ class EvalConfig:
   """The evaluation protocol (MonoDepth2's, paper Sec. 5 and its Appendix D)."""
   min_depth: float = option(metrics_lib.MIN_DEPTH, "ground truth below this is invalid (metres)")
   max_depth: float = option(metrics_lib.MAX_DEPTH, "cap of ground truth and prediction (metres)")
-  median_scaling: bool = option(True, "per-image median scaling (monocular models)")
+  alignment: str = option("model", "per-frame alignment of the prediction: model (the "
+                                   "network's own: median for self-supervised monocular nets, "
+                                   "scale_shift for relative depth) | median | scale_shift | none")
   garg_crop: bool = option(False, "Garg/Eigen crop (KITTI Eigen split only)")
 
   def __post_init__(self):
@@ -40,6 +42,8 @@ class EvalConfig:
           and 0 <= self.min_depth < self.max_depth < float("inf"),
           f"need 0 <= min_depth < max_depth < inf, got min_depth={self.min_depth} "
           f"max_depth={self.max_depth}")
+    check(self.alignment in ("model", "median", "scale_shift", "none"),
+          f"alignment must be model, median, scale_shift or none, got {self.alignment!r}")
 
 
 @dataclasses.dataclass
@@ -99,6 +103,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   method = method if method is not None else build_method(cfg.method)
   h, w = weights.height, weights.width
   model, tx, runner = (runners or Runners()).get(weights, method, cfg)
+  alignment = weights.spec.alignment if eval_cfg.alignment == "model" else eval_cfg.alignment
   state, consts = init_state(weights.depth, method, cfg, tx, model)
   per_frame, names, kept, logs = [], [], {}, []
   keep = set(keep)
@@ -124,7 +129,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       if frame.depth is not None:
         per_frame.append(metrics_lib.depth_metrics(
             depth, frame.depth, min_depth=eval_cfg.min_depth, max_depth=eval_cfg.max_depth,
-            median_scaling=eval_cfg.median_scaling, garg_crop=eval_cfg.garg_crop))
+            alignment=alignment, garg_crop=eval_cfg.garg_crop))
       names.append(frame.name)
       index += 1
     logs.append(out)

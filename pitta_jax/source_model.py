@@ -1,4 +1,9 @@
-"""The source model of the embedded benchmark: MonoDepth2 ResNet-18 trained on clear synthetic frames.
+"""The source model of the embedded benchmark: a depth network trained on clear synthetic frames.
+
+MonoDepth2 ResNet-18 by default; `--source.model` trains any registered network whose output is
+a sigmoid disparity (the MonoDepth2 family: SGDepth, HR-Depth, Lite-Mono, MonoViT). Depth
+Anything V2 is a ViT trained on millions of images: it runs from a user's checkpoint only.
+
 
 No pretrained weights can be downloaded, so `pitta-jax demo` trains its own source network once
 (from scratch, no ImageNet initialisation) with a supervised depth loss on the `clear` domain of
@@ -28,7 +33,8 @@ from tqdm import tqdm
 
 from pitta_jax.checkpoint import Weights, load_weights, save_weights
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-from pitta_jax.models.depth_decoder import DepthNet, check_input_size, disp_to_depth
+from pitta_jax.configs import check, finite, option
+from pitta_jax.models.depth_decoder import disp_to_depth
 from pitta_jax.nonsmooth import absolute
 
 CACHE_ENV = "PITTA_JAX_CACHE"
@@ -38,24 +44,44 @@ FORMAT_VERSION = 1  # bump when the training recipe changes, so old caches are n
 @dataclasses.dataclass(frozen=True)
 class SourceConfig:
   """How the source model is trained (defaults: about 5 minutes on a quiet 2-core CPU)."""
-  num_layers: int = 18          # paper: MonoDepth2 ResNet-18
-  height: int = 96              # reduced size (half of 640x192) for the CPU budget
-  width: int = 320
-  sequences: int = 8            # clear-domain training sequences (seeds 0..sequences-1)
-  frames_per_sequence: int = 60
-  steps: int = 250             # measured: clear AbsRel 0.139; fog 0.48, rain 0.26, night 0.44,
-  batch_size: int = 4           # snow 0.37 (the shifts hurt), ~5 min on a quiet 2-core CPU
-  lr: float = 1e-3              # Adam: 5% linear warm-up, cosine decay to 0.01 * lr
-  seed: int = 0
+  model: str = option("monodepth2", "network to train (a registered sigmoid-disparity model)")
+  num_layers: int = option(18, "ResNet depth for ResNet-encoder networks (paper: ResNet-18)")
+  height: int = option(96, "training size: half of 640x192 for the CPU budget")
+  width: int = option(320, "training width")
+  sequences: int = option(8, "clear-domain training sequences (seeds 0..sequences-1)")
+  frames_per_sequence: int = option(60, "frames per training sequence")
+  steps: int = option(250, "optimiser steps (measured: clear AbsRel 0.139; ~5 min on a quiet "
+                           "2-core CPU for MonoDepth2)")
+  batch_size: int = option(4, "frames per step")
+  lr: float = option(1e-3, "Adam: 5% linear warm-up, cosine decay to 0.01 * lr")
+  seed: int = option(0, "initialisation and sampling seed")
 
   def __post_init__(self):
-    check_input_size(self.height, self.width)
-    if min(self.sequences, self.frames_per_sequence, self.steps, self.batch_size) < 1:
-      raise ValueError("sequences, frames_per_sequence, steps and batch_size must be >= 1")
+    from pitta_jax.models.registry import get_spec
+    spec = get_spec(self.model)
+    check(spec.output == "sigmoid_disparity",
+          f"train-source cannot train {self.model} ({spec.output} output); it runs from a "
+          f"converted checkpoint (`pitta-jax convert ...`, then --weights)")
+    spec.check_size(self.height, self.width)
+    check(min(self.sequences, self.frames_per_sequence, self.steps, self.batch_size) >= 1,
+          "sequences, frames_per_sequence, steps and batch_size must be >= 1")
+    finite(self.lr, "lr", 0.0)
 
   def key(self) -> str:
-    text = json.dumps({**dataclasses.asdict(self), "format": FORMAT_VERSION}, sort_keys=True)
+    fields = dataclasses.asdict(self)
+    if fields["model"] == "monodepth2":  # keys of caches made before `model` existed stay valid
+      del fields["model"]
+    text = json.dumps({**fields, "format": FORMAT_VERSION}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+  def network_config(self) -> dict:
+    """The model.json fields of the network to train."""
+    from pitta_jax.models.registry import get_spec
+    config = {"height": self.height, "width": self.width}
+    module = get_spec(self.model).build(config)
+    if isinstance(getattr(module, "num_layers", None), int):  # ResNet-encoder networks
+      config["num_layers"] = self.num_layers
+    return config
 
 
 def cache_root() -> Path:
@@ -76,7 +102,7 @@ def enable_compilation_cache() -> None:
 
 
 def cached_dir(cfg: SourceConfig) -> Path:
-  return cache_root() / "source" / f"monodepth2_r{cfg.num_layers}_{cfg.width}x{cfg.height}_{cfg.key()}"
+  return cache_root() / "source" / f"{cfg.model}_r{cfg.num_layers}_{cfg.width}x{cfg.height}_{cfg.key()}"
 
 
 def training_frames(cfg: SourceConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -91,27 +117,30 @@ def training_frames(cfg: SourceConfig) -> tuple[np.ndarray, np.ndarray]:
   return np.stack(images).astype(np.float32), np.stack(depths).astype(np.float32)
 
 
-def supervised_loss(disps: tuple[jax.Array, ...], gt: jax.Array) -> jax.Array:
-  """Multi-scale mean |log D - log gt| on valid pixels (gt > 0). gt: (B, H, W)."""
+def supervised_loss(disps: tuple[jax.Array, ...], gt: jax.Array, to_depth=disp_to_depth
+                    ) -> jax.Array:
+  """Multi-scale mean |log D - log gt| on valid pixels (gt > 0). gt: (B, H, W); scale s is
+  upsampled (nearest) by the factor between its size and gt's."""
   valid = gt > 0
   log_gt = jnp.log(jnp.where(valid, gt, 1.0))
   total = 0.0
   for s, disp in enumerate(disps):
     d = disp[..., 0]
-    if s:
-      d = jnp.repeat(jnp.repeat(d, 2 ** s, axis=1), 2 ** s, axis=2)
-    err = absolute(jnp.log(disp_to_depth(d)) - log_gt)
+    f = gt.shape[1] // d.shape[1]
+    if f > 1:
+      d = jnp.repeat(jnp.repeat(d, f, axis=1), f, axis=2)
+    err = absolute(jnp.log(to_depth(d)) - log_gt)
     total = total + jnp.sum(jnp.where(valid, err, 0.0)) / jnp.maximum(jnp.sum(valid), 1)
   return total / len(disps)
 
 
-def make_train_step(net: DepthNet, tx: optax.GradientTransformation):
+def make_train_step(net, tx: optax.GradientTransformation, to_depth=disp_to_depth):
   @jax.jit
   def step(params, batch_stats, opt_state, images, depths):
     def loss_fn(p):
       disps, new_vars = net.apply({"params": p, "batch_stats": batch_stats}, images, train=True,
                                   mutable=["batch_stats"])
-      return supervised_loss(disps, depths), new_vars["batch_stats"]
+      return supervised_loss(disps, depths, to_depth), new_vars["batch_stats"]
     (loss, new_stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
     updates, opt_state = tx.update(grads, opt_state, params)
     return optax.apply_updates(params, updates), new_stats, opt_state, loss
@@ -132,18 +161,22 @@ def train_source(cfg: SourceConfig = SourceConfig(), quiet: bool = False) -> tup
   t0 = time.perf_counter()
   images, depths = training_frames(cfg)
   t_data = time.perf_counter() - t0
-  net = DepthNet(cfg.num_layers)
+  from pitta_jax.models.registry import get_spec
+  spec = get_spec(cfg.model)
+  net = spec.build(cfg.network_config())
   variables = jax.jit(net.init)(jax.random.PRNGKey(cfg.seed),
                                 jnp.zeros((1, cfg.height, cfg.width, 3)))
+  variables.setdefault("batch_stats", {})
   schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, max(1, cfg.steps // 20), cfg.steps,
                                                 cfg.lr * 0.01)
   tx = optax.adam(schedule)
   params, batch_stats = variables["params"], variables["batch_stats"]
   opt_state = tx.init(params)
-  step = make_train_step(net, tx)
+  step = make_train_step(net, tx, spec.to_depth)
   rng = np.random.default_rng(cfg.seed)
   losses = []
-  bar = tqdm(range(cfg.steps), desc="train source (clear)", unit="step", disable=quiet)
+  bar = tqdm(range(cfg.steps), desc=f"train source {cfg.model} (clear)", unit="step",
+             disable=quiet)
   for _ in bar:
     idx = rng.integers(0, len(images), cfg.batch_size)
     x, y = _augment(rng, images[idx], depths[idx])
@@ -168,8 +201,7 @@ def load_or_train_source(cfg: SourceConfig = SourceConfig(), quiet: bool = False
     except (OSError, ValueError) as e:  # a broken cache is rebuilt, not fatal
       print(f"warning: cached source model at {directory} unreadable ({e}); retraining")
   variables, report = train_source(cfg, quiet)
-  save_weights(directory, "monodepth2",
-               {"num_layers": cfg.num_layers, "height": cfg.height, "width": cfg.width},
+  save_weights(directory, cfg.model, cfg.network_config(),
                jax.tree_util.tree_map(np.asarray, variables),
                source={"trained_by": "pitta-jax train-source", "key": cfg.key()})
   report["weights_dir"] = str(directory)

@@ -79,15 +79,24 @@ def dataclass_annotations(cls: type) -> dict[str, Any]:
   return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
-def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False) -> Weights:
-  """The given weights directory; for the synthetic benchmark, the cached source model."""
+def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False,
+                 model: str | None = None) -> Weights:
+  """The given weights directory; for the synthetic benchmark without one, the cached source
+  model of `model` (default MonoDepth2), trained on first use.
+
+  model: the network the user asked for; a weights directory of another architecture is an
+  error.
+  """
   if weights_dir:
-    return load_weights(weights_dir)
+    weights = load_weights(weights_dir)
+    if model and weights.spec.name != model:
+      raise DataError(None, f"--model {model}, but {weights_dir} holds a {weights.spec.name}")
+    return weights
   if dataset != "synthetic":
     raise DataError(None, "--weights is required for real datasets (convert a checkpoint with "
-                          "`pitta-jax convert monodepth2 ...`)")
+                          "`pitta-jax convert NETWORK ...`)")
   from pitta_jax.source_model import SourceConfig, load_or_train_source
-  return load_or_train_source(SourceConfig(), quiet=quiet)[0]
+  return load_or_train_source(SourceConfig(model=model or "monodepth2"), quiet=quiet)[0]
 
 
 def parse_segmentation(segmentation: str) -> tuple[str, str]:

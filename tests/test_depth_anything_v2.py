@@ -11,8 +11,8 @@ no resize) and 644x196 (resized), and the gradient of a scalar loss w.r.t. every
 LayerNorm gamma/beta in float64 within 1e-3 relative. The tests use a narrow 4-block ViT
 (width 48, 3 heads) for time; the real ViT-S/14 + DPT sizes are checked by conversion (key
 tables, sizes inferred from the weights), and their full-size parity (518x518 and 644x196, both
-formats, float64 gradients) is `test_full_size_vits_matches_torch`, opt-in (PITTA_DAV2_FULL=1,
-about a minute of CPU).
+formats, float64 gradients) is `full_size_vits_matches_torch`, run by
+`python benchmarks/dav2_full_parity.py` (about a minute of CPU, outside the timed suite).
 
 float32: torch's own float32 output is further from its float64 one than ours (measured at
 518x518: torch 7.2e-5, JAX 8.0e-6 max abs), so the float32 differences printed here are mostly
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 
 import jax
@@ -283,9 +282,7 @@ def test_vits_converts_from_either_format_with_upstream_sizes(tmp_path):
   assert sum(a.size for a in flat_o.values()) == n_file - 384 - 2 * (64 * 64 * 9 + 64)
 
 
-@pytest.mark.skipif(not os.environ.get("PITTA_DAV2_FULL"),
-                    reason="full-size ViT-S parity (~1 min CPU): set PITTA_DAV2_FULL=1")
-def test_full_size_vits_matches_torch(tmp_path):
+def full_size_vits_matches_torch(tmp_path):
   """Real ViT-S/14 + DPT at 518x518 (stored grid) and 644x196 (resized), both formats, against
   transformers and upstream's layout; LayerNorm gradients in float64 at 182x126."""
   off, state = _write_checkpoints(tmp_path, VITS, seed=1)

@@ -135,3 +135,20 @@ def test_mean_metrics():
     metrics.mean_metrics([])
   with pytest.raises(ValueError, match="lacks"):
     metrics.mean_metrics([{"abs_rel": 1.0}])
+
+
+def test_scale_shift_alignment_recovers_an_affine_inverse_depth():
+  # Reference: a prediction that is an exact affine map of the inverse ground truth must score
+  # 0 after scale-shift alignment (what a relative-depth network is evaluated with), and the
+  # closed form must equal NumPy's least squares written out here.
+  rng = np.random.default_rng(3)
+  gt = rng.uniform(2.0, 60.0, size=(20, 30))
+  pred_inv = 3.0 * (1.0 / gt) + 0.25  # relative inverse depth, affine in 1/gt
+  got = metrics.depth_metrics(1.0 / pred_inv, gt, alignment="scale_shift")
+  assert got["abs_rel"] < 1e-6 and got["a1"] == 1.0  # pred is cast to float32 inside
+  a = np.stack([pred_inv.ravel(), np.ones(pred_inv.size)], 1)
+  s, t = np.linalg.inv(a.T @ a) @ a.T @ (1.0 / gt.ravel())  # normal equations
+  np.testing.assert_allclose(metrics.scale_shift_inverse(pred_inv.ravel(), 1.0 / gt.ravel()),
+                             s * pred_inv.ravel() + t, rtol=1e-10)
+  with pytest.raises(ValueError, match="alignment must be"):
+    metrics.depth_metrics(1.0 / pred_inv, gt, alignment="mean")

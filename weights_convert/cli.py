@@ -9,13 +9,25 @@ from __future__ import annotations
 import argparse
 import sys
 
-from weights_convert import mask2former, monodepth2
+from weights_convert import (depth_anything_v2, hrdepth, litemono, mask2former, monodepth2,
+                             monovit, sgdepth)
 from weights_convert.pth import CheckpointError
 
 # converter name -> (help, add_arguments, run)
 CONVERTERS = {
     "monodepth2": ("MonoDepth2 encoder/depth(/pose) .pth files -> a pitta-jax weights directory",
                    monodepth2.add_arguments, monodepth2.run),
+    "sgdepth": ("SGDepth model.pth (depth path; seg/pose heads ignored) -> a weights directory",
+                sgdepth.add_arguments, sgdepth.run),
+    "hrdepth": ("HR-Depth encoder.pth + depth.pth -> a weights directory",
+                hrdepth.add_arguments, hrdepth.run),
+    "litemono": ("Lite-Mono encoder.pth + depth.pth -> a weights directory",
+                 litemono.add_arguments, litemono.run),
+    "monovit": ("MonoViT encoder.pth + depth.pth (or a whole-network depth.pth) -> a weights "
+                "directory", monovit.add_arguments, monovit.run),
+    "depth-anything-v2": ("Depth Anything V2 (official .pth or Hugging Face .safetensors) -> a "
+                          "weights directory", depth_anything_v2.add_arguments,
+                          depth_anything_v2.run),
     "mask2former": ("Mask2Former (detectron2 .pkl / Hugging Face .safetensors) -> a pitta-jax "
                     "weights directory", mask2former.add_arguments, mask2former.run),
 }
@@ -32,7 +44,7 @@ def add_subcommands(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
   try:
     args.convert_fn(args)
-  except (CheckpointError, FileNotFoundError) as e:
+  except (CheckpointError, FileNotFoundError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
   return 0

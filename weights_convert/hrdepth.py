@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.monodepth2 import (METADATA_KEYS, _meta, _read_state, encoder_rules,
+from weights_convert.monodepth2 import (METADATA_KEYS, _meta, encoder_rules,
                                         infer_num_layers)
-from weights_convert.pth import CheckpointError
+from weights_convert.pth import CheckpointError, load_state_dict
 
 # upstream layer kind -> the PyTorch parameter names of one layer (relative to the layer)
 PARAMS = {
@@ -128,7 +128,7 @@ def convert_hrdepth(encoder: str | os.PathLike, depth: str | os.PathLike) -> tup
   from pitta_jax.models.hrdepth import SPEC
   from pitta_jax.models.hrdepth.network import NUM_LAYERS
 
-  enc_state, dec_state = _read_state(encoder), _read_state(depth)
+  enc_state, dec_state = load_state_dict(encoder), load_state_dict(depth)
   num_layers = infer_num_layers(enc_state, str(encoder))
   if num_layers not in NUM_LAYERS:
     raise CheckpointError(f"{encoder}: a ResNet-{num_layers} encoder; HR-Depth's decoder fits "

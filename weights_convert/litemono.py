@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, load_pth
+from weights_convert.pth import CheckpointError, load_state_dict
 
 METADATA_KEYS = ("height", "width", "use_stereo")
 # upstream's decoder ModuleList order: (upconv, 2, 0), (upconv, 2, 1), ..., (upconv, 0, 1),
@@ -122,11 +122,6 @@ def infer_model(state: dict, path: str) -> str:
                         f"Lite-Mono model ({', '.join(VARIANTS)})")
 
 
-def _read_state(path: str | os.PathLike) -> dict:
-  state = load_pth(path)
-  if not isinstance(state, dict):
-    raise CheckpointError(f"{path}: expected a state dict, found a {type(state).__name__}")
-  return state
 
 
 def _size_entry(state: dict, key: str, default: int, path) -> int:
@@ -155,7 +150,7 @@ def convert_litemono(encoder: str | os.PathLike, depth: str | os.PathLike,
   from flax.traverse_util import unflatten_dict
   from pitta_jax.models.litemono import DEFAULT_SIZE, SPEC
 
-  enc_state, dec_state = _read_state(encoder), _read_state(depth)
+  enc_state, dec_state = load_state_dict(encoder), load_state_dict(depth)
   overlap = set(enc_state) & set(dec_state) - set(METADATA_KEYS)
   if overlap:
     raise CheckpointError(f"{depth}: keys {sorted(overlap)[:4]} also occur in {encoder}; "

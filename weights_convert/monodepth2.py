@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, load_pth
+from weights_convert.pth import CheckpointError, load_state_dict
 
 METADATA_KEYS = ("height", "width", "use_stereo")
 RESNET_BLOCKS = {18: ("basic", (2, 2, 2, 2)), 34: ("basic", (3, 4, 6, 3)),
@@ -87,11 +87,6 @@ def infer_num_layers(state: dict, path: str) -> int:
                         f"(encoder.layer3 has {n_layer3} blocks; expected 2 (ResNet-18) or 6 (ResNet-34))")
 
 
-def _read_state(path: str | os.PathLike) -> dict:
-  state = load_pth(path)
-  if not isinstance(state, dict):
-    raise CheckpointError(f"{path}: expected a state dict, found a {type(state).__name__}")
-  return state
 
 
 def _meta(state: dict, key: str, default, path):
@@ -122,8 +117,8 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
 
   if (pose_encoder is None) != (pose is None):
     raise CheckpointError("--pose-encoder and --pose go together: give both or neither")
-  enc_state = _read_state(encoder)
-  dec_state = _read_state(depth)
+  enc_state = load_state_dict(encoder)
+  dec_state = load_state_dict(depth)
   num_layers = num_layers or infer_num_layers(enc_state, str(encoder))
   overlap = set(enc_state) & set(dec_state) - set(METADATA_KEYS)
   if overlap:
@@ -143,7 +138,7 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
 
   pose_vars = None
   if pose_encoder is not None:
-    pe_state, pd_state = _read_state(pose_encoder), _read_state(pose)
+    pe_state, pd_state = load_state_dict(pose_encoder), load_state_dict(pose)
     pose_layers = infer_num_layers(pe_state, str(pose_encoder))
     expected_pose = R.expected_shapes(PoseNet(pose_layers), (1, 64, 64, 6))
     pflat = R.apply_rules(pe_state, encoder_rules(pose_layers), _is_ignorable,

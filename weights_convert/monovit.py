@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, load_pth
+from weights_convert.pth import CheckpointError, load_state_dict
 from weights_convert.strict import check_keys
 
 METADATA_KEYS = ("height", "width", "use_stereo")
@@ -267,10 +267,7 @@ def strip_data_parallel(state: dict, path: str) -> dict:
 
 def _read_state(path: str | os.PathLike) -> dict:
   """The state dict of a .pth file, without a DataParallel `module.` prefix."""
-  state = load_pth(path)
-  if not isinstance(state, dict):
-    raise CheckpointError(f"{path}: expected a state dict, found a {type(state).__name__}")
-  return strip_data_parallel(state, str(path))
+  return strip_data_parallel(load_state_dict(path), str(path))
 
 
 def _size(state: dict, key: str, given: int | None, path: str) -> int:

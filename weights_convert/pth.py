@@ -639,6 +639,14 @@ def load_pth(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
     raise _reraise(path, error) from error
 
 
+def load_state_dict(path: str | os.PathLike) -> dict:
+  """`load_pth` of a file that must hold a state dict (name -> tensor, plus metadata entries)."""
+  state = load_pth(path)
+  if not isinstance(state, dict):
+    raise CheckpointError(f"{path}: expected a state dict, found a {type(state).__name__}")
+  return state
+
+
 def unpickle_arrays(stream: BinaryIO, name: str) -> Any:
   """Unpickles a stream that may hold only containers, numbers, strings and NumPy arrays (the
   allow-list of `load_pickle`), e.g. the object array inside a `.npz` member.

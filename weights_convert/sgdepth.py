@@ -31,8 +31,8 @@ import re
 from pathlib import Path
 
 from weights_convert import rules as R
-from weights_convert.monodepth2 import _read_state, encoder_rules, infer_num_layers
-from weights_convert.pth import CheckpointError
+from weights_convert.monodepth2 import encoder_rules, infer_num_layers
+from weights_convert.pth import CheckpointError, load_state_dict
 
 ENCODER_PREFIX = "common.encoder.encoder."
 COMMON_DECODER, DEPTH_DECODER = "common.decoder.blocks.", "depth.decoder.blocks."
@@ -104,7 +104,7 @@ def convert_sgdepth(model: str | os.PathLike, height: int | None = None,
   from flax.traverse_util import unflatten_dict
   from pitta_jax.models.sgdepth import SPEC
 
-  state, path = _read_state(model), str(model)
+  state, path = load_state_dict(model), str(model)
   encoder_view = {k[len("common.encoder."):]: v for k, v in state.items()
                   if k.startswith(ENCODER_PREFIX)}  # MonoDepth2's `encoder.*` layout
   num_layers = infer_num_layers(encoder_view, path)

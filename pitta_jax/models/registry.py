@@ -15,11 +15,16 @@ import jax
 import flax.linen as nn
 from flax.traverse_util import flatten_dict
 
-from pitta_jax.models import monodepth2
+from pitta_jax.models import depth_anything_v2, hrdepth, litemono, monodepth2, monovit, sgdepth
 from pitta_jax.models.spec import ModelSpec
 
 MODELS: dict[str, ModelSpec] = {
     "monodepth2": monodepth2.SPEC,
+    "sgdepth": sgdepth.SPEC,
+    "hrdepth": hrdepth.SPEC,
+    "litemono": litemono.SPEC,
+    "monovit": monovit.SPEC,
+    "depth_anything_v2": depth_anything_v2.SPEC,
 }
 
 
