@@ -21,8 +21,9 @@ import jax
 import numpy as np
 
 from pitta_jax.adapt.engine import StepInput
-from pitta_jax.models import depth_decoder, layers
+from pitta_jax.models.depth_decoder import DepthNet
 from pitta_jax.models.random_init import random_monodepth2_variables as jax_variables  # noqa: F401
+from pitta_jax.models.registry import Network, network
 
 ROAD, SKY, CAR, PERSON = 149, 187, 3, 1  # COCO panoptic category ids
 
@@ -81,8 +82,10 @@ def step_inputs(frames: list[BenchFrame], max_segments: int, valid: int | None =
     for k, (seg_id, cat) in enumerate(f.segments):
       ids[t, k], cls[t, k], ok[t, k] = seg_id, cat, True
   valid_mask = np.arange(n) < (n if valid is None else valid)
+  # no camera: intrinsics zeros, has_intrinsics False (PITTA does not use them)
   return StepInput(np.stack([f.image for f in frames]), np.stack([f.panoptic for f in frames]),
-                   ids, cls, ok, valid_mask)
+                   ids, cls, ok, valid_mask, np.zeros((n, 3, 3), np.float32),
+                   np.zeros((n,), bool))
 
 
 def chunk_stream(n_frames: int, chunk: int, height: int, width: int, instances: int,
@@ -114,31 +117,34 @@ def torch_and_jax_weights(seed: int = 0, num_layers: int = 18):
 
 
 CONV_RULES = ("loop_friendly", "jax")
-_LOOP_FRIENDLY_CONV = layers.Conv  # the project's default, kept to switch back
 
 
-def set_conv_rule(rule: str) -> None:
-  """Which input-gradient rule the MonoDepth2 convolutions traced from now on use:
-  "loop_friendly" (the project's `models.conv_vjp`, the default) or "jax" (JAX's own transpose
-  rule, slow inside `lax.scan` on XLA:CPU), so that one run can time both side by side."""
+def depth_network(rule: str = "loop_friendly", num_layers: int = 18) -> Network:
+  """The MonoDepth2 network whose convolutions use input-gradient rule `rule`:
+  "loop_friendly" (the project's `models.conv_vjp` via `layers.Conv`, the default) or "jax"
+  (JAX's own transpose rule, `flax.linen.Conv`, slow inside `lax.scan` on XLA:CPU), so that one
+  run can time both side by side. Both have the same parameter tree (same variables)."""
   if rule not in CONV_RULES:
     raise ValueError(f"conv rule must be one of {CONV_RULES}, got {rule!r}")
-  layers.Conv = depth_decoder.Conv = _LOOP_FRIENDLY_CONV if rule == "loop_friendly" else nn.Conv
+  if rule == "loop_friendly":
+    return network("monodepth2", {"num_layers": num_layers})
+  return network("monodepth2", module=DepthNet(num_layers, conv=nn.Conv))
 
 
-def timed_chunks(runner, state, chunk, reps: int):
-  """Times a chunk runner that donates its carry: the first call (compile + chunk), one
-  warm-up call, then `reps` steady calls. -> (first_s, first_outputs, median_s, min_s, state)."""
+def timed_chunks(runner, state, chunk, consts, reps: int):
+  """Times a chunk runner `runner(state, chunk, consts)` that donates its carry: the first call
+  (compile + chunk), one warm-up call, then `reps` steady calls.
+  -> (first_s, first_outputs, median_s, min_s, state)."""
   t0 = time.perf_counter()
-  state, first_outs = runner(state, chunk)
+  state, first_outs = runner(state, chunk, consts)
   jax.block_until_ready(first_outs)
   first_s = time.perf_counter() - t0
-  state, outs = runner(state, chunk)  # warm-up
+  state, outs = runner(state, chunk, consts)  # warm-up
   jax.block_until_ready(outs)
   holder = [state]
 
   def one():
-    holder[0], o = runner(holder[0], chunk)
+    holder[0], o = runner(holder[0], chunk, consts)
     jax.block_until_ready(o)
   med, best = median_time(one, reps)
   return first_s, first_outs, med, best, holder[0]

@@ -43,19 +43,19 @@ def child(args) -> None:
   import jax  # noqa: F401  (imported here: the parent process never touches JAX)
   import bench_common as bc
   from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, make_chunk_runner,
-                               make_optimizer, make_step, monodepth2_model)
-  from pitta_jax.adapt.methods import get_method
+                               make_optimizer, make_step)
+  from pitta_jax.methods import build
 
   cfg = AdaptConfig(chunk_size=args.chunk)
-  model, method = monodepth2_model(18), get_method("pitta")
+  model, method = bc.depth_network(), build("pitta")
   tx = make_optimizer(cfg)
   runner = make_chunk_runner(make_step(model, method, cfg, tx))
-  state = init_state(bc.jax_variables(seed=0), method, cfg, tx)
+  state, consts = init_state(bc.jax_variables(seed=0), method, cfg, tx, model)
   chunks = bc.chunk_stream(args.frames, cfg.chunk_size, args.height, args.width, args.instances,
                            cfg.max_segments, seed=2)
   losses, peak_first = [], None
   t0 = time.perf_counter()
-  for state, out in adapt_stream(state, chunks, runner):
+  for state, out in adapt_stream(state, consts, chunks, runner):
     losses.extend(out.loss.tolist())
     if peak_first is None:
       peak_first = _peak_mb()

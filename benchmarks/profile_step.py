@@ -30,12 +30,11 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 
 import bench_common as bc  # noqa: E402
 from pitta_jax.adapt import (AdaptConfig, init_state, make_chunk_runner,  # noqa: E402
-                             make_optimizer, make_step, monodepth2_model)
-from pitta_jax.adapt.methods import get_method  # noqa: E402
+                             make_optimizer, make_step)
+from pitta_jax.methods import build  # noqa: E402
 
 SKIP = ("ThunkExecutor", "Await", "PjitFunction", "while")
 
@@ -72,24 +71,24 @@ def main(argv=None) -> None:
   args = p.parse_args(argv)
 
   cfg = AdaptConfig(chunk_size=args.frames)
-  model, method = monodepth2_model(18), get_method("pitta")
+  model, method = bc.depth_network(), build("pitta")
   tx = make_optimizer(cfg)
   runner = make_chunk_runner(make_step(model, method, cfg, tx))
   chunk = bc.step_inputs(bc.synthetic_frames(args.frames, args.height, args.width,
                                              args.instances, seed=1), cfg.max_segments)
-  state = jax.tree_util.tree_map(jnp.copy, init_state(bc.jax_variables(0), method, cfg, tx))
-  sites = call_sites(runner.lower(state, chunk).compile().as_text())
+  state, consts = init_state(bc.jax_variables(0), method, cfg, tx, model)
+  sites = call_sites(runner.lower(state, chunk, consts).compile().as_text())
   for _ in range(2):  # compile + warm-up
-    state, out = runner(state, chunk)
+    state, out = runner(state, chunk, consts)
     jax.block_until_ready(out)
   t0 = time.perf_counter()
-  state, out = runner(state, chunk)
+  state, out = runner(state, chunk, consts)
   jax.block_until_ready(out)
   wall_ms = 1e3 * (time.perf_counter() - t0) / args.frames
 
   with tempfile.TemporaryDirectory() as tmp:
     jax.profiler.start_trace(tmp)
-    state, out = runner(state, chunk)
+    state, out = runner(state, chunk, consts)
     jax.block_until_ready(out)
     jax.profiler.stop_trace()
     trace_file = glob.glob(f"{tmp}/plugins/profile/*/*.trace.json.gz")[0]

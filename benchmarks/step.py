@@ -38,35 +38,46 @@ import bench_common as bc  # noqa: E402
 import torch_reference as tr  # noqa: E402
 from pitta_jax import trainable as trainable_lib  # noqa: E402
 from pitta_jax.adapt import (AdaptConfig, StepInput, init_state, make_chunk_runner,  # noqa: E402
-                             make_optimizer, make_step, monodepth2_model)
-from pitta_jax.adapt.methods import frame_loss, get_method  # noqa: E402
+                             make_optimizer, make_step)
+from pitta_jax.methods import build  # noqa: E402
+from pitta_jax.methods.depth_refining import DepthRefiningConfig, frame_loss  # noqa: E402
+from pitta_jax.methods.pitta import PittaConfig  # noqa: E402
 
 
-def engine_config(instances: int, window: int, frames: int) -> AdaptConfig:
-  """The engine's default config; the instance table grows only beyond its default 32 rows."""
-  base = AdaptConfig()
-  return AdaptConfig(window=window, chunk_size=frames,
-                     max_instances=max(base.max_instances, instances),
-                     max_segments=max(base.max_segments, instances + 2))
+def engine_config(instances: int, window: int, frames: int) -> tuple[AdaptConfig, PittaConfig]:
+  """The engine's and PITTA's default configs; the instance table grows only beyond its default
+  32 rows."""
+  base, ld = AdaptConfig(), DepthRefiningConfig()
+  cfg = AdaptConfig(chunk_size=frames, max_segments=max(base.max_segments, instances + 2))
+  pitta = PittaConfig(ld=DepthRefiningConfig(window=window,
+                                             max_instances=max(ld.max_instances, instances)))
+  return cfg, pitta
 
 
 class JaxBench:
   """The engine's compiled chunk runner, one per config (shapes), reused across frame sets."""
 
-  def __init__(self, variables, cfg: AdaptConfig):
-    self.variables, self.cfg = variables, cfg
-    self.model, self.method = monodepth2_model(18), get_method("pitta")
-    self.tx = make_optimizer(cfg)
-    self.step = make_step(self.model, self.method, cfg, self.tx)
+  def __init__(self, variables, configs: tuple[AdaptConfig, PittaConfig],
+               conv_rule: str = "loop_friendly"):
+    self.variables = variables
+    self.cfg, self.pitta = configs
+    self.model, self.method = bc.depth_network(conv_rule), build("pitta", self.pitta)
+    self.tx = make_optimizer(self.cfg)
+    self.step = make_step(self.model, self.method, self.cfg, self.tx)
     self.runner = make_chunk_runner(self.step)
+    self.consts = None
     self.compile_s = None
 
   def fresh_state(self):
-    state = init_state(self.variables, self.method, self.cfg, self.tx)
-    return jax.tree_util.tree_map(jnp.copy, state)  # the runner donates its carry
+    """A fresh carry (private copies: the runner donates it); the constants are kept."""
+    state, consts = init_state(self.variables, self.method, self.cfg, self.tx, self.model)
+    if self.consts is None:
+      self.consts = consts
+    return state
 
   def run(self, chunk: StepInput, reps: int) -> dict:
-    first_s, outs, med, best, _ = bc.timed_chunks(self.runner, self.fresh_state(), chunk, reps)
+    state = self.fresh_state()
+    first_s, outs, med, best, _ = bc.timed_chunks(self.runner, state, chunk, self.consts, reps)
     if self.compile_s is None:
       self.compile_s = first_s
     n = int(np.asarray(chunk.valid).sum())
@@ -79,18 +90,19 @@ def interleaved_ratio(variables, benches: dict, n_lo: int, n_hi: int, args) -> d
   warm runners: the sequential sweep above is exposed to drift of a shared machine's load."""
   runs = {}
   for n in (n_lo, n_hi):
-    cfg = engine_config(n, args.window, args.frames)
-    bench = benches.setdefault(cfg, JaxBench(variables, cfg))
+    configs = engine_config(n, args.window, args.frames)
+    bench = benches.get(configs) or benches.setdefault(configs, JaxBench(variables, configs))
     chunk = bc.step_inputs(bc.synthetic_frames(args.frames, args.height, args.width, n, seed=1),
-                           cfg.max_segments)
-    state, outs = bench.runner(bench.fresh_state(), chunk)  # compiled already: warm-up
+                           configs[0].max_segments)
+    state = bench.fresh_state()
+    state, outs = bench.runner(state, chunk, bench.consts)  # compiled already: warm-up
     jax.block_until_ready(outs)
     runs[n] = [bench, chunk, state, []]
   for _ in range(args.reps):
     for n in (n_lo, n_hi, n_hi, n_lo):
       run = runs[n]
       t0 = time.perf_counter()
-      run[2], outs = run[0].runner(run[2], run[1])
+      run[2], outs = run[0].runner(run[2], run[1], run[0].consts)
       jax.block_until_ready(outs)
       run[3].append(1e3 * (time.perf_counter() - t0) / args.frames)
   lo, hi = np.median(runs[n_lo][3]), np.median(runs[n_hi][3])
@@ -138,26 +150,28 @@ def matmul_and_conv_rate(reps: int = 5) -> dict:
 
 def jax_profile(bench: JaxBench, frame: StepInput, reps: int) -> dict:
   """FLOPs and time of the parts of one step (each part jitted alone, not scanned)."""
-  model, method, cfg = bench.model, bench.method, bench.cfg
+  model, method, cfg, pitta = bench.model, bench.method, bench.cfg, bench.pitta
   state = bench.fresh_state()
+  consts = bench.consts
 
-  def forward(st, image):
-    variables = trainable_lib.merge(st.trainable, st.frozen, st.batch_stats)
+  def forward(st, image, cs):
+    variables = trainable_lib.merge(st.trainable, cs.frozen, cs.batch_stats)
     return model.depth(variables, image[None], True)[0]
 
-  def forward_backward(st, fr):
+  def forward_backward(st, fr, cs):
     def loss_fn(t):
-      return method.loss(t, state=st, frame=fr, rng=None, model=model, cfg=cfg)
+      return method.loss(t, state=st, consts=cs, frame=fr, rng=None, model=model, cfg=cfg,
+                         mcfg=method.config)
     return jax.value_and_grad(loss_fn, has_aux=True)(st.trainable)
 
   def loss_only(depth, fr):
-    return jax.value_and_grad(lambda d: frame_loss(d, fr, cfg).total)(depth)
+    return jax.value_and_grad(lambda d: frame_loss(d, fr, pitta.ld, pitta.lam).total)(depth)
 
-  depth = jax.jit(forward)(state, frame.image)
-  parts = {"forward": (forward, (state, frame.image)),
-           "forward_backward": (forward_backward, (state, frame)),
+  depth = jax.jit(forward)(state, frame.image, consts)
+  parts = {"forward": (forward, (state, frame.image, consts)),
+           "forward_backward": (forward_backward, (state, frame, consts)),
            "loss_and_depth_grad": (loss_only, (depth, frame)),
-           "step": (bench.step, (state, frame))}
+           "step": (bench.step, (state, frame, consts))}
   out = {}
   for name, (fn, args) in parts.items():
     compiled = jax.jit(fn).lower(*args).compile()
@@ -229,26 +243,25 @@ def main(argv=None) -> None:
   enc_state, dec_state = enc.state_dict(), dec.state_dict()
   common = {"H": args.height, "W": args.width, "window": args.window, "threads": args.threads,
             "frames": args.frames, "reps": args.reps}
-  benches: dict[AdaptConfig, JaxBench] = {}
+  benches: dict[tuple[AdaptConfig, PittaConfig], JaxBench] = {}
   results: dict[str, dict[int, float]] = {impl: {} for impl in impls}
   for n in sweep:
     frames = bc.synthetic_frames(args.frames, args.height, args.width, n, seed=1)
-    cfg = engine_config(n, args.window, args.frames)
+    configs = engine_config(n, args.window, args.frames)
+    max_segments = configs[0].max_segments
     losses = {}
     for impl in impls:
       if impl == "jax":
-        bench = benches.setdefault(cfg, JaxBench(variables, cfg))
-        r = bench.run(bc.step_inputs(frames, cfg.max_segments), args.reps)
+        bench = benches.get(configs) or benches.setdefault(configs, JaxBench(variables, configs))
+        r = bench.run(bc.step_inputs(frames, max_segments), args.reps)
       else:
         r = torch_run(enc_state, dec_state, frames, args.window, args.reps)
       losses[impl] = r.pop("first_losses")
       results[impl][n] = r["ms_per_frame"]
       bc.emit({"impl": impl, **common, "instances": n, **r, "load": bc.load()})
       if impl == "jax" and args.compare_conv_rule:
-        bc.set_conv_rule("jax")
-        r_jax_rule = JaxBench(variables, cfg).run(bc.step_inputs(frames, cfg.max_segments),
-                                                  args.reps)
-        bc.set_conv_rule("loop_friendly")
+        r_jax_rule = JaxBench(variables, configs, conv_rule="jax").run(
+            bc.step_inputs(frames, max_segments), args.reps)
         r_jax_rule.pop("first_losses")
         bc.emit({"impl": "jax", "conv_vjp": "jax_rule", **common, "instances": n, **r_jax_rule,
                  "load": bc.load()})
@@ -273,9 +286,9 @@ def main(argv=None) -> None:
   if not args.no_profile:
     n = sweep[0]
     frames = bc.synthetic_frames(1, args.height, args.width, n, seed=1)
-    cfg = engine_config(n, args.window, args.frames)
-    bench = benches.get(cfg) or JaxBench(variables, cfg)
-    frame = bc.step_inputs(frames, cfg.max_segments)
+    configs = engine_config(n, args.window, args.frames)
+    bench = benches.get(configs) or JaxBench(variables, configs)
+    frame = bc.step_inputs(frames, configs[0].max_segments)
     frame = StepInput(*(x[0] for x in frame))
     rates = matmul_and_conv_rate()
     prof = {"profile": "jax", "instances": n, **common, **jax_profile(bench, frame, args.reps + 2),

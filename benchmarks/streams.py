@@ -21,14 +21,21 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import dataclasses  # noqa: E402
+import math  # noqa: E402
+
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import bench_common as bc  # noqa: E402
 from pitta_jax.adapt import (AdaptConfig, init_state, make_chunk_runner,  # noqa: E402
-                             make_optimizer, make_step, monodepth2_model)
+                             make_optimizer, make_step)
 from pitta_jax.adapt import streams  # noqa: E402
-from pitta_jax.adapt.methods import get_method  # noqa: E402
+from pitta_jax.methods import build  # noqa: E402
+from pitta_jax.methods.pitta import PittaConfig  # noqa: E402
+
+# the lambdas of eq. 10 in the paper's Table 4 (inf = L_e only)
+TABLE4_LAMBDAS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, math.inf)
 
 
 def main(argv=None) -> None:
@@ -46,8 +53,8 @@ def main(argv=None) -> None:
   common = {"H": args.height, "W": args.width, "instances": args.instances,
             "frames_per_chunk": args.frames, "devices": len(jax.devices()),
             "device": jax.devices()[0].platform}
-  cfg = AdaptConfig(chunk_size=args.frames)
-  model, method = monodepth2_model(18), get_method("pitta")
+  cfg, pitta = AdaptConfig(chunk_size=args.frames), PittaConfig()
+  model, method = bc.depth_network(), build("pitta", pitta)
   tx = make_optimizer(cfg)
   variables = bc.jax_variables(seed=0)
   t = args.frames
@@ -61,8 +68,8 @@ def main(argv=None) -> None:
 
   # plain engine, one stream
   runner = make_chunk_runner(make_step(model, method, cfg, tx))
-  first, _, med, _, _ = bc.timed_chunks(runner, copy(init_state(variables, method, cfg, tx)),
-                                        chunk(0), args.reps)
+  state, consts = init_state(variables, method, cfg, tx, model)
+  first, _, med, _, _ = bc.timed_chunks(runner, state, chunk(0), consts, args.reps)
   base_fps = t / med
   bc.emit({"impl": "engine", "streams": 1, **common, "frames_per_s": base_fps,
            "ms_per_frame": 1e3 * med / t, "first_chunk_s": round(first, 1), "load": bc.load()})
@@ -71,29 +78,33 @@ def main(argv=None) -> None:
   multi = make_chunk_runner(streams.make_multi_stream_step(model, method, cfg, tx))
   for k in [int(x) for x in args.ks.split(",")]:
     frames = streams.stack_stream_inputs([chunk(100 + i) for i in range(k)])
-    states = streams.init_streams(variables, method, cfg, k, tx)
-    first, _, med, _, _ = bc.timed_chunks(multi, states, frames, args.reps)
+    states, consts = streams.init_streams(variables, method, cfg, k, tx, model=model)
+    first, _, med, _, _ = bc.timed_chunks(multi, states, frames, consts, args.reps)
     bc.emit({"impl": "vmap", "streams": k, **common, "frames_per_s": k * t / med,
              "speedup_vs_engine": k * t / med / base_fps, "first_chunk_s": round(first, 1),
              "load": bc.load()})
 
   # Table 4: 12 lambdas, same frames; one call vs one after another
-  lams = streams.TABLE4_LAMBDAS
+  lams = TABLE4_LAMBDAS
   shared = chunk(7)
-  sweep = make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx))
-  first, _, med_sweep, _, _ = bc.timed_chunks(
-      sweep, streams.init_lambda_sweep(variables, lams, cfg, tx), shared, args.reps)
-  one = make_chunk_runner(make_step(model, streams.PITTA_LAMBDA, cfg, tx))
-  singles = [streams.stream_state(streams.init_lambda_sweep(variables, [lam], cfg, tx), 0)
-             for lam in lams]
-  jax.block_until_ready(one(copy(singles[0]), shared))  # compile
-  holder = [copy(s) for s in singles]
+  sweep = make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx, pitta=pitta))
+  states, consts = streams.init_lambda_sweep(variables, lams, cfg, tx, pitta=pitta, model=model)
+  first, _, med_sweep, _, _ = bc.timed_chunks(sweep, states, shared, consts, args.reps)
+  # the sequential reference: the plain engine with PittaConfig(lam=lam), one run per lambda.
+  # lambda is a method-state value, so all 12 share one compiled runner (PittaConfig(lam=0.2)'s);
+  # each run's state comes from its own method (method_state {"lam": lam})
+  one = make_chunk_runner(make_step(model, method, cfg, tx))
+  singles = [init_state(variables, build("pitta", dataclasses.replace(pitta, lam=lam)), cfg, tx,
+                        model) for lam in lams]
+  consts = singles[0][1]
+  jax.block_until_ready(one(copy(singles[0][0]), shared, consts))  # compile
+  holder = [copy(s) for s, _ in singles]
   for i in range(len(lams)):  # warm-up, as for the sweep
-    holder[i], _ = one(holder[i], shared)
+    holder[i], _ = one(holder[i], shared, consts)
 
   def sequential():
     for i in range(len(lams)):
-      holder[i], o = one(holder[i], shared)
+      holder[i], o = one(holder[i], shared, consts)
       jax.block_until_ready(o)
   med_seq, _ = bc.median_time(sequential, args.reps)
   n = len(lams) * t

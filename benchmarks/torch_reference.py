@@ -1,6 +1,6 @@
 """A PyTorch eager PITTA step, written as a PyTorch user would: the timing reference.
 
-Same configuration as the JAX engine's default (SPEC "The method"): MonoDepth2 ResNet-18 with
+Same configuration as the JAX engine's default (docs/method.md): MonoDepth2 ResNet-18 with
 upstream's layer structure (`tests/torch_monodepth2.py`), batch 1, train-mode BatchNorm with the
 frame's batch statistics and the running statistics untouched (TENT's `configure_model`:
 `track_running_stats = False`, running buffers dropped), only the encoder BN gamma/beta adapted
@@ -36,7 +36,7 @@ DYNAMIC_COCO_IDS = (1, 2, 3, 4, 6, 7, 8)  # person, bicycle, car, motorcycle, bu
 
 
 def disp_to_depth(disp: torch.Tensor) -> torch.Tensor:
-  """MonoDepth2's sigmoid disparity -> depth (SPEC step 1)."""
+  """MonoDepth2's sigmoid disparity -> depth (paper Sec. 3, MonoDepth2)."""
   min_disp, max_disp = 1.0 / MAX_DEPTH, 1.0 / MIN_DEPTH
   return 1.0 / (min_disp + (max_disp - min_disp) * disp)
 

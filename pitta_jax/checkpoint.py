@@ -88,6 +88,17 @@ def save_weights(out_dir: str | os.PathLike, architecture: str, config: dict[str
   return out
 
 
+def read_json_object(path: Path) -> dict[str, Any]:
+  """A JSON file holding an object; WeightsError naming the file otherwise."""
+  try:
+    meta = json.loads(path.read_text())
+  except (json.JSONDecodeError, UnicodeDecodeError) as e:
+    raise WeightsError(f"{path}: not valid JSON ({e})") from None
+  if not isinstance(meta, dict):
+    raise WeightsError(f"{path}: expected a JSON object, found {type(meta).__name__}")
+  return meta
+
+
 def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
   """(spec, config) from DIR/model.json, validated (see the module docstring)."""
   from pitta_jax.models.registry import MODELS
@@ -98,12 +109,7 @@ def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]
   if not path.is_file():
     raise WeightsError(f"{path}: not found; a weights directory is made by `pitta-jax convert "
                        f"...` or `pitta-jax train-source`")
-  try:
-    meta = json.loads(path.read_text())
-  except (json.JSONDecodeError, UnicodeDecodeError) as e:
-    raise WeightsError(f"{path}: not valid JSON ({e})") from None
-  if not isinstance(meta, dict):
-    raise WeightsError(f"{path}: expected a JSON object, found {type(meta).__name__}")
+  meta = read_json_object(path)
   arch = meta.get("architecture")
   if arch not in MODELS:
     raise WeightsError(f"{path}: architecture {arch!r} is not one of {', '.join(sorted(MODELS))}")

@@ -30,12 +30,16 @@ def _add_predict(sub) -> None:
   p.set_defaults(func=_run_predict)
 
 
-def _run_predict(args) -> int:
-  from pitta_jax.predict import predict_images
+def _size(args) -> tuple[int, int] | None:
+  """(--height, --width), or None when neither is given."""
   if (args.height is None) != (args.width is None):
     raise ValueError("give both --height and --width, or neither")
-  size = None if args.height is None else (args.height, args.width)
-  written = predict_images(args.weights, args.images, args.out, args.quiet, size)
+  return None if args.height is None else (args.height, args.width)
+
+
+def _run_predict(args) -> int:
+  from pitta_jax.predict import predict_images
+  written = predict_images(args.weights, args.images, args.out, args.quiet, _size(args))
   print(f"wrote {len(written)} predictions to {args.out}")
   return 0
 
@@ -67,10 +71,7 @@ def _add_segment(sub) -> None:
 
 def _run_segment(args) -> int:
   from pitta_jax.segment import segment_images
-  if (args.height is None) != (args.width is None):
-    raise ValueError("give both --height and --width, or neither")
-  size = None if args.height is None else (args.height, args.width)
-  written = segment_images(args.weights, args.images, args.out, size, args.quiet)
+  written = segment_images(args.weights, args.images, args.out, _size(args), args.quiet)
   print(f"wrote {len(written)} panoptic maps to {args.out}")
   return 0
 

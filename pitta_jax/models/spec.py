@@ -70,3 +70,11 @@ class ModelSpec:
     if self.output == "sigmoid_disparity":
       return disp_to_depth(out, *self.depth_range)
     return 1.0 / jnp.maximum(out, RELATIVE_EPS)
+
+
+def field_builder(module_cls: type, fields: tuple[str, ...]) -> Callable[[Mapping[str, Any]], Any]:
+  """A `ModelSpec.build` that passes the model.json `fields` it finds to `module_cls` (absent
+  ones keep the module's defaults; other model.json entries are not the module's)."""
+  def build(config: Mapping[str, Any]):
+    return module_cls(**{k: config[k] for k in fields if k in config})
+  return build

@@ -2,18 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, Mapping
-
 from pitta_jax.models.hrdepth.network import DEFAULT_SIZE, DEPTH_RANGE, SIZE_MULTIPLE, HRDepthNet
-from pitta_jax.models.spec import ModelSpec
+from pitta_jax.models.spec import ModelSpec, field_builder
 
 CONFIG_FIELDS = ("num_layers",)  # what `build` reads from model.json's config
 
 
-def build(config: Mapping[str, Any]) -> HRDepthNet:
-  """model.json config (as `weights_convert.hrdepth` writes it) -> `HRDepthNet`; absent fields
-  keep the module's defaults."""
-  return HRDepthNet(**{k: config[k] for k in CONFIG_FIELDS if k in config})
+build = field_builder(HRDepthNet, CONFIG_FIELDS)  # model.json config -> `HRDepthNet`
 
 
 SPEC = ModelSpec(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -20,20 +19,17 @@ def load_mask2former(weights_dir: str | os.PathLike):
   `pitta_jax.models.mask2former.segment(module, variables, image)`.
   """
   import jax
-  from pitta_jax.checkpoint import load_tree
+  from pitta_jax.checkpoint import load_tree, read_json_object
   from pitta_jax.models.mask2former.model import Mask2Former, Mask2FormerConfig
   root = Path(weights_dir)
   meta_path = root / CONFIG_JSON
   if not meta_path.is_file():
     raise FileNotFoundError(f"{meta_path}: not found; a Mask2Former weights directory is made by "
                             f"`pitta-jax convert mask2former --from ... CKPT --out DIR`")
-  try:
-    meta = json.loads(meta_path.read_text())
-  except (json.JSONDecodeError, UnicodeDecodeError) as e:
-    raise ValueError(f"{meta_path}: not valid JSON ({e})") from None
-  if not isinstance(meta, dict) or meta.get("architecture") != "mask2former":
+  meta = read_json_object(meta_path)
+  if meta.get("architecture") != "mask2former":
     raise ValueError(f"{meta_path}: not a Mask2Former description (architecture "
-                     f"{meta.get('architecture') if isinstance(meta, dict) else None!r})")
+                     f"{meta.get('architecture')!r})")
   cfg = Mask2FormerConfig.from_dict(meta["config"])
   variables = load_tree(root / PARAMS_DIR)
   # on the device once, so that every `segment` call does not copy the weights again

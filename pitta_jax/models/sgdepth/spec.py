@@ -2,18 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, Mapping
-
 from pitta_jax.models.sgdepth.network import DEFAULT_SIZE, DEPTH_RANGE, SIZE_MULTIPLE, SGDepthNet
-from pitta_jax.models.spec import ModelSpec
+from pitta_jax.models.spec import ModelSpec, field_builder
 
 CONFIG_FIELDS = ("num_layers", "num_scales")  # what `build` reads from model.json's config
 
 
-def build(config: Mapping[str, Any]) -> SGDepthNet:
-  """model.json config (as `weights_convert.sgdepth` writes it) -> `SGDepthNet`; absent fields
-  keep the module's defaults."""
-  return SGDepthNet(**{k: config[k] for k in CONFIG_FIELDS if k in config})
+build = field_builder(SGDepthNet, CONFIG_FIELDS)  # model.json config -> `SGDepthNet`
 
 
 SPEC = ModelSpec(
