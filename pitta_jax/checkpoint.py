@@ -60,8 +60,14 @@ def _checkpointer():
 def save_tree(path: str | os.PathLike, tree: Any) -> None:
   """Writes a pytree of arrays as an orbax checkpoint at `path` (overwrites)."""
   ckpt = _checkpointer()
-  ckpt.save(os.path.abspath(path), tree, force=True)
-  ckpt.wait_until_finished()
+  try:
+    ckpt.save(os.path.abspath(path), tree, force=True)
+    ckpt.wait_until_finished()
+  except BaseException:  # a full disk, Ctrl-C: no half-written temporary directory stays
+    import shutil
+    for tmp in Path(path).parent.glob(f"{Path(path).name}.orbax-checkpoint-tmp*"):
+      shutil.rmtree(tmp, ignore_errors=True)
+    raise
 
 
 def load_tree(path: str | os.PathLike) -> Any:

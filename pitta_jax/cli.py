@@ -38,8 +38,10 @@ def _size(args) -> tuple[int, int] | None:
 
 
 def _run_predict(args) -> int:
+  from pitta_jax.outputs import open_output_dir
   from pitta_jax.predict import predict_images
-  written = predict_images(args.weights, args.images, args.out, args.quiet, _size(args))
+  with open_output_dir(args.out):
+    written = predict_images(args.weights, args.images, args.out, args.quiet, _size(args))
   print(f"wrote {len(written)} predictions to {args.out}")
   return 0
 
@@ -70,8 +72,10 @@ def _add_segment(sub) -> None:
 
 
 def _run_segment(args) -> int:
+  from pitta_jax.outputs import open_output_dir
   from pitta_jax.segment import segment_images
-  written = segment_images(args.weights, args.images, args.out, _size(args), args.quiet)
+  with open_output_dir(args.out):
+    written = segment_images(args.weights, args.images, args.out, _size(args), args.quiet)
   print(f"wrote {len(written)} panoptic maps to {args.out}")
   return 0
 
@@ -127,10 +131,12 @@ def _run_demo(args) -> int:
   demo = config_from_args(DemoConfig, args, "demo")  # validated before any work
   adapt = config_from_args(AdaptConfig, args, "adapt")
   pitta = config_from_args(PittaConfig, args, "pitta")
-  enable_compilation_cache()  # the process's choice, made here, not by the library
-  if args.retrain:
-    load_or_train_source(SourceConfig(), quiet=args.quiet, retrain=True)
-  run_demo(demo, adapt, pitta, quiet=args.quiet)
+  from pitta_jax.outputs import open_output_dir
+  with open_output_dir(demo.out):  # checked and locked before any work
+    enable_compilation_cache()  # the process's choice, made here, not by the library
+    if args.retrain:
+      load_or_train_source(SourceConfig(), quiet=args.quiet, retrain=True)
+    run_demo(demo, adapt, pitta, quiet=args.quiet)
   return 0
 
 
@@ -190,8 +196,12 @@ def _add_adapt(sub, name: str) -> None:
                  help="reader option, repeatable (e.g. weather=foggy size=half for "
                       "drivingstereo; domain=fog num_frames=100 seed=3 for synthetic)")
   p.add_argument("--out", default="pitta_out/" + name, help="output directory")
-  p.add_argument("--checkpoint-every", type=int, default=0,
-                 help="save the adaptation state every K frames under OUT/checkpoints")
+  p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
+                 help="save the adaptation state and the results so far after every K frames "
+                      "(and on Ctrl-C) under OUT/checkpoints")
+  p.add_argument("--resume", action="store_true",
+                 help="continue from the newest checkpoint under OUT/checkpoints (the frames "
+                      "it holds are not run again; results equal an uninterrupted run's)")
   p.add_argument("--quiet", action="store_true", help="no progress bars")
   if adapting:
     _add_method_configs(p)
@@ -204,9 +214,11 @@ def _run_adapt(args) -> int:
   from pitta_jax.adapt import AdaptConfig
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.methods import build
+  from pitta_jax.outputs import open_output_dir
   from pitta_jax.report import Row, write_results
   from pitta_jax.run import EvalConfig, run_sequence
-  from pitta_jax.sources import open_frames, open_weights
+  from pitta_jax.checkpoint import read_model_json
+  from pitta_jax.sources import check_dataset_args, open_frames, open_weights
   if args.adapting:
     cfg = config_from_args(AdaptConfig, args, "adapt")
     method = _method_from_args(args, cfg)
@@ -214,28 +226,43 @@ def _run_adapt(args) -> int:
     cfg = AdaptConfig(method="none", bn_stats="running")
     method = build("none")
   eval_cfg = config_from_args(EvalConfig, args, "eval")
-  weights = open_weights(args.weights, args.dataset, quiet=args.quiet, model=args.model)
-  frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
-                       weights.height, weights.width)
-  out = args.out
-  res = run_sequence(weights, frames, cfg, method, eval_cfg, name=f"{args.dataset} {cfg.method}",
-                     quiet=args.quiet,
-                     checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
-                     checkpoint_every=args.checkpoint_every)
-  row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.fps, 2),
-                                                   "frames": len(res.frame_names),
-                                                   "n_skipped": res.n_skipped})
-  meta = {"command": args.command, "dataset": args.dataset, "root": args.root,
-          "options": args.option, "segmentation": args.segmentation,
-          "weights": str(args.weights), "adapt": dataclasses.asdict(cfg),
-          "method": {"name": method.name, **dataclasses.asdict(method.config)},
-          "eval": dataclasses.asdict(eval_cfg),
-          "per_frame": [{"name": n, **m} for n, m in zip(res.frame_names, res.per_frame)],
-          "logs": {k: v.tolist() for k, v in res.logs.items()}}
-  table = write_results(out, [row], meta, group_title="Dataset")
-  if not args.quiet:
-    print(table)
-  print(f"{len(res.frame_names)} frames at {res.fps:.2f} frames/s; results in {out}/")
+  if args.checkpoint_every < 0:
+    raise ValueError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
+  if args.resume and not args.checkpoint_every:
+    raise ValueError("--resume needs --checkpoint-every K (the same K as the interrupted run)")
+  if args.weights:
+    read_model_json(args.weights)  # cheap checks first: the weights' description, the dataset
+  check_dataset_args(args.dataset, args.root, args.option, args.segmentation)
+  with open_output_dir(args.out):  # checked and locked before any work
+    weights = open_weights(args.weights, args.dataset, quiet=args.quiet, model=args.model)
+    frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
+                         weights.height, weights.width)
+    out = args.out
+    res = run_sequence(weights, frames, cfg, method, eval_cfg, name=f"{args.dataset} {cfg.method}",
+                       quiet=args.quiet,
+                       checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
+                       checkpoint_every=args.checkpoint_every, resume=args.resume)
+    row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.fps, 2),
+                                                     "frames": len(res.frame_names),
+                                                     "n_skipped": res.n_skipped,
+                                                     "n_excluded": len(res.excluded)})
+    meta = {"command": args.command, "dataset": args.dataset, "root": args.root,
+            "options": args.option, "segmentation": args.segmentation,
+            "weights": str(args.weights), "adapt": dataclasses.asdict(cfg),
+            "method": {"name": method.name, **dataclasses.asdict(method.config)},
+            "eval": dataclasses.asdict(eval_cfg),
+            "per_frame": res.per_frame,
+            "excluded_frames": {"count": len(res.excluded), "names": res.excluded,
+                                "reason": "no valid ground-truth pixel"},
+            "resumed_at_frame": res.resumed_at,
+            "logs": {k: v.tolist() for k, v in res.logs.items()}}
+    table = write_results(out, [row], meta, group_title="Dataset")
+    if not args.quiet:
+      print(table)
+    if res.excluded:
+      print(f"{len(res.excluded)} frame(s) without valid ground truth excluded from the means: "
+            f"{', '.join(res.excluded[:5])}{' ...' if len(res.excluded) > 5 else ''}")
+    print(f"{len(res.frame_names)} frames at {res.fps:.2f} frames/s; results in {out}/")
   return 0
 
 
@@ -244,6 +271,8 @@ def build_parser() -> argparse.ArgumentParser:
       prog="pitta-jax",
       description="PITTA: pose-agnostic, instance-aware test-time adaptation of monocular depth "
                   "networks, in JAX.")
+  parser.add_argument("--debug", action="store_true",
+                      help="show the full traceback of an error instead of one line")
   sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
   _add_demo(sub)
   _add_adapt(sub, "adapt")
@@ -260,7 +289,15 @@ def main(argv: list[str] | None = None) -> int:
   try:
     return args.func(args)
   except (DataError, FileNotFoundError, ValueError, TypeError) as e:
+    if args.debug:
+      raise
     print(f"error: {e}", file=sys.stderr)
+    return 2
+  except OSError as e:  # a full disk, a read-only directory, ...
+    if args.debug:
+      raise
+    where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+    print(f"error: {where}{e.strerror or e}", file=sys.stderr)
     return 2
   except KeyboardInterrupt:
     print("interrupted", file=sys.stderr)

@@ -25,6 +25,10 @@ import cv2
 import numpy as np
 
 MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0  # valid ground truth and cap, MonoDepth2's evaluation
+class NoValidPixels(ValueError):
+  """A frame whose ground truth has no pixel in the valid depth range (it cannot be scored)."""
+
+
 METRIC_NAMES = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
 
 # Garg/Eigen crop fractions of MonoDepth2 (rows top, bottom; cols left, right).
@@ -122,8 +126,8 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
   if garg_crop:
     valid &= garg_crop_mask(gt_h, gt_w)
   if not valid.any():
-    raise ValueError(f"no valid ground-truth pixel in ({min_depth}, {max_depth})"
-                     + (" inside the Garg crop" if garg_crop else ""))
+    raise NoValidPixels(f"no valid ground-truth pixel in ({min_depth}, {max_depth})"
+                        + (" inside the Garg crop" if garg_crop else ""))
   gt_v, pred_v = gt[valid], pred[valid]  # (P,)
   if alignment is None:
     alignment = "median" if median_scaling else "none"

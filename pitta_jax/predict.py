@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from pitta_jax import viz
 from pitta_jax.checkpoint import load_weights
+from pitta_jax.outputs import save_npy
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import IMAGE_SUFFIXES, list_images, read_image, write_image
 from pitta_jax.data.resize import resize_image
@@ -36,6 +37,12 @@ def expand_images(spec: str) -> list[Path]:
     paths = sorted(Path(p) for p in glob.glob(spec) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
   if not paths:
     raise DataError(spec, f"no image found (a file, a directory or a glob of {IMAGE_SUFFIXES})")
+  stems: dict[str, Path] = {}
+  for p in paths:  # outputs are named by stem: two inputs with one stem would overwrite
+    if p.stem in stems:
+      raise DataError(p, f"has the same file stem as {stems[p.stem]}; their outputs would "
+                         f"overwrite each other (predict one directory at a time)")
+    stems[p.stem] = p
   return paths
 
 
@@ -68,9 +75,9 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
     image = resize_image(read_image(path), h, w)
     disp, depth = (np.asarray(a)[0] for a in predict(weights.depth, jnp.asarray(image[None])))
     if not np.all(np.isfinite(disp)):
-      raise FloatingPointError(f"{path}: the network produced non-finite disparities")
-    np.save(out / f"{path.stem}_disp.npy", disp.astype(np.float32))
-    np.save(out / f"{path.stem}_depth.npy", depth.astype(np.float32))
+      raise ValueError(f"{path}: the network produced non-finite outputs on this image")
+    save_npy(out / f"{path.stem}_disp.npy", disp.astype(np.float32))
+    save_npy(out / f"{path.stem}_depth.npy", depth.astype(np.float32))
     png = out / f"{path.stem}_disp.png"
     write_image(png, viz.colorize(disp))
     written.append(png)

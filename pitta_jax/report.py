@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 from pathlib import Path
 from typing import Any, Sequence
@@ -14,6 +15,7 @@ import cv2
 import numpy as np
 
 from pitta_jax.metrics import METRIC_NAMES
+from pitta_jax.outputs import atomic_write_text, json_safe
 
 HIGHER_IS_BETTER = ("a1", "a2", "a3")  # threshold accuracies; the errors are lower-is-better
 HEADERS = {"abs_rel": "AbsRel ↓", "sq_rel": "SqRel ↓", "rmse": "RMSE ↓", "rmse_log": "RMSElog ↓",
@@ -52,21 +54,28 @@ def markdown_table(rows: Sequence[Row], group_title: str = "Shift") -> str:
 
 def write_results(out_dir: str | Path, rows: Sequence[Row], meta: dict[str, Any],
                   group_title: str = "Shift") -> str:
-  """Writes results.json (meta + rows), results.csv and table.md; returns the markdown."""
+  """Writes results.json (meta + rows), results.csv and table.md, each atomically; returns the
+  markdown. results.json is valid JSON: a non-finite value is written as null and counted in
+  its "non_finite_values" entry."""
   out = Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
   table = markdown_table(rows, group_title)
-  (out / "table.md").write_text(table)
   payload = {**meta, "rows": [dataclasses.asdict(r) for r in rows]}
-  (out / "results.json").write_text(json.dumps(payload, indent=2, default=_jsonable) + "\n")
-  with open(out / "results.csv", "w", newline="") as f:
-    writer = csv.writer(f)
-    extra_keys = sorted({k for r in rows for k in r.extra})
-    writer.writerow([group_title.lower(), "method", *METRIC_NAMES, *extra_keys])
-    for r in rows:
-      writer.writerow([r.group, r.method, *(f"{r.metrics.get(m, float('nan')):.6f}"
-                                            for m in METRIC_NAMES),
-                       *(r.extra.get(k, "") for k in extra_keys)])
+  payload = json.loads(json.dumps(payload, default=_jsonable))  # plain types
+  payload, n_bad = json_safe(payload)
+  payload["non_finite_values"] = n_bad
+  buffer = io.StringIO(newline="")
+  writer = csv.writer(buffer)
+  extra_keys = sorted({k for r in rows for k in r.extra})
+  writer.writerow([group_title.lower(), "method", *METRIC_NAMES, *extra_keys])
+  for r in rows:
+    writer.writerow([r.group, r.method, *(f"{r.metrics.get(m, float('nan')):.6f}"
+                                          for m in METRIC_NAMES),
+                     *(r.extra.get(k, "") for k in extra_keys)])
+  atomic_write_text(out / "results.json",
+                    json.dumps(payload, indent=2, allow_nan=False) + "\n")
+  atomic_write_text(out / "results.csv", buffer.getvalue())
+  atomic_write_text(out / "table.md", table)
   return table
 
 

@@ -9,6 +9,8 @@ the four weather shifts of the demo); nothing is cached at module level.
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 import time
 from pathlib import Path
 from typing import Sequence
@@ -17,8 +19,8 @@ import numpy as np
 from tqdm import tqdm
 
 from pitta_jax import metrics as metrics_lib
-from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, make_chunk_runner,
-                             make_optimizer, make_step)
+from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, load_state,
+                             make_chunk_runner, make_optimizer, make_step, save_state)
 from pitta_jax.adapt.inputs import chunks
 from pitta_jax.checkpoint import Weights
 from pitta_jax.configs import check, option
@@ -50,13 +52,15 @@ class EvalConfig:
 class RunResult:
   """Everything one run produced (host NumPy)."""
   name: str
-  per_frame: list[dict[str, float]]    # 7 metrics per frame (frames with ground truth)
+  per_frame: list[dict]                # {"name", 7 metrics} per scored frame (valid GT)
   mean: dict[str, float]               # averaged over frames
   logs: dict[str, np.ndarray]          # per frame: loss, loss_d, loss_e, n_instances, skipped...
   frame_names: list[str]
   seconds: float
   kept_depths: dict[int, np.ndarray]   # frame index -> predicted depth (network size)
   n_skipped: int = 0
+  excluded: list[str] = dataclasses.field(default_factory=list)  # frames without valid GT
+  resumed_at: int = 0                  # frames taken from a checkpoint (--resume)
 
   @property
   def fps(self) -> float:
@@ -83,34 +87,72 @@ class Runners:
     return self._cache[key]
 
 
+def _latest_checkpoint(directory: Path) -> Path | None:
+  """The newest `state_NNNNNN` under `directory` that has its results sidecar, or None."""
+  if not directory.is_dir():
+    return None
+  done = sorted(p for p in directory.glob("state_[0-9][0-9][0-9][0-9][0-9][0-9]")
+                if (p.parent / f"{p.name}.json").is_file())
+  return done[-1] if done else None
+
+
+def _save_checkpoint(directory: Path, state, record: dict) -> None:
+  """The carry (orbax) and every per-frame result so far (JSON sidecar, written last and
+  atomically: a state without its sidecar is never used)."""
+  from pitta_jax.outputs import atomic_write_text, json_safe
+  directory.mkdir(parents=True, exist_ok=True)
+  path = directory / f"state_{int(state.step):06d}"
+  save_state(path, state)
+  atomic_write_text(directory / f"{path.name}.json", json.dumps(json_safe(record)[0]))
+
+
 def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                  method: Method | None = None, eval_cfg: EvalConfig = EvalConfig(),
                  name: str = "", quiet: bool = False, keep: Sequence[int] = (),
                  checkpoint_dir: str | Path | None = None, checkpoint_every: int = 0,
-                 runners: Runners | None = None) -> RunResult:
+                 runners: Runners | None = None, resume: bool = False) -> RunResult:
   """Runs a method online over `frames` (predict-then-adapt) and evaluates each prediction
   against the frame's ground truth (when it has one).
+
+  A frame whose ground truth has no valid pixel is excluded from the means and named in
+  `RunResult.excluded` (the run goes on).
 
   Args:
     weights: the network to adapt (its config gives the input size).
     frames: the sequence, any length; read lazily chunk by chunk.
     cfg: the run's config; method: the method (default: `cfg.method` with its paper defaults).
     keep: frame indices whose predicted depth is returned (for figures).
+    checkpoint_dir, checkpoint_every: save the state and the results so far after every K
+      frames (exactly: the chunk size becomes a divisor of K), and on Ctrl-C.
     runners: a shared cache of compiled runners (default: a fresh one, compiled for this call).
+    resume: continue from the newest checkpoint under `checkpoint_dir` (its frames are not run
+      again); the result equals an uninterrupted run's.
   """
   if len(frames) == 0:
     raise DataError(name or "sequence", "no frames to adapt on")
   method = method if method is not None else build_method(cfg.method)
+  if checkpoint_every:
+    cfg = dataclasses.replace(cfg, chunk_size=math.gcd(cfg.chunk_size, checkpoint_every))
   h, w = weights.height, weights.width
   model, tx, runner = (runners or Runners()).get(weights, method, cfg)
   alignment = weights.spec.alignment if eval_cfg.alignment == "model" else eval_cfg.alignment
   state, consts = init_state(weights.depth, method, cfg, tx, model)
-  per_frame, names, kept, logs = [], [], {}, []
+  record = {"per_frame": [], "names": [], "excluded": [], "logs": {}}
+  directory = Path(checkpoint_dir) if checkpoint_dir else None
+  if resume and directory is not None:
+    latest = _latest_checkpoint(directory)
+    if latest is not None:
+      state = load_state(latest, like=state)
+      record = json.loads((latest.parent / f"{latest.name}.json").read_text())
+      frames = frames[int(state.step):]
+  start = int(state.step)
+  kept: dict[int, np.ndarray] = {}
   keep = set(keep)
-  bar = tqdm(total=len(frames), desc=name or cfg.method, unit="frame", disable=quiet)
+  bar = tqdm(total=start + len(frames), initial=start, desc=name or cfg.method, unit="frame",
+             disable=quiet)
   t0 = time.perf_counter()
   # a sequence shorter than a chunk is one chunk of its own length (no padded steps)
-  stream = chunks(frames, h, w, min(cfg.chunk_size, len(frames)), cfg.max_segments)
+  stream = chunks(frames, h, w, min(cfg.chunk_size, max(len(frames), 1)), cfg.max_segments)
   chunk_frames: list[list[Frame]] = []
 
   def inputs():
@@ -118,30 +160,48 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       chunk_frames.append(originals)
       yield chunk
 
-  index = 0
-  for state, out in adapt_stream(state, consts, inputs(), runner, checkpoint_dir,
-                                 checkpoint_every):
-    originals = chunk_frames.pop(0)
-    for k, frame in enumerate(originals):
-      depth = out.depth[k]
-      if index in keep:
-        kept[index] = depth
-      if frame.depth is not None:
-        per_frame.append(metrics_lib.depth_metrics(
-            depth, frame.depth, min_depth=eval_cfg.min_depth, max_depth=eval_cfg.max_depth,
-            alignment=alignment, garg_crop=eval_cfg.garg_crop))
-      names.append(frame.name)
-      index += 1
-    logs.append(out)
-    running = np.mean([m["abs_rel"] for m in per_frame]) if per_frame else float("nan")
-    bar.update(len(originals))
-    bar.set_postfix(abs_rel=f"{running:.4f}", loss=f"{float(np.mean(out.loss)):.3g}")
-  bar.close()
+  index, last_saved = start, start
+  try:
+    for state, out in adapt_stream(state, consts, inputs(), runner):
+      originals = chunk_frames.pop(0)
+      for k, frame in enumerate(originals):
+        depth = out.depth[k]
+        if index in keep:
+          kept[index] = depth
+        if frame.depth is not None:
+          try:
+            record["per_frame"].append({"name": frame.name, **metrics_lib.depth_metrics(
+                depth, frame.depth, min_depth=eval_cfg.min_depth, max_depth=eval_cfg.max_depth,
+                alignment=alignment, garg_crop=eval_cfg.garg_crop)})
+          except metrics_lib.NoValidPixels:
+            record["excluded"].append(frame.name)
+        record["names"].append(frame.name)
+        index += 1
+      for key, values in [("loss", out.loss), ("skipped", out.skipped),
+                          ("grad_norm", out.grad_norm), ("update_norm", out.update_norm),
+                          *out.logs.items()]:
+        record["logs"].setdefault(key, []).extend(np.asarray(values).tolist())
+      if directory is not None and checkpoint_every and index // checkpoint_every > (
+          last_saved // checkpoint_every):
+        _save_checkpoint(directory, state, record)
+        last_saved = index
+      abs_rels = [m["abs_rel"] for m in record["per_frame"]]
+      bar.update(len(originals))
+      bar.set_postfix(abs_rel=f"{np.mean(abs_rels) if abs_rels else float('nan'):.4f}",
+                      loss=f"{float(np.mean(out.loss)):.3g}")
+  except KeyboardInterrupt:
+    if directory is not None and checkpoint_every and index > last_saved:
+      _save_checkpoint(directory, state, record)  # the last completed chunk is not lost
+    raise
+  finally:
+    bar.close()
   seconds = time.perf_counter() - t0
-  log_arrays = {f: np.concatenate([getattr(o, f) for o in logs])
-                for f in ("loss", "skipped", "grad_norm", "update_norm")}
-  log_arrays.update({k: np.concatenate([o.logs[k] for o in logs]) for k in logs[0].logs})
+  per_frame = [{k: float("nan") if v is None else v for k, v in m.items()}
+               for m in record["per_frame"]]  # {"name", 7 metrics} per scored frame
+  logs = {k: np.asarray([np.nan if v is None else v for v in vals])
+          for k, vals in record["logs"].items()}
   mean = metrics_lib.mean_metrics(per_frame) if per_frame else {}
-  return RunResult(name=name, per_frame=per_frame, mean=mean, logs=log_arrays,
-                   frame_names=names, seconds=seconds, kept_depths=kept,
-                   n_skipped=int(state.n_skipped))
+  return RunResult(name=name, per_frame=per_frame, mean=mean, logs=logs,
+                   frame_names=record["names"], seconds=seconds, kept_depths=kept,
+                   n_skipped=int(state.n_skipped), excluded=record["excluded"],
+                   resumed_at=start)

@@ -109,28 +109,38 @@ def parse_segmentation(segmentation: str) -> tuple[str, str]:
   return kind, arg
 
 
-def open_frames(dataset: str, root: str | None, option_items: Sequence[str], segmentation: str,
-                height: int, width: int) -> Sequence[Frame]:
-  """The frame sequence of a dataset with its panoptic maps chosen by `segmentation`."""
+def check_dataset_args(dataset: str, root: str | None, option_items: Sequence[str],
+                       segmentation: str) -> dict[str, Any]:
+  """Validates the dataset flags before any work (no file is read): the typed options."""
   raw = split_options(option_items)
-  kind, arg = parse_segmentation(segmentation)
+  kind, _ = parse_segmentation(segmentation)
   if dataset == "synthetic":
     if kind != "gt":
       raise DataError(None, "the synthetic benchmark carries exact panoptic maps: use "
                             "--segmentation gt")
+    from pitta_jax.data.synthetic import SyntheticConfig
+    return typed_options(raw, dataclass_annotations(SyntheticConfig), "synthetic")
+  if not root:
+    raise DataError(None, f"--root is required for dataset {dataset}")
+  from pitta_jax.data.readers import READERS
+  if dataset not in READERS:
+    raise DataError(None, f"unknown dataset {dataset!r}; choose from {', '.join(READERS)}")
+  return typed_options(raw, function_annotations(READERS[dataset]), dataset)
+
+
+def open_frames(dataset: str, root: str | None, option_items: Sequence[str], segmentation: str,
+                height: int, width: int) -> Sequence[Frame]:
+  """The frame sequence of a dataset with its panoptic maps chosen by `segmentation`."""
+  options = check_dataset_args(dataset, root, option_items, segmentation)
+  kind, arg = parse_segmentation(segmentation)
+  if dataset == "synthetic":
     from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-    options = typed_options(raw, dataclass_annotations(SyntheticConfig), "synthetic")
     try:
       cfg = SyntheticConfig(**{"height": height, "width": width, "seed": 100, **options})
     except (TypeError, ValueError) as e:
       raise DataError(None, f"synthetic options: {e}") from None
     return generate_sequence(cfg)
-  if not root:
-    raise DataError(None, f"--root is required for dataset {dataset}")
-  from pitta_jax.data.readers import READERS, open_dataset
-  if dataset not in READERS:
-    raise DataError(None, f"unknown dataset {dataset!r}; choose from {', '.join(READERS)}")
-  options = typed_options(raw, function_annotations(READERS[dataset]), dataset)
+  from pitta_jax.data.readers import open_dataset
   if kind == "png":
     options["panoptic_dir"] = arg
   frames = open_dataset(dataset, root, **options)

@@ -11,6 +11,9 @@ are the stems.
 
 from __future__ import annotations
 
+import math
+
+from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import (DEPTH_PNG_SCALE, PathLike, depth_loader, list_images,
                                      require_dir)
 from pitta_jax.data.panoptic_io import panoptic_source
@@ -32,6 +35,9 @@ def open_folder(root: PathLike, depth_dir: PathLike | None = None,
   Returns:
     the frames sorted by stem, loaded on access.
   """
+  if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
+    raise DataError(None, f"--option depth_scale={depth_scale!r}: must be a positive number "
+                          f"(uint16 PNG value / depth_scale = metres)")
   images = list_images(root)
   require_frames(images, root, "*.{png,jpg,jpeg}")
   depth_root = None if depth_dir is None else require_dir(depth_dir, "depth directory")

@@ -45,13 +45,37 @@ def require_dir(path: PathLike, what: str = "directory") -> Path:
   return path
 
 
-def _imread(path: PathLike, what: str) -> np.ndarray:
-  path = require_file(path, what)
-  # IMREAD_UNCHANGED keeps the bit depth and the channel count, so that both can be checked.
-  array = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
+def decode_file(path: Path, what: str) -> np.ndarray:
+  """Decodes an image file with OpenCV from its bytes (any file name works, including names that
+  are not valid UTF-8, which `cv2.imread` cannot take); IMREAD_UNCHANGED keeps the bit depth and
+  the channel count, so that both can be checked."""
+  try:
+    data = np.fromfile(path, np.uint8)
+  except OSError as e:
+    raise DataError(path, f"cannot read {what} ({e.strerror or e})") from None
+  array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
   if array is None:
     raise DataError(path, f"cannot decode {what} (not a PNG/JPEG file, or truncated)")
   return array
+
+
+def encode_file(path: PathLike, array: np.ndarray, what: str = "file") -> None:
+  """Encodes `array` by the path's suffix and writes it atomically (temp file + rename), from
+  bytes (any file name works)."""
+  path = Path(path)
+  ok, data = cv2.imencode(path.suffix or ".png", array) if path.suffix else (False, None)
+  if not ok:
+    raise DataError(path, f"cannot encode {what} (unknown suffix {path.suffix!r})")
+  try:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    from pitta_jax.outputs import atomic_write_bytes
+    atomic_write_bytes(path, data.tobytes())
+  except OSError as e:
+    raise DataError(path, f"cannot write {what} ({e.strerror or e})") from None
+
+
+def _imread(path: PathLike, what: str) -> np.ndarray:
+  return decode_file(require_file(path, what), what)
 
 
 def read_image(path: PathLike) -> np.ndarray:
@@ -87,9 +111,7 @@ def write_image(path: PathLike, image: np.ndarray) -> None:
 
 
 def _imwrite(path: PathLike, array: np.ndarray) -> None:
-  Path(path).parent.mkdir(parents=True, exist_ok=True)
-  if not cv2.imwrite(os.fspath(path), array):
-    raise DataError(path, "cannot write file (unknown suffix or unwritable directory)")
+  encode_file(path, array)
 
 
 def read_depth_png(path: PathLike, scale: float = DEPTH_PNG_SCALE) -> np.ndarray:
@@ -168,7 +190,11 @@ def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES
   found: dict[str, Path] = {}
   for path in sorted(directory.iterdir()):
     suffix = path.suffix.lower()
-    if suffix not in suffixes or path.name.startswith(".") or not path.is_file():
+    if suffix not in suffixes or path.name.startswith("."):
+      continue
+    if path.is_symlink() and not path.exists():
+      raise DataError(path, "is a dangling symbolic link (its target is missing)")
+    if not path.is_file():
       continue
     other = found.get(path.stem)
     if other is None or suffixes.index(suffix) < suffixes.index(other.suffix.lower()):

@@ -21,17 +21,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 from pathlib import Path, PurePosixPath
 from typing import Any, Mapping, Sequence
 
-import cv2
 import numpy as np
 
 from pitta_jax.data import coco
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Segment
-from pitta_jax.data.image_io import PathLike, require_dir, require_file
+from pitta_jax.data.image_io import PathLike, decode_file, encode_file, require_dir, require_file
 
 MAX_ID = 256**3 - 1  # the largest id an RGB PNG can encode
 
@@ -52,10 +50,7 @@ def id_to_rgb(ids: np.ndarray) -> np.ndarray:
 
 def read_panoptic_png(path: PathLike) -> np.ndarray:
   """Reads a COCO panoptic PNG; (H, W) int32 segment ids, 0 = void."""
-  path = require_file(path, "panoptic PNG")
-  array = cv2.imread(os.fspath(path), cv2.IMREAD_UNCHANGED)
-  if array is None:
-    raise DataError(path, "cannot decode panoptic PNG")
+  array = decode_file(require_file(path, "panoptic PNG"), "panoptic PNG")
   if array.ndim != 3 or array.shape[2] not in (3, 4) or array.dtype != np.uint8:
     channels = 1 if array.ndim == 2 else array.shape[2]
     raise DataError(path, f"panoptic PNG must be 8-bit RGB (id = R + 256 G + 256^2 B), got "
@@ -65,10 +60,7 @@ def read_panoptic_png(path: PathLike) -> np.ndarray:
 
 def write_panoptic_png(path: PathLike, ids: np.ndarray) -> None:
   """Writes (H, W) integer ids as a COCO panoptic RGB PNG."""
-  path = Path(path)
-  path.parent.mkdir(parents=True, exist_ok=True)
-  if not cv2.imwrite(os.fspath(path), id_to_rgb(ids)[..., ::-1]):
-    raise DataError(path, "cannot write panoptic PNG")
+  encode_file(path, id_to_rgb(ids)[..., ::-1], "panoptic PNG")
 
 
 def segments_info(ids: np.ndarray, segments: Sequence[Segment]) -> list[dict[str, Any]]:
@@ -125,7 +117,8 @@ def parse_segments(entries: Any, path: PathLike, categories: Mapping[int, bool] 
     if not isinstance(entry, dict) or "id" not in entry or "category_id" not in entry:
       raise DataError(path, f"segments_info[{k}] lacks 'id' or 'category_id'")
     seg_id, category_id = entry["id"], entry["category_id"]
-    if not isinstance(seg_id, int) or not 0 < seg_id <= MAX_ID or not isinstance(category_id, int):
+    if (not isinstance(seg_id, int) or isinstance(seg_id, bool) or not 0 < seg_id <= MAX_ID
+        or not isinstance(category_id, int) or isinstance(category_id, bool)):
       raise DataError(path, f"segments_info[{k}] has invalid id {seg_id!r} or category_id "
                             f"{category_id!r}")
     if seg_id in seen:

@@ -1,0 +1,129 @@
+"""Result files that survive: the output directory checked and locked before any work, atomic
+writes, and JSON that is always valid.
+
+- `open_output_dir(path)`: creates the directory, proves it writable (a probe file), and takes
+  an exclusive lock (`.pitta-jax.lock`, `fcntl.flock`), so a second run on the same `--out`
+  is refused with one line instead of racing; the lock goes with the process, also on a kill.
+  Used as a context manager, a command that fails leaves no directory it created behind.
+- `atomic_write_text` / `atomic_write_bytes`: a temporary file in the same directory, fsync,
+  then `os.replace`: a reader (or a crash) sees the old file or the new one, never half of one.
+- `json_safe`: NaN/Inf become `null` (the JSON standard has no such numbers) and are counted.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+LOCK_NAME = ".pitta-jax.lock"
+
+
+class OutputError(ValueError):
+  """An output location that cannot be used (one line, names the path)."""
+
+
+class OutputDir:
+  """A checked, locked output directory; release with `close()` (or let the process end)."""
+
+  def __init__(self, path: Path, lock_fd: int, created: list[Path]):
+    self.path = path
+    self._fd = lock_fd
+    self._created = created  # directories this call made (removed again if left empty)
+
+  def close(self) -> None:
+    """Releases the lock and removes the lock file (a killed run leaves the file, unlocked)."""
+    if self._fd >= 0:
+      (self.path / LOCK_NAME).unlink(missing_ok=True)
+      os.close(self._fd)  # releases the flock
+      self._fd = -1
+
+  def __enter__(self) -> "OutputDir":
+    return self
+
+  def __exit__(self, exc_type, *exc) -> None:
+    self.close()
+    if exc_type is not None:  # a failed command leaves no empty directories behind
+      for d in reversed(self._created):
+        try:
+          d.rmdir()
+        except OSError:
+          break
+
+
+def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
+  """Creates/checks/locks `path` before any work (see the module docstring)."""
+  p = Path(path)
+  if p.exists() and not p.is_dir():
+    raise OutputError(f"{what} {p}: exists and is not a directory")
+  created = [a for a in reversed((p, *p.parents)) if not a.exists()]
+  try:
+    p.mkdir(parents=True, exist_ok=True)
+    probe = p / f".pitta-jax-probe-{os.getpid()}"
+    probe.write_bytes(b"ok")
+    probe.unlink()
+  except OSError as e:
+    raise OutputError(f"{what} {p}: cannot write there ({e.strerror or e})") from None
+  fd = os.open(p / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+  try:
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+  except BlockingIOError:
+    os.close(fd)
+    raise OutputError(f"{what} {p}: another pitta-jax run is writing there; wait for it or "
+                      f"choose another directory") from None
+  return OutputDir(p, fd, created)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+  """Writes `data` to `path` atomically (temp file in the same directory + fsync + rename)."""
+  path = Path(path)
+  tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+  try:
+    with open(tmp, "wb") as f:
+      f.write(data)
+      f.flush()
+      os.fsync(f.fileno())
+    os.replace(tmp, path)
+  except BaseException:
+    tmp.unlink(missing_ok=True)
+    raise
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+  atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
+  """`np.save` atomically."""
+  import io
+  buffer = io.BytesIO()
+  np.save(buffer, np.asarray(array), allow_pickle=False)
+  atomic_write_bytes(path, buffer.getvalue())
+
+
+def json_safe(obj: Any) -> tuple[Any, int]:
+  """(obj with every non-finite float replaced by None, how many were replaced)."""
+  count = 0
+
+  def walk(x):
+    nonlocal count
+    if isinstance(x, (float, np.floating)):
+      if not math.isfinite(float(x)):
+        count += 1
+        return None
+      return float(x)
+    if isinstance(x, np.integer):
+      return int(x)
+    if isinstance(x, np.ndarray):
+      return walk(x.tolist())
+    if isinstance(x, dict):
+      return {k: walk(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+      return [walk(v) for v in x]
+    return x
+
+  return walk(obj), count

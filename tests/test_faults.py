@@ -1,0 +1,190 @@
+"""Runs that survive: bad output locations refused before work, one writer per --out, valid JSON
+always, frames without ground truth excluded, and resume after a kill -9.
+
+References: hand-built fault fixtures (a file in place of a directory, since the tests run as
+root and permissions do not stop root; a second process holding the lock); the uninterrupted run
+for the resumed one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pitta_jax.cli import main
+from pitta_jax.outputs import OutputError, atomic_write_text, json_safe, open_output_dir
+from pitta_jax.report import Row, write_results
+
+
+def test_output_dir_checked_and_locked(tmp_path):
+  blocker = tmp_path / "file"
+  blocker.write_text("x")
+  with pytest.raises(OutputError, match="exists and is not a directory"):
+    open_output_dir(blocker)
+  with pytest.raises(OutputError, match="cannot write there"):
+    open_output_dir(blocker / "sub")  # a file in place of a parent directory
+  first = open_output_dir(tmp_path / "out")
+  with pytest.raises(OutputError, match="another pitta-jax run is writing there"):
+    open_output_dir(tmp_path / "out")
+  first.close()
+  open_output_dir(tmp_path / "out").close()  # free again
+
+
+def test_second_writer_on_one_out_is_refused_with_one_line(tmp_path, capsys):
+  out = tmp_path / "out"
+  holder = subprocess.Popen(
+      [sys.executable, "-c", "import sys, time; from pitta_jax.outputs import open_output_dir;"
+       f"d = open_output_dir({str(out)!r}); print('locked', flush=True); time.sleep(60)"],
+      stdout=subprocess.PIPE, text=True)
+  try:
+    assert holder.stdout.readline().strip() == "locked"
+    rc = main(["adapt", "--dataset", "synthetic", "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("error: ") and err.count("\n") == 1
+    assert "another pitta-jax run" in err
+  finally:
+    holder.kill()
+    holder.wait()
+
+
+def test_bad_out_fails_before_any_work(tmp_path, capsys):
+  blocker = tmp_path / "file"
+  blocker.write_text("x")
+  # no kitti data and no weights exist under the root: the output check comes before reading
+  rc = main(["adapt", "--dataset", "kitti", "--root", str(tmp_path), "--out", str(blocker)])
+  err = capsys.readouterr().err
+  assert rc == 2 and "--out" in err and "not a directory" in err and err.count("\n") == 1
+  for bad, match in ((["--lr", "inf"], "lr must be a finite"),
+                     (["--momentum", "-5"], "momentum must be a finite"),
+                     (["--checkpoint-every", "-1"], "checkpoint-every must be >= 0"),
+                     (["--min-depth", "50", "--max-depth", "10"], "min_depth < max_depth"),
+                     (["--resume"], "--resume needs --checkpoint-every")):
+    rc = main(["adapt", "--dataset", "synthetic", "--out", str(tmp_path / "o"), *bad])
+    err = capsys.readouterr().err
+    assert rc == 2 and match in err and err.count("\n") == 1, (bad, err)
+  with pytest.raises(SystemExit) as e:  # argparse: usage + one error line, exit 2
+    main(["adapt", "--dataset", "synthetic", "--out", str(tmp_path / "o"),
+          "--dynamic-classes", "car,unicorn"])
+  assert e.value.code == 2 and "unicorn" in capsys.readouterr().err
+  rc = main(["adapt", "--dataset", "synthetic", "--out", str(tmp_path / "o"), "--option",
+             "num_frames=3.5"])
+  err = capsys.readouterr().err
+  assert rc == 2 and "expected int" in err
+
+
+def test_results_json_is_valid_with_nan(tmp_path):
+  metrics = {"abs_rel": float("nan"), "sq_rel": 1.0, "rmse": float("inf"), "rmse_log": 0.1,
+             "a1": 0.9, "a2": 0.95, "a3": 0.99}
+  write_results(tmp_path, [Row("fog", "PITTA", metrics)], {"logs": {"loss": [1.0, np.nan]}})
+  text = (tmp_path / "results.json").read_text()
+  def refuse(name):
+    raise ValueError(name)
+  data = json.loads(text, parse_constant=refuse)  # strict JSON: no NaN / Infinity tokens
+  assert data["rows"][0]["metrics"]["abs_rel"] is None and data["logs"]["loss"] == [1.0, None]
+  assert data["non_finite_values"] == 3
+  assert not list(tmp_path.glob(".*.tmp-*"))  # atomic writes leave no temp file
+  assert json_safe({"a": [np.float32(np.nan), 2]}) == ({"a": [None, 2]}, 1)
+
+
+def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
+  path = tmp_path / "table.md"
+  atomic_write_text(path, "old")
+  class Boom(str):
+    def encode(self, *a, **k):
+      raise OSError(28, "No space left on device")
+  with pytest.raises(OSError):
+    atomic_write_text(path, Boom("new"))
+  assert path.read_text() == "old" and not list(tmp_path.glob(".*.tmp-*"))
+
+
+def test_non_utf8_file_names_are_read(tmp_path):
+  from pitta_jax.data.image_io import read_image, write_image
+  name = os.fsdecode(b"frame_\xff\xfe.png")  # surrogate-escaped: not valid UTF-8
+  img = np.random.default_rng(0).uniform(size=(8, 10, 3)).astype(np.float32)
+  write_image(tmp_path / name, img)
+  back = read_image(tmp_path / name)
+  np.testing.assert_allclose(back, np.round(img * 255) / 255, atol=1e-6)
+
+
+def test_predict_refuses_inputs_sharing_a_stem(tmp_path):
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.image_io import write_image
+  from pitta_jax.predict import expand_images
+  for d in ("a", "b"):
+    write_image(tmp_path / d / "000001.png", np.zeros((4, 4, 3)))
+  with pytest.raises(DataError, match="same file stem"):
+    expand_images(str(tmp_path / "*" / "*.png"))
+
+
+def test_dangling_symlink_is_an_error(tmp_path):
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.image_io import list_images
+  (tmp_path / "000001.png").symlink_to(tmp_path / "missing.png")
+  with pytest.raises(DataError, match="dangling symbolic link"):
+    list_images(tmp_path)
+
+
+# ---------------------------------------------------------------------- resume after kill -9
+
+H, W, N, K = 64, 96, 6, 2
+
+
+@pytest.fixture(scope="module")
+def tiny_weights(tmp_path_factory):
+  from pitta_jax.checkpoint import save_weights
+  from pitta_jax.models.random_init import random_monodepth2_variables
+  root = tmp_path_factory.mktemp("w") / "r18"
+  save_weights(root, "monodepth2", {"num_layers": 18, "height": H, "width": W},
+               random_monodepth2_variables(0))
+  return root
+
+
+def _adapt_args(weights, out, *extra):
+  return ["adapt", "--dataset", "synthetic", "--weights", str(weights), "--option",
+          f"num_frames={N}", "--option", "domain=fog", "--checkpoint-every", str(K),
+          "--max-instances", "4", "--quiet", "--out", str(out), *extra]
+
+
+def test_kill_then_resume_equals_an_uninterrupted_run(tiny_weights, tmp_path):
+  killed = tmp_path / "killed"
+  proc = subprocess.Popen([sys.executable, "-m", "pitta_jax.cli",
+                           *_adapt_args(tiny_weights, killed)],
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+  sidecar = killed / "checkpoints" / f"state_{K:06d}.json"
+  deadline = time.time() + 300
+  while not sidecar.exists() and proc.poll() is None and time.time() < deadline:
+    time.sleep(0.05)
+  assert sidecar.exists(), proc.stderr.read().decode()[-2000:] if proc.poll() else "timeout"
+  proc.send_signal(signal.SIGKILL)
+  proc.wait()
+  assert not (killed / "results.json").exists()  # killed before the end
+  assert main(_adapt_args(tiny_weights, killed, "--resume")) == 0
+  assert main(_adapt_args(tiny_weights, tmp_path / "full")) == 0
+  resumed = json.loads((killed / "results.json").read_text())
+  full = json.loads((tmp_path / "full" / "results.json").read_text())
+  assert resumed["resumed_at_frame"] >= K and full["resumed_at_frame"] == 0
+  assert resumed["per_frame"] == full["per_frame"] and len(full["per_frame"]) == N
+  assert resumed["logs"] == full["logs"]
+  assert resumed["rows"][0]["metrics"] == full["rows"][0]["metrics"]
+
+
+def test_garbage_in_readers_is_refused(tmp_path):
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.folder import open_folder
+  from pitta_jax.data.image_io import write_image
+  from pitta_jax.data.panoptic_io import parse_segments
+  write_image(tmp_path / "img" / "a.png", np.zeros((8, 16, 3)))
+  for scale in (0, -256, float("inf")):
+    with pytest.raises(DataError, match="depth_scale"):
+      open_folder(tmp_path / "img", depth_scale=scale)
+  # a JSON boolean is not a segment id (True == 1 in Python)
+  with pytest.raises(DataError, match="invalid id True"):
+    parse_segments([{"id": True, "category_id": 3}], tmp_path / "x.json")
