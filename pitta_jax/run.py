@@ -87,6 +87,17 @@ class Runners:
     return self._cache[key]
 
 
+def check_aspect(frame: Frame, tolerance: float = 0.01) -> None:
+  """The prediction is resized onto the ground truth: their aspect ratios must agree (1%)."""
+  if frame.depth is None:
+    return
+  (h, w), (gh, gw) = frame.image.shape[:2], np.shape(frame.depth)[:2]
+  if abs(gw / gh - w / h) > tolerance * (w / h):
+    raise DataError(frame.name or "frame", f"ground truth is {gw}x{gh} but the image is {w}x{h} "
+                                           f"(W x H): another aspect ratio, so the prediction "
+                                           f"cannot be resized onto it")
+
+
 def _latest_checkpoint(directory: Path) -> Path | None:
   """The newest `state_NNNNNN` under `directory` that has its results sidecar, or None."""
   if not directory.is_dir():
@@ -156,7 +167,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   chunk_frames: list[list[Frame]] = []
 
   def inputs():
-    for chunk, originals in stream:
+    for chunk, originals in stream:  # the first chunk is checked before anything compiles
+      for frame in originals:
+        check_aspect(frame)
       chunk_frames.append(originals)
       yield chunk
 

@@ -188,3 +188,26 @@ def test_garbage_in_readers_is_refused(tmp_path):
   # a JSON boolean is not a segment id (True == 1 in Python)
   with pytest.raises(DataError, match="invalid id True"):
     parse_segments([{"id": True, "category_id": 3}], tmp_path / "x.json")
+
+
+def test_ground_truth_with_another_aspect_ratio_is_refused():
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.frame import Frame
+  from pitta_jax.run import check_aspect
+  check_aspect(Frame(np.zeros((400, 881, 3)), np.zeros((800, 1762))))  # half-size image, full GT
+  with pytest.raises(DataError, match="another aspect ratio"):
+    check_aspect(Frame(np.zeros((16, 16, 3)), np.zeros((6, 8)), name="f1"))
+
+
+def test_nonfinite_checkpoint_values_and_bad_demo_shifts_fail_before_work(tmp_path, capsys):
+  from weights_convert import rules as R
+  from weights_convert.pth import CheckpointError
+  state = {"w.weight": np.full((2, 3), np.nan, np.float32)}
+  rules: R.Rules = []
+  R.linear(rules, ("params", "w"), "w", bias=False)
+  with pytest.raises(CheckpointError, match="w.weight holds 6 non-finite"):
+    R.apply_rules(state, rules, lambda k: False, "x.pth", {("params", "w", "kernel"): (3, 2)})
+  t0 = time.time()
+  rc = main(["demo", "--retrain", "--shifts", "hail", "--out", str(tmp_path / "d")])
+  assert rc == 2 and "hail" in capsys.readouterr().err and time.time() - t0 < 5
+  assert not (tmp_path / "d").exists()
