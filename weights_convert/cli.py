@@ -42,10 +42,16 @@ def add_subcommands(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+  from pitta_jax.outputs import open_output_dir
   try:
-    args.convert_fn(args)
+    with open_output_dir(args.out):  # checked and locked before reading any checkpoint
+      args.convert_fn(args)
   except (CheckpointError, FileNotFoundError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
+    return 2
+  except OSError as e:  # a full disk, a read-only directory, ...
+    where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+    print(f"error: {where}{e.strerror or e}", file=sys.stderr)
     return 2
   return 0
 
