@@ -211,3 +211,22 @@ def test_nonfinite_checkpoint_values_and_bad_demo_shifts_fail_before_work(tmp_pa
   rc = main(["demo", "--retrain", "--shifts", "hail", "--out", str(tmp_path / "d")])
   assert rc == 2 and "hail" in capsys.readouterr().err and time.time() - t0 < 5
   assert not (tmp_path / "d").exists()
+
+
+def test_frames_without_valid_ground_truth_are_excluded_not_fatal(tiny_weights):
+  """A frame whose ground truth has no valid pixel (e.g. LiDAR outside the image) is named and
+  left out of the means; the others are scored as usual (reference: the metrics of the two
+  good frames computed directly)."""
+  import dataclasses
+  from pitta_jax import metrics
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.checkpoint import load_weights
+  from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  from pitta_jax.run import run_sequence
+  frames = generate_sequence(SyntheticConfig(height=H, width=W, num_frames=3, seed=100))
+  frames[1] = dataclasses.replace(frames[1], depth=np.zeros_like(frames[1].depth))
+  res = run_sequence(load_weights(tiny_weights), frames, AdaptConfig(method="none",
+                     bn_stats="running"), quiet=True, keep=(0, 2))
+  assert res.excluded == [frames[1].name] and len(res.per_frame) == 2
+  want = [metrics.depth_metrics(res.kept_depths[i], frames[i].depth)["abs_rel"] for i in (0, 2)]
+  np.testing.assert_allclose(res.mean["abs_rel"], np.mean(want), rtol=1e-12)
