@@ -487,3 +487,16 @@ def test_hidden_files_skipped(tmp_path):
   _write_rgb(tmp_path / "a.png", _rgb(0))
   (tmp_path / "._a.png").write_bytes(b"macOS resource fork")
   assert readers.open_dataset("folder", tmp_path).names == ("a",)
+
+
+def test_kitti_intrinsics_from_calib_cam_to_cam(tmp_path):
+  # Hand value: K = the left 3x3 of P_rect_02 of the date folder's calib_cam_to_cam.txt.
+  from pitta_jax.data.kitti import read_cam_to_cam
+  p = tmp_path / "calib_cam_to_cam.txt"
+  p.write_text("calib_time: 09-Jan-2012\nP_rect_02: 7.215377e+02 0.000000e+00 6.095593e+02 "
+               "4.485728e+01 0.000000e+00 7.215377e+02 1.728540e+02 2.163791e-01 0.000000e+00 "
+               "0.000000e+00 1.000000e+00 2.745884e-03\n")
+  np.testing.assert_allclose(read_cam_to_cam(p, 2), [[721.5377, 0, 609.5593],
+                                                     [0, 721.5377, 172.854], [0, 0, 1]])
+  with pytest.raises(DataError, match="P_rect_03"):
+    read_cam_to_cam(p, 3)

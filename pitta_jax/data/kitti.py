@@ -75,6 +75,34 @@ def gt_depths_count(path: PathLike, key: str = "data") -> int:
   return shape[0]
 
 
+def read_cam_to_cam(path: Path, camera: int) -> np.ndarray:
+  """K (3, 3) of camera 2 or 3 from KITTI raw's `calib_cam_to_cam.txt`: the left 3x3 of its
+  rectified projection `P_rect_0{camera}` (the matrix of the rectified `image_0{camera}`)."""
+  key = f"P_rect_0{camera}:"
+  for line in path.read_text(errors="replace").splitlines():
+    if line.startswith(key):
+      try:
+        p = np.array([float(v) for v in line[len(key):].split()], np.float64).reshape(3, 4)
+      except ValueError:
+        break
+      return p[:, :3]
+  raise DataError(path, f"no valid {key[:-1]} (12 numbers) in the calibration file")
+
+
+class _Calibrations:
+  """K per (date folder, camera), read once from `<data>/<date>/calib_cam_to_cam.txt` when the
+  file exists (None otherwise: the frames then carry no intrinsics)."""
+
+  def __init__(self):
+    self._cache: dict[tuple[Path, int], np.ndarray | None] = {}
+
+  def get(self, data: Path, folder: str, camera: int) -> np.ndarray | None:
+    path = data / folder.split("/")[0] / "calib_cam_to_cam.txt"
+    if (path, camera) not in self._cache:
+      self._cache[(path, camera)] = read_cam_to_cam(path, camera) if path.is_file() else None
+    return self._cache[(path, camera)]
+
+
 def load_gt_depths(path: PathLike, key: str = "data") -> np.ndarray:
   """Loads MonoDepth2's `gt_depths.npz` without executing code from the file.
 
@@ -199,6 +227,7 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
                                "export_gt_depth.py, pass gt_depths/improved_gt, or depth=False")
   improved_root = None if improved_gt is None else require_dir(improved_gt, "improved GT root")
   panoptic = panoptic_source(panoptic_dir, panoptic_json)
+  calibs = _Calibrations()
   files = []
   for index, (folder, frame, camera) in enumerate(entries):
     image = _find_image(data, folder, frame, camera, ext)
@@ -211,5 +240,6 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
     key = f"{folder}/image_0{camera}/data/{frame:010d}"
     files.append(FrameFiles(name=f"{folder}/image_0{camera}/{frame:010d}", image=image,
                             depth=depth_loader,
-                            panoptic=None if panoptic is None else panoptic.ref(key)))
+                            panoptic=None if panoptic is None else panoptic.ref(key),
+                            intrinsics=calibs.get(data, folder, camera)))
   return FrameSequence(files)
