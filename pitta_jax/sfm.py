@@ -209,9 +209,10 @@ def _downscale(image: Array, factor: int) -> Array:
 
 
 def _first_min(x: Array) -> tuple[Array, Array]:
-  """Minimum over axis 1 and its first index, the gradient to that index (`torch.min(dim=1)`)."""
-  idx = jnp.argmin(x, axis=1)
-  return jnp.take_along_axis(x, idx[:, None], axis=1)[:, 0], idx
+  """Minimum over axis 2 and its first index, the gradient to that index (`torch.min(dim=1)`
+  on each scale's (B, candidates, H, W))."""
+  idx = jnp.argmin(x, axis=2)
+  return jnp.take_along_axis(x, idx[:, :, None], axis=2)[:, :, 0], idx
 
 
 def monodepth2_loss(target: Array, sources: Array, disps: Sequence[Array], K: Array,
@@ -247,41 +248,39 @@ def monodepth2_loss(target: Array, sources: Array, disps: Sequence[Array], K: Ar
     check(rng is not None, "monodepth2_loss with automask needs rng or noise")
     noise = jax.random.normal(rng, (n_scales, b, n, h, w), target.dtype)
 
-  # Every warp and every reprojection loss (identity and warped, all scales) is one batched
-  # call: the same arithmetic as upstream's loops, compiled once instead of S * N + N times.
-  coords = []
+  # All scales and sources go through one batched backprojection, warp and reprojection loss
+  # (the same arithmetic as upstream's loops, a fraction of the program to compile).
+  full = []
   for s, disp in zip(cfg.scales, disps):
     check(disp.shape == (b, h // 2 ** s, w // 2 ** s),
           f"disparity at scale {s} must be {(b, h // 2 ** s, w // 2 ** s)}, got {disp.shape}")
-    full = resize_bilinear(disp[..., None], (h, w), align_corners=False)[..., 0]
-    points = backproject(disp_to_depth(full, cfg.min_depth, cfg.max_depth), inv_K)
-    coords.append(jnp.stack([project(points, K, poses[:, i], h, w) for i in range(n)]))
-  src = jnp.moveaxis(sources, 1, 0)                                  # (N, B, H, W, 3)
-  warped = warp(jnp.tile(src, (n_scales, 1, 1, 1, 1)).reshape(-1, h, w, 3),
-                jnp.stack(coords).reshape(-1, h, w, 2))              # (S*N*B, H, W, 3)
-  preds = jnp.concatenate([src.reshape(-1, h, w, 3), warped]) if cfg.automask else warped
-  reps = reprojection_loss(preds, jnp.tile(target, (preds.shape[0] // b, 1, 1, 1)))
-  reps = reps.reshape(-1, n, b, h, w)                     # ([identity,] scale 0, ..., N, B, H, W)
-  warped_reps = jnp.moveaxis(reps[-n_scales:], 2, 1)                 # (S, B, N, H, W)
-  identity = jnp.moveaxis(reps[0], 1, 0) if cfg.automask else None   # (B, N, H, W)
+    full.append(resize_bilinear(disp[..., None], (h, w), align_corners=False)[..., 0])
+  depth = disp_to_depth(jnp.concatenate(full), cfg.min_depth, cfg.max_depth)  # (S*B, H, W)
+  points = backproject(depth, jnp.tile(inv_K, (n_scales, 1, 1)))
+  coords = jnp.stack([project(points, jnp.tile(K, (n_scales, 1, 1)),
+                              jnp.tile(poses[:, i], (n_scales, 1, 1)), h, w)
+                      for i in range(n)], axis=1)                     # (S*B, N, H, W, 2)
+  src = jnp.tile(sources, (n_scales, 1, 1, 1, 1))                     # (S*B, N, H, W, 3)
+  warped = warp(src.reshape(-1, h, w, 3), coords.reshape(-1, h, w, 2))
+  preds = jnp.concatenate([sources.reshape(-1, h, w, 3), warped]) if cfg.automask else warped
+  reps = reprojection_loss(preds, jnp.repeat(jnp.tile(target, (preds.shape[0] // (b * n), 1, 1, 1)),
+                                             n, axis=0))
+  reps = reps.reshape(-1, b, n, h, w)                 # ([identity,] scale 0, ..., B, N, H, W)
+  combined = reps[-n_scales:]                                           # (S, B, N, H, W)
+  if cfg.automask:
+    combined = jnp.concatenate([reps[0] + noise * TIE_NOISE, combined], axis=2)
+  best, idx = _first_min(combined)                                      # (S, B, H, W)
+  selections = (idx > (n - 1 if cfg.automask else -1)).astype(target.dtype)
+  weighted = best if pixel_weights is None else best * pixel_weights
+  photometric = jnp.mean(weighted, axis=(1, 2, 3))                      # (S,)
 
-  per_scale, minima, selections = [], [], []
+  per_scale = []
   for k, (s, disp) in enumerate(zip(cfg.scales, disps)):
-    combined = warped_reps[k]
-    if cfg.automask:
-      combined = jnp.concatenate([identity + noise[k] * TIE_NOISE, combined], axis=1)
-    best, idx = _first_min(combined)
-    selection = (idx > (n - 1 if cfg.automask else -1)).astype(target.dtype)
-    weighted = best if pixel_weights is None else best * pixel_weights
-    loss = jnp.mean(weighted)
     norm_disp = disp / (jnp.mean(disp, axis=(1, 2), keepdims=True) + MEAN_DISP_EPS)
     color = _downscale(target, 2 ** s) if scaled_targets is None else scaled_targets[k]
-    loss = loss + cfg.smoothness * smooth_loss(norm_disp, color) / (2 ** s)
-    per_scale.append(loss)
-    minima.append(best)
-    selections.append(selection)
+    per_scale.append(photometric[k] + cfg.smoothness * smooth_loss(norm_disp, color) / (2 ** s))
   per_scale = jnp.stack(per_scale)
-  aux = SfmAux(per_scale, jax.lax.stop_gradient(jnp.stack(minima)), jnp.stack(selections))
+  aux = SfmAux(per_scale, jax.lax.stop_gradient(best), selections)
   return jnp.mean(per_scale), aux
 
 
