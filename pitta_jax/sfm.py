@@ -146,6 +146,9 @@ def backproject(depth: Array, inv_K: Array) -> Array:
 def project(points: Array, K: Array, T: Array, height: int, width: int) -> Array:
   """`layers.Project3D`: (B, 4, H*W) points -> (B, H, W, 2) grid_sample coordinates.
 
+  K, T: (B, 4, 4); height, width: the image size the points were backprojected from (upstream
+  fixes it in the module's constructor).
+
   P = (K @ T)[:3]; pixel = P X / (z + 1e-7); normalised to [-1, 1] by (W - 1), (H - 1)
   (align_corners=True), x (column) first.
   """

@@ -70,7 +70,9 @@ class Project3D(nn.Module):
     pix_coords = cam_points[:, :2, :] / (cam_points[:, 2, :].unsqueeze(1) + self.eps)
     pix_coords = pix_coords.view(self.batch_size, 2, self.height, self.width)
     pix_coords = pix_coords.permute(0, 2, 3, 1)
-    pix_coords = pix_coords / torch.tensor([self.width - 1, self.height - 1], dtype=pix_coords.dtype)
+    pix_coords = pix_coords.clone()
+    pix_coords[..., 0] /= self.width - 1
+    pix_coords[..., 1] /= self.height - 1
     return (pix_coords - 0.5) * 2
 
 
