@@ -274,25 +274,30 @@ def _compare_loss(got, want, rtol, atol, gtol):
   _close("d/dtranslation (/ max)", gtr / scale, want["gtr"] / scale, 0, gtol)
 
 
-@pytest.mark.parametrize("weighted", [False, True])
-def test_monodepth2_loss_float64(loss_case, jax_loss, weighted):
+@pytest.fixture(scope="module")
+def torch_float64(loss_case):
+  """The float64 reference with pixel weights 1 (shared: its candidates locate near ties)."""
+  return _torch_loss(loss_case, np.float64, np.ones((B, H, W)))
+
+
+def test_monodepth2_loss_float64(loss_case, jax_loss, torch_float64):
   """Full loss (2 sources, 4 scales, auto-masking), float64: value, per-scale terms, identity
   selection (exactly), d/d(disparity at each scale), d/d(axis-angle, translation) of both
-  poses; with pixel weights 1 and with a random 0/1 mask (CoMoDa's use)."""
-  weights = loss_case["weights"] if weighted else np.ones((B, H, W))
-  got = jax_loss(loss_case, np.float64, weights)
-  want = _torch_loss(loss_case, np.float64, weights)
+  poses. (Pixel weights: 1 here, a random 0/1 mask in the float32 test.)"""
+  got = jax_loss(loss_case, np.float64, np.ones((B, H, W)))
+  want = torch_float64
   print(f"warped source wins at {want['sel'].mean():.3f} of the pixels")
   assert 0.05 < want["sel"].mean() < 0.95, "the identity and the warped losses must both win"
   np.testing.assert_array_equal(got[1].identity_selection, want["sel"])
   _compare_loss(got, want, 1e-10, 1e-12, 1e-9)
 
 
-def test_monodepth2_loss_float32(loss_case, jax_loss):
-  """The same in float32, where the per-pixel minimum is decided by float32 rounding wherever
-  its two best candidates are within ~1e-6: such pixels (gap < 1e-5 in the float64 reference)
-  are weighted 0 on both sides, the rest must agree (selection exactly, gradients tightly)."""
-  cand = np.sort(_torch_loss(loss_case, np.float64, np.ones((B, H, W)))["candidates"], axis=2)
+def test_monodepth2_loss_float32(loss_case, jax_loss, torch_float64):
+  """The same in float32 with a random 0/1 pixel-weight mask (CoMoDa's use). The per-pixel
+  minimum is decided by float32 rounding wherever its two best candidates are within ~1e-6:
+  such pixels (gap < 1e-5 in the float64 reference) are weighted 0 as well, on both sides; the
+  rest must agree (selection exactly, gradients tightly)."""
+  cand = np.sort(torch_float64["candidates"], axis=2)
   near_tie = np.any(cand[:, :, 1] - cand[:, :, 0] < 1e-5, axis=0)        # (B, H, W)
   print(f"near ties excluded: {int(near_tie.sum())} of {near_tie.size} pixels")
   assert near_tie.mean() < 0.01
@@ -302,6 +307,48 @@ def test_monodepth2_loss_float32(loss_case, jax_loss):
   keep = weights.astype(bool)[None].repeat(4, 0)
   np.testing.assert_array_equal(got[1].identity_selection[keep], want["sel"][keep])
   _compare_loss(got, want, 1e-5, 1e-7, 1e-4)
+
+
+def test_monodepth2_loss_no_automask_scaled_targets(loss_case):
+  """float64, cfg.automask=False (upstream --disable_automasking), scales (0, 2), the scale-2
+  colour image given explicitly (an antialiased F.interpolate, as a data loader would resize):
+  value and gradients vs the reference with disable_automasking and the same colours."""
+  case, scales = loss_case, (0, 2)
+  target_t = _nchw(_t(case["target"], np.float64))
+  colors = [target_t, F.interpolate(target_t, (H // 4, W // 4), mode="bilinear",
+                                    align_corners=False, antialias=True)]
+  disps_t = [_t(case["disps"][s][:, None], np.float64, True) for s in scales]
+  aa, tr = _t(case["aa"], np.float64, True), _t(case["tr"], np.float64, True)
+  poses_t = [ts.transformation_from_parameters(aa[:, i], tr[:, i]) for i in range(N)]
+  ref = ts.Monodepth2Loss(B, H, W, scales=scales, disable_automasking=True,
+                          dtype=torch.float64)
+  want, want_per_scale, _, _ = ref(
+      target_t, [_nchw(_t(case["sources"][:, i], np.float64)) for i in range(N)], disps_t,
+      _t(case["K"], np.float64), _t(case["inv_K"], np.float64), poses_t, None, None, colors)
+  want.backward()
+  with jax.enable_x64(True):
+    cfg = sfm.SfmLossConfig(scales=scales, automask=False)
+    def f(disps, aa, tr):
+      poses = jnp.stack([sfm.transformation_from_parameters(aa[:, i], tr[:, i])
+                         for i in range(N)], 1)
+      return sfm.monodepth2_loss(
+          jnp.asarray(case["target"]), jnp.asarray(case["sources"]), disps,
+          jnp.asarray(case["K"]), jnp.asarray(case["inv_K"]), poses, cfg=cfg,
+          scaled_targets=[jnp.asarray(c.permute(0, 2, 3, 1).numpy()) for c in colors])
+    (val, aux), (gd, gaa, gtr) = jax.jit(jax.value_and_grad(f, (0, 1, 2), has_aux=True))(
+        [jnp.asarray(case["disps"][s]) for s in scales], jnp.asarray(case["aa"]),
+        jnp.asarray(case["tr"]))
+    gd, gaa, gtr = [np.asarray(g) for g in gd], np.asarray(gaa), np.asarray(gtr)
+  _close("loss (no automask)", val, want.detach(), 1e-10, 1e-12)
+  _close("per-scale (no automask)", aux.per_scale, want_per_scale.detach(), 1e-10, 1e-12)
+  assert np.all(np.asarray(aux.identity_selection) == 1)
+  for k in range(2):
+    scale = disps_t[k].grad.abs().max().item()
+    _close(f"d/ddisp scale {scales[k]} (/ max)", gd[k] / scale, disps_t[k].grad[:, 0] / scale,
+           0, 1e-9)
+  scale = max(aa.grad.abs().max().item(), tr.grad.abs().max().item())
+  _close("d/daxisangle (/ max)", gaa / scale, aa.grad / scale, 0, 1e-9)
+  _close("d/dtranslation (/ max)", gtr / scale, tr.grad / scale, 0, 1e-9)
 
 
 def test_loss_rng_and_config():

@@ -141,8 +141,10 @@ class Monodepth2Loss:
   """`generate_images_pred` + `compute_losses` for frame_ids [0, 1..N], one batch of size B."""
 
   def __init__(self, batch_size, height, width, scales=(0, 1, 2, 3), min_depth=0.1,
-               max_depth=100.0, disparity_smoothness=1e-3, dtype=torch.float32):
+               max_depth=100.0, disparity_smoothness=1e-3, disable_automasking=False,
+               dtype=torch.float32):
     self.scales, self.height, self.width = scales, height, width
+    self.disable_automasking = disable_automasking
     self.min_depth, self.max_depth = min_depth, max_depth
     self.disparity_smoothness = disparity_smoothness
     self.ssim = SSIM()
@@ -155,11 +157,14 @@ class Monodepth2Loss:
     ssim_loss = self.ssim(pred, target).mean(1, True)
     return 0.85 * ssim_loss + 0.15 * l1_loss
 
-  def __call__(self, target, sources, disps, K, inv_K, poses, noise, pixel_weights=None):
+  def __call__(self, target, sources, disps, K, inv_K, poses, noise, pixel_weights=None,
+               colors=None):
     """target (B, 3, H, W); sources: list of (B, 3, H, W); disps: list of (B, 1, h_s, w_s);
-    poses: list of (B, 4, 4); noise: (S, B, N, H, W) standard normal.
-    Returns (loss, per-scale losses (S,), identity selection (S, B, H, W), the candidates of the
-    per-pixel minimum (S, B, 2N, H, W))."""
+    poses: list of (B, 4, 4); noise: (S, B, N, H, W) standard normal (unused when
+    disable_automasking).
+    colors: the target at each scale (default F.avg_pool2d).
+    Returns (loss, per-scale losses (S,), identity selection (S, B, H, W) or None, the candidates
+    of the per-pixel minimum (S, B, 2N or N, H, W))."""
     total_loss, per_scale, selections, candidates = 0, [], [], []
     for k, scale in enumerate(self.scales):
       disp = F.interpolate(disps[k], [self.height, self.width], mode="bilinear",
@@ -174,22 +179,33 @@ class Monodepth2Loss:
       loss = 0
       reprojection_losses = torch.cat(
           [self.compute_reprojection_loss(p, target) for p in preds], 1)
-      identity_reprojection_loss = torch.cat(
-          [self.compute_reprojection_loss(s, target) for s in sources], 1)
-      identity_reprojection_loss = identity_reprojection_loss + noise[k] * 0.00001
-      combined = torch.cat((identity_reprojection_loss, reprojection_losses), dim=1)
+      if not self.disable_automasking:
+        identity_reprojection_loss = torch.cat(
+            [self.compute_reprojection_loss(s, target) for s in sources], 1)
+        identity_reprojection_loss = identity_reprojection_loss + noise[k] * 0.00001
+        combined = torch.cat((identity_reprojection_loss, reprojection_losses), dim=1)
+      else:
+        combined = reprojection_losses
       candidates.append(combined.detach())
-      to_optimise, idxs = torch.min(combined, dim=1)
-      selections.append((idxs > identity_reprojection_loss.shape[1] - 1).float())
+      if combined.shape[1] == 1:
+        to_optimise, idxs = combined[:, 0], None
+      else:
+        to_optimise, idxs = torch.min(combined, dim=1)
+      if not self.disable_automasking:
+        selections.append((idxs > identity_reprojection_loss.shape[1] - 1).float())
       if pixel_weights is not None:
         to_optimise = to_optimise * pixel_weights
       loss += to_optimise.mean()
       disp_s = disps[k]
-      color = F.avg_pool2d(target, 2 ** scale) if scale > 0 else target
+      if colors is not None:       # upstream's inputs[("color", 0, scale)]
+        color = colors[k]
+      else:
+        color = F.avg_pool2d(target, 2 ** scale) if scale > 0 else target
       mean_disp = disp_s.mean(2, True).mean(3, True)
       norm_disp = disp_s / (mean_disp + 1e-7)
       loss += self.disparity_smoothness * get_smooth_loss(norm_disp, color) / (2 ** scale)
       total_loss += loss
       per_scale.append(loss)
-    return (total_loss / len(self.scales), torch.stack(per_scale), torch.stack(selections),
+    selections = torch.stack(selections) if selections else None
+    return (total_loss / len(self.scales), torch.stack(per_scale), selections,
             torch.stack(candidates))
