@@ -162,7 +162,7 @@ def t_augment(img: torch.Tensor, order, factors, sigma, flip, noise) -> torch.Te
   x = F.conv2d(F.pad(x, (2, 2, 2, 2), mode="reflect"), kernel, groups=3)
   if flip:
     x = x.flip(-1)
-  return (x + torch.from_numpy(np.asarray(noise, np.float64)).permute(2, 0, 1)[None]).clamp(0, 1)
+  return (x + torch.from_numpy(np.array(noise, np.float64)).permute(2, 0, 1)[None]).clamp(0, 1)
 
 
 class CoTTA:
@@ -208,6 +208,6 @@ class CoTTA:
       for t, p in zip(self.ema_model.parameters(), self.model.parameters()):
         t.data[:] = self.ema * t.data[:] + (1 - self.ema) * p.data[:]
       for n, p in self.trainable.items():
-        m = torch.from_numpy(masks[n]).to(p.dtype)
+        m = torch.from_numpy(np.array(masks[n])).to(p.dtype)
         p.data = self.source[n] * m + p * (1.0 - m)
     return float(total), float(own), float(l_d), pseudo.numpy(), float(gate.double().mean())
