@@ -18,7 +18,8 @@ For depth (our choices, the paper gives none):
   jitter (brightness, contrast, saturation, gamma in a random order per view; hue is not
   implemented), 5x5 Gaussian blur, horizontal flip with p 0.5 (the prediction is flipped back),
   Gaussian noise, clipping to [0, 1]; no affine warp (a warped disparity map would need warping
-  back and its border filled). The N views go through the teacher as one batch;
+  back and its border filled). The plain image and the N views go through the teacher as one
+  batch;
 - the evaluated depth is the depth of the pseudo label (what upstream's forward returns).
 
 BatchNorm is in eval mode (running statistics) for all three networks, so a view's prediction
@@ -147,13 +148,16 @@ def augment_view(image: jax.Array, order, factors, sigma, flip, noise) -> jax.Ar
   return jnp.clip(x + noise, 0.0, 1.0)
 
 
-def augmented_mean(model, variables, image: jax.Array, params: AugParams) -> jax.Array:
-  """Mean disparity (H, W) of the network over the views (one batched forward, BN eval mode),
-  each view's prediction flipped back."""
+def teacher_predictions(model, variables, image: jax.Array, params: AugParams
+                        ) -> tuple[jax.Array, jax.Array]:
+  """The teacher's disparity of `image` (H, W) and its mean over the augmented views (H, W)
+  (each view's prediction flipped back), from one batched forward of 1 + N images (BN eval
+  mode: the views do not see each other)."""
   views = jax.vmap(augment_view, in_axes=(None, 0, 0, 0, 0, 0))(image, *params)
-  disp = model.outputs(variables, views, False)[0][..., 0]                  # (N, H, W)
+  disp = model.outputs(variables, jnp.concatenate([image[None], views]), False)[0][..., 0]
+  plain, disp = disp[0], disp[1:]                                           # (H, W), (N, H, W)
   disp = jnp.where(params.flip[:, None, None], disp[:, :, ::-1], disp)
-  return jnp.mean(disp, axis=0)
+  return plain, jnp.mean(disp, axis=0)
 
 
 def restore_masks(rng: jax.Array, tree, p: float):
@@ -175,11 +179,10 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: CottaConfig)
   sg = jax.lax.stop_gradient
   student = _disp(model, variables_of(trainable, consts), frame.image)      # (H, W)
   teacher_vars = trainable_lib.merge(ms["teacher"], consts.frozen, consts.batch_stats)
-  teacher = sg(_disp(model, teacher_vars, frame.image))
   anchor = sg(_disp(model, variables_of(state.source, consts), frame.image))
   h, w = frame.image.shape[:2]
   params = sample_augment(rng, mcfg.n_augment, h, w, mcfg, frame.image.dtype)
-  averaged = sg(augmented_mean(model, teacher_vars, frame.image, params))
+  teacher, averaged = sg(teacher_predictions(model, teacher_vars, frame.image, params))
   gate = jnp.abs(anchor - teacher) / teacher > mcfg.threshold
   pseudo = jnp.where(gate, averaged, teacher)
   own = jnp.mean(nonsmooth.absolute(student - pseudo))
