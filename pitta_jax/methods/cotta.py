@@ -59,11 +59,12 @@ class CottaConfig:
   restore_p: float = option(0.01, "probability of restoring each trainable element to the source "
                                   "per step (upstream rst_m 0.01)")
   lr: float = option(1e-4 / 12, "Adam learning rate (CoTTA's rule for dense prediction)")
-  brightness: tuple[float, float] = option((0.6, 1.4), "brightness factor range")
-  contrast: tuple[float, float] = option((0.7, 1.3), "contrast factor range")
-  saturation: tuple[float, float] = option((0.5, 1.5), "saturation factor range")
-  gamma: tuple[float, float] = option((0.7, 1.3), "gamma range")
-  blur_sigma: tuple[float, float] = option((0.001, 0.5), "5x5 Gaussian blur sigma range")
+  brightness: float = option(0.4, "brightness factor uniform in [1 - b, 1 + b] (upstream)")
+  contrast: float = option(0.3, "contrast factor uniform in [1 - c, 1 + c] (upstream)")
+  saturation: float = option(0.5, "saturation factor uniform in [1 - s, 1 + s] (upstream)")
+  gamma: float = option(0.3, "gamma uniform in [1 - g, 1 + g] (upstream)")
+  blur_sigma_min: float = option(0.001, "5x5 Gaussian blur sigma, lower end (upstream)")
+  blur_sigma_max: float = option(0.5, "5x5 Gaussian blur sigma, upper end (upstream)")
   flip_p: float = option(0.5, "probability of a horizontal flip per view")
   noise_std: float = option(0.005, "Gaussian noise standard deviation")
   ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 5)")
@@ -75,9 +76,14 @@ class CottaConfig:
     check(0.0 <= self.ema_decay <= 1.0, f"ema_decay must be in [0, 1], got {self.ema_decay}")
     check(0.0 <= self.restore_p <= 1.0, f"restore_p must be in [0, 1], got {self.restore_p}")
     finite(self.lr, "lr", 0.0)
-    for name in ("brightness", "contrast", "saturation", "gamma", "blur_sigma"):
-      lo, hi = getattr(self, name)
-      check(0.0 < lo <= hi, f"{name} must be a range 0 < lo <= hi, got {(lo, hi)}")
+    for name in ("brightness", "contrast", "saturation", "gamma"):
+      value = getattr(self, name)
+      check(isinstance(value, (int, float)) and 0.0 <= value < 1.0,
+            f"{name} must be in [0, 1), got {value!r}")
+    finite(self.blur_sigma_min, "blur_sigma_min", 0.0)
+    check(0.0 < self.blur_sigma_min <= self.blur_sigma_max,
+          f"blur sigma range must be 0 < min <= max, got {self.blur_sigma_min}, "
+          f"{self.blur_sigma_max}")
     check(0.0 <= self.flip_p <= 1.0, f"flip_p must be in [0, 1], got {self.flip_p}")
     finite(self.noise_std, "noise_std", 0.0)
     finite(self.ld_weight, "ld_weight", 0.0)
@@ -97,12 +103,9 @@ def sample_augment(rng: jax.Array, n: int, height: int, width: int, config: Cott
   """N views' parameters, uniform in the configured ranges (as torchvision's `uniform_`)."""
   k_order, k_fac, k_sig, k_flip, k_noise = jax.random.split(rng, 5)
   order = jax.vmap(lambda k: jax.random.permutation(k, len(JITTERS)))(jax.random.split(k_order, n))
-  lo = jnp.asarray([config.brightness[0], config.contrast[0], config.saturation[0], config.gamma[0]],
-                   dtype)
-  hi = jnp.asarray([config.brightness[1], config.contrast[1], config.saturation[1], config.gamma[1]],
-                   dtype)
-  factors = jax.random.uniform(k_fac, (n, 4), dtype, lo, hi)
-  sigma = jax.random.uniform(k_sig, (n,), dtype, *config.blur_sigma)
+  spread = jnp.asarray([config.brightness, config.contrast, config.saturation, config.gamma], dtype)
+  factors = jax.random.uniform(k_fac, (n, 4), dtype, 1.0 - spread, 1.0 + spread)
+  sigma = jax.random.uniform(k_sig, (n,), dtype, config.blur_sigma_min, config.blur_sigma_max)
   flip = jax.random.bernoulli(k_flip, config.flip_p, (n,))
   noise = config.noise_std * jax.random.normal(k_noise, (n, height, width, 3), dtype)
   return AugParams(order.astype(jnp.int32), factors, sigma, flip, noise)
