@@ -85,8 +85,12 @@ class StepOutput(NamedTuple):
   update_norm: jax.Array  # () global norm of the applied update
 
 
-def make_optimizer(cfg: AdaptConfig) -> optax.GradientTransformation:
-  """Adam (default) or SGD with the configured learning rate (paper eq. 11: theta -= alpha grad)."""
+def make_optimizer(cfg: AdaptConfig, method: Method | None = None
+                   ) -> optax.GradientTransformation:
+  """The method's own optimiser when it has one (`Method.optimizer`), else Adam (default) or SGD
+  with the configured learning rate (paper eq. 11: theta -= alpha grad)."""
+  if method is not None and method.optimizer is not None:
+    return method.optimizer(cfg)
   if cfg.optimizer == "adam":
     return optax.adam(cfg.lr)
   return optax.sgd(cfg.lr, momentum=cfg.momentum or None)
@@ -196,7 +200,7 @@ def make_step(model: Any, method: Method, cfg: AdaptConfig,
               tx: optax.GradientTransformation | None = None):
   """`adapt_step` with its static arguments bound: `step(state, frame, consts)`."""
   return functools.partial(adapt_step, model=model, method=method, cfg=cfg,
-                           tx=tx or make_optimizer(cfg))
+                           tx=tx or make_optimizer(cfg, method))
 
 
 def make_chunk_runner(step):

@@ -15,6 +15,10 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
   update(state, grads, loss, aux, rng, tx, cfg) -> (state, skipped, update_norm)   [optional]
       Replaces the default single optimiser step (`engine.optax_update`), e.g. to also move an
       EMA teacher or restore weights stochastically; it must keep the non-finite guard.
+      `aux.carry` brings it what the loss computed for it (e.g. activations for a frame ring).
+  optimizer(cfg) -> optax.GradientTransformation   [optional]
+      The method's own optimiser (e.g. ActMAD's SGD with Nesterov momentum and weight decay),
+      used by `engine.make_optimizer` instead of AdaptConfig's optimizer/lr/momentum.
   adapts: False for a method that never updates (no gradient is computed).
 
 The engine (`pitta_jax.adapt.engine`) knows only this interface, never a method's name.
@@ -37,6 +41,7 @@ class Aux(NamedTuple):
   """What a method's loss returns beside the scalar (all stop-gradient)."""
   depth: jax.Array               # (H, W) the evaluated depth of this frame
   logs: dict[str, jax.Array]     # () scalars, the method's own per-frame measurements
+  carry: Any = None              # for the method's own `update` only (never output per frame)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +53,7 @@ class Method:
   loss: Callable[..., tuple[jax.Array, Aux]]
   update: Callable[..., Any] | None = None
   adapts: bool = True
+  optimizer: Callable[..., Any] | None = None
 
 
 def variables_of(trainable: Tree, consts) -> Tree:

@@ -1,0 +1,226 @@
+"""CoTTA (Wang et al., CVPR 2022) for depth, as a baseline of the paper, with PITTA's L_d added.
+
+Upstream (`cifar/cotta.py`, `forward_and_adapt`): a student (the adapted network), a mean
+teacher (EMA of the student, decay `mt`) and a frozen anchor (the source). The teacher's
+prediction averaged over N = 32 augmented views is the pseudo label where the anchor is not
+confident, else the teacher's plain prediction; the student is trained towards it; then the
+teacher moves (EMA) and each trainable element is restored to the source with probability p.
+
+For depth (our choices, the paper gives none):
+- prediction = the network's scale-0 disparity (`model.outputs(...)[0]`, (H, W));
+- confidence gate per pixel: the augmented mean is used where the anchor and the teacher
+  disagree, |d_anchor - d_teacher| / d_teacher > `threshold`, else the teacher's single view
+  (classification CoTTA gates the whole batch on the anchor's mean max-probability);
+- loss: L1 (mean over pixels) between the student's disparity and the pseudo label
+  (stop-gradient), in place of the soft cross-entropy, + ld_weight * L_d (eq. 8) on the
+  student's depth (paper Sec. 5);
+- augmentations: upstream's photometric ones (`get_tta_transforms`, non-soft ranges): colour
+  jitter (brightness, contrast, saturation, gamma in a random order per view; hue is not
+  implemented), 5x5 Gaussian blur, horizontal flip with p 0.5 (the prediction is flipped back),
+  Gaussian noise, clipping to [0, 1]; no affine warp (a warped disparity map would need warping
+  back and its border filled). The plain image and the N views go through the teacher as one
+  batch;
+- the evaluated depth is the depth of the pseudo label (what upstream's forward returns).
+
+BatchNorm is in eval mode (running statistics) for all three networks, so a view's prediction
+does not depend on the other views: the method requires `AdaptConfig.bn_stats == "running"`.
+The anchor and the restore target are the engine's `state.source` (the trainable leaves at the
+start); the teacher is in the method state. Which leaves adapt is `AdaptConfig.selector`
+(upstream adapts every weight and bias: `--selector all`). With `reset_every`, the engine resets
+the student and its optimiser; the teacher is not reset.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from pitta_jax import nonsmooth
+from pitta_jax import trainable as trainable_lib
+from pitta_jax.configs import check, finite, option
+from pitta_jax.methods.base import Aux, Method, variables_of
+from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
+
+JITTERS = ("brightness", "contrast", "saturation", "gamma")  # the order index of AugParams
+
+
+@dataclasses.dataclass(frozen=True)
+class CottaConfig:
+  """CoTTA's knobs (upstream cifar/cotta.py, get_tta_transforms non-soft) and the paper's L_d."""
+  n_augment: int = option(32, "N augmented teacher views (upstream: 32)")
+  threshold: float = option(0.1, "per-pixel gate: augmented mean where |d_anchor - d_teacher| / "
+                                 "d_teacher exceeds this (ours; upstream gates on class "
+                                 "confidence)")
+  ema_decay: float = option(0.999, "teacher EMA decay (upstream mt_alpha 0.999 on ImageNet-C)")
+  restore_p: float = option(0.01, "probability of restoring each trainable element to the source "
+                                  "per step (upstream rst_m 0.01)")
+  lr: float = option(1e-4 / 12, "Adam learning rate (CoTTA's rule for dense prediction)")
+  brightness: float = option(0.4, "brightness factor uniform in [1 - b, 1 + b] (upstream)")
+  contrast: float = option(0.3, "contrast factor uniform in [1 - c, 1 + c] (upstream)")
+  saturation: float = option(0.5, "saturation factor uniform in [1 - s, 1 + s] (upstream)")
+  gamma: float = option(0.3, "gamma uniform in [1 - g, 1 + g] (upstream)")
+  blur_sigma_min: float = option(0.001, "5x5 Gaussian blur sigma, lower end (upstream)")
+  blur_sigma_max: float = option(0.5, "5x5 Gaussian blur sigma, upper end (upstream)")
+  flip_p: float = option(0.5, "probability of a horizontal flip per view")
+  noise_std: float = option(0.005, "Gaussian noise standard deviation")
+  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 5)")
+  ld: DepthRefiningConfig = DepthRefiningConfig()
+
+  def __post_init__(self):
+    check(self.n_augment >= 1, f"n_augment must be >= 1, got {self.n_augment}")
+    finite(self.threshold, "threshold", 0.0)
+    check(0.0 <= self.ema_decay <= 1.0, f"ema_decay must be in [0, 1], got {self.ema_decay}")
+    check(0.0 <= self.restore_p <= 1.0, f"restore_p must be in [0, 1], got {self.restore_p}")
+    finite(self.lr, "lr", 0.0)
+    for name in ("brightness", "contrast", "saturation", "gamma"):
+      value = getattr(self, name)
+      check(isinstance(value, (int, float)) and 0.0 <= value < 1.0,
+            f"{name} must be in [0, 1), got {value!r}")
+    finite(self.blur_sigma_min, "blur_sigma_min", 0.0)
+    check(0.0 < self.blur_sigma_min <= self.blur_sigma_max,
+          f"blur sigma range must be 0 < min <= max, got {self.blur_sigma_min}, "
+          f"{self.blur_sigma_max}")
+    check(0.0 <= self.flip_p <= 1.0, f"flip_p must be in [0, 1], got {self.flip_p}")
+    finite(self.noise_std, "noise_std", 0.0)
+    finite(self.ld_weight, "ld_weight", 0.0)
+
+
+class AugParams(NamedTuple):
+  """The random draws of N views (explicit, so a test can pass the same ones to PyTorch)."""
+  order: jax.Array    # (N, 4) int32, a permutation of JITTERS per view
+  factors: jax.Array  # (N, 4) brightness, contrast, saturation, gamma factors
+  sigma: jax.Array    # (N,) blur sigma
+  flip: jax.Array     # (N,) bool
+  noise: jax.Array    # (N, H, W, 3) the additive noise (already times noise_std)
+
+
+def sample_augment(rng: jax.Array, n: int, height: int, width: int, config: CottaConfig,
+                   dtype=jnp.float32) -> AugParams:
+  """N views' parameters, uniform in the configured ranges (as torchvision's `uniform_`)."""
+  k_order, k_fac, k_sig, k_flip, k_noise = jax.random.split(rng, 5)
+  order = jax.vmap(lambda k: jax.random.permutation(k, len(JITTERS)))(jax.random.split(k_order, n))
+  spread = jnp.asarray([config.brightness, config.contrast, config.saturation, config.gamma], dtype)
+  factors = jax.random.uniform(k_fac, (n, 4), dtype, 1.0 - spread, 1.0 + spread)
+  sigma = jax.random.uniform(k_sig, (n,), dtype, config.blur_sigma_min, config.blur_sigma_max)
+  flip = jax.random.bernoulli(k_flip, config.flip_p, (n,))
+  noise = config.noise_std * jax.random.normal(k_noise, (n, height, width, 3), dtype)
+  return AugParams(order.astype(jnp.int32), factors, sigma, flip, noise)
+
+
+def _gray(x: jax.Array) -> jax.Array:
+  """(H, W, 3) -> (H, W, 1), torchvision's rgb_to_grayscale weights."""
+  return (0.2989 * x[..., 0] + 0.587 * x[..., 1] + 0.114 * x[..., 2])[..., None]
+
+
+def _jitter(x: jax.Array, which: jax.Array, factors: jax.Array) -> jax.Array:
+  """One of torchvision's adjust_{brightness, contrast, saturation, gamma} (float image)."""
+  def blend(other, f):
+    return jnp.clip(f * x + (1.0 - f) * other, 0.0, 1.0)
+  branches = (
+      lambda: blend(jnp.zeros_like(x), factors[0]),
+      lambda: blend(jnp.mean(_gray(x)), factors[1]),
+      lambda: blend(_gray(x), factors[2]),
+      # upstream clamps to [1e-8, 1] before the power (NaN gradients otherwise)
+      lambda: jnp.clip(jnp.clip(x, 1e-8, 1.0) ** factors[3], 0.0, 1.0))
+  return jax.lax.switch(which, branches)
+
+
+def _blur(x: jax.Array, sigma: jax.Array) -> jax.Array:
+  """torchvision's gaussian_blur, kernel 5: separable, reflect padding. x (H, W, 3)."""
+  taps = jnp.arange(-2.0, 3.0, dtype=x.dtype)
+  k = jnp.exp(-0.5 * (taps / sigma) ** 2)
+  k = k / jnp.sum(k)
+  p = jnp.pad(x, ((2, 2), (2, 2), (0, 0)), mode="reflect")
+  h, w = x.shape[:2]
+  rows = sum(k[i] * p[i:i + h] for i in range(5))            # (H, W + 4, 3)
+  return sum(k[i] * rows[:, i:i + w] for i in range(5))
+
+
+def augment_view(image: jax.Array, order, factors, sigma, flip, noise) -> jax.Array:
+  """One augmented view of `image` (H, W, 3) in upstream's order: clip, colour jitter (random
+  order), blur, flip, noise, clip."""
+  x = jnp.clip(image, 0.0, 1.0)
+  for step in range(len(JITTERS)):
+    x = _jitter(x, order[step], factors)
+  x = _blur(x, sigma)
+  x = jnp.where(flip, x[:, ::-1], x)
+  return jnp.clip(x + noise, 0.0, 1.0)
+
+
+def teacher_predictions(model, variables, image: jax.Array, params: AugParams
+                        ) -> tuple[jax.Array, jax.Array]:
+  """The teacher's disparity of `image` (H, W) and its mean over the augmented views (H, W)
+  (each view's prediction flipped back), from one batched forward of 1 + N images (BN eval
+  mode: the views do not see each other)."""
+  views = jax.vmap(augment_view, in_axes=(None, 0, 0, 0, 0, 0))(image, *params)
+  disp = model.outputs(variables, jnp.concatenate([image[None], views]), False)[0][..., 0]
+  plain, disp = disp[0], disp[1:]                                           # (H, W), (N, H, W)
+  disp = jnp.where(params.flip[:, None, None], disp[:, :, ::-1], disp)
+  return plain, jnp.mean(disp, axis=0)
+
+
+def restore_masks(rng: jax.Array, tree, p: float):
+  """Bernoulli(p) masks shaped like `tree`'s leaves (True = restore to the source)."""
+  leaves, treedef = jax.tree_util.tree_flatten(tree)
+  keys = jax.random.split(rng, max(len(leaves), 1))
+  return jax.tree_util.tree_unflatten(
+      treedef, [jax.random.bernoulli(k, p, x.shape) for k, x in zip(keys, leaves)])
+
+
+def _disp(model, variables, image):
+  return model.outputs(variables, image[None], False)[0][0, ..., 0]
+
+
+def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: CottaConfig):
+  """L1(student disparity, gated teacher pseudo label) + ld_weight * L_d(student depth)."""
+  del cfg
+  ms = state.method_state
+  sg = jax.lax.stop_gradient
+  student = _disp(model, variables_of(trainable, consts), frame.image)      # (H, W)
+  teacher_vars = trainable_lib.merge(ms["teacher"], consts.frozen, consts.batch_stats)
+  anchor = sg(_disp(model, variables_of(state.source, consts), frame.image))
+  h, w = frame.image.shape[:2]
+  params = sample_augment(rng, mcfg.n_augment, h, w, mcfg, frame.image.dtype)
+  teacher, averaged = sg(teacher_predictions(model, teacher_vars, frame.image, params))
+  gate = jnp.abs(anchor - teacher) / teacher > mcfg.threshold
+  pseudo = jnp.where(gate, averaged, teacher)
+  own = jnp.mean(nonsmooth.absolute(student - pseudo))
+  l_d, n = depth_refining_term(model.spec.to_depth(student), frame, mcfg.ld)
+  total = own + ms["ld_weight"] * l_d
+  logs = {"loss_cotta": own, "loss_d": l_d, "n_instances": n,
+          "gate_fraction": jnp.mean(gate.astype(student.dtype))}
+  return total, sg(Aux(model.spec.to_depth(pseudo), logs))
+
+
+def build(config: CottaConfig = CottaConfig()) -> Method:
+  """CoTTA with `config` bound. method_state = {"teacher": the EMA of the trainable leaves,
+  "ld_weight": ()}; Adam(config.lr) replaces AdaptConfig's optimiser."""
+  from pitta_jax.adapt.engine import optax_update
+
+  def init(model, parts, cfg, resources):
+    del model, resources
+    check(cfg.bn_stats == "running",
+          "cotta runs BatchNorm in eval mode: use bn_stats='running' (--bn-stats running)")
+    teacher = jax.tree_util.tree_map(lambda x: jnp.array(x, copy=True), parts.trainable)
+    dtype = jax.tree_util.tree_leaves(teacher)[0].dtype
+    return {"teacher": teacher, "ld_weight": jnp.asarray(config.ld_weight, dtype)}
+
+  def update(state, grads, loss_value, aux, rng, tx, cfg):
+    """Adam step (with the non-finite guard), teacher EMA, stochastic restore (upstream order)."""
+    del aux
+    state, skipped, unorm = optax_update(state, grads, loss_value, tx, cfg)
+    a = config.ema_decay
+    teacher = jax.tree_util.tree_map(lambda t, s: a * t + (1.0 - a) * s,
+                                     state.method_state["teacher"], state.trainable)
+    masks = restore_masks(rng, state.trainable, config.restore_p)
+    restored = jax.tree_util.tree_map(jnp.where, masks, state.source, state.trainable)
+    state = state.replace(trainable=restored,
+                          method_state={**state.method_state, "teacher": teacher})
+    return state, skipped, unorm
+
+  return Method("cotta", config, init=init, loss=loss, update=update,
+                optimizer=lambda cfg: optax.adam(config.lr))

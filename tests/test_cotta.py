@@ -1,0 +1,168 @@
+"""CoTTA (methods/cotta.py) against the PyTorch reference of tests/torch_tta.py.
+
+Reference: CoTTA as its official code runs a step (deepcopy teacher and anchor, augmented
+teacher views averaged, student loss, Adam step, EMA over parameters(), stochastic restore
+`src * mask + p * (1 - mask)`), with the depth adaptations of methods/cotta.py (per-pixel gate,
+L1 on disparity, flip back) and PITTA's L_d, written with native ops on the PyTorch MonoDepth2
+of torch_monodepth2 (random weights, converted with weights_convert.monodepth2). float64 on
+both sides, 64x96, N = 4 views. The random draws are the JAX run's own (`sample_augment` and
+`restore_masks` from the step's keys), passed explicitly to PyTorch. The teacher starts away
+from the anchor (its BN parameters perturbed on both sides) and the threshold is set between
+two of the frame's |anchor - teacher| / teacher values, so the gate picks both branches.
+Checked after one step: the loss, CoTTA's own term, L_d, the gate fraction, the evaluated
+depth (the pseudo label's), the student after Adam + restore and the EMA teacher; with
+ld_weight 0 the loss and the student equal plain CoTTA's.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+from flax.traverse_util import flatten_dict, unflatten_dict
+
+import adapt_frames
+import torch_monodepth2 as tm
+import torch_tta
+from pitta_jax.adapt import AdaptConfig, StepInput, init_state, make_optimizer, make_step
+from pitta_jax.methods import build
+from pitta_jax.methods.cotta import CottaConfig, restore_masks, sample_augment
+from pitta_jax.methods.depth_refining import DepthRefiningConfig
+from pitta_jax.models.registry import network
+from weights_convert.monodepth2 import convert_monodepth2
+
+H, W = adapt_frames.H, adapt_frames.W
+IDS = [11, 12, 13]
+LR, N_AUG, RESTORE_P, EMA, WINDOW = 1e-3, 4, 0.2, 0.9, 3
+CFG = AdaptConfig(bn_stats="running", seed=3)
+
+
+def _reference(enc, dec, threshold, ld_weight):
+  ref = torch_tta.CoTTA(copy.deepcopy(enc), copy.deepcopy(dec), LR, EMA, threshold, ld_weight,
+                        WINDOW)
+  g = torch.Generator().manual_seed(5)
+  with torch.no_grad():  # a teacher away from the anchor
+    for m in ref.ema_model.modules():
+      if isinstance(m, torch.nn.BatchNorm2d):
+        m.weight.mul_(1 + 0.3 * torch.randn(m.weight.shape, generator=g, dtype=m.weight.dtype))
+        m.bias.add_(0.1 * torch.randn(m.bias.shape, generator=g, dtype=m.bias.dtype))
+  return ref
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+  root = tmp_path_factory.mktemp("mono")
+  enc, dec = tm.ResnetEncoder(18), tm.DepthDecoder(tm.num_ch_enc(18))
+  tm.randomize_(enc, 41), tm.randomize_(dec, 42)
+  torch.save({**enc.state_dict(), "height": H, "width": W}, root / "encoder.pth")
+  torch.save(dec.state_dict(), root / "depth.pth")
+  _, variables, _ = convert_monodepth2(root / "encoder.pth", root / "depth.pth")
+  enc, dec = enc.double(), dec.double()
+  frames = adapt_frames.make_frames(1, seed=4)
+  # the threshold: halfway between the two middle values of the frame's relative disagreement
+  ref = _reference(enc, dec, 0.0, 1.0)
+  ref.anchor.eval(), ref.ema_model.eval()
+  with torch.no_grad():
+    x = torch.from_numpy(frames.image[0].astype(np.float64)).permute(2, 0, 1)[None]
+    a, t = ref.disp(ref.anchor, x)[0], ref.disp(ref.ema_model, x)[0]
+  rel = np.sort(((a - t).abs() / t).numpy().ravel())
+  threshold = float(rel[rel.size // 2 - 1] + rel[rel.size // 2]) / 2
+  teacher = torch_tta.encoder_params(ref.ema_model["enc"], bn_only=True)
+  return enc, dec, variables, frames, threshold, teacher
+
+
+@pytest.fixture(scope="module")
+def jax_run(case):
+  """One engine step with ld_weight 1 and one with 0 (one compile), and the step's draws."""
+  _, _, variables, frames, threshold, teacher = case
+  mcfg = CottaConfig(n_augment=N_AUG, threshold=threshold, ema_decay=EMA, restore_p=RESTORE_P,
+                     lr=LR, ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
+  with jax.enable_x64(True):
+    v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
+    model = network("monodepth2", {"num_layers": 18})
+    method = build("cotta", mcfg)
+    tx = make_optimizer(CFG, method)
+    step = jax.jit(make_step(model, method, CFG, tx))
+    init, consts = init_state(v64, method, CFG, tx, model)
+    init = init.replace(method_state={
+        **init.method_state,
+        "teacher": {"encoder": unflatten_dict({k: jnp.asarray(v) for k, v in teacher.items()},
+                                              sep="/")}})
+    frame = StepInput(*(jnp.asarray(v[0], jnp.float64 if v.dtype == np.float32 else None)
+                        for v in frames))
+    rng = jax.random.fold_in(init.rng, init.step)           # the engine's per-frame key
+    draws = jax.tree_util.tree_map(np.asarray, sample_augment(rng, N_AUG, H, W, mcfg, jnp.float64))
+    masks = restore_masks(jax.random.fold_in(rng, 0), init.trainable, RESTORE_P)
+    runs = []
+    for w in (1.0, 0.0):
+      s0 = init.replace(method_state={**init.method_state, "ld_weight": jnp.asarray(w, jnp.float64)})
+      state, out = step(s0, frame, consts)
+      flat = lambda t: {k: np.asarray(v) for k, v in flatten_dict(t["encoder"], sep="/").items()}
+      runs.append((jax.tree_util.tree_map(np.asarray, out), flat(state.trainable),
+                   flat(state.method_state["teacher"])))
+  masks = {k: np.asarray(v) for k, v in flatten_dict(masks["encoder"], sep="/").items()}
+  return draws, masks, runs
+
+
+def _torch_step(case, draws, masks, ld_weight):
+  enc, dec, _, frames, threshold, _ = case
+  ref = _reference(enc, dec, threshold, ld_weight)
+  aug = {"order": draws.order, "factors": draws.factors, "sigma": draws.sigma,
+         "flip": draws.flip, "noise": draws.noise}
+  by_name = {n: masks[torch_tta.flax_path(n[len("enc."):])] for n in ref.trainable}
+  result = ref.step(frames.image[0], frames.panoptic[0], IDS, aug, by_name)
+  return (result, torch_tta.encoder_params(ref.model["enc"], bn_only=True),
+          torch_tta.encoder_params(ref.ema_model["enc"], bn_only=True))
+
+
+def _worst_rel(a: dict, b: dict, ref: dict) -> float:
+  """max over leaves of max|a - b| / max|b - ref| (the difference relative to the change)."""
+  assert set(a) == set(b)
+  return max(float(np.max(np.abs(a[k] - b[k])) / max(np.max(np.abs(b[k] - ref[k])), 1e-300))
+             for k in b)
+
+
+def test_one_step_matches_torch(case, jax_run):
+  draws, masks, runs = jax_run
+  out, student, teacher = runs[0]
+  (total, own, l_d, pseudo, gate), t_student, t_teacher = _torch_step(case, draws, masks, 1.0)
+  n_restored = sum(int(m.sum()) for m in masks.values())
+  print(f"views flipped {draws.flip.tolist()}, orders {draws.order.tolist()}; restored "
+        f"{n_restored} of {sum(m.size for m in masks.values())} elements")
+  assert 0 < draws.flip.sum() < N_AUG and n_restored > 0
+  print(f"loss jax {float(out.loss):.10f} torch {total:.10f}; CoTTA term "
+        f"{float(out.logs['loss_cotta']):.10f} / {own:.10f}; L_d {float(out.logs['loss_d']):.6f} / "
+        f"{l_d:.6f}; gate fraction {float(out.logs['gate_fraction']):.3f} / {gate:.3f}")
+  assert 0.3 < gate < 0.7
+  np.testing.assert_allclose(float(out.logs["gate_fraction"]), gate, rtol=0, atol=0)
+  np.testing.assert_allclose(float(out.logs["loss_cotta"]), own, rtol=1e-9)
+  np.testing.assert_allclose(float(out.logs["loss_d"]), l_d, rtol=1e-9)
+  np.testing.assert_allclose(float(out.loss), total, rtol=1e-9)
+  depth = np.asarray(torch_tta.disp_to_depth(torch.from_numpy(pseudo)))
+  d = float(np.max(np.abs(out.depth - depth) / depth))
+  src = torch_tta.encoder_params(case[0], bn_only=True)
+  rs, rt = _worst_rel(student, t_student, src), _worst_rel(teacher, t_teacher, src)
+  print(f"evaluated depth (pseudo label) max rel diff {d:.1e}; student after Adam + restore, "
+        f"worst max diff / max change {rs:.1e}; EMA teacher {rt:.1e}")
+  assert d < 1e-10 and rs < 1e-6 and rt < 1e-6
+  # restored elements are exactly the source's
+  for k, m in masks.items():
+    np.testing.assert_array_equal(student[k][m], src[k][m])
+
+
+def test_ld_weight_zero_is_plain_cotta(case, jax_run):
+  draws, masks, runs = jax_run
+  out0, student0, _ = runs[1]
+  (total, own, _, _, _), t_student, _ = _torch_step(case, draws, masks, 0.0)
+  print(f"ld_weight 0: jax {float(out0.loss):.10f} torch CoTTA {total:.10f}; ld_weight 1 minus 0 "
+        f"{float(runs[0][0].loss) - float(out0.loss):.6f}, L_d {float(runs[0][0].logs['loss_d']):.6f}")
+  np.testing.assert_allclose(float(out0.loss), own, rtol=1e-9)
+  np.testing.assert_allclose(float(runs[0][0].loss) - float(out0.loss),
+                             float(runs[0][0].logs["loss_d"]), rtol=1e-9)
+  rs = _worst_rel(student0, t_student, torch_tta.encoder_params(case[0], bn_only=True))
+  print(f"student after one ld_weight-0 step: worst max diff / max change {rs:.1e}")
+  assert rs < 1e-6
