@@ -82,7 +82,7 @@ class Runners:
                                            if k != "source")), method.name, method.config, cfg)
     if key not in self._cache:
       model = weights.network()
-      tx = make_optimizer(cfg)
+      tx = make_optimizer(cfg, method)
       self._cache[key] = (model, tx, make_chunk_runner(make_step(model, method, cfg, tx)))
     return self._cache[key]
 
@@ -121,7 +121,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                  method: Method | None = None, eval_cfg: EvalConfig = EvalConfig(),
                  name: str = "", quiet: bool = False, keep: Sequence[int] = (),
                  checkpoint_dir: str | Path | None = None, checkpoint_every: int = 0,
-                 runners: Runners | None = None, resume: bool = False) -> RunResult:
+                 runners: Runners | None = None, resume: bool = False,
+                 resources: dict | None = None) -> RunResult:
   """Runs a method online over `frames` (predict-then-adapt) and evaluates each prediction
   against the frame's ground truth (when it has one).
 
@@ -138,6 +139,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     runners: a shared cache of compiled runners (default: a fresh one, compiled for this call).
     resume: continue from the newest checkpoint under `checkpoint_dir` (its frames are not run
       again); the result equals an uninterrupted run's.
+    resources: host-side inputs of the method (e.g. ActMAD's source statistics).
   """
   if len(frames) == 0:
     raise DataError(name or "sequence", "no frames to adapt on")
@@ -147,7 +149,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   h, w = weights.height, weights.width
   model, tx, runner = (runners or Runners()).get(weights, method, cfg)
   alignment = weights.spec.alignment if eval_cfg.alignment == "model" else eval_cfg.alignment
-  state, consts = init_state(weights.depth, method, cfg, tx, model)
+  state, consts = init_state(weights.depth, method, cfg, tx, model, resources)
   record = {"per_frame": [], "names": [], "excluded": [], "logs": {}}
   directory = Path(checkpoint_dir) if checkpoint_dir else None
   if resume and directory is not None:

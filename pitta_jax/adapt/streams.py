@@ -76,14 +76,14 @@ def init_streams(variables: Tree, method: Method, cfg: AdaptConfig, num: int,
 
   Args:
     variables: Flax variables {"params", "batch_stats"} of the source network.
-    method, cfg, tx, model: as `engine.init_state` (tx defaults to `make_optimizer(cfg)`).
+    method, cfg, tx, model: as `engine.init_state` (tx defaults to `make_optimizer(cfg, method)`).
     num: number of streams K.
     seeds: K seeds (default cfg.seed + k); only methods that draw random numbers see them.
 
   Returns:
     (multi-stream AdaptState with (K, ...) fields, the shared Consts).
   """
-  tx = tx or make_optimizer(cfg)
+  tx = tx or make_optimizer(cfg, method)
   seeds = list(seeds) if seeds is not None else [cfg.seed + k for k in range(num)]
   if len(seeds) != num:
     raise ValueError(f"{len(seeds)} seeds for {num} streams")
