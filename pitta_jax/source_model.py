@@ -77,8 +77,10 @@ class SourceConfig:
   def network_config(self) -> dict:
     """The model.json fields of the network to train."""
     from pitta_jax.models.registry import get_spec
-    config = {"height": self.height, "width": self.width}
-    module = get_spec(self.model).build(config)
+    spec = get_spec(self.model)
+    config = (spec.source_config(self.height, self.width) if spec.source_config
+              else {"height": self.height, "width": self.width})
+    module = spec.build(config)
     if isinstance(getattr(module, "num_layers", None), int):  # ResNet-encoder networks
       config["num_layers"] = self.num_layers
     return config

@@ -50,6 +50,9 @@ class ModelSpec:
   encoder: str = "encoder"                   # top-level module name of the encoder
   description: str = ""                      # one line for --help and model listings
   build_pose: Callable[[Mapping[str, Any]], Any] | None = None  # its pose network, if any
+  # model.json fields of the network trained from scratch at (H, W) (`train-source`);
+  # None = {"height": H, "width": W}
+  source_config: Callable[[int, int], dict[str, Any]] | None = None
 
   def __post_init__(self):
     if self.output not in OUTPUTS:

@@ -17,10 +17,20 @@ DEFAULT_SIZE = (192, 640)    # (H, W) of the released KITTI 640x192 weights
 
 
 def build(config: Mapping[str, Any]) -> LiteMono:
-  """model.json config {"model", "height", "width", ...} (what `weights_convert.litemono`
-  writes) -> the Flax module; "model" defaults to the base model."""
-  return LiteMono(model=str(config.get("model", DEFAULT_MODEL)), height=int(config["height"]),
-                  width=int(config["width"]))
+  """model.json config {"model", "height", "width", ["dilation_size"]} (what
+  `weights_convert.litemono` writes) -> the Flax module; "model" defaults to the base model.
+
+  Upstream ties the DilatedConv rates to the training size (640x192 or 1024x320);
+  "dilation_size" [H, W] names the table for weights trained at another size (`train-source`
+  trains at 320x96 with the 640x192 rates); by default it is the weights' height and width.
+  """
+  h, w = config.get("dilation_size", (config["height"], config["width"]))
+  return LiteMono(model=str(config.get("model", DEFAULT_MODEL)), height=int(h), width=int(w))
+
+
+def source_config(height: int, width: int) -> dict[str, Any]:
+  """model.json fields of a Lite-Mono trained from scratch at (height, width)."""
+  return {"height": height, "width": width, "dilation_size": list(DEFAULT_SIZE)}
 
 
 SPEC = ModelSpec(
@@ -34,6 +44,7 @@ SPEC = ModelSpec(
     encoder="encoder",
     description="Lite-Mono (CNN + XCA transformer, 3 disparity scales; BN in the stem and "
                 "dilated blocks, LayerNorm in the LGFI blocks)",
+    source_config=source_config,
 )
 
 
