@@ -106,6 +106,31 @@ def _method_from_args(args, cfg):
   return build(cfg.method, config_from_args(method_config_class(cfg.method), args, cfg.method))
 
 
+SOURCE_BATCH = 4  # images per forward pass when computing source statistics
+
+
+def _method_resources(method, weights, args) -> dict:
+  """The method's host-side inputs (`Method.prepare`) from source images: --source-images, or
+  on the synthetic benchmark clear-weather frames of the training streets (seeds 0, 1)."""
+  if method.prepare is None:
+    return {}
+  import numpy as np
+  from pitta_jax.data.resize import resize_image
+  h, w = weights.height, weights.width
+  if args.source_images:
+    from pitta_jax.data.image_io import read_image
+    from pitta_jax.predict import expand_images
+    images = [resize_image(read_image(p), h, w) for p in expand_images(args.source_images)]
+  elif args.dataset == "synthetic":
+    from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+    images = [f.image for seed in (0, 1) for f in generate_sequence(
+        SyntheticConfig(height=h, width=w, num_frames=8, seed=seed, domain="clear"))]
+  else:
+    raise ValueError(f"--method {method.name} needs source-domain images: --source-images PATH")
+  batches = [np.stack(images[i:i + SOURCE_BATCH]) for i in range(0, len(images), SOURCE_BATCH)]
+  return method.prepare(weights.network(), weights.depth, batches)
+
+
 def _add_demo(sub) -> None:
   from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.demo import DemoConfig
@@ -199,6 +224,10 @@ def _add_adapt(sub, name: str) -> None:
   p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
                  help="save the adaptation state and the results so far after every K frames "
                       "(and on Ctrl-C) under OUT/checkpoints")
+  p.add_argument("--source-images", metavar="PATH",
+                 help="source-domain images (a file, a directory or a glob) for methods that "
+                      "need source data (ActMAD's statistics); default on synthetic: clear-"
+                      "weather training streets")
   p.add_argument("--resume", action="store_true",
                  help="continue from the newest checkpoint under OUT/checkpoints (the frames "
                       "it holds are not run again; results equal an uninterrupted run's)")
@@ -222,6 +251,7 @@ def _run_adapt(args) -> int:
   if args.adapting:
     cfg = config_from_args(AdaptConfig, args, "adapt")
     method = _method_from_args(args, cfg)
+    method.check(cfg)  # before any work
   else:
     cfg = AdaptConfig(method="none", bn_stats="running")
     method = build("none")
@@ -237,11 +267,13 @@ def _run_adapt(args) -> int:
     weights = open_weights(args.weights, args.dataset, quiet=args.quiet, model=args.model)
     frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
                          weights.height, weights.width)
+    resources = _method_resources(method, weights, args)
     out = args.out
     res = run_sequence(weights, frames, cfg, method, eval_cfg, name=f"{args.dataset} {cfg.method}",
                        quiet=args.quiet,
                        checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
-                       checkpoint_every=args.checkpoint_every, resume=args.resume)
+                       checkpoint_every=args.checkpoint_every, resume=args.resume,
+                       resources=resources)
     row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.fps, 2),
                                                      "frames": len(res.frame_names),
                                                      "n_skipped": res.n_skipped,

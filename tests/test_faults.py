@@ -230,3 +230,12 @@ def test_frames_without_valid_ground_truth_are_excluded_not_fatal(tiny_weights):
   assert res.excluded == [frames[1].name] and len(res.per_frame) == 2
   want = [metrics.depth_metrics(res.kept_depths[i], frames[i].depth)["abs_rel"] for i in (0, 2)]
   np.testing.assert_allclose(res.mean["abs_rel"], np.mean(want), rtol=1e-12)
+
+
+def test_method_requirements_are_checked_before_work(tmp_path, capsys):
+  for method in ("actmad", "cotta"):
+    t0 = time.time()
+    rc = main(["adapt", "--dataset", "synthetic", "--method", method, "--out", str(tmp_path / method)])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--bn-stats running" in err and err.count("\n") == 1
+    assert time.time() - t0 < 5 and not (tmp_path / method).exists()

@@ -103,6 +103,7 @@ def init_state(variables: Tree, method: Method, cfg: AdaptConfig,
 
   model: the `Network` (passed to `method.init`); resources: host-side inputs of the method.
   """
+  method.check(cfg)
   selector = trainable_lib.parse_selector(cfg.selector)
   order = model.forward_order() if model is not None and selector.kind == "fraction" else None
   parts = trainable_lib.split(variables, selector,

@@ -167,5 +167,9 @@ def build(config: ActmadConfig = ActmadConfig()) -> Method:
              for k, r in ms["rings"].items()}
     return state.replace(method_state={**ms, "rings": rings}), skipped, unorm
 
+  def prepare(model, variables, batches):
+    return {RESOURCE: source_statistics(model, variables, batches, config.layers)}
+
   return Method("actmad", config, init=init, loss=loss, update=update,
-                optimizer=lambda cfg: optimizer(config))
+                optimizer=lambda cfg: optimizer(config), prepare=prepare,
+                requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),))

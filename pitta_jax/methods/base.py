@@ -54,6 +54,18 @@ class Method:
   update: Callable[..., Any] | None = None
   adapts: bool = True
   optimizer: Callable[..., Any] | None = None
+  # (model, variables, source batches (B, H, W, 3) iterable) -> resources for `init`; None for
+  # methods that need no source data. The CLI feeds it clear synthetic frames or --source-images.
+  prepare: Callable[..., dict[str, Any]] | None = None
+  # the AdaptConfig values the method needs (e.g. BN in eval mode): 0 or more
+  # (field, value, reason) triples, checked before any work
+  requires: tuple[tuple[str, Any, str], ...] = ()
+
+  def check(self, cfg) -> None:
+    """ValueError (one line, naming the flag) when `cfg` contradicts `requires`."""
+    for field, value, reason in self.requires:
+      if getattr(cfg, field) != value:
+        raise ValueError(f"{self.name} {reason}: use --{field.replace('_', '-')} {value}")
 
 
 def variables_of(trainable: Tree, consts) -> Tree:

@@ -223,4 +223,5 @@ def build(config: CottaConfig = CottaConfig()) -> Method:
     return state, skipped, unorm
 
   return Method("cotta", config, init=init, loss=loss, update=update,
-                optimizer=lambda cfg: optax.adam(config.lr))
+                optimizer=lambda cfg: optax.adam(config.lr),
+                requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),))
