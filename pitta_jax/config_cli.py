@@ -84,8 +84,9 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, namespace: 
     alias = f"--{field.name.replace('_', '-')}"
     if alias not in parser._option_string_actions:  # argparse's own registry of flags
       flags.append(alias)
+    text = f"{help_of(field)} (default: {shown})".lstrip().replace("%", "%%")  # argparse formats
     group.add_argument(*flags, dest=_dest(namespace, field.name), type=kind, default=None,
-                       metavar=meta, help=f"{help_of(field)} (default: {shown})".lstrip())
+                       metavar=meta, help=text)
 
 
 def _dest(namespace: str, name: str) -> str:

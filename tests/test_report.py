@@ -118,3 +118,21 @@ def test_string_tuples_parse_as_strings():
   add_config_arguments(parser, DemoConfig, "demo", "demo")
   cfg = config_from_args(DemoConfig, parser.parse_args(["--shifts", "fog, night"]), "demo")
   assert cfg.shifts == ("fog", "night") and cfg.num_frames == 40
+
+
+@pytest.mark.parametrize("command", ["demo", "adapt", "evaluate", "train-source", "predict",
+                                     "segment", "convert"])
+def test_every_subcommand_help_renders(command, capsys):
+  from pitta_jax.cli import main
+  with pytest.raises(SystemExit) as e:
+    main([command, "--help"])
+  assert e.value.code == 0 and "usage:" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("converter", ["monodepth2", "sgdepth", "hrdepth", "litemono", "monovit",
+                                       "depth-anything-v2", "mask2former"])
+def test_every_converter_help_renders(converter, capsys):
+  from pitta_jax.cli import main
+  with pytest.raises(SystemExit) as e:
+    main(["convert", converter, "--help"])
+  assert e.value.code == 0 and "--out" in capsys.readouterr().out
