@@ -106,31 +106,6 @@ def _method_from_args(args, cfg):
   return build(cfg.method, config_from_args(method_config_class(cfg.method), args, cfg.method))
 
 
-SOURCE_BATCH = 4  # images per forward pass when computing source statistics
-
-
-def _method_resources(method, weights, args) -> dict:
-  """The method's host-side inputs (`Method.prepare`) from source images: --source-images, or
-  on the synthetic benchmark clear-weather frames of the training streets (seeds 0, 1)."""
-  if method.prepare is None:
-    return {}
-  import numpy as np
-  from pitta_jax.data.resize import resize_image
-  h, w = weights.height, weights.width
-  if args.source_images:
-    from pitta_jax.data.image_io import read_image
-    from pitta_jax.predict import expand_images
-    images = [resize_image(read_image(p), h, w) for p in expand_images(args.source_images)]
-  elif args.dataset == "synthetic":
-    from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-    images = [f.image for seed in (0, 1) for f in generate_sequence(
-        SyntheticConfig(height=h, width=w, num_frames=8, seed=seed, domain="clear"))]
-  else:
-    raise ValueError(f"--method {method.name} needs source-domain images: --source-images PATH")
-  batches = [np.stack(images[i:i + SOURCE_BATCH]) for i in range(0, len(images), SOURCE_BATCH)]
-  return method.prepare(weights.network(), weights.depth, batches)
-
-
 def _add_demo(sub) -> None:
   from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.demo import DemoConfig
@@ -247,7 +222,7 @@ def _run_adapt(args) -> int:
   from pitta_jax.report import Row, write_results
   from pitta_jax.run import EvalConfig, run_sequence
   from pitta_jax.checkpoint import read_model_json
-  from pitta_jax.sources import check_dataset_args, open_frames, open_weights
+  from pitta_jax.sources import check_dataset_args, method_resources, open_frames, open_weights
   if args.adapting:
     cfg = config_from_args(AdaptConfig, args, "adapt")
     method = _method_from_args(args, cfg)
@@ -267,7 +242,7 @@ def _run_adapt(args) -> int:
     weights = open_weights(args.weights, args.dataset, quiet=args.quiet, model=args.model)
     frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
                          weights.height, weights.width)
-    resources = _method_resources(method, weights, args)
+    resources = method_resources(method, weights, args.dataset, args.source_images)
     out = args.out
     res = run_sequence(weights, frames, cfg, method, eval_cfg, name=f"{args.dataset} {cfg.method}",
                        quiet=args.quiet,

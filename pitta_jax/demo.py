@@ -3,7 +3,8 @@
 1. Loads (or trains once and caches) the clear-domain source MonoDepth2 (`source_model`).
 2. Generates target sequences of the synthetic driving benchmark under fog, rain, night, snow
    (unseen seeds), plus a clear sequence to show the source accuracy.
-3. Runs three rows per shift: "No adaptation" (the source model as is, running BN statistics),
+3. Runs three rows per shift (`--demo.methods` chooses them and adds the baselines ActMAD and
+   CoTTA, each with L_d): "No adaptation" (the source model as is, running BN statistics),
    "BN batch stats" (no update, the frame's batch statistics: separates their effect from the
    loss's) and "PITTA" (eqs. 3-11, paper defaults), with ground-truth panoptic
    segmentation standing in for Mask2Former.
@@ -30,11 +31,14 @@ from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
 from pitta_jax.report import Row, curve_figure, write_results
 from pitta_jax.run import EvalConfig, RunResult, Runners, run_sequence
 from pitta_jax.source_model import SourceConfig, load_or_train_source
+from pitta_jax.sources import method_resources
 
-ROWS = {  # row name -> AdaptConfig changes (from the paper defaults)
-    "No adaptation": dict(method="none", bn_stats="running"),
-    "BN batch stats": dict(method="none", bn_stats="batch"),
-    "PITTA": dict(method="pitta"),
+ROWS = {  # --demo.methods key -> (row name, AdaptConfig changes from the defaults)
+    "none": ("No adaptation", dict(method="none", bn_stats="running")),
+    "bn": ("BN batch stats", dict(method="none", bn_stats="batch")),
+    "pitta": ("PITTA", dict(method="pitta")),
+    "actmad": ("ActMAD + L_d", dict(method="actmad", bn_stats="running")),
+    "cotta": ("CoTTA + L_d", dict(method="cotta", bn_stats="running")),
 }
 
 
@@ -46,6 +50,9 @@ class DemoConfig:
   num_frames: int = option(40, "frames per target sequence (keeps a cached re-run near 2 "
                                "minutes on CPU)")
   target_seed: int = option(100, "target streets (training uses seeds 0..7)")
+  methods: tuple[str, ...] = option(("none", "bn", "pitta"),
+                                    "rows under each shift: none (No adaptation), bn (BN batch "
+                                    "stats), pitta, actmad, cotta (baselines + L_d)")
   out: str = option("pitta_out", "output directory")
 
   def __post_init__(self):
@@ -55,6 +62,9 @@ class DemoConfig:
           f"shifts {bad or '()'} invalid: choose from {', '.join(DOMAINS[1:])}")
     check(self.num_frames >= 1, f"num_frames must be >= 1, got {self.num_frames}")
     check(0.0 <= self.severity <= 1.0, f"severity must be in [0, 1], got {self.severity}")
+    bad_rows = [m for m in self.methods if m not in ROWS]
+    check(not bad_rows and bool(self.methods),
+          f"methods {bad_rows or '()'} invalid: choose from {', '.join(ROWS)}")
 
 
 def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig(),
@@ -66,6 +76,7 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
   weights, train_report = load_or_train_source(source, quiet=quiet)
   h, w = weights.height, weights.width
   runners = Runners()  # one compile per row serves every shift
+  resources: dict[str, dict] = {}
   rows: list[Row] = []
   per_frame: dict[str, dict[str, list[float]]] = {}
   domains = ("clear",) + tuple(demo.shifts)
@@ -74,12 +85,15 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
         height=h, width=w, num_frames=demo.num_frames, seed=demo.target_seed, domain=domain,
         severity=demo.severity))
     results: dict[str, RunResult] = {}
-    row_names = ["No adaptation"] if domain == "clear" else list(ROWS)
-    for row in row_names:
-      cfg = dataclasses.replace(adapt, **ROWS[row])
+    for key in (("none",) if domain == "clear" else demo.methods):
+      row, changes = ROWS[key]
+      cfg = dataclasses.replace(adapt, **changes)
       method = build_method(cfg.method, pitta if cfg.method == "pitta" else None)
+      if key not in resources:  # e.g. ActMAD's source statistics, from clear training streets
+        resources[key] = method_resources(method, weights, "synthetic")
       res = run_sequence(weights, frames, cfg, method, EvalConfig(), name=f"{domain}: {row}",
-                         quiet=quiet, keep=(len(frames) - 1,), runners=runners)
+                         quiet=quiet, keep=(len(frames) - 1,), runners=runners,
+                         resources=resources[key])
       results[row] = res
       rows.append(Row(domain, row, res.mean, {
           "fps": round(res.fps, 2), "seconds": round(res.seconds, 2), "frames": len(frames),

@@ -99,6 +99,34 @@ def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False,
   return load_or_train_source(SourceConfig(model=model or "monodepth2"), quiet=quiet)[0]
 
 
+SOURCE_BATCH = 4  # images per forward pass when a method computes source statistics
+
+
+def method_resources(method, weights: Weights, dataset: str, source_images: str | None = None
+                     ) -> dict[str, Any]:
+  """The method's host-side inputs (`Method.prepare`) from source-domain images: the files of
+  `source_images` (a file, a directory or a glob), or on the synthetic benchmark clear-weather
+  frames of the training streets (seeds 0, 1); {} for methods that need none."""
+  if method.prepare is None:
+    return {}
+  import numpy as np
+  from pitta_jax.data.resize import resize_image
+  h, w = weights.height, weights.width
+  if source_images:
+    from pitta_jax.data.image_io import read_image
+    from pitta_jax.predict import expand_images
+    images = [resize_image(read_image(p), h, w) for p in expand_images(source_images)]
+  elif dataset == "synthetic":
+    from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+    images = [f.image for seed in (0, 1) for f in generate_sequence(
+        SyntheticConfig(height=h, width=w, num_frames=8, seed=seed, domain="clear"))]
+  else:
+    raise DataError(None, f"--method {method.name} needs source-domain images: "
+                          f"--source-images PATH")
+  batches = [np.stack(images[i:i + SOURCE_BATCH]) for i in range(0, len(images), SOURCE_BATCH)]
+  return method.prepare(weights.network(), weights.depth, batches)
+
+
 def parse_segmentation(segmentation: str) -> tuple[str, str]:
   """`gt`, `png:DIR`, `mask2former:DIR` -> (kind, argument); DataError otherwise."""
   kind, _, arg = segmentation.partition(":")

@@ -136,3 +136,11 @@ def test_every_converter_help_renders(converter, capsys):
   with pytest.raises(SystemExit) as e:
     main(["convert", converter, "--help"])
   assert e.value.code == 0 and "--out" in capsys.readouterr().out
+
+
+def test_demo_methods_are_validated():
+  from pitta_jax.demo import ROWS, DemoConfig
+  assert DemoConfig().methods == ("none", "bn", "pitta")
+  assert {"actmad", "cotta"} <= set(ROWS)
+  with pytest.raises(ValueError, match="methods \\['tent'\\] invalid"):
+    DemoConfig(methods=("pitta", "tent"))
