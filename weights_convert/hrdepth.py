@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.monodepth2 import (METADATA_KEYS, _meta, encoder_rules,
+from weights_convert.monodepth2 import (METADATA_KEYS, encoder_rules,
                                         infer_num_layers)
-from weights_convert.pth import CheckpointError, load_state_dict
+from weights_convert.pth import CheckpointError, int_entry, load_state_dict
 
 # upstream layer kind -> the PyTorch parameter names of one layer (relative to the layer)
 PARAMS = {
@@ -137,8 +137,8 @@ def convert_hrdepth(encoder: str | os.PathLike, depth: str | os.PathLike) -> tup
     if key not in enc_state:
       raise CheckpointError(f"{encoder}: no {key!r} entry; HR-Depth's encoder.pth stores the "
                             f"training input size as 'height' and 'width'")
-  config = {"num_layers": num_layers, "height": _meta(enc_state, "height", None, encoder),
-            "width": _meta(enc_state, "width", None, encoder)}
+  config = {"num_layers": num_layers, "height": int_entry(enc_state, "height", encoder),
+            "width": int_entry(enc_state, "width", encoder)}
   SPEC.check_size(config["height"], config["width"])
   expected = R.expected_shapes(SPEC.build(config), (1, 64, 64, 3))
   flat = R.apply_rules(enc_state, encoder_rules(num_layers), _encoder_ignorable, str(encoder),

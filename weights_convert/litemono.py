@@ -28,10 +28,9 @@ import os
 import re
 from pathlib import Path
 
-import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, load_state_dict
+from weights_convert.pth import CheckpointError, int_entry, load_state_dict
 
 METADATA_KEYS = ("height", "width", "use_stereo")
 # upstream's decoder ModuleList order: (upconv, 2, 0), (upconv, 2, 1), ..., (upconv, 0, 1),
@@ -124,15 +123,6 @@ def infer_model(state: dict, path: str) -> str:
 
 
 
-def _size_entry(state: dict, key: str, default: int, path) -> int:
-  value = state.get(key, default)
-  if isinstance(value, np.ndarray) and value.size == 1:
-    value = value.item()
-  if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
-    raise CheckpointError(f"{path}: extra entry {key!r} = {value!r} is not a positive int")
-  return int(value)
-
-
 def convert_litemono(encoder: str | os.PathLike, depth: str | os.PathLike,
                      model: str | None = None) -> tuple[dict, dict]:
   """Converts Lite-Mono's encoder.pth + depth.pth to Flax variables.
@@ -157,8 +147,8 @@ def convert_litemono(encoder: str | os.PathLike, depth: str | os.PathLike,
                           f"are the encoder and decoder files swapped or the same file?")
   model = model or infer_model(enc_state, str(encoder))
   config = {"model": model,
-            "height": _size_entry(enc_state, "height", DEFAULT_SIZE[0], encoder),
-            "width": _size_entry(enc_state, "width", DEFAULT_SIZE[1], encoder),
+            "height": int_entry(enc_state, "height", encoder, DEFAULT_SIZE[0]),
+            "width": int_entry(enc_state, "width", encoder, DEFAULT_SIZE[1]),
             "use_stereo": bool(enc_state.get("use_stereo", False))}
   try:
     module = SPEC.build(config)

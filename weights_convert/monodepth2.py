@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, load_state_dict
+from weights_convert.pth import CheckpointError, int_entry, load_state_dict
 
 METADATA_KEYS = ("height", "width", "use_stereo")
 RESNET_BLOCKS = {18: ("basic", (2, 2, 2, 2)), 34: ("basic", (3, 4, 6, 3)),
@@ -89,15 +89,10 @@ def infer_num_layers(state: dict, path: str) -> int:
 
 
 
-def _meta(state: dict, key: str, default, path):
-  value = state.get(key, default)
-  if isinstance(value, np.ndarray) and value.size == 1:
-    value = value.item()
-  if key in ("height", "width"):
-    if not isinstance(value, (int, np.integer)) or value <= 0:
-      raise CheckpointError(f"{path}: extra entry {key!r} = {value!r} is not a positive int")
-    return int(value)
-  return bool(value)
+def _flag(state: dict, key: str) -> bool:
+  """A boolean metadata entry (`use_stereo`), False when absent."""
+  value = state.get(key, False)
+  return bool(value.item() if isinstance(value, np.ndarray) and value.size == 1 else value)
 
 
 def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
@@ -131,9 +126,9 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
                             expected, cover=False))
   R.check_covered(flat, expected)
   config = {"num_layers": num_layers,
-            "height": _meta(enc_state, "height", DEFAULT_SIZE[0], encoder),
-            "width": _meta(enc_state, "width", DEFAULT_SIZE[1], encoder),
-            "use_stereo": _meta(enc_state, "use_stereo", False, encoder)}
+            "height": int_entry(enc_state, "height", encoder, DEFAULT_SIZE[0]),
+            "width": int_entry(enc_state, "width", encoder, DEFAULT_SIZE[1]),
+            "use_stereo": _flag(enc_state, "use_stereo")}
   depth_vars = unflatten_dict(flat)
 
   pose_vars = None

@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, load_state_dict
+from weights_convert.pth import CheckpointError, int_entry, load_state_dict
 from weights_convert.strict import check_keys
 
 METADATA_KEYS = ("height", "width", "use_stereo")
@@ -272,12 +272,8 @@ def _read_state(path: str | os.PathLike) -> dict:
 
 def _size(state: dict, key: str, given: int | None, path: str) -> int:
   """The training size entry `key` of the file and/or the command line (they must agree)."""
-  value = state.get(key)
+  value = int_entry(state, key, path, None)
   if value is not None:
-    if isinstance(value, np.ndarray) and value.size == 1:
-      value = value.item()
-    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
-      raise CheckpointError(f"{path}: extra entry {key!r} = {value!r} is not a positive int")
     if given is not None and given != value:
       raise CheckpointError(f"{path}: records {key} = {value}, but {given} was given")
     return int(value)

@@ -647,6 +647,27 @@ def load_state_dict(path: str | os.PathLike) -> dict:
   return state
 
 
+_REQUIRED = object()
+
+
+def int_entry(state: dict, key: str, path: str | os.PathLike, default: Any = _REQUIRED) -> Any:
+  """A positive-integer metadata entry of a state dict (e.g. encoder.pth's "height"), as int.
+
+  Absent: `default` (CheckpointError when none is given). A one-element tensor is accepted;
+  anything else that is not a positive int (a bool, a float, a string) is a CheckpointError.
+  """
+  if key not in state:
+    if default is _REQUIRED:
+      raise CheckpointError(f"{path}: has no {key!r} entry")
+    return default
+  value = state[key]
+  if isinstance(value, np.ndarray) and value.size == 1:
+    value = value.item()
+  if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value <= 0:
+    raise CheckpointError(f"{path}: extra entry {key!r} = {value!r} is not a positive int")
+  return int(value)
+
+
 def unpickle_arrays(stream: BinaryIO, name: str) -> Any:
   """Unpickles a stream that may hold only containers, numbers, strings and NumPy arrays (the
   allow-list of `load_pickle`), e.g. the object array inside a `.npz` member.

@@ -13,10 +13,9 @@ inputs => bitwise the same depths and parameters.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, NamedTuple
+from typing import Any, Iterable, Iterator, NamedTuple
 
 import jax
 import jax.numpy as jnp

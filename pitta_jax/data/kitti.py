@@ -32,7 +32,6 @@ import functools
 import pickle
 import zipfile
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
