@@ -100,31 +100,49 @@ def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False,
 
 
 SOURCE_BATCH = 4  # images per forward pass when a method computes source statistics
+SYNTHETIC_SOURCE_SEEDS = (0, 1)  # clear training streets used as source data on synthetic
+SYNTHETIC_SOURCE_FRAMES = 8      # frames per street
 
 
-def method_resources(method, weights: Weights, dataset: str, source_images: str | None = None
-                     ) -> dict[str, Any]:
-  """The method's host-side inputs (`Method.prepare`) from source-domain images: the files of
-  `source_images` (a file, a directory or a glob), or on the synthetic benchmark clear-weather
-  frames of the training streets (seeds 0, 1); {} for methods that need none."""
+def method_resources(method, weights: Weights, dataset: str, source_images: str | None = None,
+                     replay_root: str | None = None) -> dict[str, Any]:
+  """The method's host-side inputs: the weights' pose network when the method needs one, and
+  `Method.prepare` on source-domain data: the files of `source_images` (a file, a directory or
+  a glob), consecutive frames of `replay_root` (a KITTI raw-data root), or on the synthetic
+  benchmark the clear-weather training streets (seeds 0, 1). {} for methods that need none."""
+  from pitta_jax.methods.base import POSE, PoseNet, SourceData
+  resources: dict[str, Any] = {}
+  if "pose" in method.needs:
+    if weights.pose is None or weights.spec.build_pose is None:
+      raise DataError(None, f"--method {method.name} needs a pose network, and the weights have "
+                            f"none (convert with --pose-encoder/--pose, or train-source)")
+    resources[POSE] = PoseNet(weights.spec.build_pose(weights.config), weights.pose)
   if method.prepare is None:
-    return {}
-  import numpy as np
-  from pitta_jax.data.resize import resize_image
+    return resources
+  from pitta_jax.data.resize import resize_frame, resize_image
   h, w = weights.height, weights.width
+  images: list = []
+  sequences: list = []
   if source_images:
     from pitta_jax.data.image_io import read_image
     from pitta_jax.predict import expand_images
     images = [resize_image(read_image(p), h, w) for p in expand_images(source_images)]
-  elif dataset == "synthetic":
+  if replay_root:
+    from pitta_jax.data.kitti import open_raw_sequences
+    sequences = [[resize_frame(f, h, w) for f in seq] for seq in open_raw_sequences(replay_root)]
+  if not images and not sequences:
+    if dataset != "synthetic":
+      raise DataError(None, f"--method {method.name} needs source-domain data: "
+                            f"--source-images PATH or --replay-root DIR")
     from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-    images = [f.image for seed in (0, 1) for f in generate_sequence(
-        SyntheticConfig(height=h, width=w, num_frames=8, seed=seed, domain="clear"))]
-  else:
-    raise DataError(None, f"--method {method.name} needs source-domain images: "
-                          f"--source-images PATH")
-  batches = [np.stack(images[i:i + SOURCE_BATCH]) for i in range(0, len(images), SOURCE_BATCH)]
-  return method.prepare(weights.network(), weights.depth, batches)
+    sequences = [list(generate_sequence(SyntheticConfig(
+        height=h, width=w, num_frames=SYNTHETIC_SOURCE_FRAMES, seed=seed, domain="clear")))
+        for seed in SYNTHETIC_SOURCE_SEEDS]
+  if not images:
+    images = [f.image for seq in sequences for f in seq]
+  source = SourceData(tuple(images), tuple(tuple(seq) for seq in sequences))
+  resources.update(method.prepare(weights.network(), weights.depth, source))
+  return resources
 
 
 def parse_segmentation(segmentation: str) -> tuple[str, str]:

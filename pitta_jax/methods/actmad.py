@@ -167,8 +167,8 @@ def build(config: ActmadConfig = ActmadConfig()) -> Method:
              for k, r in ms["rings"].items()}
     return state.replace(method_state={**ms, "rings": rings}), skipped, unorm
 
-  def prepare(model, variables, batches):
-    return {RESOURCE: source_statistics(model, variables, batches, config.layers)}
+  def prepare(model, variables, source):
+    return {RESOURCE: source_statistics(model, variables, source.batches(), config.layers)}
 
   return Method("actmad", config, init=init, loss=loss, update=update,
                 optimizer=lambda cfg: optimizer(config), prepare=prepare,

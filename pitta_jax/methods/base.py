@@ -20,6 +20,12 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
       The method's own optimiser (e.g. ActMAD's SGD with Nesterov momentum and weight decay),
       used by `engine.make_optimizer` instead of AdaptConfig's optimizer/lr/momentum.
   adapts: False for a method that never updates (no gradient is computed).
+  prepare(model, variables, source: SourceData) -> resources   [optional]
+      Host-side inputs computed once before the run from source-domain data (ActMAD's source
+      statistics from `source.batches()`, CoMoDa's replay set from `source.sequences`).
+  needs: what the method needs besides a frame's image and panoptic input, checked before any
+      work: "pose" (the weights' pose network, given as resources["pose"] = PoseNet(module,
+      variables)), "intrinsics" (every frame's K), "previous_frame" (consecutive frames).
 
 The engine (`pitta_jax.adapt.engine`) knows only this interface, never a method's name.
 """
@@ -35,6 +41,34 @@ import jax.numpy as jnp
 from pitta_jax import trainable as trainable_lib
 
 Tree = Any
+
+
+NEEDS = ("pose", "intrinsics", "previous_frame")
+POSE = "pose"  # the resources key of the weights' pose network
+
+
+class PoseNet(NamedTuple):
+  """The source weights' pose network: a Flax module (frame pair (B, H, W, 6) ->
+  (axisangle, translation), each (B, F, 1, 3)) and its variables."""
+  module: Any
+  variables: Tree
+
+
+@dataclasses.dataclass(frozen=True)
+class SourceData:
+  """Source-domain data a method's `prepare` may use, all at the network's input size.
+
+  images: single frames (H, W, 3) float32 in [0, 1] (e.g. for activation statistics).
+  sequences: runs of consecutive frames (`data.Frame`, with `intrinsics` when known), e.g. a
+    replay set of frame pairs or triplets; empty when only unordered images were given.
+  """
+  images: tuple[Any, ...] = ()
+  sequences: tuple[tuple[Any, ...], ...] = ()
+
+  def batches(self, size: int = 4):
+    """`images` as stacked batches (B, H, W, 3) of at most `size`."""
+    import numpy as np
+    return [np.stack(self.images[i:i + size]) for i in range(0, len(self.images), size)]
 
 
 class Aux(NamedTuple):
@@ -54,12 +88,19 @@ class Method:
   update: Callable[..., Any] | None = None
   adapts: bool = True
   optimizer: Callable[..., Any] | None = None
-  # (model, variables, source batches (B, H, W, 3) iterable) -> resources for `init`; None for
-  # methods that need no source data. The CLI feeds it clear synthetic frames or --source-images.
+  # (model, variables, SourceData) -> resources for `init`; None for methods that need no
+  # source data. The CLI feeds it clear synthetic streets or --source-images / --replay-root.
   prepare: Callable[..., dict[str, Any]] | None = None
   # the AdaptConfig values the method needs (e.g. BN in eval mode): 0 or more
   # (field, value, reason) triples, checked before any work
   requires: tuple[tuple[str, Any, str], ...] = ()
+  # data the method needs (a subset of NEEDS), checked before any work
+  needs: tuple[str, ...] = ()
+
+  def __post_init__(self):
+    unknown = set(self.needs) - set(NEEDS)
+    if unknown:
+      raise ValueError(f"method {self.name}: unknown needs {sorted(unknown)}; use {NEEDS}")
 
   def check(self, cfg) -> None:
     """ValueError (one line, naming the flag) when `cfg` contradicts `requires`."""
