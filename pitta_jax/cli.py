@@ -273,6 +273,16 @@ def _run_adapt(args) -> int:
   return 0
 
 
+def _add_experiment(sub) -> None:
+  p = sub.add_parser(
+      "experiment", help="the paper's Tables 1-5 and the sensitivity study (experiments/)",
+      description="Run one of the paper's tables: table1..table5 or sensitivity; "
+                  "`pitta-jax experiment table1 --help` lists its flags.", add_help=False)
+  p.add_argument("args", nargs=argparse.REMAINDER,
+                 help="NAME [flags]: table1 table2 table3 table4 table5 sensitivity")
+  p.set_defaults(func=lambda args: __import__("experiments").main(args.args))
+
+
 def build_parser() -> argparse.ArgumentParser:
   parser = argparse.ArgumentParser(
       prog="pitta-jax",
@@ -288,6 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
   _add_predict(sub)
   _add_segment(sub)
   _add_convert(sub)
+  _add_experiment(sub)
   return parser
 
 

@@ -37,9 +37,16 @@ def build(name: str, config: Any | None = None) -> Method:
   return make(config)
 
 
+def method_setting(name: str) -> dict[str, Any]:
+  """The AdaptConfig values of method `name`'s own setting: its `requires` and its `setting`
+  (e.g. ActMAD: BN in eval mode, every encoder conv and BN adapts)."""
+  method = build(name)
+  return {**{field: value for field, value, _ in method.requires}, **dict(method.setting)}
+
+
 def _check(name: str) -> None:
   if name not in METHODS:
     raise ValueError(f"unknown method {name!r}; available: {', '.join(sorted(METHODS))}")
 
 
-__all__ = ["METHODS", "Aux", "Method", "DepthRefiningConfig", "build", "method_config_class"]
+__all__ = ["METHODS", "Aux", "Method", "DepthRefiningConfig", "build", "method_config_class", "method_setting"]

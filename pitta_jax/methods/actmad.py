@@ -172,4 +172,5 @@ def build(config: ActmadConfig = ActmadConfig()) -> Method:
 
   return Method("actmad", config, init=init, loss=loss, update=update,
                 optimizer=lambda cfg: optimizer(config), prepare=prepare,
-                requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),))
+                requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),),
+                setting=(("selector", "fraction(cnn=100,bn=100)"),))

@@ -96,6 +96,9 @@ class Method:
   requires: tuple[tuple[str, Any, str], ...] = ()
   # data the method needs (a subset of NEEDS), checked before any work
   needs: tuple[str, ...] = ()
+  # the AdaptConfig values of the method's published setting beyond `requires` (e.g. which
+  # parameters adapt), as (field, value) pairs; the demo and the experiments start from them
+  setting: tuple[tuple[str, Any], ...] = ()
 
   def __post_init__(self):
     unknown = set(self.needs) - set(NEEDS)

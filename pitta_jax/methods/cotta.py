@@ -224,4 +224,5 @@ def build(config: CottaConfig = CottaConfig()) -> Method:
 
   return Method("cotta", config, init=init, loss=loss, update=update,
                 optimizer=lambda cfg: optax.adam(config.lr),
-                requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),))
+                requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),),
+                setting=(("selector", "all"),))

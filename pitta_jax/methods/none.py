@@ -27,5 +27,7 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg):
 
 
 def build(config: NoneConfig = NoneConfig()) -> Method:
+  # "No adaptation" evaluates the source model as it is: BN with its running statistics
+  # (with --bn-stats batch the same method gives the "BN batch stats" row)
   return Method("none", config, init=lambda model, parts, cfg, resources: {}, loss=loss,
-                adapts=False)
+                adapts=False, setting=(("bn_stats", "running"),))

@@ -1,0 +1,396 @@
+"""What every table command shares: test cases, rows, cached runs, and the command line.
+
+A table is a list of `Entry`s (a row of the paper's table: its group, e.g. the test case, its
+label, e.g. the method, and our metrics or the reason it has none), computed by `run_row` for
+each (`RowSpec`, `Case`) pair. Each computed row is cached under `OUT/rows/<key>.json`, the key
+a hash of everything that determines it (row, test case, dataset and options, weights, size,
+frame count, evaluation protocol, `FORMAT`), so a re-run only computes what changed and an
+interrupted table resumes: finished rows are read back, and the row that was running resumes
+from its last checkpoint (`run_sequence(..., resume=True)`).
+
+Datasets. `--dataset synthetic` (the default) maps the paper's test cases onto the embedded
+synthetic driving benchmark (`SYNTHETIC`): DrivingStereo's weather subsets become the
+generator's domains on unseen streets; Waymo becomes another camera (mounted higher), faster
+and denser traffic, other streets, in moderate rain (`WAYMO_LIKE`). With `--dataset
+drivingstereo|waymo --root DIR` the tables run on the real data (`REAL`), read by the project's
+readers with the `--option`s and `--segmentation` given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+FORMAT = 1  # bump when a row's meaning changes: cached rows of another format are recomputed
+
+# The embedded stand-ins of the paper's datasets (SyntheticConfig fields per part of a case).
+TARGET_SEED = 200          # DrivingStereo-like streets (training uses seeds 0..7, the demo 100)
+WAYMO_LIKE = dict(seed=300, camera_height=2.1, speed=11.0, n_cars=12.0, n_pedestrians=10.0,
+                  domain="rain", severity=0.5)
+SYNTHETIC = {
+    "Foggy": ({"domain": "fog", "seed": TARGET_SEED},),
+    "Rainy": ({"domain": "rain", "seed": TARGET_SEED},),
+    "Sunny": ({"domain": "clear", "seed": TARGET_SEED + 1},),
+    # "All": cloudy, foggy, rainy, sunny in turn (the paper's order); cloudy = clear street 202
+    "All": ({"domain": "clear", "seed": TARGET_SEED + 2}, {"domain": "fog", "seed": TARGET_SEED},
+            {"domain": "rain", "seed": TARGET_SEED}, {"domain": "clear", "seed": TARGET_SEED + 1}),
+    "Waymo": (WAYMO_LIKE,),
+}
+SYNTHETIC_CAPTION = {
+    "drivingstereo": "synthetic benchmark standing in for DrivingStereo: Foggy = fog, Rainy = rain "
+                     "(severity 0.7), Sunny = clear, All = clear, fog, rain, clear in turn (one "
+                     "continual run), on unseen streets (seeds 200-202)",
+    "waymo": "synthetic benchmark standing in for Waymo: camera 2.1 m high (KITTI: 1.65 m), 11 m/s, "
+             "denser traffic (12 vehicles, 10 pedestrians per 100 m), rain at severity 0.5, "
+             "street seed 300",
+}
+# The real datasets: the reader options of each part of a case.
+REAL = {
+    "drivingstereo": {
+        "Foggy": ({"weather": "foggy"},), "Rainy": ({"weather": "rainy"},),
+        "Sunny": ({"weather": "sunny"},),
+        "All": ({"weather": "cloudy"}, {"weather": "foggy"}, {"weather": "rainy"},
+                {"weather": "sunny"}),
+    },
+    "waymo": {"Waymo": ({},)},
+}
+FRAMES = 50        # frames per part of a case on synthetic (All: 4 parts)
+QUICK_FRAMES = 2   # --quick: frames per part (one compile serves every case: same chunk)
+QUICK_SIZE = (64, 96)
+CHECKPOINT_EVERY = 25  # frames between a running row's checkpoints (its resume points)
+
+
+@dataclasses.dataclass(frozen=True)
+class RowSpec:
+  """One row of a table: a method on a network, with AdaptConfig / method-config changes."""
+  label: str                                       # as printed in our table
+  method: str = "none"                             # registry name (pitta_jax.methods)
+  model: str = "monodepth2"                        # registry name (pitta_jax.models)
+  adapt: tuple[tuple[str, Any], ...] = ()          # AdaptConfig changes after the method's own
+  method_config: tuple[tuple[str, Any], ...] = ()  # its config's changes
+  paper: str | None = None                         # the paper's label of the row (None: ours only)
+
+
+@dataclasses.dataclass
+class Entry:
+  """A computed (or not computable) row of a table."""
+  group: str
+  label: str
+  metrics: dict[str, float]
+  status: str = "ok"            # ok | needs weights: --weights MODEL=DIR
+  extra: dict[str, Any] = dataclasses.field(default_factory=dict)
+  paper: dict[str, float] | None = None
+  spec: RowSpec | None = None   # the row's configuration (None for derived rows)
+
+
+@dataclasses.dataclass
+class Context:
+  """The table command's arguments, resolved."""
+  dataset: str
+  root: str | None
+  options: list[str]
+  segmentation: str
+  weights: dict[str, str]       # model -> weights directory ("monodepth2" for a bare --weights)
+  out: Path
+  quick: bool
+  frames: int
+  quiet: bool
+  source_images: str | None = None
+  replay_root: str | None = None
+
+  def cases(self, names: Sequence[str]) -> list[tuple[str, tuple[dict, ...]]]:
+    table = SYNTHETIC if self.dataset == "synthetic" else REAL[self.dataset]
+    return [(n, table[n]) for n in names]
+
+
+def adapt_config(method: str, changes: Sequence[tuple[str, Any]] = (), seed: int = 0):
+  """AdaptConfig of a row: the method's own setting (`methods.method_setting`), then `changes`."""
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.methods import method_setting
+  return dataclasses.replace(AdaptConfig(method=method, seed=seed),
+                             **{**method_setting(method), **dict(changes)})
+
+
+def method_of(row: RowSpec):
+  from pitta_jax.methods import build, method_config_class
+  cls = method_config_class(row.method)
+  return build(row.method, dataclasses.replace(cls(), **dict(row.method_config)))
+
+
+# ----------------------------------------------------------------------------- weights
+
+
+def weights_for(ctx: Context, model: str):
+  """The weights of `model`: the user's directory, else on synthetic the cached source model
+  (--quick: a seeded random network at QUICK_SIZE, no training); None when only a user
+  checkpoint can provide them (a network train-source cannot train, on real data any)."""
+  from pitta_jax.checkpoint import load_weights
+  from pitta_jax.models.registry import get_spec
+  if model in ctx.weights:
+    return load_weights(ctx.weights[model])
+  if ctx.dataset != "synthetic" or get_spec(model).output != "sigmoid_disparity":
+    return None
+  if ctx.quick:
+    return _random_weights(ctx.out / "weights" / model, model)
+  from pitta_jax.source_model import SourceConfig, load_or_train_source
+  return load_or_train_source(SourceConfig(model=model), quiet=ctx.quiet)[0]
+
+
+def _random_weights(directory: Path, model: str):
+  """A seeded random `model` at QUICK_SIZE (with a pose net when it has one), saved once."""
+  import jax
+  import jax.numpy as jnp
+  from pitta_jax.checkpoint import load_weights, save_weights
+  from pitta_jax.models.registry import get_spec
+  if not (directory / "model.json").is_file():
+    spec = get_spec(model)
+    h, w = QUICK_SIZE
+    config = dict(spec.source_config(h, w)) if spec.source_config else {"height": h, "width": w}
+    depth = spec.build(config).init(jax.random.PRNGKey(0), jnp.zeros((1, h, w, 3)))
+    pose = (spec.build_pose(config).init(jax.random.PRNGKey(1), jnp.zeros((1, h, w, 6)))
+            if spec.build_pose else None)
+    save_weights(directory, model, config, jax.device_get(depth),
+                 None if pose is None else jax.device_get(pose), source={"random_init": 0})
+  return load_weights(directory)
+
+
+def weights_identity(ctx: Context, model: str, weights) -> dict:
+  """What identifies the weights in a row's cache key."""
+  text = json.dumps(weights.config, sort_keys=True, default=str)
+  where = str(Path(ctx.weights[model]).resolve()) if model in ctx.weights else "synthetic-source"
+  return {"model": model, "where": where, "config": hashlib.sha256(text.encode()).hexdigest()[:16]}
+
+
+# ----------------------------------------------------------------------------- frames
+
+
+def case_frames(ctx: Context, parts: Sequence[dict], height: int, width: int) -> list:
+  """The frames of a test case: its parts one after another (one continual run)."""
+  frames: list = []
+  for part in parts:
+    if ctx.dataset == "synthetic":
+      from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+      frames += generate_sequence(SyntheticConfig(height=height, width=width,
+                                                  num_frames=ctx.frames, **part))
+    else:
+      from pitta_jax.sources import open_frames
+      seq = open_frames(ctx.dataset, ctx.root, [*ctx.options, *(f"{k}={v}" for k, v in
+                                                               part.items())],
+                        ctx.segmentation, height, width)
+      frames += list(seq[:ctx.frames]) if ctx.frames else list(seq)
+  return frames
+
+
+# ----------------------------------------------------------------------------- rows
+
+
+def row_key(ctx: Context, row: RowSpec, case: str, parts, weights_id: dict) -> str:
+  text = json.dumps({"format": FORMAT, "row": dataclasses.asdict(row), "case": case,
+                     "parts": parts, "dataset": ctx.dataset,
+                     "root": str(Path(ctx.root).resolve()) if ctx.root else None,
+                     "options": sorted(ctx.options), "segmentation": ctx.segmentation,
+                     "weights": weights_id, "frames": ctx.frames}, sort_keys=True, default=str)
+  return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def cached(ctx: Context, key: str, compute: Callable[[], dict]) -> dict:
+  """The row result stored under `key`, computed (and stored atomically) when absent."""
+  from pitta_jax.outputs import atomic_write_text, json_safe
+  path = ctx.out / "rows" / f"{key}.json"
+  if path.is_file():
+    try:
+      return json.loads(path.read_text())
+    except json.JSONDecodeError:
+      pass  # a torn file cannot exist (atomic writes); a hand-edited one is recomputed
+  result = compute()
+  path.parent.mkdir(parents=True, exist_ok=True)
+  atomic_write_text(path, json.dumps(json_safe(result)[0], indent=1) + "\n")
+  return result
+
+
+def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: dict) -> Entry:
+  """One row on one test case (cached): the method adapting online over the case's frames."""
+  from pitta_jax.run import run_sequence
+  from pitta_jax.sources import method_resources
+  weights = weights_for(ctx, row.model)
+  if weights is None:
+    return Entry(case, row.label, {}, status=f"needs weights: --weights {row.model}=DIR",
+                 spec=row)
+  key = row_key(ctx, row, case, parts, weights_identity(ctx, row.model, weights))
+
+  def compute() -> dict:
+    method = method_of(row)
+    cfg = adapt_config(row.method, row.adapt)
+    frames = case_frames(ctx, parts, weights.height, weights.width)
+    res_key = (row.model, row.method, method.config)
+    if res_key not in resources:
+      resources[res_key] = method_resources(method, weights, ctx.dataset, ctx.source_images,
+                                            ctx.replay_root)
+    ckpt = ctx.out / "rows" / f"{key}.ckpt"
+    res = run_sequence(weights, frames, cfg, method, name=f"{case}: {row.label}",
+                       quiet=ctx.quiet, runners=runners, resources=resources[res_key],
+                       checkpoint_dir=None if ctx.quick else ckpt,
+                       checkpoint_every=0 if ctx.quick else CHECKPOINT_EVERY, resume=True)
+    return {"metrics": res.mean, "frames": len(frames), "seconds": round(res.seconds, 2),
+            "fps": round(res.fps, 3), "n_skipped": res.n_skipped,
+            "abs_rel_per_frame": [m["abs_rel"] for m in res.per_frame],
+            "adapt": dataclasses.asdict(cfg), "method_config": dataclasses.asdict(method.config)}
+
+  result = cached(ctx, key, compute)
+  _remove_checkpoints(ctx.out / "rows" / f"{key}.ckpt")
+  return Entry(case, row.label, result["metrics"], spec=row, extra={
+      k: result[k] for k in ("frames", "seconds", "fps", "n_skipped", "abs_rel_per_frame")})
+
+
+def _remove_checkpoints(directory: Path) -> None:
+  import shutil
+  if directory.is_dir():
+    shutil.rmtree(directory, ignore_errors=True)
+
+
+def attach_paper(entries: Sequence[Entry], table: int,
+                 fields_of: Callable[[Entry], dict[str, Any] | None]) -> None:
+  """Puts the paper's numbers beside ours: entry `e` gets the values of the one row of the
+  paper's Table `table` whose descriptors (`experiments.paper` schema: test_case, method,
+  network, lambda, cnn_percent, bn_percent) equal `fields_of(e)` (None: the paper has no such
+  row)."""
+  from experiments.paper import load_paper_table
+  rows = load_paper_table(table)["rows"]
+  for e in entries:
+    want = fields_of(e)
+    if want is None:
+      continue
+    hits = [r for r in rows if all(r.get(k) == v for k, v in want.items())]
+    if len(hits) == 1:
+      e.paper = dict(hits[0]["values"])
+
+
+def paper_fields(e: Entry, with_case: bool = True) -> dict[str, Any] | None:
+  """The paper-row descriptors of an entry computed from a `RowSpec` (None for rows the paper
+  does not have)."""
+  if e.spec is None or not e.spec.paper:
+    return None
+  fields = {"method": e.spec.method, "network": e.spec.model}
+  if with_case:
+    fields["test_case"] = e.group.lower()
+  return fields
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def parser(name: str, description: str,
+           datasets: Sequence[str] = ("synthetic", "drivingstereo")) -> argparse.ArgumentParser:
+  p = argparse.ArgumentParser(prog=f"pitta-jax experiment {name}", description=description)
+  add_arguments(p, datasets)
+  return p
+
+
+def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthetic",
+                                                                         "drivingstereo")) -> None:
+  p.add_argument("--dataset", default="synthetic", choices=list(datasets),
+                 help="synthetic (default: the embedded benchmark, see the caption) or the real "
+                      "dataset at --root")
+  p.add_argument("--root", help="dataset root (real datasets)")
+  p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                 help="reader option, passed to every part of every test case (repeatable)")
+  p.add_argument("--segmentation", default="gt",
+                 help="panoptic input: gt | png:DIR | mask2former:DIR (as `pitta-jax adapt`)")
+  p.add_argument("--weights", action="append", default=[], metavar="[MODEL=]DIR",
+                 help="converted weights; a bare DIR is MonoDepth2's, MODEL=DIR another network's "
+                      "(e.g. depth_anything_v2=DIR); repeatable")
+  p.add_argument("--source-images", help="source-domain images for ActMAD's statistics "
+                                         "(real data)")
+  p.add_argument("--replay-root", help="KITTI raw root for CoMoDa's replay (real data)")
+  p.add_argument("--frames", type=int, default=None,
+                 help=f"frames per part of a test case (synthetic default {FRAMES}; real: all)")
+  p.add_argument("--quick", action="store_true",
+                 help=f"a tiny run for trying and testing: {QUICK_FRAMES} frames per part, "
+                      f"random {QUICK_SIZE[1]}x{QUICK_SIZE[0]} networks on synthetic")
+  p.add_argument("--out", default=None, help="output directory (default experiments_out/NAME)")
+  p.add_argument("--quiet", action="store_true", help="no progress bars")
+  p.add_argument("--debug", action="store_true", help="full tracebacks")
+
+
+def context(args: argparse.Namespace, name: str) -> Context:
+  """Validates the arguments before any work; DataError / ValueError name the flag."""
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.models.registry import MODELS
+  from pitta_jax.sources import parse_segmentation
+  if args.dataset != "synthetic" and not args.root:
+    raise DataError(None, f"--dataset {args.dataset} needs --root DIR")
+  if args.dataset == "synthetic" and args.root:
+    raise DataError(None, "--root is for real datasets: add --dataset drivingstereo|waymo")
+  if args.root and not Path(args.root).is_dir():
+    raise DataError(args.root, "--root: not a directory")
+  parse_segmentation(args.segmentation)
+  weights: dict[str, str] = {}
+  for item in args.weights:
+    model, sep, directory = item.rpartition("=") if "=" in item else ("", "", item)
+    model = model or "monodepth2"
+    if model not in MODELS:
+      raise DataError(None, f"--weights {item}: unknown network {model!r} "
+                            f"(use {', '.join(MODELS)})")
+    if not (Path(directory) / "model.json").is_file():
+      raise DataError(directory, "--weights: no model.json (convert with `pitta-jax convert`)")
+    weights[model] = directory
+  if args.frames is not None and args.frames < 1:
+    raise DataError(None, f"--frames must be >= 1, got {args.frames}")
+  frames = args.frames or (QUICK_FRAMES if args.quick else (FRAMES if args.dataset == "synthetic"
+                                                            else 0))
+  out = Path(args.out or Path("experiments_out") / name)
+  return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
+                 args.quick, frames, args.quiet, args.source_images, args.replay_root)
+
+
+def main_wrapper(run: Callable[[argparse.Namespace], int], p: argparse.ArgumentParser,
+                 argv: Sequence[str] | None) -> int:
+  """Parses, runs, and turns an expected error into one line and exit 2 (tracebacks with
+  --debug)."""
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.outputs import OutputError
+  args = p.parse_args(argv)
+  try:
+    return run(args)
+  except (DataError, OutputError, FileNotFoundError, ValueError, TypeError, OSError) as e:
+    if args.debug:
+      raise
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  except KeyboardInterrupt:
+    print("interrupted: finished rows are cached; run the same command again to resume",
+          file=sys.stderr)
+    return 130
+
+
+def timer() -> Callable[[], float]:
+  t0 = time.perf_counter()
+  return lambda: time.perf_counter() - t0
+
+
+def load_average() -> str:
+  try:
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+  except OSError:
+    return "n/a"
+
+
+def meta(ctx: Context) -> dict:
+  """What results.json records about the command besides the rows."""
+  import platform
+  return {"dataset": ctx.dataset, "root": ctx.root, "options": ctx.options,
+          "segmentation": ctx.segmentation, "weights": ctx.weights, "quick": ctx.quick,
+          "frames_per_part": ctx.frames, "load": f"load average {load_average()}",
+          "machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "format": FORMAT}
+
+
+def runners():
+  from pitta_jax.run import Runners
+  return Runners()

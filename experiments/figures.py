@@ -1,0 +1,47 @@
+"""The tables' figures (matplotlib, through `pitta_jax.plots`): per-frame AbsRel curves of each
+test case (one line per row) and Table 4's lambda curve, ours beside the paper's."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+from experiments.common import Entry
+
+
+def per_frame_figures(out: Path, name: str, entries: Sequence[Entry]) -> list[Path]:
+  """out/figures/NAME_<group>_abs_rel.png for each group with per-frame values."""
+  from pitta_jax import plots
+  written = []
+  for group in dict.fromkeys(e.group for e in entries):
+    series = {e.label: e.extra["abs_rel_per_frame"] for e in entries
+              if e.group == group and e.extra.get("abs_rel_per_frame")}
+    if series:
+      slug = "".join(c if c.isalnum() else "_" for c in group).strip("_").lower()
+      written += plots.save_figure(
+          plots.per_frame_figure(series, "abs_rel", f"{name}: {group}, per-frame AbsRel"),
+          out / "figures" / f"{name}_{slug}_abs_rel.png")
+  return written
+
+
+def lambda_figure(out: Path, name: str, entries: Sequence[Entry]) -> list[Path]:
+  """out/figures/NAME_lambda.png: AbsRel and delta<1.25 against lambda (ours; the paper's as
+  printed in a second figure)."""
+  from pitta_jax import plots
+  written = []
+  ours = [e for e in entries if e.status == "ok"]
+  if ours:
+    lams = [e.extra["lambda"] for e in ours]
+    written += plots.save_figure(plots.lambda_figure(
+        lams, {m: [e.metrics[m] for e in ours] for m in ("abs_rel", "a1")},
+        f"{name}: ours, lambda of eq. 10"), out / "figures" / f"{name}_lambda.png")
+  paper = [e for e in entries if e.paper]
+  if paper:
+    written += plots.save_figure(plots.lambda_figure(
+        [e.extra["lambda"] for e in paper], {m: [e.paper[m] for e in paper]
+                                             for m in ("abs_rel", "a1")},
+        f"{name}: the paper's numbers as printed"), out / "figures" / f"{name}_lambda_paper.png")
+  return written
+
+
+__all__ = ["per_frame_figures", "lambda_figure"]

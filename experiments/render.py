@@ -1,0 +1,181 @@
+"""A table's files: NAME.md (ours and the paper's, labelled), NAME.csv (every metric, ours and
+the paper's, one line per row), NAME.tex (booktabs, best per group in bold and second
+underlined, as the paper typesets it) and results.json (every row's config and metrics).
+
+Two layouts, as in the paper: "rows" (Tables 1-3: group, row, the 7 metrics) and "columns"
+(Tables 4-5: one column per setting, AbsRel and delta<1.25 as lines; the CSV keeps all seven).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import math
+from pathlib import Path
+from typing import Any, Sequence
+
+from experiments.common import Entry
+from pitta_jax.metrics import METRIC_NAMES
+from pitta_jax.outputs import atomic_write_text, json_safe
+from pitta_jax.report import HEADERS, HIGHER_IS_BETTER
+
+TEX_HEADERS = {"abs_rel": r"AbsRel $\downarrow$", "sq_rel": r"SqRel $\downarrow$",
+               "rmse": r"RMSE $\downarrow$", "rmse_log": r"RMSElog $\downarrow$",
+               "a1": r"$\delta<1.25$ $\uparrow$", "a2": r"$\delta<1.25^2$ $\uparrow$",
+               "a3": r"$\delta<1.25^3$ $\uparrow$"}
+
+
+def _fmt(v: float | None) -> str:
+  return "—" if v is None or not math.isfinite(v) else f"{v:.3f}"
+
+
+def ranks(entries: Sequence[Entry], metric: str, which: str = "ours") -> dict[int, int]:
+  """{entry index: 1 (best) or 2 (second)} within each group, on rounded values (ties share)."""
+  out: dict[int, int] = {}
+  for group in dict.fromkeys(e.group for e in entries):
+    vals = []
+    for i, e in enumerate(entries):
+      m = e.metrics if which == "ours" else (e.paper or {})
+      if e.group == group and m.get(metric) is not None and math.isfinite(m[metric]):
+        vals.append((i, round(m[metric], 3)))
+    distinct = sorted({v for _, v in vals}, reverse=metric in HIGHER_IS_BETTER)
+    for i, v in vals:
+      r = distinct.index(v) + 1
+      if r <= 2 and len(vals) > 1:
+        out[i] = r
+  return out
+
+
+def _mark_md(text: str, rank: int | None) -> str:
+  return f"**{text}**" if rank == 1 else f"<u>{text}</u>" if rank == 2 else text
+
+
+def markdown(entries: Sequence[Entry], layout: str, group_title: str, row_title: str,
+             metrics: Sequence[str]) -> str:
+  """Ours, then the paper's, each as its own labelled block."""
+  blocks = []
+  for which, title in (("ours", "Ours"), ("paper", "Paper")):
+    if which == "paper" and not any(e.paper for e in entries):
+      continue
+    blocks.append(f"**{title}**\n\n" + (_md_rows(entries, which, group_title, row_title)
+                                        if layout == "rows" else
+                                        _md_columns(entries, which, row_title, metrics)))
+  return "\n".join(blocks)
+
+
+def _md_rows(entries, which, group_title, row_title) -> str:
+  head = f"| {group_title} | {row_title} | " + " | ".join(HEADERS[m] for m in METRIC_NAMES) + " |"
+  lines = [head, "|" + "---|" * (len(METRIC_NAMES) + 2)]
+  rk = {m: ranks(entries, m, which) for m in METRIC_NAMES}
+  for i, e in enumerate(entries):
+    values = e.metrics if which == "ours" else e.paper
+    if which == "paper" and not values:
+      continue
+    if which == "ours" and e.status != "ok":
+      cells = [e.status] + [""] * (len(METRIC_NAMES) - 1)
+    else:
+      cells = [_mark_md(_fmt(values.get(m)), rk[m].get(i)) for m in METRIC_NAMES]
+    lines.append(f"| {e.group} | {e.label} | " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def _md_columns(entries, which, row_title, metrics) -> str:
+  shown = [e for e in entries if which == "ours" or e.paper]
+  head = f"| {row_title} | " + " | ".join(e.label for e in shown) + " |"
+  lines = [head, "|" + "---|" * (len(shown) + 1)]
+  for m in metrics:
+    rk = ranks(shown, m, which)
+    cells = []
+    for i, e in enumerate(shown):
+      if which == "ours" and e.status != "ok":
+        cells.append(e.status)
+        continue
+      values = e.metrics if which == "ours" else e.paper
+      cells.append(_mark_md(_fmt(values.get(m)), rk.get(i)))
+    lines.append(f"| {HEADERS[m]} | " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def _tex_escape(text: str) -> str:
+  return (text.replace("\\", r"\textbackslash{}").replace("&", r"\&").replace("%", r"\%")
+          .replace("_", r"\_").replace("#", r"\#").replace("λ", r"$\lambda$")
+          .replace("∞", r"$\infty$"))
+
+
+def _mark_tex(text: str, rank: int | None) -> str:
+  return rf"\textbf{{{text}}}" if rank == 1 else rf"\underline{{{text}}}" if rank == 2 else text
+
+
+def latex(entries: Sequence[Entry], layout: str, group_title: str, row_title: str,
+          metrics: Sequence[str], caption: str, label: str) -> str:
+  """Our numbers as a booktabs table in the paper's layout (needs \\usepackage{booktabs})."""
+  lines = [r"\begin{table}[t]", r"\centering", rf"\caption{{{_tex_escape(caption)}}}",
+           rf"\label{{{label}}}"]
+  if layout == "rows":
+    lines += [r"\begin{tabular}{ll" + "c" * len(METRIC_NAMES) + "}", r"\toprule",
+              f"{_tex_escape(group_title)} & {_tex_escape(row_title)} & "
+              + " & ".join(TEX_HEADERS[m] for m in METRIC_NAMES) + r" \\", r"\midrule"]
+    rk = {m: ranks(entries, m) for m in METRIC_NAMES}
+    groups = list(dict.fromkeys(e.group for e in entries))
+    for g, group in enumerate(groups):
+      for i, e in enumerate(entries):
+        if e.group != group:
+          continue
+        if e.status != "ok":
+          cells = [rf"\multicolumn{{{len(METRIC_NAMES)}}}{{c}}{{{_tex_escape(e.status)}}}"]
+        else:
+          cells = [_mark_tex(_fmt(e.metrics.get(m)), rk[m].get(i)) for m in METRIC_NAMES]
+        lines.append(f"{_tex_escape(group)} & {_tex_escape(e.label)} & " + " & ".join(cells)
+                     + r" \\")
+      if g < len(groups) - 1:
+        lines.append(r"\midrule")
+  else:
+    lines += [r"\begin{tabular}{l" + "c" * len(entries) + "}", r"\toprule",
+              f"{_tex_escape(row_title)} & " + " & ".join(_tex_escape(e.label) for e in entries)
+              + r" \\", r"\midrule"]
+    for m in metrics:
+      rk = ranks(entries, m)
+      cells = [_mark_tex(_fmt(e.metrics.get(m)), rk.get(i)) if e.status == "ok" else "--"
+               for i, e in enumerate(entries)]
+      lines.append(f"{TEX_HEADERS[m]} & " + " & ".join(cells) + r" \\")
+  lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+  return "\n".join(lines) + "\n"
+
+
+def csv_text(entries: Sequence[Entry], table: str) -> str:
+  buffer = io.StringIO(newline="")
+  writer = csv.writer(buffer)
+  writer.writerow(["table", "group", "row", "source", "status", *METRIC_NAMES, "frames",
+                   "seconds"])
+  for e in entries:
+    writer.writerow([table, e.group, e.label, "ours", e.status,
+                     *(f"{e.metrics[m]:.6f}" if e.metrics.get(m) is not None else ""
+                       for m in METRIC_NAMES),
+                     e.extra.get("frames", ""), e.extra.get("seconds", "")])
+    if e.paper:
+      writer.writerow([table, e.group, e.label, "paper", "ok",
+                       *(f"{e.paper[m]:.3f}" if e.paper.get(m) is not None else ""
+                         for m in METRIC_NAMES), "", ""])
+  return buffer.getvalue()
+
+
+def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, caption: str,
+                group_title: str, row_title: str, metrics: Sequence[str] = METRIC_NAMES,
+                seconds: float, meta: dict[str, Any]) -> str:
+  """Writes NAME.md/.csv/.tex and results.json atomically; returns the markdown."""
+  out.mkdir(parents=True, exist_ok=True)
+  md = (f"### {name.capitalize().replace('table', 'Table ')}\n\n{caption}\n\n"
+        + markdown(entries, layout, group_title, row_title, metrics)
+        + f"\nWall time: {seconds:.0f} s ({meta.get('load', '')}).\n")
+  atomic_write_text(out / f"{name}.md", md)
+  atomic_write_text(out / f"{name}.csv", csv_text(entries, name))
+  atomic_write_text(out / f"{name}.tex", latex(entries, layout, group_title, row_title, metrics,
+                                               caption, f"tab:{name}"))
+  payload = {"table": name, "caption": caption, "seconds": round(seconds, 1), **meta,
+             "rows": [dataclasses.asdict(e) for e in entries]}
+  payload, n_bad = json_safe(json.loads(json.dumps(payload, default=str)))
+  payload["non_finite_values"] = n_bad
+  atomic_write_text(out / "results.json", json.dumps(payload, indent=1, allow_nan=False) + "\n")
+  return md

@@ -1,0 +1,62 @@
+"""Table 1: MonoDepth2 (ResNet-18) adapted online to DrivingStereo's weather (Foggy, Rainy, All)
+by every method of the paper's comparison; each baseline with PITTA's L_d added (paper Sec. 5).
+
+    pitta-jax experiment table1 [--quick] [--dataset drivingstereo --root DIR --weights DIR ...]
+    python -m experiments.table1 ...
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Sequence
+
+from experiments import common
+from experiments.common import RowSpec
+
+CASES = ("Foggy", "Rainy", "All")
+# (our label, method, network, paper's label); "BN batch stats" is ours: the source model with
+# the frame's BN statistics and no update, which separates their effect from PITTA's loss
+ROWS = (
+    RowSpec("No adaptation", "none", paper="No adaptation"),
+    RowSpec("BN batch stats", "none", adapt=(("bn_stats", "batch"),)),
+    RowSpec("CoMoDa + L_d", "comoda", paper="CoMoDA"),
+    RowSpec("CoTTA + L_d", "cotta", paper="CoTTA"),
+    RowSpec("ActMAD + L_d", "actmad", paper="ActMAD"),
+    RowSpec("Ada-Depth + L_d", "adadepth", paper="Ada-Depth"),
+    RowSpec("Depth Anything V2", "none", model="depth_anything_v2", paper="DepthAnythingV2"),
+    RowSpec("PITTA", "pitta", paper="PITTA (ours)"),
+)
+TITLE = ("MonoDepth2 ResNet-18 adapted online; every baseline with PITTA's L_d "
+         "(paper Sec. 5). Bold: best, underlined: second, per test case.")
+
+
+def run(args) -> int:
+  from experiments.figures import per_frame_figures
+  from experiments.render import write_table
+  from experiments.tables import rows_table
+  ctx = common.context(args, "table1")
+  elapsed = common.timer()
+  entries = rows_table(ctx, ROWS, CASES, table=1)
+  caption = f"{TITLE} Dataset: {_dataset_caption(ctx)}."
+  per_frame_figures(ctx.out, "table1", entries)
+  md = write_table(ctx.out, "table1", entries, layout="rows", caption=caption,
+                   group_title="Weather", row_title="Method", seconds=elapsed(),
+                   meta=common.meta(ctx))
+  if not ctx.quiet:
+    print(md)
+  return 0
+
+
+def _dataset_caption(ctx) -> str:
+  if ctx.dataset == "synthetic":
+    return common.SYNTHETIC_CAPTION["drivingstereo"] + f", {ctx.frames} frames per part"
+  return f"DrivingStereo at {ctx.root}"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  p = common.parser("table1", __doc__.split("\n\n")[0])
+  return common.main_wrapper(run, p, argv)
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,102 @@
+"""Table 4: PITTA's lambda (eq. 10) from 0 to 1 and infinity on Waymo, all 12 values as one
+vmapped run (`pitta_jax.adapt.streams`: one stream per lambda, the same frames).
+
+    pitta-jax experiment table4 [--quick] [--dataset waymo --root DIR --weights DIR ...]
+    python -m experiments.table4 ...
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from typing import Sequence
+
+import numpy as np
+
+from experiments import common
+from experiments.common import Entry, RowSpec
+
+LAMBDAS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, math.inf)
+
+
+def label(lam: float) -> str:
+  return "∞" if math.isinf(lam) else f"{lam:g}"
+
+
+def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True) -> list[dict]:
+  """PITTA with each lambda of `lams` over `frames`, as one vmapped run; per lambda
+  {"metrics": mean of the 7, "abs_rel_per_frame": [...], "frames": n}."""
+  from tqdm import tqdm
+  from pitta_jax import metrics as metrics_lib
+  from pitta_jax.adapt import streams
+  from pitta_jax.adapt.engine import make_chunk_runner, make_optimizer
+  from pitta_jax.adapt.inputs import chunks
+  from pitta_jax.run import EvalConfig
+  cfg = common.adapt_config("pitta")
+  model, tx = weights.network(), make_optimizer(cfg)
+  states, consts = streams.init_lambda_sweep(weights.depth, lams, cfg, tx, model=model)
+  runner = make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx))
+  ev = EvalConfig()
+  per_frame: list[list[dict]] = [[] for _ in lams]
+  h, w = weights.height, weights.width
+  bar = tqdm(total=len(frames), desc="lambda sweep", unit="frame", disable=quiet)
+  for chunk, originals in chunks(frames, h, w, min(cfg.chunk_size, len(frames)),
+                                 cfg.max_segments):
+    states, out = runner(states, chunk, consts)
+    depth = np.asarray(out.depth)                                     # (T, K, H, W)
+    for t, frame in enumerate(originals):
+      for k in range(len(lams)):
+        try:
+          per_frame[k].append(metrics_lib.depth_metrics(
+              depth[t, k], frame.depth, min_depth=ev.min_depth, max_depth=ev.max_depth,
+              alignment=weights.spec.alignment))
+        except metrics_lib.NoValidPixels:
+          pass
+    bar.update(len(originals))
+  bar.close()
+  return [{"metrics": metrics_lib.mean_metrics(p), "frames": len(frames),
+           "abs_rel_per_frame": [m["abs_rel"] for m in p]} for p in per_frame]
+
+
+def run(args) -> int:
+  from experiments.figures import lambda_figure
+  from experiments.render import write_table
+  from experiments.table2 import waymo_caption
+  ctx = common.context(args, "table4")
+  elapsed = common.timer()
+  (case, parts), = ctx.cases(("Waymo",))
+  weights = common.weights_for(ctx, "monodepth2")
+  if weights is None:
+    entries = [Entry(case, label(lam), {}, status="needs weights: --weights DIR",
+                     extra={"lambda": lam}) for lam in LAMBDAS]
+  else:
+    row = RowSpec("lambda sweep", "pitta", method_config=(("lam", LAMBDAS),))
+    key = common.row_key(ctx, row, case, parts, common.weights_identity(ctx, "monodepth2",
+                                                                        weights))
+
+    def compute():
+      frames = common.case_frames(ctx, parts, weights.height, weights.width)
+      return {"sweep": lambda_sweep(weights, frames, LAMBDAS, ctx.quiet)}
+    results = common.cached(ctx, key, compute)["sweep"]
+    entries = [Entry(case, label(lam), r["metrics"], extra={
+        "lambda": lam, "frames": r["frames"], "abs_rel_per_frame": r["abs_rel_per_frame"]})
+        for lam, r in zip(LAMBDAS, results)]
+  common.attach_paper(entries, 4, lambda e: {"lambda": e.extra["lambda"]})
+  caption = (f"PITTA's lambda of eq. 10 (AbsRel, δ<1.25), 12 streams in one vmapped run. "
+             f"Dataset: {waymo_caption(ctx)}.")
+  lambda_figure(ctx.out, "table4", entries)
+  md = write_table(ctx.out, "table4", entries, layout="columns", caption=caption,
+                   group_title="Dataset", row_title="λ", metrics=("abs_rel", "a1"),
+                   seconds=elapsed(), meta=common.meta(ctx))
+  if not ctx.quiet:
+    print(md)
+  return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  p = common.parser("table4", __doc__.split("\n\n")[0], datasets=("synthetic", "waymo"))
+  return common.main_wrapper(run, p, argv)
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,47 @@
+"""Table 5: which parameters PITTA adapts, on Waymo: "CNN a% + BN b%" = the kernels of the last
+a% of the encoder's conv layers and the scale/shift of its last b% of BN layers.
+
+    pitta-jax experiment table5 [--quick] [--dataset waymo --root DIR --weights DIR ...]
+    python -m experiments.table5 ...
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Sequence
+
+from experiments import common
+from experiments.common import RowSpec
+
+FRACTIONS = ((0, 50), (0, 100), (20, 80), (40, 60), (60, 40))  # the paper's columns (CNN, BN)
+ROWS = tuple(RowSpec(f"CNN {a}% + BN {b}%", "pitta",
+                     adapt=(("selector", f"fraction(cnn={a},bn={b})"),),
+                     paper=f"CNN {a}% + BN {b}%") for a, b in FRACTIONS)
+
+
+def run(args) -> int:
+  from experiments.render import write_table
+  from experiments.table2 import waymo_caption
+  from experiments.tables import run_grid
+  ctx = common.context(args, "table5")
+  elapsed = common.timer()
+  entries = run_grid(ctx, ROWS, ("Waymo",))
+  fractions = {row.label: f for row, f in zip(ROWS, FRACTIONS)}
+  common.attach_paper(entries, 5, lambda e: dict(zip(("cnn_percent", "bn_percent"),
+                                                     fractions[e.label])))
+  caption = f"Adapted parameters of PITTA (AbsRel, δ<1.25). Dataset: {waymo_caption(ctx)}."
+  md = write_table(ctx.out, "table5", entries, layout="columns", caption=caption,
+                   group_title="Dataset", row_title="fraction", metrics=("abs_rel", "a1"),
+                   seconds=elapsed(), meta=common.meta(ctx))
+  if not ctx.quiet:
+    print(md)
+  return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  p = common.parser("table5", __doc__.split("\n\n")[0], datasets=("synthetic", "waymo"))
+  return common.main_wrapper(run, p, argv)
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,36 @@
+"""The loop every table shares: rows x test cases, cached, with one progress bar."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+from tqdm import tqdm
+
+from experiments.common import Context, Entry, RowSpec, run_row, runners
+
+
+def run_grid(ctx: Context, rows: Sequence[RowSpec], cases: Sequence[str],
+             skip: Sequence[tuple[str, str]] = ()) -> list[Entry]:
+  """Each row on each test case (case-major, the paper's order); (case, label) pairs in `skip`
+  are not run. One compile cache serves the whole table."""
+  todo = [(case, parts, row) for case, parts in ctx.cases(cases) for row in rows
+          if (case, row.label) not in skip]
+  shared = runners()
+  resources: dict = {}
+  entries = []
+  bar = tqdm(todo, desc="rows", unit="row", disable=ctx.quiet, position=0)
+  for case, parts, row in bar:
+    bar.set_postfix_str(f"{case}: {row.label}")
+    entries.append(run_row(ctx, row, case, parts, shared, resources))
+  bar.close()
+  return entries
+
+
+def rows_table(ctx: Context, rows: Sequence[RowSpec], cases: Sequence[str], table: int,
+               with_case: bool = True) -> list[Entry]:
+  """`run_grid`, with the paper's numbers of Table `table` attached (matched on method, network
+  and, `with_case`, the test case)."""
+  from experiments.common import attach_paper, paper_fields
+  entries = run_grid(ctx, rows, cases)
+  attach_paper(entries, table, lambda e: paper_fields(e, with_case))
+  return entries
