@@ -9,7 +9,8 @@
    loss's) and "PITTA" (eqs. 3-11, paper defaults), with ground-truth panoptic
    segmentation standing in for Mask2Former.
 4. Prints a markdown table of the 7 metrics and writes results.json, results.csv, table.md and
-   figures to `--out`.
+   figures to `--out`: per shift, the last frame's depth maps (`viz`) and the per-frame AbsRel
+   of every row (`plots`, matplotlib).
 """
 
 from __future__ import annotations
@@ -25,10 +26,11 @@ from pitta_jax.adapt import AdaptConfig
 from pitta_jax.configs import check, option
 from pitta_jax.methods import build as build_method
 from pitta_jax.methods.pitta import PittaConfig
+from pitta_jax.plots import PlotConfig, per_frame_figure, save_figure
 from pitta_jax.data.image_io import write_image
 from pitta_jax.data.resize import resize_frame
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-from pitta_jax.report import Row, curve_figure, write_results
+from pitta_jax.report import Row, write_results
 from pitta_jax.run import EvalConfig, RunResult, Runners, run_sequence
 from pitta_jax.source_model import SourceConfig, load_or_train_source
 from pitta_jax.sources import method_resources
@@ -54,6 +56,7 @@ class DemoConfig:
                                     "rows under each shift: none (No adaptation), bn (BN batch "
                                     "stats), pitta, actmad, cotta (baselines + L_d)")
   out: str = option("pitta_out", "output directory")
+  figures: PlotConfig = PlotConfig()  # the per-frame AbsRel plots (--demo.figures.dpi, ...)
 
   def __post_init__(self):
     from pitta_jax.data.synthetic import DOMAINS
@@ -108,9 +111,8 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
           "source": train_report, "per_frame_abs_rel": per_frame, "seconds": round(seconds, 1)}
   table = write_results(out, rows, meta)
   for domain, series in per_frame.items():
-    write_image(out / "figures" / f"{domain}_abs_rel_per_frame.png",
-                curve_figure({k: np.asarray(v) for k, v in series.items()},
-                             f"per-frame AbsRel, {domain}"))
+    figure = per_frame_figure(series, "abs_rel", f"Per-frame AbsRel, {domain}", demo.figures)
+    save_figure(figure, out / "figures" / f"{domain}_abs_rel_per_frame.png", demo.figures)
   if not quiet:
     print(f"\nSource model: {train_report.get('weights_dir')} "
           f"(trained in {train_report.get('train_seconds', '?')} s)")

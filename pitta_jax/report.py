@@ -1,5 +1,5 @@
-"""Results to files: results.json, results.csv, table.md (the 7 Eigen metrics per row), and a
-per-frame curve figure. Used by the CLI, the demo and the experiments.
+"""Results to files: results.json, results.csv, table.md (the 7 Eigen metrics per row). Used by
+the CLI, the demo and the experiments; the figures are `pitta_jax.plots`'.
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ import json
 from pathlib import Path
 from typing import Any, Sequence
 
-import cv2
 import numpy as np
 
 from pitta_jax.metrics import METRIC_NAMES
@@ -89,40 +88,3 @@ def _jsonable(x):
   if isinstance(x, Path):
     return str(x)
   raise TypeError(f"not JSON serialisable: {type(x).__name__}")
-
-
-_COLOURS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189)]
-
-
-def curve_figure(series: dict[str, np.ndarray], title: str, ylabel: str = "AbsRel",
-                 size: tuple[int, int] = (720, 360)) -> np.ndarray:
-  """A line plot (uint8 RGB) of per-frame values, one line per series, drawn with OpenCV."""
-  w, h = size
-  left, right, top, bottom = 60, 20, 40, 40
-  img = np.full((h, w, 3), 255, np.uint8)
-  vals = np.concatenate([np.asarray(v, float) for v in series.values() if len(v)])
-  vals = vals[np.isfinite(vals)]
-  lo, hi = (float(vals.min()), float(vals.max())) if vals.size else (0.0, 1.0)
-  if hi - lo < 1e-9:
-    lo, hi = lo - 0.5, hi + 0.5
-  n = max(len(v) for v in series.values())
-  def xy(i, v):
-    x = left + (w - left - right) * (i / max(n - 1, 1))
-    y = top + (h - top - bottom) * (1 - (v - lo) / (hi - lo))
-    return int(round(x)), int(round(y))
-  cv2.rectangle(img, (left, top), (w - right, h - bottom), (0, 0, 0), 1)
-  font = cv2.FONT_HERSHEY_SIMPLEX
-  for frac in (0.0, 0.5, 1.0):
-    v = lo + frac * (hi - lo)
-    cv2.putText(img, f"{v:.3f}", (4, xy(0, v)[1] + 4), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-  cv2.putText(img, title, (left, 24), font, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
-  cv2.putText(img, f"frame (0..{n - 1})", (w // 2 - 40, h - 12), font, 0.4, (0, 0, 0), 1,
-              cv2.LINE_AA)
-  cv2.putText(img, ylabel, (4, top - 8), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-  for k, (name, v) in enumerate(series.items()):
-    colour = _COLOURS[k % len(_COLOURS)]
-    pts = np.array([xy(i, x) for i, x in enumerate(np.asarray(v, float)) if np.isfinite(x)])
-    if len(pts) > 1:
-      cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, colour, 2, cv2.LINE_AA)
-    cv2.putText(img, name, (w - right - 200, top + 18 + 16 * k), font, 0.45, colour, 1, cv2.LINE_AA)
-  return img

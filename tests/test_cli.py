@@ -53,6 +53,9 @@ def test_demo_writes_results_table_and_figures(demo_out):
   assert (out / "table.md").read_text() == result["table"]
   for name in ("fog_frame002.png", "fog_abs_rel_per_frame.png", "clear_frame002.png"):
     assert (out / "figures" / name).stat().st_size > 1000
+  head = (out / "figures" / "fog_abs_rel_per_frame.png").read_bytes()[:24]  # PNG + IHDR
+  assert head[:8] == b"\x89PNG\r\n\x1a\n" and head[16:24] == (720).to_bytes(4, "big") + (
+      360).to_bytes(4, "big")  # matplotlib, 7.2 x 3.6 inches at 100 dpi
   # the source model was cached and is found again (no retraining)
   weights, report = source_model.load_or_train_source(TINY, quiet=True)
   assert report["weights_dir"] == str(source_model.cached_dir(TINY))
