@@ -88,6 +88,7 @@ class Entry:
   extra: dict[str, Any] = dataclasses.field(default_factory=dict)
   paper: dict[str, float] | None = None
   spec: RowSpec | None = None   # the row's configuration (None for derived rows)
+  paper_marks: dict[str, list[str]] | None = None  # the paper's bold / underline metrics
 
 
 @dataclasses.dataclass
@@ -104,18 +105,26 @@ class Context:
   quiet: bool
   source_images: str | None = None
   replay_root: str | None = None
+  runners: Any = None           # a `run.Runners` compile cache shared by the rows (None: fresh)
+  rows: tuple[str, ...] = ()    # --rows: compute only rows whose labels contain one of these
+
+  def wants(self, *labels: str) -> bool:
+    """Whether --rows selects a row known by any of `labels` (no --rows: every row)."""
+    return not self.rows or any(r.lower() in x.lower() for r in self.rows for x in labels)
 
   def cases(self, names: Sequence[str]) -> list[tuple[str, tuple[dict, ...]]]:
     table = SYNTHETIC if self.dataset == "synthetic" else REAL[self.dataset]
     return [(n, table[n]) for n in names]
 
 
-def adapt_config(method: str, changes: Sequence[tuple[str, Any]] = (), seed: int = 0):
-  """AdaptConfig of a row: the method's own setting (`methods.method_setting`), then `changes`."""
+def adapt_config(method: str, changes: Sequence[tuple[str, Any]] = (), quick: bool = False):
+  """AdaptConfig of a row: the method's own setting (`methods.method_setting`), then `changes`
+  (--quick: chunks of QUICK_FRAMES frames, so that every test case reuses one compile)."""
   from pitta_jax.adapt import AdaptConfig
   from pitta_jax.methods import method_setting
-  return dataclasses.replace(AdaptConfig(method=method, seed=seed),
-                             **{**method_setting(method), **dict(changes)})
+  extra = {"chunk_size": QUICK_FRAMES} if quick else {}
+  return dataclasses.replace(AdaptConfig(method=method),
+                             **{**method_setting(method), **dict(changes), **extra})
 
 
 def method_of(row: RowSpec):
@@ -227,7 +236,7 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
 
   def compute() -> dict:
     method = method_of(row)
-    cfg = adapt_config(row.method, row.adapt)
+    cfg = adapt_config(row.method, row.adapt, ctx.quick)
     frames = case_frames(ctx, parts, weights.height, weights.width)
     res_key = (row.model, row.method, method.config)
     if res_key not in resources:
@@ -270,6 +279,7 @@ def attach_paper(entries: Sequence[Entry], table: int,
     hits = [r for r in rows if all(r.get(k) == v for k, v in want.items())]
     if len(hits) == 1:
       e.paper = dict(hits[0]["values"])
+      e.paper_marks = {"bold": list(hits[0]["bold"]), "underline": list(hits[0]["underline"])}
 
 
 def paper_fields(e: Entry, with_case: bool = True) -> dict[str, Any] | None:
@@ -314,13 +324,17 @@ def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthe
   p.add_argument("--quick", action="store_true",
                  help=f"a tiny run for trying and testing: {QUICK_FRAMES} frames per part, "
                       f"random {QUICK_SIZE[1]}x{QUICK_SIZE[0]} networks on synthetic")
+  p.add_argument("--rows", default="",
+                 help="comma-separated row names (or parts of them, case-insensitive): compute "
+                      "only these rows, e.g. --rows 'No adaptation,PITTA' (default: all)")
   p.add_argument("--out", default=None, help="output directory (default experiments_out/NAME)")
   p.add_argument("--quiet", action="store_true", help="no progress bars")
   p.add_argument("--debug", action="store_true", help="full tracebacks")
 
 
-def context(args: argparse.Namespace, name: str) -> Context:
-  """Validates the arguments before any work; DataError / ValueError name the flag."""
+def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context:
+  """Validates the arguments before any work; DataError / ValueError name the flag.
+  runners: a compile cache to share with other tables run in the same process."""
   from pitta_jax.data.errors import DataError
   from pitta_jax.models.registry import MODELS
   from pitta_jax.sources import parse_segmentation
@@ -347,18 +361,19 @@ def context(args: argparse.Namespace, name: str) -> Context:
                                                             else 0))
   out = Path(args.out or Path("experiments_out") / name)
   return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
-                 args.quick, frames, args.quiet, args.source_images, args.replay_root)
+                 args.quick, frames, args.quiet, args.source_images, args.replay_root,
+                 runners, tuple(r.strip() for r in args.rows.split(",") if r.strip()))
 
 
-def main_wrapper(run: Callable[[argparse.Namespace], int], p: argparse.ArgumentParser,
-                 argv: Sequence[str] | None) -> int:
+def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
+                 argv: Sequence[str] | None, runners: Any = None) -> int:
   """Parses, runs, and turns an expected error into one line and exit 2 (tracebacks with
-  --debug)."""
+  --debug). runners: a compile cache shared with other tables of the same process."""
   from pitta_jax.data.errors import DataError
   from pitta_jax.outputs import OutputError
   args = p.parse_args(argv)
   try:
-    return run(args)
+    return run(args, runners)
   except (DataError, OutputError, FileNotFoundError, ValueError, TypeError, OSError) as e:
     if args.debug:
       raise
@@ -387,10 +402,13 @@ def meta(ctx: Context) -> dict:
   import platform
   return {"dataset": ctx.dataset, "root": ctx.root, "options": ctx.options,
           "segmentation": ctx.segmentation, "weights": ctx.weights, "quick": ctx.quick,
-          "frames_per_part": ctx.frames, "load": f"load average {load_average()}",
+          "frames_per_part": ctx.frames, "rows_selected": list(ctx.rows), "load": f"load average {load_average()}",
           "machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "format": FORMAT}
 
 
-def runners():
+def runners(ctx: Context):
+  """The context's compile cache (a fresh one when none was given)."""
   from pitta_jax.run import Runners
-  return Runners()
+  if ctx.runners is None:
+    ctx.runners = Runners()
+  return ctx.runners

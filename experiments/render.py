@@ -32,14 +32,23 @@ def _fmt(v: float | None) -> str:
 
 
 def ranks(entries: Sequence[Entry], metric: str, which: str = "ours") -> dict[int, int]:
-  """{entry index: 1 (best) or 2 (second)} within each group, on rounded values (ties share)."""
+  """{entry index: 1 (best) or 2 (second)} within each group, on rounded values (ties share);
+  for the paper's numbers, the marks as the paper prints them."""
   out: dict[int, int] = {}
+  if which == "paper":
+    for i, e in enumerate(entries):
+      marks = e.paper_marks or {}
+      if metric in marks.get("bold", ()):
+        out[i] = 1
+      elif metric in marks.get("underline", ()):
+        out[i] = 2
+    return out
   for group in dict.fromkeys(e.group for e in entries):
     vals = []
     for i, e in enumerate(entries):
-      m = e.metrics if which == "ours" else (e.paper or {})
-      if e.group == group and m.get(metric) is not None and math.isfinite(m[metric]):
-        vals.append((i, round(m[metric], 3)))
+      v = e.metrics.get(metric)
+      if e.group == group and v is not None and math.isfinite(v):
+        vals.append((i, round(v, 3)))
     distinct = sorted({v for _, v in vals}, reverse=metric in HIGHER_IS_BETTER)
     for i, v in vals:
       r = distinct.index(v) + 1

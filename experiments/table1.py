@@ -30,11 +30,11 @@ TITLE = ("MonoDepth2 ResNet-18 adapted online; every baseline with PITTA's L_d "
          "(paper Sec. 5). Bold: best, underlined: second, per test case.")
 
 
-def run(args) -> int:
+def run(args, runners=None) -> int:
   from experiments.figures import per_frame_figures
   from experiments.render import write_table
   from experiments.tables import rows_table
-  ctx = common.context(args, "table1")
+  ctx = common.context(args, "table1", runners)
   elapsed = common.timer()
   entries = rows_table(ctx, ROWS, CASES, table=1)
   caption = f"{TITLE} Dataset: {_dataset_caption(ctx)}."
@@ -53,9 +53,9 @@ def _dataset_caption(ctx) -> str:
   return f"DrivingStereo at {ctx.root}"
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, runners=None) -> int:
   p = common.parser("table1", __doc__.split("\n\n")[0])
-  return common.main_wrapper(run, p, argv)
+  return common.main_wrapper(run, p, argv, runners)
 
 
 if __name__ == "__main__":

@@ -14,11 +14,11 @@ from experiments import common
 from experiments.table1 import ROWS, TITLE
 
 
-def run(args) -> int:
+def run(args, runners=None) -> int:
   from experiments.figures import per_frame_figures
   from experiments.render import write_table
   from experiments.tables import rows_table
-  ctx = common.context(args, "table2")
+  ctx = common.context(args, "table2", runners)
   elapsed = common.timer()
   entries = rows_table(ctx, ROWS, ("Waymo",), table=2, with_case=False)
   caption = f"{TITLE} Dataset: {waymo_caption(ctx)}."
@@ -37,9 +37,9 @@ def waymo_caption(ctx) -> str:
   return f"Waymo at {ctx.root}"
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, runners=None) -> int:
   p = common.parser("table2", __doc__.split("\n\n")[0], datasets=("synthetic", "waymo"))
-  return common.main_wrapper(run, p, argv)
+  return common.main_wrapper(run, p, argv, runners)
 
 
 if __name__ == "__main__":

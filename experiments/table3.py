@@ -40,15 +40,16 @@ def rows() -> list[tuple[str, str, RowSpec]]:
   return out
 
 
-def run(args) -> int:
+def run(args, runners=None) -> int:
   from tqdm import tqdm
   from experiments.figures import per_frame_figures
   from experiments.render import write_table
-  ctx = common.context(args, "table3")
+  ctx = common.context(args, "table3", runners)
   elapsed = common.timer()
   cases = dict(ctx.cases(("Sunny", "All")))
-  shared, resources, entries = common.runners(), {}, []
-  for group, case, row in tqdm(rows(), desc="rows", unit="row", disable=ctx.quiet):
+  shared, resources, entries = common.runners(ctx), {}, []
+  todo = [(g, c, r) for g, c, r in rows() if ctx.wants(g, r.model)]
+  for group, case, row in tqdm(todo, desc="rows", unit="row", disable=ctx.quiet):
     entry = common.run_row(ctx, row, case, cases[case], shared, resources)
     entry.group = group
     entries.append(entry)
@@ -69,9 +70,9 @@ def run(args) -> int:
   return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, runners=None) -> int:
   p = common.parser("table3", __doc__.split("\n\n")[0])
-  return common.main_wrapper(run, p, argv)
+  return common.main_wrapper(run, p, argv, runners)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,8 @@ def label(lam: float) -> str:
   return "∞" if math.isinf(lam) else f"{lam:g}"
 
 
-def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True) -> list[dict]:
+def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
+                 quick: bool = False) -> list[dict]:
   """PITTA with each lambda of `lams` over `frames`, as one vmapped run; per lambda
   {"metrics": mean of the 7, "abs_rel_per_frame": [...], "frames": n}."""
   from tqdm import tqdm
@@ -32,7 +33,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True) -> 
   from pitta_jax.adapt.engine import make_chunk_runner, make_optimizer
   from pitta_jax.adapt.inputs import chunks
   from pitta_jax.run import EvalConfig
-  cfg = common.adapt_config("pitta")
+  cfg = common.adapt_config("pitta", quick=quick)
   model, tx = weights.network(), make_optimizer(cfg)
   states, consts = streams.init_lambda_sweep(weights.depth, lams, cfg, tx, model=model)
   runner = make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx))
@@ -58,11 +59,11 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True) -> 
            "abs_rel_per_frame": [m["abs_rel"] for m in p]} for p in per_frame]
 
 
-def run(args) -> int:
+def run(args, runners=None) -> int:
   from experiments.figures import lambda_figure
   from experiments.render import write_table
   from experiments.table2 import waymo_caption
-  ctx = common.context(args, "table4")
+  ctx = common.context(args, "table4", runners)
   elapsed = common.timer()
   (case, parts), = ctx.cases(("Waymo",))
   weights = common.weights_for(ctx, "monodepth2")
@@ -76,7 +77,7 @@ def run(args) -> int:
 
     def compute():
       frames = common.case_frames(ctx, parts, weights.height, weights.width)
-      return {"sweep": lambda_sweep(weights, frames, LAMBDAS, ctx.quiet)}
+      return {"sweep": lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick)}
     results = common.cached(ctx, key, compute)["sweep"]
     entries = [Entry(case, label(lam), r["metrics"], extra={
         "lambda": lam, "frames": r["frames"], "abs_rel_per_frame": r["abs_rel_per_frame"]})
@@ -93,9 +94,9 @@ def run(args) -> int:
   return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, runners=None) -> int:
   p = common.parser("table4", __doc__.split("\n\n")[0], datasets=("synthetic", "waymo"))
-  return common.main_wrapper(run, p, argv)
+  return common.main_wrapper(run, p, argv, runners)
 
 
 if __name__ == "__main__":

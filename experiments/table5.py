@@ -19,11 +19,11 @@ ROWS = tuple(RowSpec(f"CNN {a}% + BN {b}%", "pitta",
                      paper=f"CNN {a}% + BN {b}%") for a, b in FRACTIONS)
 
 
-def run(args) -> int:
+def run(args, runners=None) -> int:
   from experiments.render import write_table
   from experiments.table2 import waymo_caption
   from experiments.tables import run_grid
-  ctx = common.context(args, "table5")
+  ctx = common.context(args, "table5", runners)
   elapsed = common.timer()
   entries = run_grid(ctx, ROWS, ("Waymo",))
   fractions = {row.label: f for row, f in zip(ROWS, FRACTIONS)}
@@ -38,9 +38,9 @@ def run(args) -> int:
   return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, runners=None) -> int:
   p = common.parser("table5", __doc__.split("\n\n")[0], datasets=("synthetic", "waymo"))
-  return common.main_wrapper(run, p, argv)
+  return common.main_wrapper(run, p, argv, runners)
 
 
 if __name__ == "__main__":

@@ -14,8 +14,8 @@ def run_grid(ctx: Context, rows: Sequence[RowSpec], cases: Sequence[str],
   """Each row on each test case (case-major, the paper's order); (case, label) pairs in `skip`
   are not run. One compile cache serves the whole table."""
   todo = [(case, parts, row) for case, parts in ctx.cases(cases) for row in rows
-          if (case, row.label) not in skip]
-  shared = runners()
+          if (case, row.label) not in skip and ctx.wants(row.label, row.method, row.model)]
+  shared = runners(ctx)
   resources: dict = {}
   entries = []
   bar = tqdm(todo, desc="rows", unit="row", disable=ctx.quiet, position=0)

@@ -47,14 +47,17 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def quick_out(tmp_path_factory):
-  """One output directory shared by the quick tables (random networks saved once)."""
-  return tmp_path_factory.mktemp("experiments")
+  """One output directory for the quick tables, and one compile cache: a row that two tables
+  share (same network, method and config) compiles once."""
+  from pitta_jax.run import Runners
+  return tmp_path_factory.mktemp("experiments"), Runners()
 
 
-def _quick(name, out):
+def _quick(name, quick_out, *extra):
   import importlib
+  out, shared = quick_out
   return importlib.import_module(f"experiments.{name}").main(
-      ["--quick", "--quiet", "--out", str(out / name)])
+      ["--quick", "--quiet", "--out", str(out / name), *extra], runners=shared)
 
 
 def _check_files(out, name):
@@ -70,11 +73,19 @@ def _finite(entry):
   return all(math.isfinite(v) for v in entry["metrics"].values())
 
 
+# The suite's budget allows a few compiles per table: the tables run --quick with --rows where
+# a table's rows are many settings of one method (the baselines' engine runs have their own
+# tests); `pitta-jax experiment NAME --quick` computes every row.
+QUICK_ROWS = {"table1": "No adaptation,PITTA,Depth Anything", "table2": "No adaptation,PITTA,"
+              "Depth Anything", "table3": "SGDepth,depth_anything", "table5": "CNN 0% + BN 100%"}
+
+
 @pytest.mark.parametrize("name", ["table1", "table2"])
 def test_method_tables_quick(name, quick_out):
   from experiments.table1 import CASES, ROWS
-  assert _quick(name, quick_out) == 0
-  payload, lines = _check_files(quick_out / name, name)
+  assert _quick(name, quick_out, "--rows", QUICK_ROWS[name]) == 0
+  ROWS = [r for r in ROWS if r.label in ("No adaptation", "PITTA", "Depth Anything V2")]
+  payload, lines = _check_files(quick_out[0] / name, name)
   groups = list(CASES) if name == "table1" else ["Waymo"]
   assert [(r["group"], r["label"]) for r in payload["rows"]] == [
       (g, r.label) for g in groups for r in ROWS]
@@ -86,3 +97,66 @@ def test_method_tables_quick(name, quick_out):
       assert r["status"] == "ok" and len(r["metrics"]) == 7 and _finite(r)
   assert len([x for x in lines if x["source"] == "ours"]) == len(payload["rows"])
 
+  papers = [r for r in payload["rows"] if r["paper"]]
+  assert len(papers) == len([r for r in ROWS if r.paper]) * len(groups)  # every paper row found
+  figures = list((quick_out[0] / name / "figures").glob("*.png"))
+  assert len(figures) == len(groups)
+
+
+def test_rows_are_cached_and_a_rerun_computes_nothing(quick_out, monkeypatch):
+  """table2 again on the same --out: every row is read back, no run starts."""
+  from pitta_jax import run as run_lib
+  calls = []
+  monkeypatch.setattr(run_lib, "run_sequence", lambda *a, **k: calls.append(1))
+  before = (quick_out[0] / "table2" / "results.json").read_text()
+  assert _quick("table2", quick_out, "--rows", QUICK_ROWS["table2"]) == 0
+  assert calls == []
+  after = json.loads((quick_out[0] / "table2" / "results.json").read_text())
+  assert [r["metrics"] for r in after["rows"]] == [r["metrics"] for r in json.loads(before)["rows"]]
+
+
+def test_table3_quick(quick_out):
+  from experiments.table3 import NETWORKS, ROWS
+  assert _quick("table3", quick_out, "--rows", QUICK_ROWS["table3"]) == 0
+  payload, _ = _check_files(quick_out[0] / "table3", "table3")
+  assert [(r["group"], r["label"]) for r in payload["rows"]] == [
+      (label, row) for label in ("SGDepth", "DepthAnythingV2") for row, _, _ in ROWS]
+  assert set(NETWORKS) == {"sgdepth", "hrdepth", "monovit", "litemono", "depth_anything_v2"}
+  for r in payload["rows"]:
+    if r["spec"]["model"] == "depth_anything_v2":
+      assert r["status"].startswith("needs weights")
+    else:
+      assert r["status"] == "ok" and _finite(r) and r["paper"] is not None
+
+
+def test_table4_quick_is_one_vmapped_sweep(quick_out):
+  from experiments.table4 import LAMBDAS
+  assert _quick("table4", quick_out) == 0
+  payload, lines = _check_files(quick_out[0] / "table4", "table4")
+  assert [r["label"] for r in payload["rows"]] == [
+      "0", "0.1", "0.2", "0.3", "0.4", "0.5", "0.6", "0.7", "0.8", "0.9", "1", "∞"]
+  assert all(_finite(r) and r["paper"] for r in payload["rows"]) and len(LAMBDAS) == 12
+  assert payload["rows"][2]["paper"]["abs_rel"] == 1.999  # printed as in the paper (a typo)
+  assert {"table4_lambda.png", "table4_lambda_paper.png"} <= {
+      p.name for p in (quick_out[0] / "table4" / "figures").iterdir()}
+  md = (quick_out[0] / "table4" / "table4.md").read_text()
+  assert "**Ours**" in md and "**Paper**" in md and "Waymo" in md
+
+
+def test_table5_quick(quick_out):
+  from experiments.table5 import ROWS
+  assert [r.label for r in ROWS] == ["CNN 0% + BN 50%", "CNN 0% + BN 100%", "CNN 20% + BN 80%",
+                                     "CNN 40% + BN 60%", "CNN 60% + BN 40%"]  # the paper's
+  assert _quick("table5", quick_out, "--rows", QUICK_ROWS["table5"]) == 0
+  payload, _ = _check_files(quick_out[0] / "table5", "table5")
+  (row,) = payload["rows"]
+  assert row["label"] == "CNN 0% + BN 100%" and _finite(row) and row["paper"]["abs_rel"] == 0.199
+  assert row["spec"]["adapt"] == [["selector", "fraction(cnn=0,bn=100)"]]
+
+
+def test_sensitivity_quick(quick_out):
+  assert _quick("sensitivity", quick_out) == 0
+  payload, _ = _check_files(quick_out[0] / "sensitivity", "sensitivity")
+  studies = {r["group"] for r in payload["rows"]}
+  assert studies == {"lr x steps", "BN mode", "traffic", "lambda", "sequence length"}
+  assert all(_finite(r) for r in payload["rows"]) and payload["verdict"]
