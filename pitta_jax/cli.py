@@ -256,16 +256,17 @@ def _run_adapt(args) -> int:
       notes.append(f"--method {method.name} uses no source-domain data: {', '.join(source_flags)} "
                    f"ignored")
     args.source_images = args.replay_root = args.source_stats = None
-  if args.source_stats:
-    from pitta_jax.source_stats import read_source_stats
-    check_stats_method(method, args.source_stats)
-    read_source_stats(args.source_stats)  # the file's format; its layers once the weights load
-  reader = check_run_needs(method, args.dataset, args.root, args.option, args.segmentation,
-                           args.replay_root, weights_config)
-  notes += list(reader.notes if reader is not None else ())
-  for note in notes:
-    print(f"note: {note}", file=sys.stderr)
-  with open_output_dir(args.out):  # checked and locked before any work
+  with open_output_dir(args.out):  # checked and locked first; removed again if a check fails
+    if args.source_stats:
+      from pitta_jax.source_stats import read_source_stats
+      check_stats_method(method, args.source_stats)
+      read_source_stats(args.source_stats)  # the file's format; its layers once weights load
+    # the data against the method's needs, from file lists and model.json only
+    reader = check_run_needs(method, args.dataset, args.root, args.option, args.segmentation,
+                             args.replay_root, weights_config)
+    notes += list(reader.notes if reader is not None else ())
+    for note in notes:
+      print(f"note: {note}", file=sys.stderr)
     weights = open_weights(args.weights, args.dataset, quiet=args.quiet, model=args.model)
     frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
                          weights.height, weights.width, reader=reader)

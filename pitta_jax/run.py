@@ -145,7 +145,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   if len(frames) == 0:
     raise DataError(name or "sequence", "no frames to adapt on")
   method = method if method is not None else build_method(cfg.method)
-  check_needs(method, frames, name or "the sequence")  # before anything compiles
+  check_needs(method, frames, f"sequence {name!r}" if name else "the sequence")  # before compiling
   if checkpoint_every:
     cfg = dataclasses.replace(cfg, chunk_size=math.gcd(cfg.chunk_size, checkpoint_every))
   h, w = weights.height, weights.width

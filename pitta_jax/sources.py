@@ -1,4 +1,6 @@
-"""Resolving the CLI's `--dataset/--root/--option/--segmentation/--weights` into frames and weights.
+"""Resolving the CLI's `--dataset/--root/--option/--segmentation/--weights` into frames and weights,
+the methods' source-domain resources (`--source-images`, `--replay-root`, `--source-stats`), and
+checking before any work that the data has what a method needs (`check_run_needs`).
 
 `--option KEY=VALUE` values are typed from the target's annotations (the reader function's
 parameters, or `SyntheticConfig`'s fields): `sequences=0001` stays the string "0001" for a str
@@ -118,14 +120,11 @@ class SourceImages(Sequence[np.ndarray]):
 
   @classmethod
   def from_files(cls, paths: Sequence[Path], height: int, width: int) -> SourceImages:
-    from pitta_jax.data.image_io import read_image
-    from pitta_jax.data.resize import resize_image
-    return cls([functools.partial(lambda p: resize_image(read_image(p), height, width), p)
-                for p in paths])
+    return cls([functools.partial(_read_resized, p, height, width) for p in paths])
 
   @classmethod
   def from_sequences(cls, sequences: Sequence[Sequence[Frame]]) -> SourceImages:
-    return cls([functools.partial(lambda seq, i: seq[i].image, seq, i)
+    return cls([functools.partial(_frame_image, seq, i)
                 for seq in sequences for i in range(len(seq))])
 
   def __len__(self) -> int:
@@ -135,6 +134,16 @@ class SourceImages(Sequence[np.ndarray]):
     if isinstance(index, slice):
       return [load() for load in self.loaders[index]]
     return self.loaders[index]()
+
+
+def _read_resized(path: Path, height: int, width: int) -> np.ndarray:
+  from pitta_jax.data.image_io import read_image
+  from pitta_jax.data.resize import resize_image
+  return resize_image(read_image(path), height, width)
+
+
+def _frame_image(frames: Sequence[Frame], index: int) -> np.ndarray:
+  return frames[index].image
 
 
 def source_images(spec: str, height: int, width: int) -> SourceImages:

@@ -266,3 +266,21 @@ def test_waymo_sequence_directory_as_root(tmp_path):
   assert frames.names == ("segment-a/000000", "segment-a/000001") and frames.temporal
   np.testing.assert_array_equal(frames[1].depth, expected[1])
   np.testing.assert_array_equal(frames[0].intrinsics, [[5, 0, 4], [0, 5, 3], [0, 0, 1]])
+
+
+def test_required_reader_option_named(tmp_path):
+  with pytest.raises(DataError, match=r"^dataset 'kitti' needs --option split_file=\.\.\.$"):
+    readers.open_dataset("kitti", tmp_path)
+
+
+def test_synthetic_export_reads_back_with_one_option(tmp_path):
+  # the exporter's DrivingStereo layout (full size, panoptic/, full-image-calib/): weather only
+  from pitta_jax.data.synthetic import SyntheticConfig, export_drivingstereo, generate_sequence
+  frames = generate_sequence(SyntheticConfig(height=16, width=24, num_frames=2, domain="fog"))
+  export_drivingstereo(frames, tmp_path, "foggy")
+  back = readers.open_dataset("drivingstereo", tmp_path, weather="foggy")
+  assert back.temporal and len(back) == 2 and back.notes[0].startswith("DrivingStereo size=full")
+  for original, read in zip(frames, back):
+    np.testing.assert_allclose(read.intrinsics, original.intrinsics, rtol=1e-9)
+    np.testing.assert_array_equal(read.panoptic, original.panoptic)
+    np.testing.assert_allclose(read.image, original.image, atol=0.5 / 255 + 1e-6)

@@ -160,3 +160,10 @@ def test_synthetic_statistics_are_cached(written, tmp_path, monkeypatch):
                   weights.depth["batch_stats"]["encoder"]["bn1"].items()}}}})
   sources.method_resources(method, changed, "synthetic")
   assert len(calls) == 3 and len(list((tmp_path / "actmad_stats").glob("*.npz"))) == 3
+
+
+def test_help_renders(capsys):
+  with pytest.raises(SystemExit) as e:
+    main(["source-stats", "--help"])
+  out = capsys.readouterr().out
+  assert e.value.code == 0 and "--layers REGEX" in out and "every encoder BN" in out

@@ -24,6 +24,10 @@ Ground truth, one of:
 (Garg crop, 1e-3 < gt < 80) is the metrics module's business. Frame names are
 `<folder>/image_0{2,3}/{frame:010d}`; panoptic maps (optional) are looked up under the image's
 relative path without suffix, `<folder>/image_0{2,3}/data/{frame:010d}`, in `panoptic_dir`.
+Frames carry K from `<date>/calib_cam_to_cam.txt` when it exists; a split is temporal when its
+lines are runs of consecutive frames (`split_is_temporal`).
+
+`open_raw_sequences` reads whole raw drives without a split (CoMoDa's source replay set).
 """
 
 from __future__ import annotations
