@@ -263,7 +263,7 @@ def _run_adapt(args) -> int:
       read_source_stats(args.source_stats)  # the file's format; its layers once weights load
     # the data against the method's needs, from file lists and model.json only
     reader = check_run_needs(method, args.dataset, args.root, args.option, args.segmentation,
-                             args.replay_root, weights_config)
+                             args.replay_root, weights_config, bool(source_flags))
     notes += list(reader.notes if reader is not None else ())
     for note in notes:
       print(f"note: {note}", file=sys.stderr)
@@ -334,7 +334,7 @@ def _run_source_stats(args) -> int:
   from pitta_jax.methods.actmad import RESOURCE, ActmadConfig
   from pitta_jax.methods.base import SourceData
   from pitta_jax.source_stats import layer_shapes, save_source_stats
-  from pitta_jax.sources import source_images
+  from pitta_jax.sources import read_source_images
   cfg = ActmadConfig() if args.layers is None else ActmadConfig(layers=args.layers)
   try:
     re.compile(cfg.layers)
@@ -343,7 +343,7 @@ def _run_source_stats(args) -> int:
   if Path(args.out).is_dir():
     raise ValueError(f"--out {args.out}: is a directory; name the .npz file to write")
   _, config = read_model_json(args.weights)  # cheap checks first
-  images = source_images(args.images, config["height"], config["width"])
+  images = read_source_images(args.images, config["height"], config["width"])
   if len(images) < 2:
     raise DataError(args.images, f"{len(images)} image(s); the variance needs at least 2")
   weights = load_weights(args.weights)

@@ -146,7 +146,7 @@ def _frame_image(frames: Sequence[Frame], index: int) -> np.ndarray:
   return frames[index].image
 
 
-def source_images(spec: str, height: int, width: int) -> SourceImages:
+def read_source_images(spec: str, height: int, width: int) -> SourceImages:
   """The images of `spec` (a file, a directory or a glob), lazily resized to (height, width)."""
   from pitta_jax.predict import expand_images
   return SourceImages.from_files(expand_images(spec, unique_stems=False), height, width)
@@ -160,11 +160,11 @@ def replay_sequences(replay_root: str, height: int, width: int) -> list:
   return [seq.map(resize) for seq in open_raw_sequences(replay_root)]
 
 
-def method_resources(method, weights: Weights, dataset: str, source_images_spec: str | None = None,
+def method_resources(method, weights: Weights, dataset: str, source_images: str | None = None,
                      replay_root: str | None = None, source_stats: str | None = None
                      ) -> dict[str, Any]:
   """The method's host-side inputs: the weights' pose network when the method needs one, and
-  `Method.prepare` on source-domain data: the files of `source_images_spec` (a file, a directory
+  `Method.prepare` on source-domain data: the files of `source_images` (a file, a directory
   or a glob), consecutive frames of `replay_root` (a KITTI raw-data root), or on the synthetic
   benchmark the clear-weather training streets (seeds 0, 1). {} for methods that need none.
 
@@ -187,18 +187,18 @@ def method_resources(method, weights: Weights, dataset: str, source_images_spec:
   if method.prepare is None:
     return resources
   h, w = weights.height, weights.width
-  images = source_images(source_images_spec, h, w) if source_images_spec else None
+  images = read_source_images(source_images, h, w) if source_images else None
   sequences = replay_sequences(replay_root, h, w) if replay_root else None
   synthetic_default = images is None and sequences is None
   if synthetic_default and dataset != "synthetic":
-    raise DataError(None, f"--method {method.name} needs source-domain data: "
-                          f"--source-images PATH or --replay-root DIR")
+    raise no_source_error(method)
 
   def prepare() -> tuple[dict[str, Any], int]:
     """The method's resources and how many source images they come from."""
     seqs = synthetic_streets(h, w) if synthetic_default else (sequences or [])
     imgs = images if images is not None else SourceImages.from_sequences(seqs)
-    return method.prepare(weights.network(), weights.depth, SourceData(imgs, tuple(seqs))), len(imgs)
+    source = SourceData(imgs, tuple(seqs))
+    return method.prepare(weights.network(), weights.depth, source), len(imgs)
 
   if synthetic_default and method.name == "actmad":
     from pitta_jax.methods import actmad
@@ -213,6 +213,12 @@ def method_resources(method, weights: Weights, dataset: str, source_images_spec:
     return resources
   resources.update(prepare()[0])
   return resources
+
+
+def no_source_error(method) -> DataError:
+  stats = ", --source-stats FILE" if method.name == "actmad" else ""
+  return DataError(None, f"--method {method.name} needs source-domain data: --source-images "
+                         f"PATH{stats} or --replay-root DIR")
 
 
 def check_stats_method(method, source_stats: str) -> None:
@@ -346,13 +352,17 @@ def no_pose_error(method) -> DataError:
 
 def check_run_needs(method, dataset: str, root: str | None, option_items: Sequence[str],
                     segmentation: str, replay_root: str | None = None,
-                    weights_config: Mapping[str, Any] | None = None) -> FrameSequence | None:
+                    weights_config: Mapping[str, Any] | None = None,
+                    source_given: bool = False) -> FrameSequence | None:
   """The CLI's before-work check of a method's data needs: opens the reader (files listed,
   nothing read) or, on the synthetic benchmark, reads the options (every synthetic frame has K
   and the order is temporal), and the replay root; with `weights_config` (a model.json) also
-  the pose network. Returns the reader for `open_frames`."""
+  the pose network; a method with `prepare` on a real dataset needs a source flag
+  (`source_given`). Returns the reader for `open_frames`."""
   if "pose" in method.needs and weights_config is not None and not weights_config.get("has_pose"):
     raise no_pose_error(method)
+  if method.prepare is not None and dataset != "synthetic" and not source_given:
+    raise no_source_error(method)
   reader = None
   if dataset == "synthetic":
     options = check_dataset_args(dataset, root, option_items, segmentation)

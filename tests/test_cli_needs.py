@@ -41,7 +41,8 @@ def _stand_in(name: str, needs: tuple[str, ...]):
 
 @pytest.fixture
 def cli(tmp_path, monkeypatch, capsys):
-  monkeypatch.setitem(methods.METHODS, "needy", _stand_in("needy", ("intrinsics", "previous_frame")))
+  monkeypatch.setitem(methods.METHODS, "needy",
+                      _stand_in("needy", ("intrinsics", "previous_frame")))
   monkeypatch.setitem(methods.METHODS, "posey", _stand_in("posey", ("pose",)))
   weights = tmp_path / "weights"
   weights.mkdir()
@@ -70,21 +71,22 @@ def cli(tmp_path, monkeypatch, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (("--method", "needy", "--dataset", "folder", "--root", "TMP/seq"),
+    (("--method", "needy", "--dataset", "folder", "--root", "TMP/seq", "--source-images",
+      "TMP/seq"),
      "--method needy needs consecutive frames (each frame's previous one), and the order of "
      "dataset folder is not known to be capture order: provide --option temporal=true when the "
      "images are consecutive video frames in file-name order"),
     (("--method", "needy", "--dataset", "folder", "--root", "TMP/nocalib", "--option",
-      "temporal=true"),
+      "temporal=true", "--source-images", "TMP/seq"),
      "--method needy needs camera intrinsics K for every frame, and frame 000000 of dataset "
      "folder has none: provide a calib.json ({\"K\": 3x3, \"width\": W, \"height\": H}) in "
      "--root or --option calib=FILE"),
     (("--method", "needy", "--dataset", "folder", "--root", "TMP/one", "--option",
-      "temporal=true"),
+      "temporal=true", "--source-images", "TMP/seq"),
      "--method needy needs consecutive frames (each frame's previous one), and dataset folder "
      "has 1 frame(s): provide at least 2 frames"),
     (("--method", "needy", "--dataset", "drivingstereo", "--root", "TMP/ds", "--option",
-      "weather=foggy"),
+      "weather=foggy", "--source-images", "TMP/seq"),
      "--method needy needs camera intrinsics K for every frame, and frame foggy/"
      "2018-10-25-07-37-26_2018-10-25-07-37-40-000 of dataset drivingstereo has none: provide "
      "DrivingStereo's calibration files <seq>.txt (half-image-calib/ or full-image-calib/ of "
@@ -101,6 +103,12 @@ def cli(tmp_path, monkeypatch, capsys):
      "2011_09_28_drive_0005_sync/image_02/0000000000 of --replay-root TMP/raw has none: "
      "provide KITTI raw's <date>/calib_cam_to_cam.txt (the date's calibration download) in "
      "--root"),
+    (("--method", "needy", "--dataset", "folder", "--root", "TMP/seq", "--option",
+      "temporal=true"),
+     "--method needy needs source-domain data: --source-images PATH or --replay-root DIR"),
+    (("--method", "actmad", "--bn-stats", "running", "--dataset", "folder", "--root", "TMP/seq"),
+     "--method actmad needs source-domain data: --source-images PATH, --source-stats FILE or "
+     "--replay-root DIR"),
     (("--method", "posey", "--dataset", "synthetic"),
      "--method posey needs a pose network, and the weights have none (convert with "
      "--pose-encoder/--pose, or train-source)"),
@@ -121,7 +129,7 @@ def test_met_needs_and_notes(cli, tmp_path, capsys):
   # the check passes: a temporal folder with calib.json, its reader returned for the run
   needy = methods.build("needy")
   reader = check_run_needs(needy, "folder", str(tmp_path / "seq"), ["temporal=true"], "gt",
-                           str(tmp_path / "raw" / "2011_09_26"))
+                           str(tmp_path / "raw" / "2011_09_26"), source_given=True)
   assert reader.temporal and len(reader) == 3
   np.testing.assert_array_equal(reader[0].intrinsics, [[8, 0, 4], [0, 8, 3], [0, 0, 1]])
   # DrivingStereo with full size only: the reader says so, the unused replay root is named; the

@@ -227,8 +227,9 @@ def find_annotation_file(directory: Path) -> Path | None:
   beside = directory.parent / f"{directory.name}.json"
   found = [p for p in inside + ([beside] if beside.is_file() else []) if is_annotation_file(p)]
   if len(found) > 1:
-    raise DataError(directory, f"several COCO annotation files ({', '.join(p.name for p in found)}); "
-                               f"pass one with --option panoptic_json=FILE")
+    names = ", ".join(p.name for p in found)
+    raise DataError(directory, f"several COCO annotation files ({names}); pass one with "
+                               f"--option panoptic_json=FILE")
   return found[0] if found else None
 
 
