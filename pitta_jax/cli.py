@@ -203,6 +203,13 @@ def _add_adapt(sub, name: str) -> None:
                  help="source-domain images (a file, a directory or a glob) for methods that "
                       "need source data (ActMAD's statistics); default on synthetic: clear-"
                       "weather training streets")
+  p.add_argument("--replay-root", metavar="DIR",
+                 help="source-domain replay frames for CoMoDa: a KITTI raw root as downloaded "
+                      "(<date>/<date>_drive_<nnnn>_sync/image_02/data/, <date>/"
+                      "calib_cam_to_cam.txt)")
+  p.add_argument("--source-stats", metavar="FILE",
+                 help="ActMAD's source statistics written by `pitta-jax source-stats` (instead "
+                      "of computing them from --source-images)")
   p.add_argument("--resume", action="store_true",
                  help="continue from the newest checkpoint under OUT/checkpoints (the frames "
                       "it holds are not run again; results equal an uninterrupted run's)")
@@ -222,7 +229,8 @@ def _run_adapt(args) -> int:
   from pitta_jax.report import Row, write_results
   from pitta_jax.run import EvalConfig, run_sequence
   from pitta_jax.checkpoint import read_model_json
-  from pitta_jax.sources import check_dataset_args, method_resources, open_frames, open_weights
+  from pitta_jax.sources import (check_dataset_args, check_run_needs, check_stats_method,
+                                 method_resources, open_frames, open_weights)
   if args.adapting:
     cfg = config_from_args(AdaptConfig, args, "adapt")
     method = _method_from_args(args, cfg)
@@ -235,14 +243,35 @@ def _run_adapt(args) -> int:
     raise ValueError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
   if args.resume and not args.checkpoint_every:
     raise ValueError("--resume needs --checkpoint-every K (the same K as the interrupted run)")
-  if args.weights:
-    read_model_json(args.weights)  # cheap checks first: the weights' description, the dataset
+  weights_config = None
+  if args.weights:  # cheap checks first: the weights' description, the dataset, the method's needs
+    weights_config = read_model_json(args.weights)[1]
   check_dataset_args(args.dataset, args.root, args.option, args.segmentation)
-  with open_output_dir(args.out):  # checked and locked before any work
+  notes = []
+  source_flags = [f for f, v in (("--source-images", args.source_images),
+                                 ("--replay-root", args.replay_root),
+                                 ("--source-stats", args.source_stats)) if v]
+  if method.prepare is None and source_flags:
+    if args.adapting:
+      notes.append(f"--method {method.name} uses no source-domain data: {', '.join(source_flags)} "
+                   f"ignored")
+    args.source_images = args.replay_root = args.source_stats = None
+  with open_output_dir(args.out):  # checked and locked first; removed again if a check fails
+    if args.source_stats:
+      from pitta_jax.source_stats import read_source_stats
+      check_stats_method(method, args.source_stats)
+      read_source_stats(args.source_stats)  # the file's format; its layers once weights load
+    # the data against the method's needs, from file lists and model.json only
+    reader = check_run_needs(method, args.dataset, args.root, args.option, args.segmentation,
+                             args.replay_root, weights_config, bool(source_flags))
+    notes += list(reader.notes if reader is not None else ())
+    for note in notes:
+      print(f"note: {note}", file=sys.stderr)
     weights = open_weights(args.weights, args.dataset, quiet=args.quiet, model=args.model)
     frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
-                         weights.height, weights.width)
-    resources = method_resources(method, weights, args.dataset, args.source_images)
+                         weights.height, weights.width, reader=reader)
+    resources = method_resources(method, weights, args.dataset, args.source_images,
+                                 args.replay_root, args.source_stats)
     out = args.out
     res = run_sequence(weights, frames, cfg, method, eval_cfg, name=f"{args.dataset} {cfg.method}",
                        quiet=args.quiet,
@@ -254,7 +283,9 @@ def _run_adapt(args) -> int:
                                                      "n_skipped": res.n_skipped,
                                                      "n_excluded": len(res.excluded)})
     meta = {"command": args.command, "dataset": args.dataset, "root": args.root,
-            "options": args.option, "segmentation": args.segmentation,
+            "options": args.option, "segmentation": args.segmentation, "notes": notes,
+            "source": {"images": args.source_images, "replay_root": args.replay_root,
+                       "stats": args.source_stats},
             "weights": str(args.weights), "adapt": dataclasses.asdict(cfg),
             "method": {"name": method.name, **dataclasses.asdict(method.config)},
             "eval": dataclasses.asdict(eval_cfg),
@@ -270,6 +301,59 @@ def _run_adapt(args) -> int:
       print(f"{len(res.excluded)} frame(s) without valid ground truth excluded from the means: "
             f"{', '.join(res.excluded[:5])}{' ...' if len(res.excluded) > 5 else ''}")
     print(f"{len(res.frame_names)} frames at {res.fps:.2f} frames/s; results in {out}/")
+  return 0
+
+
+def _add_source_stats(sub) -> None:
+  import dataclasses
+  from pitta_jax.configs import help_of
+  from pitta_jax.methods.actmad import ActmadConfig
+  layers = next(f for f in dataclasses.fields(ActmadConfig) if f.name == "layers")
+  p = sub.add_parser(
+      "source-stats", help="compute ActMAD's source statistics once and write them (.npz)",
+      description="Per-location mean and variance of the selected BatchNorm outputs over "
+                  "source-domain images (resized to the weights' input size), written "
+                  "atomically to an .npz with the network, size and layers it holds; then "
+                  "`pitta-jax adapt --method actmad --source-stats FILE` uses it.",
+      epilog="example: pitta-jax source-stats --weights weights/mono_640x192 --images "
+             "'kitti_raw/2011_09_26/*/image_02/data/*.jpg' --out stats/mono_640x192.npz")
+  p.add_argument("--weights", required=True, metavar="DIR", help="weights directory")
+  p.add_argument("--images", required=True, metavar="PATH",
+                 help="source-domain images: a file, a directory or a glob (quote it)")
+  p.add_argument("--out", required=True, metavar="FILE", help="the .npz file to write")
+  p.add_argument("--layers", metavar="REGEX",
+                 help=help_of(layers).replace("%", "%%"))
+  p.set_defaults(func=_run_source_stats)
+
+
+def _run_source_stats(args) -> int:
+  import re
+  from pathlib import Path
+  from pitta_jax.checkpoint import load_weights, read_model_json
+  from pitta_jax.methods import build
+  from pitta_jax.methods.actmad import RESOURCE, ActmadConfig
+  from pitta_jax.methods.base import SourceData
+  from pitta_jax.source_stats import layer_shapes, save_source_stats
+  from pitta_jax.sources import read_source_images
+  cfg = ActmadConfig() if args.layers is None else ActmadConfig(layers=args.layers)
+  try:
+    re.compile(cfg.layers)
+  except re.error as e:
+    raise ValueError(f"--layers {cfg.layers!r}: not a regular expression ({e})") from None
+  if Path(args.out).is_dir():
+    raise ValueError(f"--out {args.out}: is a directory; name the .npz file to write")
+  _, config = read_model_json(args.weights)  # cheap checks first
+  images = read_source_images(args.images, config["height"], config["width"])
+  if len(images) < 2:
+    raise DataError(args.images, f"{len(images)} image(s); the variance needs at least 2")
+  weights = load_weights(args.weights)
+  shapes = layer_shapes(weights, cfg.layers)
+  if not shapes:
+    raise ValueError(f"--layers {cfg.layers!r} matches no module of the {weights.spec.name}")
+  source = SourceData(images)
+  stats = build("actmad", cfg).prepare(weights.network(), weights.depth, source)[RESOURCE]
+  save_source_stats(args.out, stats, weights, cfg.layers, len(images))
+  print(f"wrote the statistics of {len(stats)} layers over {len(images)} images to {args.out}")
   return 0
 
 
@@ -295,6 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
   _add_adapt(sub, "adapt")
   _add_adapt(sub, "evaluate")
   _add_train_source(sub)
+  _add_source_stats(sub)
   _add_predict(sub)
   _add_segment(sub)
   _add_convert(sub)

@@ -26,8 +26,12 @@ from pitta_jax.data.image_io import IMAGE_SUFFIXES, list_images, read_image, wri
 from pitta_jax.data.resize import resize_image
 
 
-def expand_images(spec: str) -> list[Path]:
-  """A file, a directory (its images), or a glob pattern -> sorted image paths."""
+def expand_images(spec: str, unique_stems: bool = True) -> list[Path]:
+  """A file, a directory (its images), or a glob pattern -> sorted image paths.
+
+  unique_stems: refuse two images with one file stem (their outputs, named by stem, would
+  overwrite each other); False where nothing is written per image (source statistics).
+  """
   path = Path(spec)
   if path.is_dir():
     paths = sorted(list_images(path).values())
@@ -38,7 +42,7 @@ def expand_images(spec: str) -> list[Path]:
   if not paths:
     raise DataError(spec, f"no image found (a file, a directory or a glob of {IMAGE_SUFFIXES})")
   stems: dict[str, Path] = {}
-  for p in paths:  # outputs are named by stem: two inputs with one stem would overwrite
+  for p in paths if unique_stems else ():
     if p.stem in stems:
       raise DataError(p, f"has the same file stem as {stems[p.stem]}; their outputs would "
                          f"overwrite each other (predict one directory at a time)")

@@ -141,9 +141,11 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       again); the result equals an uninterrupted run's.
     resources: host-side inputs of the method (e.g. ActMAD's source statistics).
   """
+  from pitta_jax.sources import check_frame_needs, check_needs
   if len(frames) == 0:
     raise DataError(name or "sequence", "no frames to adapt on")
   method = method if method is not None else build_method(cfg.method)
+  check_needs(method, frames, f"sequence {name!r}" if name else "the sequence")  # before compiling
   if checkpoint_every:
     cfg = dataclasses.replace(cfg, chunk_size=math.gcd(cfg.chunk_size, checkpoint_every))
   h, w = weights.height, weights.width
@@ -172,6 +174,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     for chunk, originals in stream:  # the first chunk is checked before anything compiles
       for frame in originals:
         check_aspect(frame)
+        check_frame_needs(method, frame)
       chunk_frames.append(originals)
       yield chunk
 

@@ -1,4 +1,6 @@
-"""Resolving the CLI's `--dataset/--root/--option/--segmentation/--weights` into frames and weights.
+"""Resolving the CLI's `--dataset/--root/--option/--segmentation/--weights` into frames and weights,
+the methods' source-domain resources (`--source-images`, `--replay-root`, `--source-stats`), and
+checking before any work that the data has what a method needs (`check_run_needs`).
 
 `--option KEY=VALUE` values are typed from the target's annotations (the reader function's
 parameters, or `SyntheticConfig`'s fields): `sequences=0001` stays the string "0001" for a str
@@ -8,14 +10,19 @@ option, `num_frames=3.5` is refused for an int one, and an unknown key lists the
 from __future__ import annotations
 
 import dataclasses
+import functools
 import inspect
 import types
 import typing
+from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
 
 from pitta_jax.checkpoint import Weights, load_weights
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame
+from pitta_jax.data.sequence import FrameSequence
 
 SEGMENTATIONS = ("gt", "png", "mask2former")
 
@@ -104,45 +111,129 @@ SYNTHETIC_SOURCE_SEEDS = (0, 1)  # clear training streets used as source data on
 SYNTHETIC_SOURCE_FRAMES = 8      # frames per street
 
 
+class SourceImages(Sequence[np.ndarray]):
+  """Source-domain images (H, W, 3) at the network size, read on access, so that a large source
+  set (thousands of files, a KITTI raw root) never sits in memory; slicing gives a list."""
+
+  def __init__(self, loaders: Sequence[Callable[[], np.ndarray]]):
+    self.loaders = tuple(loaders)
+
+  @classmethod
+  def from_files(cls, paths: Sequence[Path], height: int, width: int) -> SourceImages:
+    return cls([functools.partial(_read_resized, p, height, width) for p in paths])
+
+  @classmethod
+  def from_sequences(cls, sequences: Sequence[Sequence[Frame]]) -> SourceImages:
+    return cls([functools.partial(_frame_image, seq, i)
+                for seq in sequences for i in range(len(seq))])
+
+  def __len__(self) -> int:
+    return len(self.loaders)
+
+  def __getitem__(self, index):
+    if isinstance(index, slice):
+      return [load() for load in self.loaders[index]]
+    return self.loaders[index]()
+
+
+def _read_resized(path: Path, height: int, width: int) -> np.ndarray:
+  from pitta_jax.data.image_io import read_image
+  from pitta_jax.data.resize import resize_image
+  return resize_image(read_image(path), height, width)
+
+
+def _frame_image(frames: Sequence[Frame], index: int) -> np.ndarray:
+  return frames[index].image
+
+
+def read_source_images(spec: str, height: int, width: int) -> SourceImages:
+  """The images of `spec` (a file, a directory or a glob), lazily resized to (height, width)."""
+  from pitta_jax.predict import expand_images
+  return SourceImages.from_files(expand_images(spec, unique_stems=False), height, width)
+
+
+def replay_sequences(replay_root: str, height: int, width: int) -> list:
+  """The KITTI raw drives of `replay_root` as lazy sequences resized to (height, width)."""
+  from pitta_jax.data.kitti import open_raw_sequences
+  from pitta_jax.data.resize import resize_frame
+  resize = functools.partial(resize_frame, height=height, width=width)
+  return [seq.map(resize) for seq in open_raw_sequences(replay_root)]
+
+
 def method_resources(method, weights: Weights, dataset: str, source_images: str | None = None,
-                     replay_root: str | None = None) -> dict[str, Any]:
+                     replay_root: str | None = None, source_stats: str | None = None
+                     ) -> dict[str, Any]:
   """The method's host-side inputs: the weights' pose network when the method needs one, and
-  `Method.prepare` on source-domain data: the files of `source_images` (a file, a directory or
-  a glob), consecutive frames of `replay_root` (a KITTI raw-data root), or on the synthetic
-  benchmark the clear-weather training streets (seeds 0, 1). {} for methods that need none."""
+  `Method.prepare` on source-domain data: the files of `source_images` (a file, a directory
+  or a glob), consecutive frames of `replay_root` (a KITTI raw-data root), or on the synthetic
+  benchmark the clear-weather training streets (seeds 0, 1). {} for methods that need none.
+
+  source_stats: an ActMAD statistics file (`pitta-jax source-stats`), used instead of
+  computing them; on the synthetic benchmark without any source flag, ActMAD's statistics are
+  cached (`source_stats.cached_stats`), so a second run does not recompute them.
+  """
   from pitta_jax.methods.base import POSE, PoseNet, SourceData
   resources: dict[str, Any] = {}
   if "pose" in method.needs:
     if weights.pose is None or weights.spec.build_pose is None:
-      raise DataError(None, f"--method {method.name} needs a pose network, and the weights have "
-                            f"none (convert with --pose-encoder/--pose, or train-source)")
+      raise no_pose_error(method)
     resources[POSE] = PoseNet(weights.spec.build_pose(weights.config), weights.pose)
+  if source_stats:
+    from pitta_jax.methods import actmad
+    from pitta_jax.source_stats import load_source_stats
+    check_stats_method(method, source_stats)
+    resources[actmad.RESOURCE] = load_source_stats(source_stats, weights, method.config.layers)
+    return resources
   if method.prepare is None:
     return resources
-  from pitta_jax.data.resize import resize_frame, resize_image
   h, w = weights.height, weights.width
-  images: list = []
-  sequences: list = []
-  if source_images:
-    from pitta_jax.data.image_io import read_image
-    from pitta_jax.predict import expand_images
-    images = [resize_image(read_image(p), h, w) for p in expand_images(source_images)]
-  if replay_root:
-    from pitta_jax.data.kitti import open_raw_sequences
-    sequences = [[resize_frame(f, h, w) for f in seq] for seq in open_raw_sequences(replay_root)]
-  if not images and not sequences:
-    if dataset != "synthetic":
-      raise DataError(None, f"--method {method.name} needs source-domain data: "
-                            f"--source-images PATH or --replay-root DIR")
-    from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-    sequences = [list(generate_sequence(SyntheticConfig(
-        height=h, width=w, num_frames=SYNTHETIC_SOURCE_FRAMES, seed=seed, domain="clear")))
-        for seed in SYNTHETIC_SOURCE_SEEDS]
-  if not images:
-    images = [f.image for seq in sequences for f in seq]
-  source = SourceData(tuple(images), tuple(tuple(seq) for seq in sequences))
-  resources.update(method.prepare(weights.network(), weights.depth, source))
+  images = read_source_images(source_images, h, w) if source_images else None
+  sequences = replay_sequences(replay_root, h, w) if replay_root else None
+  synthetic_default = images is None and sequences is None
+  if synthetic_default and dataset != "synthetic":
+    raise no_source_error(method)
+
+  def prepare() -> tuple[dict[str, Any], int]:
+    """The method's resources and how many source images they come from."""
+    seqs = synthetic_streets(h, w) if synthetic_default else (sequences or [])
+    imgs = images if images is not None else SourceImages.from_sequences(seqs)
+    source = SourceData(imgs, tuple(seqs))
+    return method.prepare(weights.network(), weights.depth, source), len(imgs)
+
+  if synthetic_default and method.name == "actmad":
+    from pitta_jax.methods import actmad
+    from pitta_jax.source_stats import cached_stats
+
+    def compute():
+      prepared, count = prepare()
+      return prepared[actmad.RESOURCE], count
+
+    data = {"synthetic": {"seeds": SYNTHETIC_SOURCE_SEEDS, "frames": SYNTHETIC_SOURCE_FRAMES}}
+    resources[actmad.RESOURCE] = cached_stats(data, weights, method.config.layers, compute)
+    return resources
+  resources.update(prepare()[0])
   return resources
+
+
+def no_source_error(method) -> DataError:
+  stats = ", --source-stats FILE" if method.name == "actmad" else ""
+  return DataError(None, f"--method {method.name} needs source-domain data: --source-images "
+                         f"PATH{stats} or --replay-root DIR")
+
+
+def check_stats_method(method, source_stats: str) -> None:
+  """A statistics file (`pitta-jax source-stats`) serves ActMAD only."""
+  if method.name != "actmad":
+    raise DataError(source_stats, f"holds ActMAD's source statistics; --method {method.name} "
+                                  f"does not use them (drop --source-stats)")
+
+
+def synthetic_streets(height: int, width: int) -> list[list[Frame]]:
+  """The synthetic benchmark's source data: clear streets of SYNTHETIC_SOURCE_SEEDS."""
+  from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  return [list(generate_sequence(SyntheticConfig(
+      height=height, width=width, num_frames=SYNTHETIC_SOURCE_FRAMES, seed=seed, domain="clear")))
+      for seed in SYNTHETIC_SOURCE_SEEDS]
 
 
 def parse_segmentation(segmentation: str) -> tuple[str, str]:
@@ -174,23 +265,116 @@ def check_dataset_args(dataset: str, root: str | None, option_items: Sequence[st
   return typed_options(raw, function_annotations(READERS[dataset]), dataset)
 
 
-def open_frames(dataset: str, root: str | None, option_items: Sequence[str], segmentation: str,
-                height: int, width: int) -> Sequence[Frame]:
-  """The frame sequence of a dataset with its panoptic maps chosen by `segmentation`."""
+def open_reader(dataset: str, root: str | None, option_items: Sequence[str], segmentation: str
+                ) -> FrameSequence:
+  """The reader's frames of a real dataset (files listed, none read), with `png:DIR` panoptic
+  maps; Mask2Former segmentation is added by `open_frames`."""
   options = check_dataset_args(dataset, root, option_items, segmentation)
   kind, arg = parse_segmentation(segmentation)
-  if dataset == "synthetic":
-    from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-    try:
-      cfg = SyntheticConfig(**{"height": height, "width": width, "seed": 100, **options})
-    except (TypeError, ValueError) as e:
-      raise DataError(None, f"synthetic options: {e}") from None
-    return generate_sequence(cfg)
   from pitta_jax.data.readers import open_dataset
   if kind == "png":
     options["panoptic_dir"] = arg
-  frames = open_dataset(dataset, root, **options)
+  return open_dataset(dataset, root, **options)
+
+
+def open_frames(dataset: str, root: str | None, option_items: Sequence[str], segmentation: str,
+                height: int, width: int, reader: FrameSequence | None = None) -> Sequence[Frame]:
+  """The frame sequence of a dataset with its panoptic maps chosen by `segmentation`.
+
+  reader: the `open_reader` result when the caller already has it (real datasets).
+  """
+  options = check_dataset_args(dataset, root, option_items, segmentation)
+  kind, arg = parse_segmentation(segmentation)
+  if dataset == "synthetic":
+    from pitta_jax.data.synthetic import generate_sequence
+    return generate_sequence(synthetic_config(options, height, width))
+  frames = reader if reader is not None else open_reader(dataset, root, option_items, segmentation)
   if kind == "mask2former":
     from pitta_jax.segment import segmented_frames
     frames = segmented_frames(frames, arg)
   return frames
+
+
+def synthetic_config(options: Mapping[str, Any], height: int, width: int):
+  """The benchmark's SyntheticConfig from typed `--option`s (seed 100: the target streets)."""
+  from pitta_jax.data.synthetic import SyntheticConfig
+  try:
+    return SyntheticConfig(**{"height": height, "width": width, "seed": 100, **options})
+  except (TypeError, ValueError) as e:
+    raise DataError(None, f"synthetic options: {e}") from None
+
+
+# ------------------------------------------------------------------ what a method needs, checked
+
+
+def _needs_error(method, need: str, problem: str, remedy: str | None) -> DataError:
+  what = {"intrinsics": "camera intrinsics K for every frame",
+          "previous_frame": "consecutive frames (each frame's previous one)"}[need]
+  return DataError(None, f"--method {method.name} needs {what}, and {problem}"
+                         + (f": provide {remedy}" if remedy else ""))
+
+
+def check_needs(method, frames: Sequence[Frame], what: str = "the sequence") -> None:
+  """Refuses, before any work, frames that lack what `method.needs` asks for (one-line
+  DataError naming the missing thing and the flag or file that provides it).
+
+  A `FrameSequence` is checked from its metadata (nothing is read): every frame's K, the
+  temporal order, at least 2 frames. Another sequence (in-memory frames in the caller's order)
+  is checked for its length only; its frames' K is checked as they stream (`run_sequence`).
+  what: how to name the frames in the message (e.g. "dataset folder").
+  """
+  needs = set(method.needs)
+  remedies = frames.remedies if isinstance(frames, FrameSequence) else {}
+  if "previous_frame" in needs:
+    if len(frames) < 2:
+      raise _needs_error(method, "previous_frame", f"{what} has {len(frames)} frame(s)",
+                         "at least 2 frames")
+    if isinstance(frames, FrameSequence) and not frames.temporal:
+      raise _needs_error(method, "previous_frame", f"the order of {what} is not known to be "
+                                                   f"capture order", remedies.get("previous_frame"))
+  if "intrinsics" in needs and isinstance(frames, FrameSequence):
+    lacking = next((f for f in frames.files if f.intrinsics is None), None)
+    if lacking is not None:
+      raise _needs_error(method, "intrinsics", f"frame {lacking.name} of {what} has none",
+                         remedies.get("intrinsics"))
+
+
+def check_frame_needs(method, frame: Frame) -> None:
+  """`check_needs` for one loaded frame (its K), for sequences without metadata."""
+  if "intrinsics" in method.needs and frame.intrinsics is None:
+    raise _needs_error(method, "intrinsics", f"frame {frame.name or '?'} has none", None)
+
+
+def no_pose_error(method) -> DataError:
+  return DataError(None, f"--method {method.name} needs a pose network, and the weights have "
+                         f"none (convert with --pose-encoder/--pose, or train-source)")
+
+
+def check_run_needs(method, dataset: str, root: str | None, option_items: Sequence[str],
+                    segmentation: str, replay_root: str | None = None,
+                    weights_config: Mapping[str, Any] | None = None,
+                    source_given: bool = False) -> FrameSequence | None:
+  """The CLI's before-work check of a method's data needs: opens the reader (files listed,
+  nothing read) or, on the synthetic benchmark, reads the options (every synthetic frame has K
+  and the order is temporal), and the replay root; with `weights_config` (a model.json) also
+  the pose network; a method with `prepare` on a real dataset needs a source flag
+  (`source_given`). Returns the reader for `open_frames`."""
+  if "pose" in method.needs and weights_config is not None and not weights_config.get("has_pose"):
+    raise no_pose_error(method)
+  if method.prepare is not None and dataset != "synthetic" and not source_given:
+    raise no_source_error(method)
+  reader = None
+  if dataset == "synthetic":
+    options = check_dataset_args(dataset, root, option_items, segmentation)
+    n = synthetic_config(options, 8, 8).num_frames
+    if "previous_frame" in method.needs and n < 2:
+      raise _needs_error(method, "previous_frame", f"the synthetic sequence has {n} frame(s)",
+                         "--option num_frames=N with N >= 2")
+  else:
+    reader = open_reader(dataset, root, option_items, segmentation)
+    check_needs(method, reader, f"dataset {dataset}")
+  if replay_root and method.prepare is not None:
+    from pitta_jax.data.kitti import open_raw_sequences
+    for seq in open_raw_sequences(replay_root):
+      check_needs(method, seq, f"--replay-root {replay_root}")
+  return reader

@@ -1,20 +1,34 @@
 """DrivingStereo weather subsets (left images + projected LiDAR depth), the paper's Table 1.
 
-Layout of the weather archives (see docs/datasets.md):
+Layout of the weather archives as downloaded (see docs/datasets.md):
 
   <root>/<weather>/left-image-{half,full}-size/<stem>.{jpg,png}
   <root>/<weather>/depth-map-{half,full}-size/<stem>.png
-  (some archives nest one level more: <root>/<weather>/<weather>/left-image-...)
+  (some archives nest one level more: <root>/<weather>/<weather>/left-image-..., and an image or
+  depth directory holding no image but a single subdirectory is entered, e.g.
+  left-image-full-size/left-image-full-size/ from unzipping into a directory of the zip's name)
 
 with `<stem> = <seq>_<YYYY-MM-DD-HH-MM-SS-mmm>`, the same stem for image and map. Half-size
 images are `.jpg`, full-size images and all maps `.png` (either suffix is accepted for images;
 the documented one wins when both exist). Depth: uint16 PNG, metres = value / 256, 0 = invalid.
-Frames are sorted by stem (chronological within a sequence); weather "all" concatenates
-cloudy, foggy, rainy, sunny in that order (the paper's "All", adaptation continuing across
-them). Frame names are `<weather>/<stem>`.
+Frames are sorted by stem (chronological within a sequence: the order is temporal); weather
+"all" concatenates cloudy, foggy, rainy, sunny in that order (the paper's "All", adaptation
+continuing across them). Frame names are `<weather>/<stem>`.
+
+Size: `size=None` takes the size whose `left-image-<size>-size/` exists in every requested
+weather: half when both do, else the only one (said in `FrameSequence.notes`).
+
+Calibration (optional; frames then carry K): the per-sequence files of DrivingStereo's
+calibration download, `half-image-calib/<seq>.txt` and `full-image-calib/<seq>.txt`, KITTI-style
+text whose `P_rect_101` is the rectified left camera's projection (K = its left 3x3) and
+`S_rect_101` its image size. Looked up in `calib_dir` (the `<seq>.txt` directory or its parent)
+or else under `<root>`, `<root>/calib`, `<root>/calib_train`, `<root>/calib_test` and the
+weather directory; the calibration of the size in use is preferred, the other one is scaled
+to the image (full = 2 x half).
 
 Panoptic segmentations (optional) are COCO panoptic PNG + JSON with the image's stem, found in
-`panoptic_dir` (`<stem>.png` or `<weather>/<stem>.png`), or with `panoptic_json` a COCO
+`panoptic_dir` (`<stem>.png` or `<weather>/<stem>.png`; per-image JSONs or one COCO annotation
+file inside or beside the directory, see `panoptic_io`), or with `panoptic_json` a COCO
 annotation file, or else in `<root>/<weather>/panoptic/` when that directory exists (what the
 synthetic exporter writes). Once a panoptic source applies, every frame must have its map.
 """
@@ -24,6 +38,7 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
+from pitta_jax.data.calib import rectified_calib
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import PathLike, list_images, read_depth_png, require_dir, require_file
 from pitta_jax.data.panoptic_io import PanopticSource, panoptic_source
@@ -31,28 +46,119 @@ from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
 
 WEATHERS = ("cloudy", "foggy", "rainy", "sunny")  # the order of the paper's "All"
 SIZES = ("half", "full")
+NOMINAL_SIZE = {"half": (400, 881), "full": (800, 1762)}  # (H, W) of each release size
+CALIB_BASES = ("", "calib", "calib_train", "calib_test")  # under root, where calib folders lie
+LEFT_CAMERA = "101"  # DrivingStereo's name of the left camera in the calibration files
+INTRINSICS_REMEDY = ("DrivingStereo's calibration files <seq>.txt (half-image-calib/ or "
+                     "full-image-calib/ of the calibration download) in --root or --root/calib/, "
+                     "or --option calib_dir=DIR")
+
+
+def _candidates(root: Path, weather: str) -> tuple[Path, Path]:
+  return root / weather, root / weather / weather
 
 
 def weather_dir(root: PathLike, weather: str, size: str = "half") -> Path:
   """The directory holding `left-image-<size>-size/` for `weather` (flat or nested layout)."""
   root = require_dir(root, "DrivingStereo root")
-  flat, nested = root / weather, root / weather / weather
   image_dir = f"left-image-{size}-size"
-  for candidate in (flat, nested):
+  for candidate in _candidates(root, weather):
     if (candidate / image_dir).is_dir():
       return candidate
-  raise DataError(flat, f"no {image_dir}/ directory here or in {weather}/{weather}/ "
-                        f"(is this a DrivingStereo weather subset?)")
+  raise DataError(root / weather, f"no {image_dir}/ directory here or in {weather}/{weather}/ "
+                                  f"(is this a DrivingStereo weather subset?)")
 
 
-def _weather_files(root: PathLike, weather: str, size: str, depth: bool,
-                   panoptic: PanopticSource | None) -> list[FrameFiles]:
+def sizes_present(root: PathLike, weather: str) -> tuple[str, ...]:
+  """The sizes whose `left-image-<size>-size/` exists for `weather`."""
+  root = require_dir(root, "DrivingStereo root")
+  return tuple(s for s in SIZES if any((c / f"left-image-{s}-size").is_dir()
+                                       for c in _candidates(root, weather)))
+
+
+def choose_size(root: PathLike, weathers: tuple[str, ...]) -> tuple[str, str | None]:
+  """(size, note): half when every weather has both, else the one size all of them have."""
+  root = require_dir(root, "DrivingStereo root")
+  present = {w: sizes_present(root, w) for w in weathers}
+  for w, sizes in present.items():
+    if not sizes:
+      raise DataError(root / w, f"no left-image-half-size/ or left-image-full-size/ directory "
+                                f"here or in {w}/{w}/ (is this a DrivingStereo weather subset?)")
+  common = [s for s in SIZES if all(s in sizes for sizes in present.values())]
+  if not common:
+    found = ", ".join(f"{w}: {'/'.join(sizes)}" for w, sizes in present.items())
+    raise DataError(root, f"no image size common to the weathers ({found}); pass --option "
+                          f"size=half|full and complete that size")
+  if len(common) == 2:
+    return "half", None
+  return common[0], (f"DrivingStereo size={common[0]}: the only left-image-*-size/ directory "
+                     f"({', '.join(weathers)})")
+
+
+def _enter_lone_subdir(directory: Path) -> Path:
+  """`directory`, or the single subdirectory it holds when it has no file (unzipped twice)."""
+  while True:
+    entries = [p for p in directory.iterdir() if not p.name.startswith(".")]
+    subdirs = [p for p in entries if p.is_dir()]
+    if len(subdirs) != 1 or any(p.is_file() for p in entries):
+      return directory
+    directory = subdirs[0]
+
+
+class _Calibrations:
+  """The left camera's Calib per (sequence, size), from the first `<seq>.txt` found."""
+
+  def __init__(self, root: Path, calib_dir: Path | None):
+    self.root, self.calib_dir = root, calib_dir
+    self._cache: dict[tuple[str, str, Path], dict] = {}
+
+  def _dirs(self, wdir: Path, size: str) -> list[tuple[Path, str | None]]:
+    """(directory, the size its files are for, if known) in search order."""
+    kinds = (size,) + tuple(s for s in SIZES if s != size)  # the size in use first
+    if self.calib_dir is not None:
+      dirs: list[tuple[Path, str | None]] = [(self.calib_dir, None)]
+      bases = [self.calib_dir]
+    else:
+      dirs = []
+      bases = [self.root / b for b in CALIB_BASES] + [wdir]
+    for kind in kinds:
+      for base in bases:
+        dirs += [(base / f"{kind}-image-calib", kind),
+                 (base / f"{kind}-image-calib" / f"{kind}-image-calib", kind)]
+    return dirs
+
+  def fields(self, seq: str, size: str, wdir: Path) -> dict:
+    """The FrameFiles intrinsics fields of sequence `seq` ({} without a calibration file)."""
+    key = (seq, size, wdir)
+    if key not in self._cache:
+      self._cache[key] = {}
+      for directory, kind in self._dirs(wdir, size):
+        path = directory / f"{seq}.txt"
+        if path.is_file():
+          calib = rectified_calib(path, LEFT_CAMERA)
+          self._cache[key] = {
+              "intrinsics": calib.K, "intrinsics_source": path,
+              "intrinsics_size": calib.size or (NOMINAL_SIZE[kind] if kind else None)}
+          break
+      else:
+        if self.calib_dir is not None:
+          raise DataError(self.calib_dir / f"{seq}.txt", "calibration file not found (nor in "
+                                                         "half-image-calib/ or full-image-calib/)")
+    return self._cache[key]
+
+
+def _weather_files(root: Path, weather: str, size: str, depth: bool,
+                   panoptic: PanopticSource | None, calibs: _Calibrations) -> list[FrameFiles]:
   wdir = weather_dir(root, weather, size)
-  image_dir = wdir / f"left-image-{size}-size"
+  image_dir = _enter_lone_subdir(wdir / f"left-image-{size}-size")
   suffixes = (".jpg", ".png", ".jpeg") if size == "half" else (".png", ".jpg", ".jpeg")
   images = list_images(image_dir, suffixes)
   require_frames(images, image_dir, "<seq>_<timestamp>" + "{" + ",".join(suffixes) + "}")
-  depth_dir = require_dir(wdir / f"depth-map-{size}-size", "depth directory") if depth else None
+  depth_dir = None
+  if depth:
+    depth_dir = _enter_lone_subdir(require_dir(
+        wdir / f"depth-map-{size}-size", "depth directory (--option depth=false to run without "
+                                         "ground truth)"))
   if panoptic is None and (wdir / "panoptic").is_dir():
     panoptic = PanopticSource(wdir / "panoptic")
   files = []
@@ -66,35 +172,50 @@ def _weather_files(root: PathLike, weather: str, size: str, depth: bool,
       nested_key = f"{weather}/{stem}"
       panoptic_ref = panoptic.ref(nested_key if panoptic.has(nested_key) else stem)
     files.append(FrameFiles(name=f"{weather}/{stem}", image=images[stem], depth=depth_loader,
-                            panoptic=panoptic_ref))
+                            panoptic=panoptic_ref,
+                            **calibs.fields(stem.split("_")[0], size, wdir)))
   return files
 
 
-def open_drivingstereo(root: PathLike, weather: str = "all", size: str = "half",
+def open_drivingstereo(root: PathLike, weather: str = "all", size: str | None = None,
                        depth: bool = True, panoptic_dir: PathLike | None = None,
-                       panoptic_json: PathLike | None = None) -> FrameSequence:
+                       panoptic_json: PathLike | None = None, calib_dir: PathLike | None = None
+                       ) -> FrameSequence:
   """Opens DrivingStereo weather subsets.
 
   Args:
     root: the directory holding `cloudy/`, `foggy/`, `rainy/`, `sunny/`.
     weather: one of `WEATHERS`, or "all" (cloudy, foggy, rainy, sunny concatenated).
-    size: "half" (about 881x400) or "full" (1762x800) images and maps.
+    size: "half" (about 881x400) or "full" (1762x800) images and maps; None = the size present
+      (half when both are).
     depth: read the ground-truth depth maps (every image must have one).
-    panoptic_dir: directory of COCO panoptic PNGs (+ per-image JSONs) named by stem.
+    panoptic_dir: directory of COCO panoptic PNGs (+ per-image JSONs or one annotation file)
+      named by stem.
     panoptic_json: a COCO panoptic annotation file for those PNGs.
+    calib_dir: directory of the calibration files `<seq>.txt` (or of `half-image-calib/` and
+      `full-image-calib/`); None = searched under root (module docstring).
 
   Returns:
-    the frames, loaded on access; image (H, W, 3), depth (H, W) metres.
+    the frames (temporal order), loaded on access; image (H, W, 3), depth (H, W) metres, K
+    when a calibration file was found.
   """
   weather = weather.lower()
   if weather != "all" and weather not in WEATHERS:
     raise DataError(root, f"unknown DrivingStereo weather {weather!r}; choose from "
                           f"{', '.join(WEATHERS)} or all")
-  if size not in SIZES:
+  if size is not None and size not in SIZES:
     raise DataError(root, f"unknown DrivingStereo size {size!r}; choose half or full")
-  panoptic = panoptic_source(panoptic_dir, panoptic_json)
+  root = require_dir(root, "DrivingStereo root")
   weathers = WEATHERS if weather == "all" else (weather,)
+  notes = []
+  if size is None:
+    size, note = choose_size(root, weathers)
+    notes += [note] if note else []
+  calibs = _Calibrations(root, None if calib_dir is None else require_dir(
+      calib_dir, "calibration directory (--option calib_dir)"))
+  panoptic = panoptic_source(panoptic_dir, panoptic_json)
   files = []
   for w in weathers:
-    files += _weather_files(root, w, size, depth, panoptic)
-  return FrameSequence(files)
+    files += _weather_files(root, w, size, depth, panoptic, calibs)
+  return FrameSequence(files, temporal=True, remedies={"intrinsics": INTRINSICS_REMEDY},
+                       notes=notes + list(panoptic.notes if panoptic else ()))

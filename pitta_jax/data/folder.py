@@ -1,36 +1,58 @@
 """A plain folder of images, with optional depth and panoptic folders matched by file stem.
 
   <root>/<stem>.{png,jpg,jpeg}          colour images, sorted by stem (PNG wins over JPEG)
+  <root>/calib.json                     optional camera: {"K": 3x3, "width", "height"}
   <depth_dir>/<stem>.png                uint16, metres = value / depth_scale (256), 0 = invalid
              or <stem>.npy              float (H, W) metres, 0 = invalid
-  <panoptic_dir>/<stem>.png + .json     COCO panoptic (or one annotation file, panoptic_json)
+  <panoptic_dir>/<stem>.png + .json     COCO panoptic (or one annotation file, panoptic_json, or
+                                        found inside/beside the directory)
 
 When a depth or panoptic source is given, every image must have its file there. Frame names
 are the stems.
+
+A folder says nothing about its order, so it is *not* temporal unless the user says
+`temporal=True` (the stems sort in capture order, e.g. `000000.png, 000001.png, ...` from a
+video): methods that use the previous frame refuse it otherwise. The camera matrix comes from
+`calib` (a `calib.json` file; default `<root>/calib.json` when it exists), scaled to each image
+when its size differs from the file's width x height.
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+from pitta_jax.data.calib import read_calib_json
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import (DEPTH_PNG_SCALE, PathLike, depth_loader, list_images,
                                      require_dir)
 from pitta_jax.data.panoptic_io import panoptic_source
 from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
 
+CALIB_NAME = "calib.json"
+REMEDIES = {
+    "intrinsics": f"a {CALIB_NAME} ({{\"K\": 3x3, \"width\": W, \"height\": H}}) in --root or "
+                  f"--option calib=FILE",
+    "previous_frame": "--option temporal=true when the images are consecutive video frames in "
+                      "file-name order",
+}
+
 
 def open_folder(root: PathLike, depth_dir: PathLike | None = None,
                 panoptic_dir: PathLike | None = None, panoptic_json: PathLike | None = None,
-                depth_scale: float = DEPTH_PNG_SCALE) -> FrameSequence:
+                depth_scale: float = DEPTH_PNG_SCALE, temporal: bool = False,
+                calib: PathLike | None = None) -> FrameSequence:
   """Opens a folder of images.
 
   Args:
     root: the image directory (not searched recursively).
     depth_dir: directory of depth maps named by image stem, or None.
-    panoptic_dir: directory of COCO panoptic PNGs (+ per-image JSONs) named by stem, or None.
+    panoptic_dir: directory of COCO panoptic PNGs (+ per-image JSONs or one annotation file)
+      named by stem, or None.
     panoptic_json: a COCO panoptic annotation file for those PNGs, or None.
     depth_scale: divisor from uint16 PNG value to metres.
+    temporal: the images are consecutive frames in stem order (see the module docstring).
+    calib: a calib.json giving every image's K; None = `<root>/calib.json` if present.
 
   Returns:
     the frames sorted by stem, loaded on access.
@@ -40,6 +62,8 @@ def open_folder(root: PathLike, depth_dir: PathLike | None = None,
                           f"(uint16 PNG value / depth_scale = metres)")
   images = list_images(root)
   require_frames(images, root, "*.{png,jpg,jpeg}")
+  calib_path = Path(calib) if calib is not None else Path(root) / CALIB_NAME
+  camera = read_calib_json(calib_path) if calib is not None or calib_path.is_file() else None
   depth_root = None if depth_dir is None else require_dir(depth_dir, "depth directory")
   panoptic = panoptic_source(panoptic_dir, panoptic_json)
   files = []
@@ -47,6 +71,10 @@ def open_folder(root: PathLike, depth_dir: PathLike | None = None,
     depth = None if depth_root is None else depth_loader(
         depth_root, stem, png_scale=depth_scale,
         missing=f"depth map for image {images[stem].name} not found (nor .npy)")
+    intrinsics = {} if camera is None else {
+        "intrinsics": camera.K, "intrinsics_size": camera.size, "intrinsics_source": calib_path}
     files.append(FrameFiles(name=stem, image=images[stem], depth=depth,
-                            panoptic=None if panoptic is None else panoptic.ref(stem)))
-  return FrameSequence(files)
+                            panoptic=None if panoptic is None else panoptic.ref(stem),
+                            **intrinsics))
+  return FrameSequence(files, temporal=temporal, remedies=REMEDIES,
+                       notes=panoptic.notes if panoptic else ())

@@ -24,6 +24,10 @@ Ground truth, one of:
 (Garg crop, 1e-3 < gt < 80) is the metrics module's business. Frame names are
 `<folder>/image_0{2,3}/{frame:010d}`; panoptic maps (optional) are looked up under the image's
 relative path without suffix, `<folder>/image_0{2,3}/data/{frame:010d}`, in `panoptic_dir`.
+Frames carry K from `<date>/calib_cam_to_cam.txt` when it exists; a split is temporal when its
+lines are runs of consecutive frames (`split_is_temporal`).
+
+`open_raw_sequences` reads whole raw drives without a split (CoMoDa's source replay set).
 """
 
 from __future__ import annotations
@@ -37,12 +41,17 @@ import numpy as np
 
 from weights_convert.pth import CheckpointError, ForbiddenGlobalError, unpickle_arrays
 
+from pitta_jax.data.calib import Calib, rectified_calib
 from pitta_jax.data.errors import DataError
-from pitta_jax.data.image_io import PathLike, read_depth_png, require_dir, require_file
+from pitta_jax.data.image_io import (PathLike, list_images, read_depth_png, require_dir,
+                                     require_file)
 from pitta_jax.data.panoptic_io import panoptic_source
 from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
 
 SIDE_TO_CAMERA = {"l": 2, "r": 3, "2": 2, "3": 3}
+CALIB_FILE = "calib_cam_to_cam.txt"  # per date folder, from KITTI raw's calibration download
+INTRINSICS_REMEDY = (f"KITTI raw's <date>/{CALIB_FILE} (the date's calibration download) in "
+                     f"--root")
 
 def _open_npy_member(path: Path, archive: zipfile.ZipFile, key: str):
   member = f"{key}.npy"
@@ -77,29 +86,34 @@ def gt_depths_count(path: PathLike, key: str = "data") -> int:
 def read_cam_to_cam(path: Path, camera: int) -> np.ndarray:
   """K (3, 3) of camera 2 or 3 from KITTI raw's `calib_cam_to_cam.txt`: the left 3x3 of its
   rectified projection `P_rect_0{camera}` (the matrix of the rectified `image_0{camera}`)."""
-  key = f"P_rect_0{camera}:"
-  for line in path.read_text(errors="replace").splitlines():
-    if line.startswith(key):
-      try:
-        p = np.array([float(v) for v in line[len(key):].split()], np.float64).reshape(3, 4)
-      except ValueError:
-        break
-      return p[:, :3]
-  raise DataError(path, f"no valid {key[:-1]} (12 numbers) in the calibration file")
+  return rectified_calib(path, f"0{camera}").K
 
 
 class _Calibrations:
-  """K per (date folder, camera), read once from `<data>/<date>/calib_cam_to_cam.txt` when the
-  file exists (None otherwise: the frames then carry no intrinsics)."""
+  """Calib (K, S_rect size) per (date folder, camera), read once from
+  `<data>/<date>/calib_cam_to_cam.txt` when the file exists (None otherwise: the frames then
+  carry no intrinsics)."""
 
   def __init__(self):
-    self._cache: dict[tuple[Path, int], np.ndarray | None] = {}
+    self._cache: dict[tuple[Path, int], Calib | None] = {}
 
-  def get(self, data: Path, folder: str, camera: int) -> np.ndarray | None:
-    path = data / folder.split("/")[0] / "calib_cam_to_cam.txt"
+  def path(self, data: Path, folder: str) -> Path:
+    return data / folder.split("/")[0] / CALIB_FILE
+
+  def get(self, data: Path, folder: str, camera: int) -> Calib | None:
+    path = self.path(data, folder)
     if (path, camera) not in self._cache:
-      self._cache[(path, camera)] = read_cam_to_cam(path, camera) if path.is_file() else None
+      self._cache[(path, camera)] = (rectified_calib(path, f"0{camera}") if path.is_file()
+                                     else None)
     return self._cache[(path, camera)]
+
+  def frame_fields(self, data: Path, folder: str, camera: int) -> dict:
+    """The FrameFiles intrinsics fields of a frame of `folder` seen by `camera`."""
+    calib = self.get(data, folder, camera)
+    if calib is None:
+      return {}
+    return {"intrinsics": calib.K, "intrinsics_size": calib.size,
+            "intrinsics_source": self.path(data, folder)}
 
 
 def load_gt_depths(path: PathLike, key: str = "data") -> np.ndarray:
@@ -240,5 +254,73 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
     files.append(FrameFiles(name=f"{folder}/image_0{camera}/{frame:010d}", image=image,
                             depth=depth_loader,
                             panoptic=None if panoptic is None else panoptic.ref(key),
-                            intrinsics=calibs.get(data, folder, camera)))
-  return FrameSequence(files)
+                            **calibs.frame_fields(data, folder, camera)))
+  return FrameSequence(files, temporal=split_is_temporal(entries), remedies={
+      "intrinsics": INTRINSICS_REMEDY,
+      "previous_frame": "a split file whose lines are consecutive frames of each drive (the "
+                        "Eigen test split is not)"})
+
+
+def split_is_temporal(entries: list[tuple[str, int, int]]) -> bool:
+  """True when the split lists runs of consecutive frames: each line continues the previous
+  one (same drive and camera, frame + 1) or starts a drive/camera not seen before, and every
+  run has at least 2 frames."""
+  seen: set[tuple[str, int]] = set()
+  run = 0
+  for k, (folder, frame, camera) in enumerate(entries):
+    if k and (folder, camera) == entries[k - 1][::2] and frame == entries[k - 1][1] + 1:
+      run += 1
+      continue
+    if (folder, camera) in seen or (k and run < 2):
+      return False
+    seen.add((folder, camera))
+    run = 1
+  return run >= 2
+
+
+RAW_IMAGE_DIR = ("image_02", "data")  # the left colour camera (MonoDepth2's side "l")
+
+
+def _drive_dirs(root: Path) -> list[Path]:
+  """`<date>/<date>_drive_<nnnn>_sync` directories under `root` (or in `root` itself when it is
+  a date folder), sorted."""
+  dates = [root] if any(root.glob("*_drive_*_sync")) else sorted(
+      d for d in root.iterdir() if d.is_dir() and not d.name.startswith("."))
+  return [drive for date in dates for drive in sorted(date.glob(f"{date.name}_drive_*_sync"))
+          if drive.is_dir()]
+
+
+def open_raw_sequences(root: PathLike) -> list[FrameSequence]:
+  """KITTI raw drives as downloaded: one temporal sequence per drive, no ground truth.
+
+  Layout: `<root>/<date>/<date>_drive_<nnnn>_sync/image_02/data/<10 digits>.{png,jpg}` (the
+  left colour camera, frames in index order) and `<root>/<date>/calib_cam_to_cam.txt` (K from
+  P_rect_02, scaled to the image size by S_rect_02; no calibration file = no intrinsics).
+  `root` may also be one date folder. Drives with fewer than 2 frames are left out (they give
+  no frame pair). Frame names are `<date>/<drive>/image_02/<frame>`.
+
+  Returns:
+    the drives' sequences, sorted by date and drive; DataError naming `root` when none has 2
+    frames.
+  """
+  root = require_dir(root, "KITTI raw root (--replay-root)")
+  calibs = _Calibrations()
+  sequences = []
+  for drive in _drive_dirs(root):
+    image_dir = drive.joinpath(*RAW_IMAGE_DIR)
+    if not image_dir.is_dir():
+      continue
+    images = list_images(image_dir, (".jpg", ".png"))
+    stems = sorted(s for s in images if len(s) == 10 and s.isdigit())
+    if len(stems) < 2:
+      continue
+    folder = f"{drive.parent.name}/{drive.name}"
+    fields = calibs.frame_fields(drive.parent.parent, folder, 2)
+    files = [FrameFiles(name=f"{folder}/{RAW_IMAGE_DIR[0]}/{stem}", image=images[stem], **fields)
+             for stem in stems]
+    sequences.append(FrameSequence(files, temporal=True,
+                                   remedies={"intrinsics": INTRINSICS_REMEDY}))
+  if not sequences:
+    raise DataError(root, "no KITTI raw drive with at least 2 frames (looked for <date>/"
+                          "<date>_drive_<nnnn>_sync/image_02/data/<10 digits>.png|jpg)")
+  return sequences

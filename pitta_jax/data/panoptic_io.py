@@ -10,6 +10,8 @@ segment id as `id = R + 256 G + 256^2 B` (0 = void), and per image a list `segme
 - COCO style: one annotation file `{"annotations": [{"file_name", "segments_info"}, ...],
   "categories": [{"id", "isthing", ...}, ...]}` whose PNGs lie in one directory (by COCO
   convention the JSON path without `.json`, e.g. `panoptic_val2017.json` + `panoptic_val2017/`).
+  Without an explicit file, one annotation file inside the PNG directory or beside it as
+  `<directory>.json` is found on its own (`find_annotation_file`).
 
 `isthing` comes from the segment entry, else from the file's `categories`, else from the COCO
 table. Segments listed in the JSON but absent from the PNG are dropped (a `Frame` holds the
@@ -207,13 +209,41 @@ class PanopticRef:
     return ids, check_segments(ids, segments or (), self.png)
 
 
+def is_annotation_file(path: Path) -> bool:
+  """True when `path` is JSON holding a COCO panoptic `annotations` list."""
+  data = _read_json(path)
+  return isinstance(data, dict) and isinstance(data.get("annotations"), list)
+
+
+def find_annotation_file(directory: Path) -> Path | None:
+  """The one COCO annotation file of a PNG directory, or None (per-image JSONs).
+
+  Candidates: the JSON files inside `directory` without a PNG of the same stem (a per-image
+  JSON has one) and `<directory>.json` beside it (COCO's convention); only those holding an
+  `annotations` list count. More than one is an error (which one is meant is unknown).
+  """
+  inside = [p for p in sorted(directory.glob("*.json")) if not p.name.startswith(".")
+            and p.is_file() and not p.with_suffix(".png").is_file()]
+  beside = directory.parent / f"{directory.name}.json"
+  found = [p for p in inside + ([beside] if beside.is_file() else []) if is_annotation_file(p)]
+  if len(found) > 1:
+    names = ", ".join(p.name for p in found)
+    raise DataError(directory, f"several COCO annotation files ({names}); pass one with "
+                               f"--option panoptic_json=FILE")
+  return found[0] if found else None
+
+
 class PanopticSource:
   """A directory of panoptic PNGs with per-image JSONs or one COCO annotation file.
 
   Args:
     directory: the PNG directory; None with `annotation_file` = the annotation file's path
       without `.json` (COCO convention).
-    annotation_file: a COCO-style annotation JSON; None = per-image `<key>.json` files.
+    annotation_file: a COCO-style annotation JSON; None = the one annotation file found inside
+      or beside `directory` (`find_annotation_file`), if any, else per-image `<key>.json` files.
+      A frame without an annotation but with its own `<key>.json` is read from that.
+
+  `notes` says which annotation file was found (the user did not name it).
   """
 
   def __init__(self, directory: PathLike | None = None, annotation_file: PathLike | None = None):
@@ -222,14 +252,20 @@ class PanopticSource:
     if directory is None:
       directory = Path(annotation_file).with_suffix("")
     self.directory = require_dir(directory, "panoptic directory")
+    self.notes: tuple[str, ...] = ()
+    if annotation_file is None:
+      annotation_file = find_annotation_file(self.directory)
+      if annotation_file is not None:
+        self.notes = (f"panoptic segments from the COCO annotation file {annotation_file}",)
     self.annotation_file = None if annotation_file is None else Path(annotation_file)
     self._table = None if annotation_file is None else read_annotation_file(annotation_file)
 
   def has(self, key: str) -> bool:
-    """True when frame `key` has a PNG (and an annotation, for an annotation file)."""
-    if self._table is not None and key not in self._table:
+    """True when frame `key` has a PNG and its segments (an annotation or its own JSON)."""
+    png = self.directory / f"{key}.png"
+    if not png.is_file():
       return False
-    return (self.directory / f"{key}.png").is_file()
+    return (self._table is not None and key in self._table) or png.with_suffix(".json").is_file()
 
   def ref(self, key: str) -> PanopticRef:
     """The panoptic files of frame `key` (a relative path without suffix, e.g. a file stem).
@@ -237,11 +273,17 @@ class PanopticSource:
     Raises DataError when the PNG, its JSON or its annotation is missing.
     """
     png = require_file(self.directory / f"{key}.png", "panoptic PNG")
-    if self._table is None:
-      return PanopticRef(png=png, json=require_file(png.with_suffix(".json"), "panoptic JSON"))
-    if key not in self._table:
-      raise DataError(self.annotation_file, f"no annotation with file_name '{key}.png'")
-    return PanopticRef(png=png, segments=self._table[key])
+    if self._table is not None and key in self._table:
+      return PanopticRef(png=png, segments=self._table[key])
+    if png.with_suffix(".json").is_file():
+      return PanopticRef(png=png, json=png.with_suffix(".json"))
+    if self._table is not None:
+      raise DataError(self.annotation_file, f"no annotation with file_name '{key}.png' (nor a "
+                                            f"per-image {png.with_suffix('.json').name})")
+    raise DataError(png.with_suffix(".json"), "panoptic JSON not found (per-image JSON, or one "
+                                              "COCO annotation file in the PNG directory or "
+                                              "beside it as <directory>.json, or --option "
+                                              "panoptic_json=FILE)")
 
 
 def panoptic_source(directory: PathLike | None, annotation_file: PathLike | None

@@ -43,4 +43,10 @@ def open_dataset(name: str, root: PathLike, **options: Any) -> FrameSequence:
   if unknown:
     raise DataError(None, f"dataset {name!r} has no option {', '.join(unknown)} (options: "
                           f"{', '.join(reader_options(name))})")
+  required = [p.name for p in inspect.signature(READERS[name]).parameters.values()
+              if p.name != "root" and p.default is inspect.Parameter.empty
+              and p.name not in options]
+  if required:
+    raise DataError(None, f"dataset {name!r} needs " + " ".join(f"--option {r}=..."
+                                                               for r in required))
   return READERS[name](root, **options)

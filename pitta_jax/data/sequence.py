@@ -3,12 +3,18 @@
 Readers resolve a dataset's layout into a list of `FrameFiles` (paths only, cheap, so that a
 missing file is reported when the dataset is opened), and `FrameSequence` reads a frame's files
 when it is indexed: a 500-frame subset never sits in memory.
+
+Besides the frames, a `FrameSequence` says what a method may rely on before any frame is read:
+whether its order is capture order (`temporal`: consecutive frames of one or more recordings,
+what methods reprojecting the previous frame need), which frames carry a camera matrix
+(`FrameFiles.intrinsics`), how to supply what is missing (`remedies`, for one-line errors), and
+what the reader chose on its own (`notes`, e.g. the only image size present).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import overload
 
@@ -31,6 +37,10 @@ class FrameFiles:
   size: the (H, W) the image must have (e.g. from a calibration file), or None.
   size_source: the file that fixes `size`, named when the image disagrees.
   intrinsics: the camera matrix K (3, 3) of the image, or None.
+  intrinsics_size: the (H, W) that `intrinsics` belongs to, or None (= the image's own size);
+    K is scaled to the image when they differ (e.g. a full-size calibration for half-size
+    images), refused when the aspect ratios differ by more than 1%.
+  intrinsics_source: the calibration file `intrinsics` came from, named in errors.
   """
   name: str
   image: Path
@@ -39,6 +49,8 @@ class FrameFiles:
   size: tuple[int, int] | None = None
   size_source: Path | None = None
   intrinsics: np.ndarray | None = None
+  intrinsics_size: tuple[int, int] | None = None
+  intrinsics_source: Path | None = None
 
   def load(self) -> Frame:
     """Reads the frame; DataError when a file is unreadable or a size disagrees."""
@@ -54,7 +66,19 @@ class FrameFiles:
         raise DataError(self.panoptic.png, f"panoptic map is {_wh(panoptic.shape)} but its image "
                                            f"{self.image.name} is {_wh(image.shape)} (W x H)")
     return Frame(image=image, depth=depth, panoptic=panoptic, segments=segments, name=self.name,
-                 intrinsics=self.intrinsics)
+                 intrinsics=self._intrinsics_for(image.shape[:2]))
+
+  def _intrinsics_for(self, size: tuple[int, int]) -> np.ndarray | None:
+    """K of an image of `size` (H, W): `intrinsics` scaled from `intrinsics_size`."""
+    if self.intrinsics is None or self.intrinsics_size is None or self.intrinsics_size == size:
+      return self.intrinsics
+    (h0, w0), (h, w) = self.intrinsics_size, size
+    if abs(w / h - w0 / h0) > 0.01 * (w0 / h0):
+      raise DataError(self.image, f"image is {_wh(size)} but the calibration "
+                                  f"{self.intrinsics_source} is for {_wh(self.intrinsics_size)} "
+                                  f"(W x H), another aspect ratio")
+    from pitta_jax.data.resize import scale_intrinsics
+    return scale_intrinsics(self.intrinsics, self.intrinsics_size, size)
 
 
 def _wh(shape: tuple[int, ...]) -> str:
@@ -67,12 +91,26 @@ class FrameSequence(Sequence[Frame]):
   Args:
     files: the frames' files, in sequence order.
     transform: applied to each frame after loading (e.g. `functools.partial(resize_frame, ...)`).
+    temporal: True when the order is capture order: consecutive frames of a recording (several
+      recordings may follow each other), so frame i - 1 is the previous frame of frame i.
+    remedies: for what the frames lack ("intrinsics", "previous_frame"), how the user supplies
+      it (a flag or a file), one phrase each, used in error messages.
+    notes: choices the reader made on its own that the user should see (one line each).
   """
 
   def __init__(self, files: Sequence[FrameFiles],
-               transform: Callable[[Frame], Frame] | None = None):
+               transform: Callable[[Frame], Frame] | None = None, *, temporal: bool = False,
+               remedies: Mapping[str, str] | None = None, notes: Sequence[str] = ()):
     self.files = tuple(files)
     self.transform = transform
+    self.temporal = temporal
+    self.remedies = dict(remedies or {})
+    self.notes = tuple(notes)
+
+  def _with(self, files: Sequence[FrameFiles], transform: Callable[[Frame], Frame] | None,
+            temporal: bool = True) -> FrameSequence:
+    return FrameSequence(files, transform, temporal=self.temporal and temporal,
+                         remedies=self.remedies, notes=self.notes)
 
   def __len__(self) -> int:
     return len(self.files)
@@ -85,7 +123,8 @@ class FrameSequence(Sequence[Frame]):
 
   def __getitem__(self, index: int | slice) -> Frame | FrameSequence:
     if isinstance(index, slice):
-      return FrameSequence(self.files[index], self.transform)
+      # a stride skips frames (or reverses them): no longer consecutive
+      return self._with(self.files[index], self.transform, temporal=index.step in (None, 1))
     frame = self.files[index].load()
     return frame if self.transform is None else self.transform(frame)
 
@@ -101,14 +140,17 @@ class FrameSequence(Sequence[Frame]):
   def map(self, transform: Callable[[Frame], Frame]) -> FrameSequence:
     """The same frames with `transform` applied (after any existing transform) on access."""
     if self.transform is None:
-      return FrameSequence(self.files, transform)
+      return self._with(self.files, transform)
     first = self.transform
-    return FrameSequence(self.files, lambda frame: transform(first(frame)))
+    return self._with(self.files, lambda frame: transform(first(frame)))
 
   def __add__(self, other: FrameSequence) -> FrameSequence:
     if not isinstance(other, FrameSequence) or other.transform is not self.transform:
       return NotImplemented
-    return FrameSequence(self.files + other.files, self.transform)
+    return FrameSequence(self.files + other.files, self.transform,
+                         temporal=self.temporal and other.temporal,
+                         remedies={**other.remedies, **self.remedies},
+                         notes=self.notes + tuple(n for n in other.notes if n not in self.notes))
 
   def __repr__(self) -> str:
     first = f", first={self.files[0].name!r}" if self.files else ""

@@ -47,42 +47,22 @@ Evaluation caps Waymo depth at 75 or 80 m (metrics option).
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import json
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from pitta_jax.data.calib import Calib, read_calib_json
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import (PathLike, depth_loader, list_images, load_npy, read_image,
-                                     require_dir, require_file)
+                                     require_dir)
 from pitta_jax.data.panoptic_io import PanopticSource, panoptic_source
 from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
 
 
-@dataclasses.dataclass(frozen=True)
-class WaymoCalib:
-  """A sequence's FRONT camera: K (3, 3) float64 pinhole intrinsics, image width and height."""
-  K: np.ndarray
-  width: int
-  height: int
-
-
-def read_calib(path: PathLike) -> WaymoCalib:
-  """Reads `calib.json` (`K` as 3x3 or 9 numbers, `width`, `height`)."""
-  path = require_file(path, "calibration file")
-  try:
-    data = json.loads(path.read_text())
-    K = np.asarray(data["K"], np.float64).reshape(3, 3)
-    width, height = data["width"], data["height"]
-  except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as e:
-    raise DataError(path, f"expected JSON with K (3x3), width and height ({type(e).__name__}: "
-                          f"{e})") from None
-  if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
-    raise DataError(path, f"width and height must be positive integers, got {width!r}, {height!r}")
-  return WaymoCalib(K=K, width=width, height=height)
+read_calib = read_calib_json  # <seq>/calib.json: K, width, height (`data.calib.Calib`)
+INTRINSICS_REMEDY = "<seq>/calib.json (K, width, height; see the recipe in data/waymo.py)"
 
 
 def rasterise_points(points: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -106,7 +86,7 @@ def rasterise_points(points: np.ndarray, height: int, width: int) -> np.ndarray:
   return np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
 
 
-def read_waymo_depth_npy(path: Path, image: Path, calib: WaymoCalib | None) -> np.ndarray:
+def read_waymo_depth_npy(path: Path, image: Path, calib: Calib | None) -> np.ndarray:
   """A dense (H, W) or sparse (N, 3) `.npy` depth file -> (H, W) float32 metres.
 
   The raster size is calib's (height, width), or the image's when there is no calib.json.
@@ -149,7 +129,8 @@ def _sequence_files(root: Path, seq: str, depth: bool, panoptic: PanopticSource 
         panoptic=None if panoptic is None else panoptic.ref(prefix + stem),
         size=None if calib is None else (calib.height, calib.width),
         size_source=None if calib is None else seq_dir / "calib.json",
-        intrinsics=None if calib is None else calib.K))
+        intrinsics=None if calib is None else calib.K,
+        intrinsics_source=None if calib is None else seq_dir / "calib.json"))
   return files
 
 
@@ -165,7 +146,7 @@ def open_waymo(root: PathLike, sequences: Sequence[str] | str | None = None, dep
   """Opens Waymo FRONT-camera sequences in the layout of the module docstring.
 
   Args:
-    root: the directory of sequence directories.
+    root: the directory of sequence directories (or one sequence directory).
     sequences: names of the sequences to read, in this order (a comma-separated string is
       accepted); None = all, sorted.
     depth: read the depth maps (every image must have one).
@@ -174,9 +155,11 @@ def open_waymo(root: PathLike, sequences: Sequence[str] | str | None = None, dep
     panoptic_json: a COCO panoptic annotation file for those PNGs (file_name `<seq>/<frame>.png`).
 
   Returns:
-    the frames, sequence after sequence, loaded on access.
+    the frames, sequence after sequence (temporal order), loaded on access; K from calib.json.
   """
   root = require_dir(root, "Waymo root")
+  if sequences is None and (root / "image").is_dir():  # the root is one sequence directory
+    root, sequences = root.absolute().parent, [root.absolute().name]
   if sequences is None:
     sequences = list_sequences(root)
     require_frames(sequences, root, "<seq>/image/ directories")
@@ -186,4 +169,5 @@ def open_waymo(root: PathLike, sequences: Sequence[str] | str | None = None, dep
   files = []
   for seq in sequences:
     files += _sequence_files(root, seq, depth, panoptic)
-  return FrameSequence(files)
+  return FrameSequence(files, temporal=True, remedies={"intrinsics": INTRINSICS_REMEDY},
+                       notes=panoptic.notes if panoptic else ())

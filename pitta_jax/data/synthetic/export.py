@@ -8,6 +8,8 @@ Layout under `root` (one folder per weather, as the DrivingStereo weather subset
   <root>/<weather>/panoptic/<stem>.json              {"file_name", "segments_info": [{"id",
                                                        "category_id", "iscrowd": 0, "bbox":
                                                        [x, y, w, h], "area", "isthing"}]}
+  <root>/<weather>/full-image-calib/<seq>.txt        the camera, as DrivingStereo's calibration
+                                                     files: S_rect_101 (W H), P_rect_101 = [K|0]
 
 `stem` = `<seq>_<YYYY-MM-DD-HH-MM-SS-mmm>` as in DrivingStereo (e.g.
 `2018-10-25-07-37-26_2018-10-25-07-37-26-100`): `seq` is the start time of the sequence and
@@ -84,5 +86,17 @@ def export_drivingstereo(frames: Iterable[Frame], root: str | Path, weather_name
       _write(base / "panoptic" / f"{name}.png", encode_panoptic(fr.panoptic)[..., ::-1])
       info = {"file_name": f"{name}.png", "segments_info": segments_info(fr)}
       (base / "panoptic" / f"{name}.json").write_text(json.dumps(info))
+    if i == 0 and fr.intrinsics is not None:
+      write_calib(base / "full-image-calib" / f"{name.split('_')[0]}.txt", fr.intrinsics,
+                  fr.image.shape[:2])
     stems.append(name)
   return stems
+
+
+def write_calib(path: Path, K: np.ndarray, size: tuple[int, int]) -> None:
+  """A DrivingStereo-style calibration file of the left camera: `S_rect_101: W H` and
+  `P_rect_101: K | 0` (row-major 3x4), what `data.calib.rectified_calib` reads."""
+  P = np.concatenate([np.asarray(K, np.float64), np.zeros((3, 1))], axis=1)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  path.write_text(f"S_rect_101: {size[1]:.6e} {size[0]:.6e}\n"
+                  f"P_rect_101: {' '.join(f'{v:.9e}' for v in P.ravel())}\n")

@@ -1,0 +1,143 @@
+"""`adapt` refuses data a method cannot use, before any work: one line, exit 2, nothing written.
+
+A method declares what it needs besides images (`Method.needs`: "pose", "intrinsics",
+"previous_frame"); the CLI checks the reader's metadata (no frame is read, no weights are
+loaded), the synthetic options, the replay root and the weights' model.json. Two stand-in
+methods are registered for the test (the real ones, CoMoDa and Ada-Depth, live elsewhere);
+the weights directory holds only a model.json, so any run that got past the checks would fail
+on loading the weights, not on a need.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pitta_jax import methods
+from pitta_jax.cli import main
+from pitta_jax.methods.base import Aux, Method
+from pitta_jax.sources import check_run_needs
+from test_layouts import make_foggy, make_raw
+from test_readers import _rgb, _write_rgb
+
+
+@dataclasses.dataclass(frozen=True)
+class StandInConfig:
+  pass
+
+
+def _stand_in(name: str, needs: tuple[str, ...]):
+  def build(config: StandInConfig) -> Method:
+    def loss(trainable, *, frame, **_):
+      return jnp.zeros(()), Aux(frame.image[..., 0], {})
+    return Method(name, config, init=lambda *a: {}, loss=loss, prepare=lambda *a: {},
+                  needs=needs)
+  return StandInConfig, build
+
+
+@pytest.fixture
+def cli(tmp_path, monkeypatch, capsys):
+  monkeypatch.setitem(methods.METHODS, "needy",
+                      _stand_in("needy", ("intrinsics", "previous_frame")))
+  monkeypatch.setitem(methods.METHODS, "posey", _stand_in("posey", ("pose",)))
+  weights = tmp_path / "weights"
+  weights.mkdir()
+  (weights / "model.json").write_text(json.dumps(
+      {"architecture": "monodepth2", "height": 64, "width": 96, "num_layers": 18,
+       "has_pose": False}))
+  for name, n, calib in (("seq", 3, True), ("nocalib", 3, False), ("one", 1, True)):
+    for k in range(n):
+      _write_rgb(tmp_path / name / f"{k:06d}.png", _rgb(k))
+    if calib:
+      (tmp_path / name / "calib.json").write_text(json.dumps(
+          {"K": [[8.0, 0, 4], [0, 8, 3], [0, 0, 1]], "width": 8, "height": 6}))
+  make_foggy(tmp_path / "ds")
+  make_raw(tmp_path / "raw")
+  (tmp_path / "bogus.npz").write_bytes(b"not a zip")
+
+  def run(*args: str) -> tuple[int, str]:
+    out = tmp_path / "out"
+    rc = main(["adapt", "--weights", str(weights), "--out", str(out), "--quiet",
+               *[a.replace("TMP", str(tmp_path)) for a in args]])
+    err = capsys.readouterr().err
+    assert not out.exists()  # nothing written, not even the directory
+    return rc, err
+
+  return run
+
+
+@pytest.mark.parametrize("args, message", [
+    (("--method", "needy", "--dataset", "folder", "--root", "TMP/seq", "--source-images",
+      "TMP/seq"),
+     "--method needy needs consecutive frames (each frame's previous one), and the order of "
+     "dataset folder is not known to be capture order: provide --option temporal=true when the "
+     "images are consecutive video frames in file-name order"),
+    (("--method", "needy", "--dataset", "folder", "--root", "TMP/nocalib", "--option",
+      "temporal=true", "--source-images", "TMP/seq"),
+     "--method needy needs camera intrinsics K for every frame, and frame 000000 of dataset "
+     "folder has none: provide a calib.json ({\"K\": 3x3, \"width\": W, \"height\": H}) in "
+     "--root or --option calib=FILE"),
+    (("--method", "needy", "--dataset", "folder", "--root", "TMP/one", "--option",
+      "temporal=true", "--source-images", "TMP/seq"),
+     "--method needy needs consecutive frames (each frame's previous one), and dataset folder "
+     "has 1 frame(s): provide at least 2 frames"),
+    (("--method", "needy", "--dataset", "drivingstereo", "--root", "TMP/ds", "--option",
+      "weather=foggy", "--source-images", "TMP/seq"),
+     "--method needy needs camera intrinsics K for every frame, and frame foggy/"
+     "2018-10-25-07-37-26_2018-10-25-07-37-40-000 of dataset drivingstereo has none: provide "
+     "DrivingStereo's calibration files <seq>.txt (half-image-calib/ or full-image-calib/ of "
+     "the calibration download) in --root or --root/calib/, or --option calib_dir=DIR"),
+    (("--method", "needy", "--dataset", "synthetic", "--option", "num_frames=1"),
+     "--method needy needs consecutive frames (each frame's previous one), and the synthetic "
+     "sequence has 1 frame(s): provide --option num_frames=N with N >= 2"),
+    (("--method", "needy", "--dataset", "folder", "--root", "TMP/seq", "--option",
+      "temporal=true", "--replay-root", "TMP/nowhere"),
+     "TMP/nowhere: KITTI raw root (--replay-root) not found"),
+    (("--method", "needy", "--dataset", "folder", "--root", "TMP/seq", "--option",
+      "temporal=true", "--replay-root", "TMP/raw"),
+     "--method needy needs camera intrinsics K for every frame, and frame 2011_09_28/"
+     "2011_09_28_drive_0005_sync/image_02/0000000000 of --replay-root TMP/raw has none: "
+     "provide KITTI raw's <date>/calib_cam_to_cam.txt (the date's calibration download) in "
+     "--root"),
+    (("--method", "needy", "--dataset", "folder", "--root", "TMP/seq", "--option",
+      "temporal=true"),
+     "--method needy needs source-domain data: --source-images PATH or --replay-root DIR"),
+    (("--method", "actmad", "--bn-stats", "running", "--dataset", "folder", "--root", "TMP/seq"),
+     "--method actmad needs source-domain data: --source-images PATH, --source-stats FILE or "
+     "--replay-root DIR"),
+    (("--method", "posey", "--dataset", "synthetic"),
+     "--method posey needs a pose network, and the weights have none (convert with "
+     "--pose-encoder/--pose, or train-source)"),
+    (("--method", "needy", "--dataset", "synthetic", "--source-stats", "TMP/bogus.npz"),
+     "TMP/bogus.npz: holds ActMAD's source statistics; --method needy does not use them (drop "
+     "--source-stats)"),
+    (("--method", "actmad", "--bn-stats", "running", "--dataset", "synthetic", "--source-stats",
+      "TMP/bogus.npz"),
+     "TMP/bogus.npz: not an .npz file (write one with `pitta-jax source-stats`)"),
+])
+def test_unmet_needs_fail_before_work(cli, tmp_path, args, message):
+  rc, err = cli(*args)
+  assert rc == 2
+  assert err == f"error: {message.replace('TMP', str(tmp_path))}\n"
+
+
+def test_met_needs_and_notes(cli, tmp_path, capsys):
+  # the check passes: a temporal folder with calib.json, its reader returned for the run
+  needy = methods.build("needy")
+  reader = check_run_needs(needy, "folder", str(tmp_path / "seq"), ["temporal=true"], "gt",
+                           str(tmp_path / "raw" / "2011_09_26"), source_given=True)
+  assert reader.temporal and len(reader) == 3
+  np.testing.assert_array_equal(reader[0].intrinsics, [[8, 0, 4], [0, 8, 3], [0, 0, 1]])
+  # DrivingStereo with full size only: the reader says so, the unused replay root is named; the
+  # run then stops at the weights (only a model.json here), as any checked run would
+  rc, err = cli("--dataset", "drivingstereo", "--root", "TMP/ds", "--option", "weather=foggy",
+                "--replay-root", "TMP/nowhere")
+  lines = err.splitlines()
+  assert rc == 2 and lines[:2] == [
+      "note: --method pitta uses no source-domain data: --replay-root ignored",
+      "note: DrivingStereo size=full: the only left-image-*-size/ directory (foggy)"]
+  assert len(lines) == 3 and lines[2].startswith("error: ") and "weights" in lines[2]
