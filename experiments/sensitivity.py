@@ -76,7 +76,7 @@ def run(args, runners=None) -> int:
                                                                           weights))
   sweep = common.cached(ctx, key, lambda: {"sweep": lambda_sweep(
       weights, common.case_frames(ctx, (CASE,), weights.height, weights.width), lams,
-      ctx.quiet, ctx.quick)})["sweep"]
+      ctx.quiet, ctx.quick, shared)})["sweep"]
   ref = results[0][2]
   dense_ref = next(e for s, n, e in results if n == "dense: reference")
   entries = []

@@ -7,6 +7,7 @@ vmapped run (`pitta_jax.adapt.streams`: one stream per lambda, the same frames).
 
 from __future__ import annotations
 
+import json
 import math
 import sys
 from typing import Sequence
@@ -24,19 +25,21 @@ def label(lam: float) -> str:
 
 
 def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
-                 quick: bool = False) -> list[dict]:
+                 quick: bool = False, runners=None) -> list[dict]:
   """PITTA with each lambda of `lams` over `frames`, as one vmapped run; per lambda
-  {"metrics": mean of the 7, "abs_rel_per_frame": [...], "frames": n}."""
+  {"metrics": mean of the 7, "abs_rel_per_frame": [...], "frames": n}. runners: a
+  `run.Runners` that keeps the compiled sweep for later calls."""
   from tqdm import tqdm
   from pitta_jax import metrics as metrics_lib
   from pitta_jax.adapt import streams
-  from pitta_jax.adapt.engine import make_chunk_runner, make_optimizer
   from pitta_jax.adapt.inputs import chunks
   from pitta_jax.run import EvalConfig
+  from pitta_jax.run import Runners
   cfg = common.adapt_config("pitta", quick=quick)
-  model, tx = weights.network(), make_optimizer(cfg)
+  key = ("lambda_sweep", weights.spec.name, json.dumps(weights.config, sort_keys=True,
+                                                       default=str), cfg, len(lams))
+  model, tx, runner = (runners or Runners()).custom(key, lambda: _sweep_runner(weights, cfg))
   states, consts = streams.init_lambda_sweep(weights.depth, lams, cfg, tx, model=model)
-  runner = make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx))
   ev = EvalConfig()
   per_frame: list[list[dict]] = [[] for _ in lams]
   h, w = weights.height, weights.width
@@ -59,6 +62,14 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
            "abs_rel_per_frame": [m["abs_rel"] for m in p]} for p in per_frame]
 
 
+def _sweep_runner(weights, cfg):
+  """(model, optimiser, the compiled chunk of the vmapped lambda-sweep step)."""
+  from pitta_jax.adapt import streams
+  from pitta_jax.adapt.engine import make_chunk_runner, make_optimizer
+  model, tx = weights.network(), make_optimizer(cfg)
+  return model, tx, make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx))
+
+
 def run(args, runners=None) -> int:
   from experiments.figures import lambda_figure
   from experiments.render import write_table
@@ -77,7 +88,8 @@ def run(args, runners=None) -> int:
 
     def compute():
       frames = common.case_frames(ctx, parts, weights.height, weights.width)
-      return {"sweep": lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick)}
+      return {"sweep": lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick,
+                                    common.runners(ctx))}
     results = common.cached(ctx, key, compute)["sweep"]
     entries = [Entry(case, label(lam), r["metrics"], extra={
         "lambda": lam, "frames": r["frames"], "abs_rel_per_frame": r["abs_rel_per_frame"]})

@@ -100,6 +100,13 @@ def _add_method_configs(p) -> None:
       add_config_arguments(p, cls, name, f"method {name} (used with --method {name})")
 
 
+def _method_configs_from_args(args) -> dict:
+  """Every registered method's config from its `--<method>.*` flags (validated)."""
+  from pitta_jax.config_cli import config_from_args
+  from pitta_jax.methods import METHODS
+  return {name: config_from_args(cls, args, name) for name, (cls, _) in METHODS.items()}
+
+
 def _method_from_args(args, cfg):
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.methods import build, method_config_class
@@ -112,8 +119,9 @@ def _add_demo(sub) -> None:
   p = sub.add_parser(
       "demo", help="the embedded synthetic benchmark end to end (no downloads, no arguments)",
       description="Train (once, cached) a clear-weather source MonoDepth2 on the synthetic "
-                  "driving benchmark, then run No adaptation / BN batch stats / PITTA on fog, "
-                  "rain, night and snow sequences; print the 7 metrics and write results.json, "
+                  "driving benchmark, then run No adaptation / BN batch stats / PITTA and the "
+                  "baselines CoMoDa, Ada-Depth, ActMAD, CoTTA (each + L_d) on fog, rain, night "
+                  "and snow sequences; print the 7 metrics and write results.json, "
                   "results.csv, table.md and figures/ to --out.")
   add_config_arguments(p, DemoConfig, "demo", "demo")
   _add_method_configs(p)
@@ -131,12 +139,13 @@ def _run_demo(args) -> int:
   demo = config_from_args(DemoConfig, args, "demo")  # validated before any work
   adapt = config_from_args(AdaptConfig, args, "adapt")
   pitta = config_from_args(PittaConfig, args, "pitta")
+  configs = _method_configs_from_args(args)
   from pitta_jax.outputs import open_output_dir
   with open_output_dir(demo.out):  # checked and locked before any work
     enable_compilation_cache()  # the process's choice, made here, not by the library
     if args.retrain:
       load_or_train_source(SourceConfig(), quiet=args.quiet, retrain=True)
-    run_demo(demo, adapt, pitta, quiet=args.quiet)
+    run_demo(demo, adapt, pitta, quiet=args.quiet, method_configs=configs)
   return 0
 
 

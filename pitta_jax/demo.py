@@ -3,11 +3,11 @@
 1. Loads (or trains once and caches) the clear-domain source MonoDepth2 (`source_model`).
 2. Generates target sequences of the synthetic driving benchmark under fog, rain, night, snow
    (unseen seeds), plus a clear sequence to show the source accuracy.
-3. Runs three rows per shift (`--demo.methods` chooses them and adds the baselines ActMAD and
-   CoTTA, each with L_d): "No adaptation" (the source model as is, running BN statistics),
-   "BN batch stats" (no update, the frame's batch statistics: separates their effect from the
-   loss's) and "PITTA" (eqs. 3-11, paper defaults), with ground-truth panoptic
-   segmentation standing in for Mask2Former.
+3. Runs seven rows per shift (`--demo.methods` chooses them): "No adaptation" (the source
+   model as is, running BN statistics), "BN batch stats" (no update, the frame's batch
+   statistics: separates their effect from the loss's), "PITTA" (eqs. 3-11, paper defaults),
+   and the paper's baselines CoMoDa, Ada-Depth, ActMAD and CoTTA, each with PITTA's L_d (paper
+   Sec. 5), with ground-truth panoptic segmentation standing in for Mask2Former.
 4. Prints a markdown table of the 7 metrics and writes results.json, results.csv, table.md and
    figures to `--out`: per shift, the last frame's depth maps (`viz`) and the per-frame AbsRel
    of every row (`plots`, matplotlib).
@@ -18,13 +18,14 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
+from typing import Any, Mapping
 
 import numpy as np
 
 from pitta_jax import viz
 from pitta_jax.adapt import AdaptConfig
 from pitta_jax.configs import check, option
-from pitta_jax.methods import build as build_method
+from pitta_jax.methods import build as build_method, method_setting
 from pitta_jax.methods.pitta import PittaConfig
 from pitta_jax.plots import PlotConfig, per_frame_figure, save_figure
 from pitta_jax.data.image_io import write_image
@@ -35,12 +36,16 @@ from pitta_jax.run import EvalConfig, RunResult, Runners, run_sequence
 from pitta_jax.source_model import SourceConfig, load_or_train_source
 from pitta_jax.sources import method_resources
 
-ROWS = {  # --demo.methods key -> (row name, AdaptConfig changes from the defaults)
-    "none": ("No adaptation", dict(method="none", bn_stats="running")),
-    "bn": ("BN batch stats", dict(method="none", bn_stats="batch")),
-    "pitta": ("PITTA", dict(method="pitta")),
-    "actmad": ("ActMAD + L_d", dict(method="actmad", bn_stats="running")),
-    "cotta": ("CoTTA + L_d", dict(method="cotta", bn_stats="running")),
+# --demo.methods key -> (row name, method, AdaptConfig changes after the method's own setting
+# `methods.method_setting`); the baselines carry PITTA's L_d (paper Sec. 5)
+ROWS = {
+    "none": ("No adaptation", "none", {}),
+    "bn": ("BN batch stats", "none", {"bn_stats": "batch"}),
+    "pitta": ("PITTA", "pitta", {}),
+    "comoda": ("CoMoDa + L_d", "comoda", {}),
+    "adadepth": ("Ada-Depth + L_d", "adadepth", {}),
+    "actmad": ("ActMAD + L_d", "actmad", {}),
+    "cotta": ("CoTTA + L_d", "cotta", {}),
 }
 
 
@@ -52,9 +57,10 @@ class DemoConfig:
   num_frames: int = option(40, "frames per target sequence (keeps a cached re-run near 2 "
                                "minutes on CPU)")
   target_seed: int = option(100, "target streets (training uses seeds 0..7)")
-  methods: tuple[str, ...] = option(("none", "bn", "pitta"),
+  methods: tuple[str, ...] = option(tuple(ROWS),
                                     "rows under each shift: none (No adaptation), bn (BN batch "
-                                    "stats), pitta, actmad, cotta (baselines + L_d)")
+                                    "stats), pitta, and the paper's baselines with L_d: comoda, "
+                                    "adadepth, actmad, cotta")
   out: str = option("pitta_out", "output directory")
   figures: PlotConfig = PlotConfig()  # the per-frame AbsRel plots (--demo.figures.dpi, ...)
 
@@ -72,8 +78,12 @@ class DemoConfig:
 
 def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig(),
              pitta: PittaConfig = PittaConfig(), source: SourceConfig = SourceConfig(),
-             quiet: bool = False) -> dict:
-  """Runs the demo; returns the results dict (also written to `demo.out`)."""
+             quiet: bool = False, method_configs: Mapping[str, Any] | None = None) -> dict:
+  """Runs the demo; returns the results dict (also written to `demo.out`).
+
+  adapt: the AdaptConfig every row starts from (each method's own setting is applied on top);
+  pitta, method_configs: the methods' configs by name (default: their paper defaults)."""
+  configs = {**(method_configs or {}), "pitta": pitta}
   t_start = time.perf_counter()
   out = Path(demo.out)
   weights, train_report = load_or_train_source(source, quiet=quiet)
@@ -89,9 +99,9 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
         severity=demo.severity))
     results: dict[str, RunResult] = {}
     for key in (("none",) if domain == "clear" else demo.methods):
-      row, changes = ROWS[key]
-      cfg = dataclasses.replace(adapt, **changes)
-      method = build_method(cfg.method, pitta if cfg.method == "pitta" else None)
+      row, name, changes = ROWS[key]
+      cfg = dataclasses.replace(adapt, method=name, **{**method_setting(name), **changes})
+      method = build_method(name, configs.get(name))
       if key not in resources:  # e.g. ActMAD's source statistics, from clear training streets
         resources[key] = method_resources(method, weights, "synthetic")
       res = run_sequence(weights, frames, cfg, method, EvalConfig(), name=f"{domain}: {row}",
@@ -101,6 +111,7 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
       rows.append(Row(domain, row, res.mean, {
           "fps": round(res.fps, 2), "seconds": round(res.seconds, 2), "frames": len(frames),
           "n_skipped": res.n_skipped, "mean_loss": float(np.mean(res.logs["loss"])),
+          "ms_per_frame": round(1000.0 / res.fps, 1),
           **({"mean_instances": float(np.mean(res.logs["n_instances"]))}
              if "n_instances" in res.logs else {})}))
     per_frame[domain] = {r: [m["abs_rel"] for m in res.per_frame] for r, res in results.items()}

@@ -77,6 +77,13 @@ class Runners:
   def __init__(self):
     self._cache: dict = {}
 
+  def custom(self, key, build):
+    """Any other compiled callable under a caller-chosen hashable `key` (e.g. a vmapped
+    sweep), built by `build()` once."""
+    if ("custom", key) not in self._cache:
+      self._cache[("custom", key)] = build()
+    return self._cache[("custom", key)]
+
   def get(self, weights: Weights, method: Method, cfg: AdaptConfig):
     key = (weights.spec.name, tuple(sorted((k, str(v)) for k, v in weights.config.items()
                                            if k != "source")), method.name, method.config, cfg)

@@ -30,7 +30,8 @@ def demo_out(tmp_path_factory):
   mp = pytest.MonkeyPatch()
   mp.setenv(source_model.CACHE_ENV, str(cache))
   out = tmp_path_factory.mktemp("demo")
-  result = run_demo(DemoConfig(shifts=("fog",), num_frames=3, out=str(out)), AdaptConfig(),
+  result = run_demo(DemoConfig(shifts=("fog",), num_frames=3, methods=("none", "bn", "pitta"),
+                               out=str(out)), AdaptConfig(),
                     source=TINY, quiet=True)
   yield out, result, cache
   mp.undo()
