@@ -7,6 +7,7 @@ status 2, without a traceback.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from pitta_jax.data.errors import DataError
@@ -160,8 +161,10 @@ def _add_train_source(sub) -> None:
 def _run_train_source(args) -> int:
   import json
   from pitta_jax.config_cli import config_from_args
-  from pitta_jax.source_model import SourceConfig, load_or_train_source, ship_source
+  from pitta_jax.source_model import ASSETS, SourceConfig, load_or_train_source, ship_source
   cfg = config_from_args(SourceConfig, args, "source")
+  if args.ship and not os.access(ASSETS if ASSETS.is_dir() else ASSETS.parent, os.W_OK):
+    raise ValueError(f"--ship: {ASSETS} is not writable (ship from a source checkout)")
   weights, report = load_or_train_source(cfg, quiet=args.quiet, retrain=args.retrain)
   print(json.dumps(report, indent=2))
   if args.ship:
