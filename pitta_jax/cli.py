@@ -7,6 +7,7 @@ status 2, without a traceback.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from pitta_jax.data.errors import DataError
@@ -158,7 +159,10 @@ def _add_train_source(sub) -> None:
                   "supervised depth loss; cached under $PITTA_JAX_CACHE or ~/.cache/pitta-jax "
                   "by config hash. Prints the weights directory (usable with --weights).")
   add_config_arguments(p, SourceConfig, "source", "training")
-  p.add_argument("--retrain", action="store_true", help="ignore a cached model")
+  p.add_argument("--retrain", action="store_true", help="ignore a cached (or shipped) model")
+  p.add_argument("--ship", action="store_true",
+                 help="maintainers: also write the model (float16) and its clear-domain metrics "
+                      "into the package (pitta_jax/assets/), where this config finds it")
   p.add_argument("--quiet", action="store_true")
   p.set_defaults(func=_run_train_source)
 
@@ -166,10 +170,14 @@ def _add_train_source(sub) -> None:
 def _run_train_source(args) -> int:
   import json
   from pitta_jax.config_cli import config_from_args
-  from pitta_jax.source_model import SourceConfig, load_or_train_source
-  weights, report = load_or_train_source(config_from_args(SourceConfig, args, "source"),
-                                         quiet=args.quiet, retrain=args.retrain)
+  from pitta_jax.source_model import ASSETS, SourceConfig, load_or_train_source, ship_source
+  cfg = config_from_args(SourceConfig, args, "source")
+  if args.ship and not os.access(ASSETS if ASSETS.is_dir() else ASSETS.parent, os.W_OK):
+    raise ValueError(f"--ship: {ASSETS} is not writable (ship from a source checkout)")
+  weights, report = load_or_train_source(cfg, quiet=args.quiet, retrain=args.retrain)
   print(json.dumps(report, indent=2))
+  if args.ship:
+    print(f"shipped: {ship_source(cfg, quiet=args.quiet)}")
   return 0
 
 

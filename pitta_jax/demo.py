@@ -1,6 +1,7 @@
 """`pitta-jax demo`: the embedded benchmark end to end, no downloads, no arguments needed.
 
-1. Loads (or trains once and caches) the clear-domain source MonoDepth2 (`source_model`).
+1. Loads the clear-domain source MonoDepth2 (`source_model`: shipped with the package for
+   the default `SourceConfig`, else trained once and cached).
 2. Generates target sequences of the synthetic driving benchmark under fog, rain, night, snow
    (unseen seeds), plus a clear sequence to show the source accuracy.
 3. Runs seven rows per shift (`--demo.methods` chooses them): "No adaptation" (the source
