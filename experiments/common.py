@@ -65,6 +65,9 @@ FRAMES = 50        # frames per part of a case on synthetic (All: 4 parts)
 QUICK_FRAMES = 2   # --quick: frames per part (one compile serves every case: same chunk)
 QUICK_SIZE = (64, 96)
 CHECKPOINT_EVERY = 25  # frames between a running row's checkpoints (its resume points)
+# Table 3's other networks on synthetic: train-source with a shorter recipe than MonoDepth2's
+# shipped model (whose 600 x 8 recipe takes about an hour per network on a 2-core CPU)
+OTHER_NETWORK_SOURCE = dict(steps=250, batch_size=4)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,7 +152,8 @@ def weights_for(ctx: Context, model: str):
   if ctx.quick:
     return _random_weights(ctx.out / "weights" / model, model)
   from pitta_jax.source_model import SourceConfig, load_or_train_source
-  return load_or_train_source(SourceConfig(model=model), quiet=ctx.quiet)[0]
+  recipe = {} if model == "monodepth2" else OTHER_NETWORK_SOURCE
+  return load_or_train_source(SourceConfig(model=model, **recipe), quiet=ctx.quiet)[0]
 
 
 def _random_weights(directory: Path, model: str):
