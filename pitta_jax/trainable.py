@@ -9,6 +9,8 @@ Selectors (parameter paths are `/`-joined, e.g. `encoder/layer1_0/bn1/scale`):
   encoder_bn           every encoder BN scale/bias (default; 20 layers, 9,600 values in ResNet-18)
   encoder_ln           every encoder LayerNorm scale/bias (transformer encoders)
   all                  every parameter of the network
+  no_bn                every parameter except the scale/bias of BatchNorm layers, anywhere in
+                       the network (CoMoDa: BN frozen, everything else adapts)
   fraction(cnn=a,bn=b) kernels of the last a% of encoder conv layers + scale/bias of the last
                        b% of encoder BN layers (LN where the encoder has no BN), in forward
                        order (Table 5: "CNN a% + BN b%")
@@ -25,7 +27,7 @@ from flax.traverse_util import flatten_dict, unflatten_dict
 
 Tree = dict[str, Any]
 
-SELECTOR_KINDS = ("encoder_bn", "encoder_ln", "all", "fraction")
+SELECTOR_KINDS = ("encoder_bn", "encoder_ln", "all", "no_bn", "fraction")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,13 +51,14 @@ class Selector:
 
 
 def parse_selector(text: str) -> Selector:
-  """Parses `encoder_bn`, `encoder_ln`, `all`, or `fraction(cnn=20,bn=80)` (also `cnn20_bn80`)."""
+  """Parses `encoder_bn`, `encoder_ln`, `all`, `no_bn`, or `fraction(cnn=20,bn=80)` (also
+  `cnn20_bn80`)."""
   text = text.strip().replace(" ", "")
-  if text in ("encoder_bn", "encoder_ln", "all"):
+  if text in ("encoder_bn", "encoder_ln", "all", "no_bn"):
     return Selector(text)
   m = re.fullmatch(r"fraction\(cnn=([\d.]+),bn=([\d.]+)\)|cnn([\d.]+)_bn([\d.]+)", text)
   if not m:
-    raise ValueError(f"cannot parse selector {text!r}; use encoder_bn, encoder_ln, all, "
+    raise ValueError(f"cannot parse selector {text!r}; use encoder_bn, encoder_ln, all, no_bn, "
                      f"or fraction(cnn=A,bn=B) with percentages A, B")
   a, b = (m.group(1), m.group(2)) if m.group(1) is not None else (m.group(3), m.group(4))
   return Selector("fraction", float(a), float(b))
@@ -111,6 +114,12 @@ def selected_paths(variables: Tree, selector: Selector, encoder: str = "encoder"
   flat = flatten_dict(variables["params"], sep="/")
   if selector.kind == "all":
     return sorted(flat)
+  if selector.kind == "no_bn":  # a BatchNorm is a module with running statistics
+    bn = {k.rsplit("/", 1)[0] for k in flatten_dict(variables.get("batch_stats", {}), sep="/")}
+    paths = sorted(p for p in flat if p.rsplit("/", 1)[0] not in bn)
+    if not paths:
+      raise ValueError(f"selector {selector} selects no parameter")
+    return paths
   norm_kind = "ln" if selector.kind == "encoder_ln" else "bn"
   norms = encoder_layers(variables, norm_kind, encoder, order)
   if not norms and selector.kind != "fraction":

@@ -67,7 +67,7 @@ def test_other_forms_fall_back_to_lax():
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-def _kernel_layouts(conv_fn) -> list[str]:
+def _kernel_layouts(conv_fn, argnums=0) -> list[str]:
   """dim_labels of every convolution XLA compiles for the gradient of a 3-step scan."""
   def loss(x, k):
     def body(c, _):
@@ -75,7 +75,7 @@ def _kernel_layouts(conv_fn) -> list[str]:
       return c, jnp.sum(jnp.tanh(y))
     return jnp.sum(lax.scan(body, x, None, length=3)[1])
   x, k = jnp.ones((1, 16, 16, 8)), jnp.ones((3, 3, 8, 8))
-  text = jax.jit(jax.grad(loss)).lower(x, k).compile().as_text()
+  text = jax.jit(jax.grad(loss, argnums)).lower(x, k).compile().as_text()
   return re.findall(r"dim_labels=([a-z0-9_>-]+)", text)
 
 
@@ -87,6 +87,17 @@ def test_input_gradient_kernel_is_canonical_inside_scan():
   print("lax rule:", theirs, "ours:", ours)
   assert ours and all("_01io->" in d for d in ours)
   assert any("_01oi->" in d for d in theirs), "XLA now canonicalises in loops: drop conv_vjp"
+
+
+def test_kernel_gradient_is_canonical_inside_scan():
+  """Adapting conv kernels (CoMoDa, ActMAD's cnn layers): the kernel gradient inside the while
+  loop is a canonical b01f x 01io convolution too; JAX's rule is not."""
+  ours = _kernel_layouts(conv_vjp.conv_general_dilated, 1)
+  theirs = _kernel_layouts(lax.conv_general_dilated, 1)
+  print("lax rule:", theirs, "ours:", ours)
+  assert ours and all(d.startswith("b01f_01io->") for d in ours)
+  assert not all(d.startswith("b01f_01io->") for d in theirs), \
+      "XLA now canonicalises kernel gradients in loops: use JAX's rule"
 
 
 def test_flax_conv_uses_it_with_same_parameters():

@@ -25,7 +25,8 @@ class AdaptConfig:
   bn_stats: str = option("batch", "BatchNorm statistics while adapting: batch (the frame's, "
                                   "running ones untouched) | running")
   selector: str = option("encoder_bn", "adapted parameters: encoder_bn (paper Sec. 5), "
-                                       "encoder_ln, all, fraction(cnn=a,bn=b) (Table 5)")
+                                       "encoder_ln, all, no_bn (all but BatchNorm scale/bias), "
+                                       "fraction(cnn=a,bn=b) (Table 5)")
   reset_every: int = option(0, "0 = never; K = restore the source parameters every K frames")
   skip_nonfinite: bool = option(True, "skip (and count) an update whose loss, gradient or new "
                                       "parameters are not finite")

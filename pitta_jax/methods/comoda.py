@@ -1,0 +1,405 @@
+"""CoMoDa (Kuznietsov et al., WACV 2021) as a baseline of the paper, with PITTA's L_d added (Sec. 5).
+
+CoMoDa keeps training the self-supervised network online: per frame one Adam step of the depth
+network (encoder + decoder) and the pose network (encoder + decoder) on MonoDepth2's loss
+(`pitta_jax.sfm.monodepth2_loss`: SSIM + L1 reprojection, minimum over source frames,
+auto-masking, edge-aware smoothness, 4 scales), with
+
+- BatchNorm in eval mode and its scale/bias frozen (official `set_adapt`); every other weight
+  adapts (selector `no_bn`, required);
+- the test frame's per-pixel minimum reprojection map multiplied by a mask of possibly moving
+  objects (official `compute_losses`: after the minimum and the auto-mask, before the mean).
+  Here that mask is 1 - [pixel on a dynamic instance] with the instances of L_d (eq. 3, the
+  panoptic input); upstream uses YOLOv5 masks;
+- experience replay: each step's batch is the test sample plus `replay` source-domain samples
+  (official `--batch_size 4`) whose mask is all ones. The samples are windows of consecutive
+  frames of `SourceData.sequences` (clear streets on the synthetic benchmark, `--replay-root` on
+  real data), at most `replay_size` of them kept, evenly spaced (`replay_set`); each step draws
+  `replay` of them from the step's key (upstream cycles through a pre-shuffled list).
+
+Deviations, all ours (see docs/method.md):
+- no GPS: the velocity loss (upstream `--translation_weight` 0.005) is off and updates are not
+  gated on the speed (`--min_translation`);
+- pose: MonoDepth2's released pairs pose network, one pair per source frame (MonoDepth2's
+  `predict_poses`: (t-1, t) inverted, (t, t+1) not), where upstream feeds all three frames to one
+  3-frame pose encoder;
+- disparity -> depth by `disp_to_depth(0.1, 100)` as the MonoDepth2 weights were trained (the
+  official code warps with 1 / disp);
+- the identity tie-break noise is one draw per step shared by the scales (as upstream);
+- latency (`latency`): 0 (default, causal) updates at frame t on (t-1 -> t); 1 updates at frame
+  t on (t-2, t -> t-1), i.e. upstream's frame_ids (0, -1, 1) one frame late. Either way the
+  evaluated depth is frame t's, predicted before frame t's update (predict-then-adapt);
+- the first frame (latency 0), the first two (latency 1), and a frame whose K is unknown make
+  no update (loss 0, parameters and both Adam states untouched), as upstream starts at the
+  second frame of a video.
+
+Total loss: L_comoda + ld_weight * L_d (eq. 8) on the depth of the adapted test frame (the
+current frame, or with latency 1 the previous one), with the same instance masks.
+
+The engine differentiates w.r.t. the depth network (`state.trainable`); the pose network, its
+Adam state, a ring of the previous frames and the replay set live in the method state. `loss`
+computes both gradients in one backward pass and hands the engine a value with the depth
+gradient attached (`_attach_gradient`); the pose gradient goes to `update` in `Aux.carry`, which
+applies it only when the depth step passes the engine's non-finite guard.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+from jax.flatten_util import ravel_pytree
+
+from pitta_jax import sfm
+from pitta_jax import trainable as trainable_lib
+from pitta_jax.configs import check, finite, option
+from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, ring_valid,
+                                    variables_of)
+from pitta_jax.methods.depth_refining import (DepthRefiningConfig, depth_refining_term,
+                                              frame_instances)
+from pitta_jax.models.pose import transformation_from_parameters
+
+Tree = Any
+REPLAY_IMAGES = "comoda_replay_images"  # resources: (R, F, H, W, 3) windows of source frames
+REPLAY_K = "comoda_replay_K"            # resources: (R, 3, 3) K of each window's centre frame
+SELECTOR = "no_bn"
+
+
+@dataclasses.dataclass(frozen=True)
+class ComodaConfig:
+  """CoMoDa's knobs (official code/options.py, CoMoDA.py) and the paper's added L_d."""
+  lr: float = option(1e-4, "Adam learning rate of the depth and pose networks (CoMoDA "
+                           "--learning_rate)")
+  replay: int = option(3, "source samples replayed per step besides the test sample (CoMoDA "
+                          "--batch_size 4 = 1 + 3)")
+  replay_size: int = option(64, "most source windows kept on the device, evenly spaced over the "
+                                "source sequences (ours; CoMoDA reads its replay list from disk)")
+  latency: int = option(0, "0: update at frame t on (t-1 -> t) (ours, causal); 1: on "
+                           "(t-2, t -> t-1), one frame late as CoMoDA's frame_ids 0 -1 1")
+  sfm: sfm.SfmLossConfig = sfm.SfmLossConfig()
+  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 5)")
+  ld: DepthRefiningConfig = DepthRefiningConfig()
+
+  def __post_init__(self):
+    finite(self.lr, "lr", 0.0)
+    check(self.replay >= 0, f"replay must be >= 0, got {self.replay}")
+    check(self.replay_size >= 1, f"replay_size must be >= 1, got {self.replay_size}")
+    check(self.latency in (0, 1), f"latency must be 0 or 1, got {self.latency}")
+    finite(self.ld_weight, "ld_weight", 0.0)
+
+  @property
+  def offsets(self) -> tuple[int, ...]:
+    """The source frames relative to the adapted frame (upstream's frame_ids[1:])."""
+    return (-1,) if self.latency == 0 else (-1, 1)
+
+  @property
+  def window(self) -> int:
+    """Frames per sample: (t-1, t) or (t-1, t, t+1); the adapted frame is index 1."""
+    return 1 + len(self.offsets)
+
+
+@struct.dataclass
+class PoseState:
+  """The adapted pose network in the method state: its module (static) and variables split
+  like the depth network's (BN scale/bias frozen), with its own Adam state."""
+  module: Any = struct.field(pytree_node=False)
+  trainable: Tree = None
+  frozen: Tree = None
+  batch_stats: Tree = None
+  opt_state: Tree = None
+
+  def variables(self, trainable: Tree) -> Tree:
+    return trainable_lib.merge(trainable, self.frozen, self.batch_stats)
+
+
+class Sample(NamedTuple):
+  """One step's training batch (B = 1 + replay): the test sample first."""
+  target: jax.Array    # (B, H, W, 3) the adapted frames
+  sources: jax.Array   # (B, N, H, W, 3) their neighbours, in `offsets` order
+  K: jax.Array         # (B, 3, 3)
+  weights: jax.Array   # (B, H, W) 1 - moving-object mask (replay: 1)
+  centre: Any          # StepInput of the adapted test frame (its instances give L_d)
+  active: jax.Array    # () bool: the test frame has its neighbours and a K
+
+
+def optimizer(config: ComodaConfig) -> optax.GradientTransformation:
+  """torch.optim.Adam(lr) (official CoMoDA.py), for the depth and the pose network alike, on
+  the raveled parameter vector (`flat`)."""
+  return flat(optax.adam(config.lr))
+
+
+def flat(tx: optax.GradientTransformation) -> optax.GradientTransformation:
+  """`tx` applied to the tree raveled into one vector (its state is the vector's).
+
+  Why: an element-wise optimiser gives the same numbers either way, but XLA:CPU compiles the
+  per-leaf Adam + non-finite guard of all 88 MonoDepth2 leaves in ~45 s and the raveled one in
+  ~3 s (2 cores)."""
+  def init(params):
+    return tx.init(ravel_pytree(params)[0])
+
+  def update(updates, state, params=None):
+    g, unravel = ravel_pytree(updates)
+    u, state = tx.update(g, state, None if params is None else ravel_pytree(params)[0])
+    return unravel(u), state
+
+  return optax.GradientTransformation(init, update)
+
+
+def _adam_step(config: ComodaConfig, params: Tree, grads: Tree, opt_state: Tree):
+  """One step of `optimizer(config)` on the raveled tree: (params (P,), new params (P,), update
+  (P,), new optimiser state, all finite (grads, new params, new state), unravel)."""
+  from pitta_jax.adapt.engine import all_finite
+  p, unravel = ravel_pytree(params)
+  g, _ = ravel_pytree(grads)
+  u, new_opt = optax.adam(config.lr).update(g, opt_state, p)
+  new = p + u
+  finite = jnp.all(jnp.isfinite(g)) & jnp.all(jnp.isfinite(new)) & all_finite(new_opt)
+  return p, new, u, new_opt, finite, unravel
+
+
+# ----------------------------------------------------------------------------- replay set
+
+
+def replay_set(source, config: ComodaConfig) -> dict[str, np.ndarray]:
+  """The replay windows of `source.sequences` as arrays (host side, once before the run).
+
+  Windows of `config.window` consecutive frames whose centre frame has K; at most
+  `replay_size`, evenly spaced over all windows (deterministic). Returns {REPLAY_IMAGES:
+  (R, F, H, W, 3) float32, REPLAY_K: (R, 3, 3) float32}; with `replay` 0, R = 0 (the arrays
+  still give the frame size). ValueError (one line, naming the flag) when there is no window.
+  """
+  f = config.window
+  windows = [seq[i:i + f] for seq in source.sequences for i in range(len(seq) - f + 1)
+             if seq[i + 1].intrinsics is not None]
+  if config.replay > 0:
+    check(len(windows) > 0, f"comoda replays {f} consecutive source frames with intrinsics: "
+                            "give --replay-root DIR (KITTI layout) or use the synthetic benchmark")
+    pick = np.unique(np.round(np.linspace(0, len(windows) - 1,
+                                          min(config.replay_size, len(windows)))).astype(int))
+    images = np.stack([[fr.image for fr in windows[i]] for i in pick]).astype(np.float32)
+    K = np.stack([windows[i][1].intrinsics for i in pick]).astype(np.float32)
+    return {REPLAY_IMAGES: images, REPLAY_K: K}
+  frames = [fr.image for seq in source.sequences for fr in seq] or list(source.images)
+  check(len(frames) > 0, "comoda needs the frame size from source data: give --replay-root DIR "
+                         "or --source-images PATH")
+  h, w = np.shape(frames[0])[:2]
+  return {REPLAY_IMAGES: np.zeros((0, f, h, w, 3), np.float32),
+          REPLAY_K: np.zeros((0, 3, 3), np.float32)}
+
+
+def step_draws(rng: jax.Array, n_replay_set: int, config: ComodaConfig, height: int, width: int,
+               dtype=jnp.float32) -> tuple[jax.Array, jax.Array]:
+  """The step's random draws from its key: which replay windows (replay,) int32 (without
+  repetition when the set is large enough), and the identity tie-break noise
+  (S, B, N, H, W), one standard-normal draw shared by the S scales (official compute_losses)."""
+  k_idx, k_noise = jax.random.split(rng)
+  n = config.replay
+  if n:
+    idx = jax.random.choice(k_idx, n_replay_set, (n,), replace=n_replay_set < n)
+  else:
+    idx = jnp.zeros((0,), jnp.int32)
+  shape = (1, 1 + n, len(config.offsets), height, width)
+  noise = jax.random.normal(k_noise, shape, dtype)
+  return idx.astype(jnp.int32), jnp.broadcast_to(noise, (len(config.sfm.scales),) + shape[1:])
+
+
+# ----------------------------------------------------------------------------- the step
+
+
+def _frame_ring(image_shape: tuple[int, int], max_segments: int, size: int, dtype
+                ) -> dict[str, dict[str, jax.Array]]:
+  """Rings (`base.ring_init`) of the last `size` frames, one per StepInput field."""
+  from pitta_jax.adapt.engine import StepInput
+  h, w = image_shape
+  example = StepInput(
+      image=jnp.zeros((h, w, 3), dtype), panoptic=jnp.zeros((h, w), jnp.int32),
+      seg_ids=jnp.zeros((max_segments,), jnp.int32),
+      seg_classes=jnp.zeros((max_segments,), jnp.int32),
+      seg_valid=jnp.zeros((max_segments,), bool), valid=jnp.zeros((), bool),
+      intrinsics=jnp.zeros((3, 3), dtype), has_intrinsics=jnp.zeros((), bool))
+  return {name: ring_init(x, size) for name, x in example._asdict().items()}
+
+
+def _ring_frame(rings: dict, k: int, frame):
+  """The frame k steps back (k = 0: the last one) as a StepInput, and whether it exists;
+  a missing frame is replaced by `frame` so that every computation stays finite."""
+  valid = ring_valid(rings["image"])[k]
+  fields = {name: jnp.where(valid, r["items"][k].astype(getattr(frame, name).dtype),
+                            getattr(frame, name))
+            for name, r in rings.items()}
+  return type(frame)(**fields), valid
+
+
+def _intrinsics4(K: jax.Array) -> tuple[jax.Array, jax.Array]:
+  """(B, 3, 3) -> K, inv_K (B, 4, 4) as MonoDepth2's data loader makes them."""
+  b = K.shape[0]
+  K4 = jnp.broadcast_to(jnp.eye(4, dtype=K.dtype), (b, 4, 4)).at[:, :3, :3].set(K)
+  return K4, jnp.linalg.inv(K4)
+
+
+def build_sample(frame, ms: dict, idx: jax.Array, config: ComodaConfig) -> Sample:
+  """The step's batch: the test sample (current frame, or with latency 1 the previous one)
+  and the replay windows `idx`. Missing neighbours and an unknown K are replaced by finite
+  stand-ins (the current frame, the identity) and the sample is marked inactive."""
+  rings = ms["ring"]
+  dtype = rings["image"]["items"].dtype
+  if config.latency == 0:
+    centre, active = frame, ring_valid(rings["image"])[0]
+    prev, _ = _ring_frame(rings, 0, frame)
+    neighbours = [prev.image]
+  else:
+    centre, active = _ring_frame(rings, 0, frame)
+    prev, has_prev = _ring_frame(rings, 1, frame)
+    active = active & has_prev
+    neighbours = [prev.image, frame.image]
+  active = active & centre.has_intrinsics
+  K = jnp.where(centre.has_intrinsics, centre.intrinsics, jnp.eye(3, dtype=centre.intrinsics.dtype))
+  index_map, _, _ = frame_instances(centre, config.ld)
+  h, w = index_map.shape
+  images = ms["replay_images"][idx]                                       # (R, F, H, W, 3)
+  target = jnp.concatenate([centre.image[None].astype(dtype), images[:, 1]])
+  test_sources = jnp.stack(neighbours).astype(dtype)[None]               # (1, N, H, W, 3)
+  replay_sources = jnp.concatenate([images[:, :1], images[:, 2:]], axis=1)
+  sources = jnp.concatenate([test_sources, replay_sources])
+  Ks = jnp.concatenate([K[None].astype(dtype), ms["replay_K"][idx]])
+  weights = jnp.concatenate([(index_map == 0).astype(dtype)[None],
+                             jnp.ones((idx.shape[0], h, w), dtype)])
+  return Sample(target, sources, Ks, weights, centre, active)
+
+
+def camera_motions(pose: PoseState, pose_trainable: Tree, target: jax.Array,
+                   sources: jax.Array, offsets: tuple[int, ...]) -> jax.Array:
+  """Target -> source camera motions (B, N, 4, 4) from the pairs pose network (MonoDepth2's
+  `predict_poses`): the pair (source, target) inverted for a past frame, (target, source) for a
+  future one. All pairs go through one batched forward (BN eval mode: independent)."""
+  b, n = sources.shape[:2]
+  pairs = [jnp.concatenate([sources[:, i], target] if off < 0 else [target, sources[:, i]], -1)
+           for i, off in enumerate(offsets)]
+  axisangle, translation = pose.module.apply(pose.variables(pose_trainable),
+                                             jnp.concatenate(pairs), False)   # (N*B, 2, 1, 3)
+  motions = [transformation_from_parameters(axisangle[i * b:(i + 1) * b, 0],
+                                            translation[i * b:(i + 1) * b, 0], invert=off < 0)
+             for i, off in enumerate(offsets)]
+  return jnp.stack(motions, axis=1)
+
+
+def _attach_gradient(value: jax.Array, params: Tree, grads: Tree) -> jax.Array:
+  """`value` (the same number) whose gradient w.r.t. `params` is `grads`: value +
+  <params - sg(params), sg(grads)>, where the inner product is exactly 0 for finite grads."""
+  sg = jax.lax.stop_gradient
+  dots = jax.tree_util.tree_map(lambda p, g: jnp.sum((p - sg(p)) * sg(g)), params, grads)
+  return sg(value) + sum(jax.tree_util.tree_leaves(dots))
+
+
+def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: ComodaConfig):
+  """L_comoda (MonoDepth2's loss over the test sample and the replay samples) + ld_weight *
+  L_d of the adapted test frame's depth; 0 on an inactive frame (no neighbours or no K)."""
+  del cfg
+  sg = jax.lax.stop_gradient
+  ms = state.method_state
+  pose: PoseState = ms["pose"]
+  dtype = ms["ring"]["image"]["items"].dtype
+  h, w = frame.image.shape[:2]
+  idx, noise = step_draws(rng, ms["replay_images"].shape[0], mcfg, h, w, dtype)
+  batch = build_sample(frame, ms, idx, mcfg)
+  b = batch.target.shape[0]
+  scales = mcfg.sfm.scales
+
+  def objective(depth_trainable, pose_trainable):
+    images = batch.target if mcfg.latency == 0 else jnp.concatenate(
+        [batch.target, frame.image[None].astype(dtype)])
+    outs = model.outputs(variables_of(depth_trainable, consts), images, False)
+    disps = [outs[s][:b, ..., 0] for s in scales]
+    poses = camera_motions(pose, pose_trainable, batch.target, batch.sources, mcfg.offsets)
+    K4, inv_K4 = _intrinsics4(batch.K)
+    own, _ = sfm.monodepth2_loss(batch.target, batch.sources, disps, K4, inv_K4, poses,
+                                 cfg=mcfg.sfm, noise=noise, pixel_weights=batch.weights)
+    l_d, n = depth_refining_term(model.spec.to_depth(outs[0][0, ..., 0]), batch.centre, mcfg.ld)
+    on = batch.active.astype(dtype)
+    own, l_d = own * on, l_d * on
+    # frame t's depth (H, W): the test sample itself, or with latency 1 the extra last image
+    evaluated = model.spec.to_depth(outs[0][0 if mcfg.latency == 0 else b, ..., 0])
+    return own + ms["ld_weight"] * l_d, (own, l_d, n, evaluated)
+
+  (total, (own, l_d, n, depth)), (g_depth, g_pose) = jax.value_and_grad(
+      objective, argnums=(0, 1), has_aux=True)(sg(trainable), pose.trainable)
+  logs = {"loss_comoda": own, "loss_d": l_d, "n_instances": n}
+  carry = {"pose_grads": g_pose, "active": batch.active, "frame": frame}
+  return _attach_gradient(total, trainable, g_depth), sg(Aux(depth, logs, carry))
+
+
+def build(config: ComodaConfig = ComodaConfig()) -> Method:
+  """CoMoDa with `config` bound. method_state = {"pose": PoseState, "ring": the last 1 + latency
+  frames, "replay_images", "replay_K", "ld_weight": ()} (ld_weight in the state: one compile
+  serves a sweep)."""
+  from pitta_jax.adapt.engine import select
+
+  def init(model, parts, cfg, resources):
+    check(cfg.bn_stats == "running",
+          "comoda runs BatchNorm in eval mode: use bn_stats='running' (--bn-stats running)")
+    check(POSE in resources, "comoda needs the weights' pose network (resources['pose'])")
+    check(REPLAY_IMAGES in resources, "comoda needs its replay set (resources from "
+                                      "methods.comoda.replay_set / Method.prepare)")
+    check(model.spec.output == "sigmoid_disparity"
+          and tuple(model.spec.depth_range) == (config.sfm.min_depth, config.sfm.max_depth),
+          f"comoda: the {model.spec.name} network's disparity range {model.spec.depth_range} "
+          f"differs from --comoda.sfm.min-depth/max-depth "
+          f"({config.sfm.min_depth}, {config.sfm.max_depth})")
+    dtype = jax.tree_util.tree_leaves(parts.trainable)[0].dtype
+    images = jnp.asarray(resources[REPLAY_IMAGES], dtype)
+    check(config.replay == 0 or images.shape[0] > 0, "comoda: the replay set is empty")
+    check(images.shape[1] == config.window,
+          f"comoda: replay windows of {images.shape[1]} frames, latency {config.latency} "
+          f"needs {config.window}")
+    net = resources[POSE]
+    as_dtype = lambda t: jax.tree_util.tree_map(lambda x: jnp.array(x, dtype, copy=True), t)
+    psplit = trainable_lib.split(net.variables, trainable_lib.parse_selector(SELECTOR))
+    ptr = as_dtype(psplit.trainable)
+    pose = PoseState(net.module, ptr, as_dtype(psplit.frozen), as_dtype(psplit.batch_stats),
+                     optimizer(config).init(ptr))
+    return {"pose": pose,
+            "ring": _frame_ring(images.shape[2:4], cfg.max_segments, 1 + config.latency, dtype),
+            "replay_images": images,
+            "replay_K": jnp.asarray(resources[REPLAY_K], dtype),
+            "ld_weight": jnp.asarray(config.ld_weight, dtype)}
+
+  def update(state, grads, loss_value, aux, rng, tx, cfg):
+    """Adam on both networks under one non-finite guard (engine.optax_update's: the loss, a
+    gradient, new parameters or a new optimiser state not finite -> neither network moves,
+    n_skipped counts it); nothing moves on an inactive frame; the frame joins the ring."""
+    del rng, tx  # tx is `optimizer(config)`, stepped here on the raveled trees
+    ms = state.method_state
+    pose: PoseState = ms["pose"]
+    c = aux.carry
+    d_old, d_new, d_upd, d_opt, d_ok, d_unravel = _adam_step(config, state.trainable, grads,
+                                                             state.opt_state)
+    p_old, p_new, _, p_opt, p_ok, p_unravel = _adam_step(config, pose.trainable,
+                                                         c["pose_grads"], pose.opt_state)
+    ok = jnp.isfinite(loss_value) & d_ok & p_ok if cfg.skip_nonfinite else jnp.array(True)
+    move, skipped = c["active"] & ok, c["active"] & ~ok
+    pose = pose.replace(trainable=p_unravel(jnp.where(move, p_new, p_old)),
+                        opt_state=select(move, p_opt, pose.opt_state))
+    ring = {name: ring_push(r, getattr(c["frame"], name)) for name, r in ms["ring"].items()}
+    state = state.replace(
+        trainable=d_unravel(jnp.where(move, d_new, d_old)),
+        opt_state=select(move, d_opt, state.opt_state),
+        n_skipped=state.n_skipped + skipped.astype(jnp.int32),
+        method_state={**ms, "pose": pose, "ring": ring})
+    return state, skipped, jnp.where(move, jnp.sqrt(jnp.sum(d_upd * d_upd)), 0.0)
+
+  def prepare(model, variables, source):
+    del model, variables
+    return replay_set(source, config)
+
+  return Method("comoda", config, init=init, loss=loss, update=update,
+                optimizer=lambda cfg: optimizer(config), prepare=prepare,
+                requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),
+                          ("selector", SELECTOR, "adapts every weight except BatchNorm "
+                                                 "scale/bias"),
+                          ("steps_per_frame", 1, "makes one step per frame")),
+                needs=("pose", "intrinsics", "previous_frame"))
