@@ -8,13 +8,14 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from pitta_jax.methods import actmad, cotta, none, pitta
+from pitta_jax.methods import actmad, comoda, cotta, none, pitta
 from pitta_jax.methods.base import Aux, Method
 from pitta_jax.methods.depth_refining import DepthRefiningConfig
 
 METHODS: dict[str, tuple[type, Callable[[Any], Method]]] = {
     "pitta": (pitta.PittaConfig, pitta.build),
     "none": (none.NoneConfig, none.build),
+    "comoda": (comoda.ComodaConfig, comoda.build),
     "actmad": (actmad.ActmadConfig, actmad.build),
     "cotta": (cotta.CottaConfig, cotta.build),
 }
