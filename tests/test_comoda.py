@@ -54,7 +54,7 @@ from weights_convert.monodepth2 import (convert_monodepth2, depth_decoder_rules,
 
 H, W, N_FRAMES, WINDOW = 64, 64, 3, 3
 CFG = AdaptConfig(bn_stats="running", selector="no_bn", max_segments=16, chunk_size=N_FRAMES)
-CONFIG = ComodaConfig(replay=2, ld=DepthRefiningConfig(window=WINDOW))
+CONFIG = ComodaConfig(replay=1, ld=DepthRefiningConfig(window=WINDOW))
 SCALES = CONFIG.sfm.scales
 
 
@@ -163,6 +163,17 @@ def _chw(x: np.ndarray) -> torch.Tensor:
 
 
 def _torch_run(case, draws, ld_weight, n_frames):
+  """The reference over frames 0..n_frames-1 on one thread (float64 convolutions take 5x the
+  CPU time on two threads of a shared machine); returns per-frame terms and the models."""
+  threads = torch.get_num_threads()
+  torch.set_num_threads(1)
+  try:
+    return _torch_frames(case, draws, ld_weight, n_frames)
+  finally:
+    torch.set_num_threads(threads)
+
+
+def _torch_frames(case, draws, ld_weight, n_frames):
   models, _, _, frames, chunk, replay = case
   models = copy.deepcopy(models)
   ref = TorchCoMoDa(*models, 1e-4, ld_weight)
@@ -316,6 +327,17 @@ TINY = Network(ModelSpec(name="tiny", build=lambda c: TinyDepth(), output="sigmo
 LATENCY1 = ComodaConfig(latency=1, replay=2, lr=1e-2, ld=DepthRefiningConfig(window=WINDOW))
 
 
+def _random_variables(module, channels: int, seed: int):
+  """float64 variables of `module` for a (1, TINY_H, TINY_W, channels) input: kernels normal
+  with std 1/sqrt(fan-in), biases 0.1 * normal (shapes by tracing: nothing compiles)."""
+  shapes = jax.eval_shape(module.init, jax.random.PRNGKey(0),
+                          jax.ShapeDtypeStruct((1, TINY_H, TINY_W, channels), jnp.float32))
+  rng = np.random.default_rng(seed)
+  return jax.tree_util.tree_map(
+      lambda x: rng.standard_normal(x.shape) * (np.prod(x.shape[:-1]) ** -0.5 if len(x.shape) > 1
+                                                 else 0.1), shapes)
+
+
 @pytest.fixture(scope="module")
 def tiny_case():
   """4 frames with latency 1 through the engine's compiled chunk (x64): twice; frames 0-2 only
@@ -329,8 +351,8 @@ def tiny_case():
   chunk = stack(inputs, len(inputs))
   with jax.enable_x64(True):
     replay = replay_set(SourceData(sequences=(tuple(clear),)), LATENCY1)
-    depth_vars = _x64(TinyDepth().init(jax.random.PRNGKey(1), jnp.zeros((1, TINY_H, TINY_W, 3))))
-    pose_vars = _x64(TinyPose().init(jax.random.PRNGKey(2), jnp.zeros((1, TINY_H, TINY_W, 6))))
+    depth_vars = _random_variables(TinyDepth(), 3, seed=1)
+    pose_vars = _random_variables(TinyPose(), 6, seed=2)
     method = build(LATENCY1)
     tx = make_optimizer(CFG, method)
     init, consts = init_state(depth_vars, method, CFG, tx, TINY,
