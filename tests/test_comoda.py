@@ -2,20 +2,23 @@
 
 Reference (`TorchCoMoDa`): the official CoMoDA.py step as a PyTorch user writes it: the four
 MonoDepth2 modules of torch_monodepth2 (depth encoder + decoder, pairs pose encoder + decoder,
-random weights), `set_adapt` (every module in eval mode, the BatchNorm scale/bias excluded from
-the gradient), one `torch.optim.Adam` over all of their parameters, the test sample concatenated
-with the replay samples into one batch, MonoDepth2's loss from tests/torch_sfm.py with the
-moving-object mask multiplying the minimum reprojection map (`pixel_weights`), + L_d (eq. 8,
-torch_tta.depth_refining) on the test frame's depth; `backward()`, `step()`. The pose pairs are
-MonoDepth2's `predict_poses`; K^-1 is `np.linalg.pinv(K)` as the official data loader. The random
-draws (replay windows, tie-break noise) are the JAX run's own (`comoda.step_draws` on the step's
-key), passed to PyTorch. float64 on both sides, 64x96 synthetic fog frames with K and panoptic
-maps, a replay set of clear frames.
+random weights, converted with weights_convert.monodepth2), `set_adapt` (every module in eval
+mode, BatchNorm scale/bias excluded from the gradient), one `torch.optim.Adam` over all their
+parameters, the test sample concatenated with the replay samples into one batch, MonoDepth2's
+loss of tests/torch_sfm.py with the moving-object mask multiplying the minimum reprojection map
+(`pixel_weights`), + L_d (eq. 8, torch_tta.depth_refining) on the test frame's depth;
+`backward()`, `step()`. The pose pair is MonoDepth2's `predict_poses`; K^-1 is `np.linalg.pinv`
+as the official data loader's. The random draws (replay windows, tie-break noise) are the JAX
+run's own (`comoda.step_draws` of the step's key), passed to PyTorch. float64 on both sides,
+64x64 synthetic fog frames with K and panoptic maps, a replay set of clear frames.
 
-Checked over 4 frames through the engine's compiled chunk (frame 0 has no previous frame: no
-update): per frame the loss, CoMoDa's own term, L_d and the evaluated depth; the adapted depth
-AND pose parameters after {N_FRAMES - 1} updates; with ld_weight 0 the same against the reference without
-L_d, and at the first update loss(1) - loss(0) = L_d; two runs are bitwise identical.
+Checked through the engine's compiled chunk (frame 0 has no previous frame: no update): per
+frame the loss, CoMoDa's own term, L_d and the evaluated depth, and the depth AND pose
+parameters after 2 updates (ld_weight 1) and after 1 update (ld_weight 0, against the reference
+without L_d); at the first update loss(ld 1) - loss(ld 0) = L_d. On tiny networks (a second,
+cheap compile): latency 1 (no update on frames 0, 1; frame t-1 adapted from (t-2, t), its loss
+rebuilt with the library's loss kit; the evaluated depth is frame t's), two runs bitwise equal,
+and the non-finite guard over both networks.
 """
 
 from __future__ import annotations
@@ -148,14 +151,14 @@ class TorchCoMoDa:
     pose = torch_sfm.transformation_from_parameters(axisangle[:, 0], translation[:, 0],
                                                     invert=True)   # frame -1: (source, target)
     own, *_ = self.loss(target, [source], disps, torch.from_numpy(K4), inv_K, [pose],
-                        torch.from_numpy(noise), pixel_weights=torch.from_numpy(mask))
+                        torch.from_numpy(np.array(noise)), pixel_weights=torch.from_numpy(mask))
     depth = torch_tta.disp_to_depth(disps[0][0, 0])
     l_d = torch_tta.depth_refining(depth, panoptic, ids, WINDOW)
     total = own + self.ld_weight * l_d
     self.optimizer.zero_grad()
     total.backward()
     self.optimizer.step()
-    return float(total), float(own), float(l_d), depth.detach().numpy()
+    return float(total.detach()), float(own.detach()), float(l_d.detach()), depth.detach().numpy()
 
 
 def _chw(x: np.ndarray) -> torch.Tensor:
