@@ -2,20 +2,23 @@
 
 Reference (`TorchCoMoDa`): the official CoMoDA.py step as a PyTorch user writes it: the four
 MonoDepth2 modules of torch_monodepth2 (depth encoder + decoder, pairs pose encoder + decoder,
-random weights), `set_adapt` (every module in eval mode, the BatchNorm scale/bias excluded from
-the gradient), one `torch.optim.Adam` over all of their parameters, the test sample concatenated
-with the replay samples into one batch, MonoDepth2's loss from tests/torch_sfm.py with the
-moving-object mask multiplying the minimum reprojection map (`pixel_weights`), + L_d (eq. 8,
-torch_tta.depth_refining) on the test frame's depth; `backward()`, `step()`. The pose pairs are
-MonoDepth2's `predict_poses`; K^-1 is `np.linalg.pinv(K)` as the official data loader. The random
-draws (replay windows, tie-break noise) are the JAX run's own (`comoda.step_draws` on the step's
-key), passed to PyTorch. float64 on both sides, 64x96 synthetic fog frames with K and panoptic
-maps, a replay set of clear frames.
+random weights, converted with weights_convert.monodepth2), `set_adapt` (every module in eval
+mode, BatchNorm scale/bias excluded from the gradient), one `torch.optim.Adam` over all their
+parameters, the test sample concatenated with the replay samples into one batch, MonoDepth2's
+loss of tests/torch_sfm.py with the moving-object mask multiplying the minimum reprojection map
+(`pixel_weights`), + L_d (eq. 8, torch_tta.depth_refining) on the test frame's depth;
+`backward()`, `step()`. The pose pair is MonoDepth2's `predict_poses`; K^-1 is `np.linalg.pinv`
+as the official data loader's. The random draws (replay windows, tie-break noise) are the JAX
+run's own (`comoda.step_draws` of the step's key), passed to PyTorch. float64 on both sides,
+64x64 synthetic fog frames with K and panoptic maps, a replay set of clear frames.
 
-Checked over 4 frames through the engine's compiled chunk (frame 0 has no previous frame: no
-update): per frame the loss, CoMoDa's own term, L_d and the evaluated depth; the adapted depth
-AND pose parameters after {N_FRAMES - 1} updates; with ld_weight 0 the same against the reference without
-L_d, and at the first update loss(1) - loss(0) = L_d; two runs are bitwise identical.
+Checked through the engine's compiled chunk (frame 0 has no previous frame: no update): per
+frame the loss, CoMoDa's own term, L_d and the evaluated depth, and the depth AND pose
+parameters after 2 updates (ld_weight 1) and after 1 update (ld_weight 0, against the reference
+without L_d); at the first update loss(ld 1) - loss(ld 0) = L_d. On tiny networks (a second,
+cheap compile): latency 1 (no update on frames 0, 1; frame t-1 adapted from (t-2, t), its loss
+rebuilt with the library's loss kit; the evaluated depth is frame t's), two runs bitwise equal,
+and the non-finite guard over both networks.
 """
 
 from __future__ import annotations
@@ -54,7 +57,7 @@ from weights_convert.monodepth2 import (convert_monodepth2, depth_decoder_rules,
 
 H, W, N_FRAMES, WINDOW = 64, 64, 3, 3
 CFG = AdaptConfig(bn_stats="running", selector="no_bn", max_segments=16, chunk_size=N_FRAMES)
-CONFIG = ComodaConfig(replay=2, ld=DepthRefiningConfig(window=WINDOW))
+CONFIG = ComodaConfig(replay=1, ld=DepthRefiningConfig(window=WINDOW))
 SCALES = CONFIG.sfm.scales
 
 
@@ -148,14 +151,14 @@ class TorchCoMoDa:
     pose = torch_sfm.transformation_from_parameters(axisangle[:, 0], translation[:, 0],
                                                     invert=True)   # frame -1: (source, target)
     own, *_ = self.loss(target, [source], disps, torch.from_numpy(K4), inv_K, [pose],
-                        torch.from_numpy(noise), pixel_weights=torch.from_numpy(mask))
+                        torch.from_numpy(np.array(noise)), pixel_weights=torch.from_numpy(mask))
     depth = torch_tta.disp_to_depth(disps[0][0, 0])
     l_d = torch_tta.depth_refining(depth, panoptic, ids, WINDOW)
     total = own + self.ld_weight * l_d
     self.optimizer.zero_grad()
     total.backward()
     self.optimizer.step()
-    return float(total), float(own), float(l_d), depth.detach().numpy()
+    return float(total.detach()), float(own.detach()), float(l_d.detach()), depth.detach().numpy()
 
 
 def _chw(x: np.ndarray) -> torch.Tensor:
@@ -163,6 +166,17 @@ def _chw(x: np.ndarray) -> torch.Tensor:
 
 
 def _torch_run(case, draws, ld_weight, n_frames):
+  """The reference over frames 0..n_frames-1 on one thread (float64 convolutions take 5x the
+  CPU time on two threads of a shared machine); returns per-frame terms and the models."""
+  threads = torch.get_num_threads()
+  torch.set_num_threads(1)
+  try:
+    return _torch_frames(case, draws, ld_weight, n_frames)
+  finally:
+    torch.set_num_threads(threads)
+
+
+def _torch_frames(case, draws, ld_weight, n_frames):
   models, _, _, frames, chunk, replay = case
   models = copy.deepcopy(models)
   ref = TorchCoMoDa(*models, 1e-4, ld_weight)
@@ -316,6 +330,17 @@ TINY = Network(ModelSpec(name="tiny", build=lambda c: TinyDepth(), output="sigmo
 LATENCY1 = ComodaConfig(latency=1, replay=2, lr=1e-2, ld=DepthRefiningConfig(window=WINDOW))
 
 
+def _random_variables(module, channels: int, seed: int):
+  """float64 variables of `module` for a (1, TINY_H, TINY_W, channels) input: kernels normal
+  with std 1/sqrt(fan-in), biases 0.1 * normal (shapes by tracing: nothing compiles)."""
+  shapes = jax.eval_shape(module.init, jax.random.PRNGKey(0),
+                          jax.ShapeDtypeStruct((1, TINY_H, TINY_W, channels), jnp.float32))
+  rng = np.random.default_rng(seed)
+  return jax.tree_util.tree_map(
+      lambda x: rng.standard_normal(x.shape) * (np.prod(x.shape[:-1]) ** -0.5 if len(x.shape) > 1
+                                                 else 0.1), shapes)
+
+
 @pytest.fixture(scope="module")
 def tiny_case():
   """4 frames with latency 1 through the engine's compiled chunk (x64): twice; frames 0-2 only
@@ -329,8 +354,8 @@ def tiny_case():
   chunk = stack(inputs, len(inputs))
   with jax.enable_x64(True):
     replay = replay_set(SourceData(sequences=(tuple(clear),)), LATENCY1)
-    depth_vars = _x64(TinyDepth().init(jax.random.PRNGKey(1), jnp.zeros((1, TINY_H, TINY_W, 3))))
-    pose_vars = _x64(TinyPose().init(jax.random.PRNGKey(2), jnp.zeros((1, TINY_H, TINY_W, 6))))
+    depth_vars = _random_variables(TinyDepth(), 3, seed=1)
+    pose_vars = _random_variables(TinyPose(), 6, seed=2)
     method = build(LATENCY1)
     tx = make_optimizer(CFG, method)
     init, consts = init_state(depth_vars, method, CFG, tx, TINY,

@@ -1,46 +1,53 @@
 """CoMoDa (Kuznietsov et al., WACV 2021) as a baseline of the paper, with PITTA's L_d added (Sec. 5).
 
-CoMoDa keeps training the self-supervised network online: per frame one Adam step of the depth
-network (encoder + decoder) and the pose network (encoder + decoder) on MonoDepth2's loss
-(`pitta_jax.sfm.monodepth2_loss`: SSIM + L1 reprojection, minimum over source frames,
-auto-masking, edge-aware smoothness, 4 scales), with
+CoMoDa keeps training the self-supervised network online (official code Yevkuzn/CoMoDA,
+`CoMoDA.py`): per frame one Adam step (lr 1e-4) of the depth network (encoder + decoder) and
+the pose network (encoder + decoder) on MonoDepth2's loss (`pitta_jax.sfm.monodepth2_loss`:
+0.85 SSIM + 0.15 L1 reprojection, per-pixel minimum over the source frames and the auto-mask's
+identity losses, edge-aware smoothness, 4 scales), with
 
-- BatchNorm in eval mode and its scale/bias frozen (official `set_adapt`); every other weight
-  adapts (selector `no_bn`, required);
-- the test frame's per-pixel minimum reprojection map multiplied by a mask of possibly moving
-  objects (official `compute_losses`: after the minimum and the auto-mask, before the mean).
-  Here that mask is 1 - [pixel on a dynamic instance] with the instances of L_d (eq. 3, the
-  panoptic input); upstream uses YOLOv5 masks;
-- experience replay: each step's batch is the test sample plus `replay` source-domain samples
-  (official `--batch_size 4`) whose mask is all ones. The samples are windows of consecutive
-  frames of `SourceData.sequences` (clear streets on the synthetic benchmark, `--replay-root` on
-  real data), at most `replay_size` of them kept, evenly spaced (`replay_set`); each step draws
-  `replay` of them from the step's key (upstream cycles through a pre-shuffled list).
+- BatchNorm in eval mode and its scale/bias frozen (`set_adapt`); every other weight of both
+  networks adapts (selector `no_bn`, required). `set_adapt` freezes parameters whose name
+  contains "bn", which misses the ResNet's `downsample.1` BatchNorms; here every BatchNorm is
+  frozen, as the method intends;
+- the test sample's per-pixel minimum reprojection map multiplied by a mask of possibly moving
+  objects (`compute_losses`: after the minimum, before the mean). Here the mask is
+  1 - [pixel on a dynamic instance], the instances of L_d (eq. 3, from the panoptic input;
+  upstream: YOLOv5 masks);
+- experience replay: each step's batch is the test sample and `replay` source-domain samples
+  (`--batch_size 4` = 1 + 3) with all-ones masks, in one forward pass (BN in eval mode: the
+  samples do not interact). The samples are windows of consecutive frames of
+  `SourceData.sequences` (the clear streets on the synthetic benchmark, `--replay-root` on real
+  data; `replay_set`), at most `replay_size` of them, evenly spaced; each step draws `replay` of
+  them with the step's key (upstream cycles through a pre-shuffled list of KITTI samples);
+- the identity losses' tie-break noise: one draw per step shared by the scales (as upstream).
 
-Deviations, all ours (see docs/method.md):
+Deviations (ours; docs/method.md):
 - no GPS: the velocity loss (upstream `--translation_weight` 0.005) is off and updates are not
-  gated on the speed (`--min_translation`);
+  gated on the speed (`--min_translation` 0.2);
 - pose: MonoDepth2's released pairs pose network, one pair per source frame (MonoDepth2's
-  `predict_poses`: (t-1, t) inverted, (t, t+1) not), where upstream feeds all three frames to one
-  3-frame pose encoder;
-- disparity -> depth by `disp_to_depth(0.1, 100)` as the MonoDepth2 weights were trained (the
-  official code warps with 1 / disp);
-- the identity tie-break noise is one draw per step shared by the scales (as upstream);
-- latency (`latency`): 0 (default, causal) updates at frame t on (t-1 -> t); 1 updates at frame
-  t on (t-2, t -> t-1), i.e. upstream's frame_ids (0, -1, 1) one frame late. Either way the
-  evaluated depth is frame t's, predicted before frame t's update (predict-then-adapt);
+  `predict_poses`: (t-1, t) inverted, (t, t+1) as it is), where upstream feeds all three frames
+  to a 3-frame pose encoder;
+- disparity -> depth by `disp_to_depth(0.1, 100)`, as the MonoDepth2 weights were trained
+  (upstream warps with 1 / disp);
+- `latency` 0 (default, causal): the update at frame t uses (t-1 -> t); `latency` 1: the update
+  at frame t uses (t-2, t -> t-1), upstream's frame_ids (0, -1, 1) one frame late. Either way
+  the evaluated depth is frame t's, before frame t's update (predict-then-adapt);
 - the first frame (latency 0), the first two (latency 1), and a frame whose K is unknown make
-  no update (loss 0, parameters and both Adam states untouched), as upstream starts at the
+  no update (loss 0; parameters and both Adam states untouched), as upstream starts at the
   second frame of a video.
 
 Total loss: L_comoda + ld_weight * L_d (eq. 8) on the depth of the adapted test frame (the
 current frame, or with latency 1 the previous one), with the same instance masks.
 
-The engine differentiates w.r.t. the depth network (`state.trainable`); the pose network, its
-Adam state, a ring of the previous frames and the replay set live in the method state. `loss`
-computes both gradients in one backward pass and hands the engine a value with the depth
-gradient attached (`_attach_gradient`); the pose gradient goes to `update` in `Aux.carry`, which
-applies it only when the depth step passes the engine's non-finite guard.
+The engine differentiates w.r.t. the depth network (`state.trainable`); the pose network and
+its Adam state (`PoseState`), the last 1 + latency frames (`base.ring_*`) and the replay set are
+method state. `loss` computes both networks' gradients in one backward pass and gives the engine
+a value with the depth gradient attached (`_attach_gradient`); the pose gradient reaches
+`update` in `Aux.carry`. `update` steps both networks under one non-finite guard (engine
+`optax_update`'s semantics) on raveled parameter vectors (`flat`). A new sequence starts from
+the source weights (the engine's `init_state`); `AdaptConfig.reset_every` resets the depth
+network and its optimiser only.
 """
 
 from __future__ import annotations
@@ -55,7 +62,6 @@ import optax
 from flax import struct
 from jax.flatten_util import ravel_pytree
 
-from pitta_jax import sfm
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, finite, option
 from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, ring_valid,
@@ -63,6 +69,7 @@ from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, rin
 from pitta_jax.methods.depth_refining import (DepthRefiningConfig, depth_refining_term,
                                               frame_instances)
 from pitta_jax.models.pose import transformation_from_parameters
+from pitta_jax.sfm import SfmLossConfig, monodepth2_loss
 
 Tree = Any
 REPLAY_IMAGES = "comoda_replay_images"  # resources: (R, F, H, W, 3) windows of source frames
@@ -81,7 +88,7 @@ class ComodaConfig:
                                 "source sequences (ours; CoMoDA reads its replay list from disk)")
   latency: int = option(0, "0: update at frame t on (t-1 -> t) (ours, causal); 1: on "
                            "(t-2, t -> t-1), one frame late as CoMoDA's frame_ids 0 -1 1")
-  sfm: sfm.SfmLossConfig = sfm.SfmLossConfig()
+  sfm: SfmLossConfig = SfmLossConfig()
   ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 5)")
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
@@ -127,18 +134,24 @@ class Sample(NamedTuple):
   active: jax.Array    # () bool: the test frame has its neighbours and a K
 
 
+def _adam(config: ComodaConfig) -> optax.GradientTransformation:
+  """torch.optim.Adam(lr) (official CoMoDA.py, one optimiser over both networks: element-wise,
+  so one per network is the same)."""
+  return optax.adam(config.lr)
+
+
 def optimizer(config: ComodaConfig) -> optax.GradientTransformation:
-  """torch.optim.Adam(lr) (official CoMoDA.py), for the depth and the pose network alike, on
-  the raveled parameter vector (`flat`)."""
-  return flat(optax.adam(config.lr))
+  """The depth network's optimiser as the engine sees it (its state, init and reset); `update`
+  steps it on the raveled vector directly."""
+  return flat(_adam(config))
 
 
 def flat(tx: optax.GradientTransformation) -> optax.GradientTransformation:
   """`tx` applied to the tree raveled into one vector (its state is the vector's).
 
-  Why: an element-wise optimiser gives the same numbers either way, but XLA:CPU compiles the
-  per-leaf Adam + non-finite guard of all 88 MonoDepth2 leaves in ~45 s and the raveled one in
-  ~3 s (2 cores)."""
+  Why: an element-wise optimiser gives the same numbers either way, but XLA:CPU compiles Adam +
+  the non-finite guard over the 88 leaves of MonoDepth2 in 45 s of CPU time and over the
+  raveled vector in 3 s."""
   def init(params):
     return tx.init(ravel_pytree(params)[0])
 
@@ -151,12 +164,13 @@ def flat(tx: optax.GradientTransformation) -> optax.GradientTransformation:
 
 
 def _adam_step(config: ComodaConfig, params: Tree, grads: Tree, opt_state: Tree):
-  """One step of `optimizer(config)` on the raveled tree: (params (P,), new params (P,), update
-  (P,), new optimiser state, all finite (grads, new params, new state), unravel)."""
+  """One Adam step on the raveled tree (the state of `optimizer(config)`): (params (P,), new
+  params (P,), update (P,), new optimiser state, all finite (grads, new params, new state),
+  unravel)."""
   from pitta_jax.adapt.engine import all_finite
   p, unravel = ravel_pytree(params)
   g, _ = ravel_pytree(grads)
-  u, new_opt = optax.adam(config.lr).update(g, opt_state, p)
+  u, new_opt = _adam(config).update(g, opt_state, p)
   new = p + u
   finite = jnp.all(jnp.isfinite(g)) & jnp.all(jnp.isfinite(new)) & all_finite(new_opt)
   return p, new, u, new_opt, finite, unravel
@@ -277,7 +291,7 @@ def camera_motions(pose: PoseState, pose_trainable: Tree, target: jax.Array,
   """Target -> source camera motions (B, N, 4, 4) from the pairs pose network (MonoDepth2's
   `predict_poses`): the pair (source, target) inverted for a past frame, (target, source) for a
   future one. All pairs go through one batched forward (BN eval mode: independent)."""
-  b, n = sources.shape[:2]
+  b = sources.shape[0]
   pairs = [jnp.concatenate([sources[:, i], target] if off < 0 else [target, sources[:, i]], -1)
            for i, off in enumerate(offsets)]
   axisangle, translation = pose.module.apply(pose.variables(pose_trainable),
@@ -317,8 +331,8 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: ComodaConfig
     disps = [outs[s][:b, ..., 0] for s in scales]
     poses = camera_motions(pose, pose_trainable, batch.target, batch.sources, mcfg.offsets)
     K4, inv_K4 = _intrinsics4(batch.K)
-    own, _ = sfm.monodepth2_loss(batch.target, batch.sources, disps, K4, inv_K4, poses,
-                                 cfg=mcfg.sfm, noise=noise, pixel_weights=batch.weights)
+    own, _ = monodepth2_loss(batch.target, batch.sources, disps, K4, inv_K4, poses,
+                             cfg=mcfg.sfm, noise=noise, pixel_weights=batch.weights)
     l_d, n = depth_refining_term(model.spec.to_depth(outs[0][0, ..., 0]), batch.centre, mcfg.ld)
     on = batch.active.astype(dtype)
     own, l_d = own * on, l_d * on
@@ -340,8 +354,7 @@ def build(config: ComodaConfig = ComodaConfig()) -> Method:
   from pitta_jax.adapt.engine import select
 
   def init(model, parts, cfg, resources):
-    check(cfg.bn_stats == "running",
-          "comoda runs BatchNorm in eval mode: use bn_stats='running' (--bn-stats running)")
+    # bn_stats, selector and steps_per_frame: `requires`, checked by the engine before init
     check(POSE in resources, "comoda needs the weights' pose network (resources['pose'])")
     check(REPLAY_IMAGES in resources, "comoda needs its replay set (resources from "
                                       "methods.comoda.replay_set / Method.prepare)")
