@@ -119,10 +119,10 @@ def _add_demo(sub) -> None:
   from pitta_jax.demo import DemoConfig
   p = sub.add_parser(
       "demo", help="the embedded synthetic benchmark end to end (no downloads, no arguments)",
-      description="Train (once, cached) a clear-weather source MonoDepth2 on the synthetic "
-                  "driving benchmark, then run No adaptation / BN batch stats / PITTA and the "
-                  "baselines CoMoDa, Ada-Depth, ActMAD, CoTTA (each + L_d) on fog, rain, night "
-                  "and snow sequences; print the 7 metrics and write results.json, "
+      description="Load the clear-weather source MonoDepth2 of the synthetic "
+                  "driving benchmark (shipped), then run No adaptation / BN batch stats / PITTA "
+                  "(and with --demo.methods the baselines CoMoDa, Ada-Depth, ActMAD, CoTTA, each "
+                  "+ L_d) on fog, rain, night and snow sequences; print the 7 metrics and write results.json, "
                   "results.csv, table.md and figures/ to --out.")
   add_config_arguments(p, DemoConfig, "demo", "demo")
   _add_method_configs(p)
