@@ -122,8 +122,8 @@ def _add_demo(sub) -> None:
       description="Load the clear-weather source MonoDepth2 of the synthetic "
                   "driving benchmark (shipped), then run No adaptation / BN batch stats / PITTA "
                   "(and with --demo.methods the baselines CoMoDa, Ada-Depth, ActMAD, CoTTA, each "
-                  "+ L_d) on fog, rain, night and snow sequences; print the 7 metrics and write results.json, "
-                  "results.csv, table.md and figures/ to --out.")
+                  "+ L_d) on fog, rain, night and snow sequences; print the 7 metrics and "
+                  "write results.json, results.csv, table.md and figures/ to --out.")
   add_config_arguments(p, DemoConfig, "demo", "demo")
   _add_method_configs(p)
   p.add_argument("--retrain", action="store_true", help="retrain the source model (ignore cache)")
