@@ -25,6 +25,7 @@ from flax import struct
 
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.adapt.config import AdaptConfig
+from pitta_jax.adapt.hoist import hoist_invariants
 from pitta_jax.methods.base import Method
 
 Tree = Any
@@ -205,10 +206,15 @@ def make_step(model: Any, method: Method, cfg: AdaptConfig,
 
 def make_chunk_runner(step):
   """jit(lax.scan(step)) over a chunk of frames, carry donated:
-  `(state, frames, consts) -> (state, outputs)`; `consts` is an ordinary (not donated) input."""
+  `(state, frames, consts) -> (state, outputs)`; `consts` is an ordinary (not donated) input.
+
+  The step's work that depends on `consts` alone (e.g. the frozen convolutions' input-gradient
+  kernels) runs once per chunk, before the scan (`hoist.hoist_invariants`)."""
   @functools.partial(jax.jit, donate_argnums=0)
   def run_chunk(state, frames, consts):
-    return jax.lax.scan(lambda s, f: step(s, f, consts), state, frames)
+    one = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), frames)
+    body, _ = hoist_invariants(lambda c, s, f: step(s, f, c), consts, state, one)
+    return jax.lax.scan(body, state, frames)
   return run_chunk
 
 

@@ -2,7 +2,8 @@
 
 Decoder: from the 1/32 feature map up to full resolution, five stages i = 4..0, each
 `upconv_i_0` (3x3 conv, reflection padding, ELU), nearest x2 upsampling, concatenation with the
-encoder skip `features[i - 1]` (i > 0), `upconv_i_1` (3x3 conv, reflection padding, ELU).
+encoder skip `features[i - 1]` (i > 0), `upconv_i_1` (3x3 conv, reflection padding, ELU); the
+last three steps run as one layer (`layers.UpConv3x3`, which never builds the upsampled map).
 Channels (16, 32, 64, 128, 256). A sigmoid disparity head `dispconv_s` (3x3 conv, reflection
 padding) at scales s = 0..3, scale s at 1/2**s of the input resolution.
 
@@ -13,10 +14,10 @@ are what `weights_convert monodepth2` writes. `disp_to_depth` is MonoDepth2's.
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import flax.linen as nn
 
-from pitta_jax.models.layers import Conv, ModuleDef, reflect_pad, upsample_nearest2x
+from pitta_jax.models.layers import (Conv, ModuleDef, UpConv3x3, padded_conv_is_cheap,
+                                     reflect_pad)
 from pitta_jax.models.resnet import ResnetEncoder, encoder_channels
 
 DECODER_CHANNELS = (16, 32, 64, 128, 256)
@@ -25,7 +26,13 @@ MIN_DEPTH, MAX_DEPTH = 0.1, 100.0  # MonoDepth2's defaults
 
 
 def conv3x3_reflect(x: jax.Array, features: int, name: str, module: ModuleDef = Conv) -> jax.Array:
-  """MonoDepth2's `Conv3x3(use_refl=True)`: ReflectionPad2d(1) then a 3x3 VALID conv with bias."""
+  """MonoDepth2's `Conv3x3(use_refl=True)`: ReflectionPad2d(1) then a 3x3 conv with bias,
+  (B, H, W, C) -> (B, H, W, features); with its own zero padding of 1 and the output ring
+  sliced off where that is cheap (`layers.reflect_conv3x3` says why)."""
+  h, w = x.shape[1], x.shape[2]
+  if padded_conv_is_cheap(h, w):
+    y = module(features, (3, 3), padding=((1, 1), (1, 1)), use_bias=True, name=name)(reflect_pad(x))
+    return y[:, 1:-1, 1:-1]
   return module(features, (3, 3), padding="VALID", use_bias=True, name=name)(reflect_pad(x))
 
 
@@ -43,10 +50,9 @@ class DepthDecoder(nn.Module):
     disps = {}
     for i in range(4, -1, -1):
       x = nn.elu(conv3x3_reflect(x, DECODER_CHANNELS[i], f"upconv_{i}_0", self.conv))
-      x = upsample_nearest2x(x)
-      if i > 0:
-        x = jnp.concatenate([x, features[i - 1]], axis=-1)
-      x = nn.elu(conv3x3_reflect(x, DECODER_CHANNELS[i], f"upconv_{i}_1", self.conv))
+      # upconv_i_1 of concat([upsample_nearest2x(x), features[i - 1]]), as one layer
+      skip = features[i - 1] if i > 0 else None
+      x = nn.elu(UpConv3x3(DECODER_CHANNELS[i], self.conv, name=f"upconv_{i}_1")(x, skip))
       if i in self.scales:
         disps[i] = nn.sigmoid(conv3x3_reflect(x, self.num_output_channels, f"dispconv_{i}", self.conv))
     return tuple(disps[s] for s in self.scales)

@@ -1,0 +1,87 @@
+"""The decoder's fast layer forms (`models.layers`) against their plain definitions.
+
+- `reflect_pad` equals NumPy's `np.pad(mode="reflect")` (what `nn.ReflectionPad2d` does),
+  including maps of 1 pixel (NumPy's rule);
+- `reflect_conv3x3` (padded conv with the ring sliced off, or VALID) equals the VALID conv of
+  the reflection-padded map, bit for bit, on both sides of the `padded_conv_is_cheap` rule;
+- `upsample_reflect_conv3x3` (four 2x2 phase convs at low resolution) and `UpConv3x3` equal
+  the composition upstream writes (nearest 2x upsampling with `np.repeat`, concatenation,
+  reflection padding, VALID 3x3 conv, bias), value and input gradients, within float32
+  rounding, on even, odd and 1-pixel maps; `UpConv3x3` has `nn.Conv`'s parameter tree.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax import lax
+
+from pitta_jax.models import layers
+
+NHWC = ("NHWC", "HWIO", "NHWC")
+
+
+def plain_reflect_conv(x, k):
+  xp = jnp.asarray(np.pad(np.asarray(x), ((0, 0), (1, 1), (1, 1), (0, 0)), mode="reflect"))
+  return lax.conv_general_dilated(xp, k, (1, 1), "VALID", dimension_numbers=NHWC,
+                                  precision=lax.Precision.HIGHEST)
+
+
+@pytest.mark.parametrize("h, w", [(1, 1), (1, 4), (2, 3), (5, 7), (12, 40)])
+def test_reflect_pad_is_numpy_reflect(h, w):
+  x = np.random.default_rng(0).standard_normal((2, h, w, 3)).astype(np.float32)
+  np.testing.assert_array_equal(np.asarray(jax.jit(layers.reflect_pad)(x)),
+                                np.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="reflect"))
+
+
+@pytest.mark.parametrize("h, w", [(6, 20), (48, 160)])  # VALID form, padded form
+def test_reflect_conv3x3_is_the_valid_conv_of_the_padded_map(h, w):
+  rng = np.random.default_rng(1)
+  x = jnp.asarray(rng.standard_normal((1, h, w, 8)).astype(np.float32))
+  k = jnp.asarray(rng.standard_normal((3, 3, 8, 5)).astype(np.float32))
+  assert layers.padded_conv_is_cheap(h, w) == (h > 20)
+  got = jax.jit(layers.reflect_conv3x3)(x, k)
+  want = jax.jit(lambda x, k: lax.conv_general_dilated(layers.reflect_pad(x), k, (1, 1), "VALID",
+                                                       dimension_numbers=NHWC))(x, k)
+  np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+
+def upstream_upconv(x, skip, k, b):
+  """nearest 2x (np.repeat), concat, ReflectionPad2d(1), VALID conv, bias."""
+  u = jnp.repeat(jnp.repeat(x, 2, axis=1), 2, axis=2)
+  if skip is not None:
+    u = jnp.concatenate([u, skip], axis=-1)
+  xp = jnp.pad(u, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="reflect")
+  return lax.conv_general_dilated(xp, k, (1, 1), "VALID", dimension_numbers=NHWC,
+                                  precision=lax.Precision.HIGHEST) + b
+
+
+@pytest.mark.parametrize("h, w, skip_channels", [(1, 1, 0), (1, 3, 2), (3, 5, 0), (4, 6, 3),
+                                                 (7, 9, 4)])
+def test_upconv_equals_upsample_concat_reflect_conv(h, w, skip_channels):
+  rng = np.random.default_rng(h * 100 + w)
+  c, o = 3, 4
+  x = jnp.asarray(rng.standard_normal((2, h, w, c)).astype(np.float32))
+  skip = (jnp.asarray(rng.standard_normal((2, 2 * h, 2 * w, skip_channels)).astype(np.float32))
+          if skip_channels else None)
+  layer = layers.UpConv3x3(o)
+  variables = layer.init(jax.random.PRNGKey(0), x, skip)
+  ref_vars = nn.Conv(o, (3, 3)).init(jax.random.PRNGKey(0), jnp.zeros((1, 4, 4, c + skip_channels)))
+  assert jax.tree_util.tree_map(jnp.shape, variables) == jax.tree_util.tree_map(jnp.shape, ref_vars)
+  k = jnp.asarray(rng.standard_normal((3, 3, c + skip_channels, o)).astype(np.float32))
+  b = jnp.asarray(rng.standard_normal((o,)).astype(np.float32))
+  params = {"params": {"kernel": k, "bias": b}}
+  got = jax.jit(lambda x, s: layer.apply(params, x, s))(x, skip)
+  want = jax.jit(upstream_upconv)(x, skip, k, b)
+  assert got.shape == (2, 2 * h, 2 * w, o)
+  np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-5)
+
+  g = jnp.asarray(rng.standard_normal(got.shape).astype(np.float32))
+  ours = jax.vjp(lambda x, s: layer.apply(params, x, s), x, skip)[1](g)
+  theirs = jax.vjp(lambda x, s: upstream_upconv(x, s, k, b), x, skip)[1](g)
+  for a, r in zip(ours, theirs):
+    if r is not None:
+      np.testing.assert_allclose(np.asarray(a), np.asarray(r), rtol=1e-5, atol=1e-5)
