@@ -47,9 +47,9 @@ SYNTHETIC_CAPTION = {
     "drivingstereo": "synthetic benchmark standing in for DrivingStereo: Foggy = fog, Rainy = rain "
                      "(severity 0.7), Sunny = clear, All = clear, fog, rain, clear in turn (one "
                      "continual run), on unseen streets (seeds 200-202)",
-    "waymo": "synthetic benchmark standing in for Waymo: camera 2.1 m high (KITTI: 1.65 m), 11 m/s, "
-             "denser traffic (12 vehicles, 10 pedestrians per 100 m), rain at severity 0.5, "
-             "street seed 300",
+    "waymo": "synthetic benchmark standing in for Waymo: camera 2.1 m high (KITTI: 1.65 m), "
+             "11 m/s, denser traffic (12 vehicles, 10 pedestrians per 100 m), rain at "
+             "severity 0.5, street seed 300",
 }
 # The real datasets: the reader options of each part of a case.
 REAL = {
@@ -406,7 +406,8 @@ def meta(ctx: Context) -> dict:
   import platform
   return {"dataset": ctx.dataset, "root": ctx.root, "options": ctx.options,
           "segmentation": ctx.segmentation, "weights": ctx.weights, "quick": ctx.quick,
-          "frames_per_part": ctx.frames, "rows_selected": list(ctx.rows), "load": f"load average {load_average()}",
+          "frames_per_part": ctx.frames, "rows_selected": list(ctx.rows),
+          "load": f"load average {load_average()}",
           "machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "format": FORMAT}
 
 

@@ -32,19 +32,14 @@ TITLE = ("MonoDepth2 ResNet-18 adapted online; every baseline with PITTA's L_d "
 
 def run(args, runners=None) -> int:
   from experiments.figures import per_frame_figures
-  from experiments.render import write_table
-  from experiments.tables import rows_table
+  from experiments.tables import publish, rows_table
   ctx = common.context(args, "table1", runners)
   elapsed = common.timer()
   entries = rows_table(ctx, ROWS, CASES, table=1)
   caption = f"{TITLE} Dataset: {_dataset_caption(ctx)}."
   per_frame_figures(ctx.out, "table1", entries)
-  md = write_table(ctx.out, "table1", entries, layout="rows", caption=caption,
-                   group_title="Weather", row_title="Method", seconds=elapsed(),
-                   meta=common.meta(ctx))
-  if not ctx.quiet:
-    print(md)
-  return 0
+  return publish(ctx, "table1", entries, elapsed(), layout="rows", caption=caption,
+                 group_title="Weather", row_title="Method")
 
 
 def _dataset_caption(ctx) -> str:

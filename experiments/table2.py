@@ -16,19 +16,14 @@ from experiments.table1 import ROWS, TITLE
 
 def run(args, runners=None) -> int:
   from experiments.figures import per_frame_figures
-  from experiments.render import write_table
-  from experiments.tables import rows_table
+  from experiments.tables import publish, rows_table
   ctx = common.context(args, "table2", runners)
   elapsed = common.timer()
   entries = rows_table(ctx, ROWS, ("Waymo",), table=2, with_case=False)
   caption = f"{TITLE} Dataset: {waymo_caption(ctx)}."
   per_frame_figures(ctx.out, "table2", entries)
-  md = write_table(ctx.out, "table2", entries, layout="rows", caption=caption,
-                   group_title="Dataset", row_title="Method", seconds=elapsed(),
-                   meta=common.meta(ctx))
-  if not ctx.quiet:
-    print(md)
-  return 0
+  return publish(ctx, "table2", entries, elapsed(), layout="rows", caption=caption,
+                 group_title="Dataset", row_title="Method")
 
 
 def waymo_caption(ctx) -> str:

@@ -43,7 +43,7 @@ def rows() -> list[tuple[str, str, RowSpec]]:
 def run(args, runners=None) -> int:
   from tqdm import tqdm
   from experiments.figures import per_frame_figures
-  from experiments.render import write_table
+  from experiments.tables import publish
   ctx = common.context(args, "table3", runners)
   elapsed = common.timer()
   cases = dict(ctx.cases(("Sunny", "All")))
@@ -62,12 +62,8 @@ def run(args, runners=None) -> int:
                 if ctx.dataset == "synthetic" else f"DrivingStereo at {ctx.root}")
              + ". No adaptation is measured on All.")
   per_frame_figures(ctx.out, "table3", entries)
-  md = write_table(ctx.out, "table3", entries, layout="rows", caption=caption,
-                   group_title="Network", row_title="Weather", seconds=elapsed(),
-                   meta=common.meta(ctx))
-  if not ctx.quiet:
-    print(md)
-  return 0
+  return publish(ctx, "table3", entries, elapsed(), layout="rows", caption=caption,
+                 group_title="Network", row_title="Weather")
 
 
 def main(argv: Sequence[str] | None = None, runners=None) -> int:

@@ -72,8 +72,8 @@ def _sweep_runner(weights, cfg):
 
 def run(args, runners=None) -> int:
   from experiments.figures import lambda_figure
-  from experiments.render import write_table
   from experiments.table2 import waymo_caption
+  from experiments.tables import publish
   ctx = common.context(args, "table4", runners)
   elapsed = common.timer()
   (case, parts), = ctx.cases(("Waymo",))
@@ -98,12 +98,8 @@ def run(args, runners=None) -> int:
   caption = (f"PITTA's lambda of eq. 10 (AbsRel, δ<1.25), 12 streams in one vmapped run. "
              f"Dataset: {waymo_caption(ctx)}.")
   lambda_figure(ctx.out, "table4", entries)
-  md = write_table(ctx.out, "table4", entries, layout="columns", caption=caption,
-                   group_title="Dataset", row_title="λ", metrics=("abs_rel", "a1"),
-                   seconds=elapsed(), meta=common.meta(ctx))
-  if not ctx.quiet:
-    print(md)
-  return 0
+  return publish(ctx, "table4", entries, elapsed(), layout="columns", caption=caption,
+                 group_title="Dataset", row_title="λ", metrics=("abs_rel", "a1"))
 
 
 def main(argv: Sequence[str] | None = None, runners=None) -> int:

@@ -20,9 +20,8 @@ ROWS = tuple(RowSpec(f"CNN {a}% + BN {b}%", "pitta",
 
 
 def run(args, runners=None) -> int:
-  from experiments.render import write_table
   from experiments.table2 import waymo_caption
-  from experiments.tables import run_grid
+  from experiments.tables import publish, run_grid
   ctx = common.context(args, "table5", runners)
   elapsed = common.timer()
   entries = run_grid(ctx, ROWS, ("Waymo",))
@@ -30,12 +29,8 @@ def run(args, runners=None) -> int:
   common.attach_paper(entries, 5, lambda e: dict(zip(("cnn_percent", "bn_percent"),
                                                      fractions[e.label])))
   caption = f"Adapted parameters of PITTA (AbsRel, δ<1.25). Dataset: {waymo_caption(ctx)}."
-  md = write_table(ctx.out, "table5", entries, layout="columns", caption=caption,
-                   group_title="Dataset", row_title="fraction", metrics=("abs_rel", "a1"),
-                   seconds=elapsed(), meta=common.meta(ctx))
-  if not ctx.quiet:
-    print(md)
-  return 0
+  return publish(ctx, "table5", entries, elapsed(), layout="columns", caption=caption,
+                 group_title="Dataset", row_title="fraction", metrics=("abs_rel", "a1"))
 
 
 def main(argv: Sequence[str] | None = None, runners=None) -> int:

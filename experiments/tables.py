@@ -34,3 +34,15 @@ def rows_table(ctx: Context, rows: Sequence[RowSpec], cases: Sequence[str], tabl
   entries = run_grid(ctx, rows, cases)
   attach_paper(entries, table, lambda e: paper_fields(e, with_case))
   return entries
+
+
+def publish(ctx: Context, name: str, entries: Sequence[Entry], elapsed: float,
+            **layout) -> int:
+  """Writes the table's files (`render.write_table`, `layout` its keyword arguments) with the
+  run's metadata, prints the markdown unless --quiet; the command's exit status (0)."""
+  from experiments.common import meta
+  from experiments.render import write_table
+  md = write_table(ctx.out, name, entries, seconds=elapsed, meta=meta(ctx), **layout)
+  if not ctx.quiet:
+    print(md)
+  return 0
