@@ -25,6 +25,7 @@ from pitta_jax.adapt.inputs import chunks
 from pitta_jax.checkpoint import Weights
 from pitta_jax.configs import check, option
 from pitta_jax.methods import Method, build as build_method
+from pitta_jax.methods.base import INPUT_SIZE
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame
 
@@ -146,7 +147,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     runners: a shared cache of compiled runners (default: a fresh one, compiled for this call).
     resume: continue from the newest checkpoint under `checkpoint_dir` (its frames are not run
       again); the result equals an uninterrupted run's.
-    resources: host-side inputs of the method (e.g. ActMAD's source statistics).
+    resources: host-side inputs of the method (e.g. ActMAD's source statistics); the input
+      size (H, W) is added as `resources["input_size"]`.
   """
   from pitta_jax.sources import check_frame_needs, check_needs
   if len(frames) == 0:
@@ -158,7 +160,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   h, w = weights.height, weights.width
   model, tx, runner = (runners or Runners()).get(weights, method, cfg)
   alignment = weights.spec.alignment if eval_cfg.alignment == "model" else eval_cfg.alignment
-  state, consts = init_state(weights.depth, method, cfg, tx, model, resources)
+  state, consts = init_state(weights.depth, method, cfg, tx, model,
+                             {INPUT_SIZE: (h, w), **(resources or {})})
   record = {"per_frame": [], "names": [], "excluded": [], "logs": {}}
   directory = Path(checkpoint_dir) if checkpoint_dir else None
   if resume and directory is not None:

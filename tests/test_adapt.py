@@ -170,6 +170,20 @@ def test_nonfinite_guard_skips_and_counts(variables, engine):
     np.testing.assert_array_equal(a, b)
 
 
+def test_all_finite_flags_any_nan_or_inf_leaf():
+  """engine.all_finite against NumPy's all(isfinite) over float, int and bool leaves (hand-made
+  trees), also under jit."""
+  from pitta_jax.adapt.engine import all_finite
+  base = {"a": np.ones((3, 2), np.float32), "b": {"c": np.arange(4, dtype=np.int32),
+                                                  "d": np.array(True)}, "e": np.zeros(())}
+  cases = [base, {**base, "a": np.array([[1.0, np.nan]] * 3, np.float32)},
+           {**base, "e": np.array(-np.inf)}, {**base, "a": np.full((3, 2), 3e38, np.float32)},
+           {}]
+  for tree in cases:
+    want = all(np.all(np.isfinite(x)) for x in jax.tree_util.tree_leaves(tree))
+    assert bool(all_finite(tree)) == want and bool(jax.jit(all_finite)(tree)) == want
+
+
 def test_reset_policy_restores_source_parameters(variables):
   cfg = dataclasses.replace(CFG, reset_every=2)
   model, method = _model(), build("pitta", PITTA)

@@ -2,7 +2,9 @@
 
 Per frame (predict-then-adapt, as every TTA paper evaluates): the method's loss is evaluated on
 the frame; the depth returned for evaluation comes from that same forward pass, i.e. *before* the
-update the frame causes; then the method updates its state (paper eq. 11 for PITTA). A
+update the frame causes; then the method updates its state (paper eq. 11 for PITTA). A method
+whose original evaluates after its update (`Method.report_after_update`, Ada-Depth) gets one
+more forward pass with the updated parameters, and that depth is returned instead. A
 sequence is `jax.lax.scan(adapt_step, state, frames)`; long sequences stream through one compiled
 scan of `chunk_size` frames at a time, so memory does not grow with the sequence length, and the
 state can be checkpointed (orbax) after any frame and resumed with bitwise identical results.
@@ -26,7 +28,7 @@ from flax import struct
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.adapt.config import AdaptConfig
 from pitta_jax.adapt.hoist import hoist_invariants
-from pitta_jax.methods.base import Method
+from pitta_jax.methods.base import Method, predict
 
 Tree = Any
 
@@ -77,7 +79,8 @@ class AdaptState:
 
 class StepOutput(NamedTuple):
   """Per-frame measurements returned by the step (stacked by the scan)."""
-  depth: jax.Array        # (H, W) depth predicted before this frame's update
+  depth: jax.Array        # (H, W) depth predicted before this frame's update (after it with
+                          # Method.report_after_update)
   loss: jax.Array         # () the method's loss (0 for `none`)
   logs: dict              # () scalars: the method's own terms (PITTA: loss_d, loss_e, n_instances)
   skipped: jax.Array      # () bool, the update was skipped (non-finite)
@@ -124,9 +127,18 @@ def init_state(variables: Tree, method: Method, cfg: AdaptConfig,
 
 
 def all_finite(tree: Tree) -> jax.Array:
-  """() bool: every leaf of `tree` is finite."""
+  """() bool: every leaf of `tree` is finite.
+
+  Written as sqrt(sum over the leaves of a 0-or-NaN count) so that XLA computes the predicate
+  once: an `and` of per-leaf flags is a chain of cheap scalar ops that XLA's fusion copies into
+  every consumer, i.e. into each guarded leaf's select (with hundreds of leaves, minutes of
+  compile time and a 100 MB program); sqrt is an op it does not duplicate.
+  """
   leaves = jax.tree_util.tree_leaves(tree)
-  return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves])) if leaves else jnp.array(True)
+  if not leaves:
+    return jnp.array(True)
+  nan_if_any = sum(jnp.sum(jnp.where(jnp.isfinite(x), 0.0, jnp.nan)) for x in leaves)
+  return jnp.isfinite(jnp.sqrt(nan_if_any))
 
 
 def select(pred: jax.Array, on_true: Tree, on_false: Tree) -> Tree:
@@ -191,6 +203,8 @@ def adapt_step(state: AdaptState, frame: StepInput, consts: Consts, *, model: An
       skipped = jnp.array(False)
     if k == 0:  # predict-then-adapt: report the first forward pass
       outputs = StepOutput(aux.depth, loss, aux.logs, skipped, gnorm, unorm)
+  if method.report_after_update:  # adapt-then-predict: the depth after the last update
+    outputs = outputs._replace(depth=predict(state.trainable, consts, frame, model, cfg))
   state = state.replace(step=state.step + 1)
   # a padding frame leaves the state untouched
   state = select(frame.valid, state, before)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-from pitta_jax.methods import actmad, comoda, cotta, none, pitta
+from pitta_jax.methods import actmad, adadepth, comoda, cotta, none, pitta
 from pitta_jax.methods.base import Aux, Method
 from pitta_jax.methods.depth_refining import DepthRefiningConfig
 
@@ -16,6 +16,7 @@ METHODS: dict[str, tuple[type, Callable[[Any], Method]]] = {
     "pitta": (pitta.PittaConfig, pitta.build),
     "none": (none.NoneConfig, none.build),
     "comoda": (comoda.ComodaConfig, comoda.build),
+    "adadepth": (adadepth.AdadepthConfig, adadepth.build),
     "actmad": (actmad.ActmadConfig, actmad.build),
     "cotta": (cotta.CottaConfig, cotta.build),
 }

@@ -7,7 +7,8 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
       teacher, source statistics, a ring of previous frames (`ring_init`/`ring_push`), a
       per-stream loss weight. `parts` is the trainable/frozen/batch_stats split of the source
       network, `resources` optional host-side inputs loaded before the run (source
-      statistics, a replay set), keyed by name.
+      statistics, a replay set), keyed by name; `resources[INPUT_SIZE]` is the frames' (H, W)
+      (e.g. for a ring of previous images).
   loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg) -> (loss, Aux)
       Differentiable in `trainable`. It also produces the depth that is evaluated for this
       frame (predict-then-adapt: the depth before this frame's update) and an open dict of
@@ -26,6 +27,9 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
   needs: what the method needs besides a frame's image and panoptic input, checked before any
       work: "pose" (the weights' pose network, given as resources["pose"] = PoseNet(module,
       variables)), "intrinsics" (every frame's K), "previous_frame" (consecutive frames).
+  report_after_update: the frame's evaluated depth is the adapted network's prediction *after*
+      the frame's update (`predict` with the new trainable leaves, one more forward pass) instead
+      of `Aux.depth` (e.g. Ada-Depth, whose official code evaluates the student after its step).
 
 The engine (`pitta_jax.adapt.engine`) knows only this interface, never a method's name.
 """
@@ -45,6 +49,7 @@ Tree = Any
 
 NEEDS = ("pose", "intrinsics", "previous_frame")
 POSE = "pose"  # the resources key of the weights' pose network
+INPUT_SIZE = "input_size"  # the resources key of the frames' (H, W) (`run.run_sequence` gives it)
 
 
 class PoseNet(NamedTuple):
@@ -99,6 +104,8 @@ class Method:
   # the AdaptConfig values of the method's published setting beyond `requires` (e.g. which
   # parameters adapt), as (field, value) pairs; the demo and the experiments start from them
   setting: tuple[tuple[str, Any], ...] = ()
+  # evaluate the depth predicted after the frame's update instead of Aux.depth
+  report_after_update: bool = False
 
   def __post_init__(self):
     unknown = set(self.needs) - set(NEEDS)
