@@ -231,9 +231,11 @@ def _add_adapt(sub, name: str) -> None:
                  help="continue from the newest checkpoint under OUT/checkpoints (the frames "
                       "it holds are not run again; results equal an uninterrupted run's)")
   p.add_argument("--quiet", action="store_true", help="no progress bars")
+  # the evaluation protocol first: its short aliases (--min-depth, --max-depth) stay its own
+  # when a method's config has a field of the same name (CoMoDa's MonoDepth2 loss)
+  add_config_arguments(p, EvalConfig, "eval", "evaluation")
   if adapting:
     _add_method_configs(p)
-  add_config_arguments(p, EvalConfig, "eval", "evaluation")
   p.set_defaults(func=_run_adapt, adapting=adapting)
 
 
