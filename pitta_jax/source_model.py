@@ -363,10 +363,11 @@ def evaluate_depth(weights: Weights, frames) -> list[dict[str, float]]:
   median scaling for MonoDepth2-family nets); frames without valid ground truth are left out."""
   from pitta_jax.adapt import AdaptConfig
   from pitta_jax.demo import ROWS
-  from pitta_jax.methods import build as build_method
+  from pitta_jax.methods import build as build_method, method_setting
   from pitta_jax.run import run_sequence
-  cfg = dataclasses.replace(AdaptConfig(), **ROWS["none"][1])
-  return run_sequence(weights, frames, cfg, build_method(cfg.method), quiet=True).per_frame
+  _, name, changes = ROWS["none"]
+  cfg = dataclasses.replace(AdaptConfig(method=name), **{**method_setting(name), **changes})
+  return run_sequence(weights, frames, cfg, build_method(name), quiet=True).per_frame
 
 
 def predict_motions(weights: Weights, firsts: np.ndarray, seconds: np.ndarray,
