@@ -27,11 +27,11 @@ NAMES = ("table1", "table2", "table3", "table4", "table5", "sensitivity")
 def main(argv: Sequence[str] | None = None) -> int:
   """`NAME [args]` -> experiments.NAME.main(args)."""
   argv = list(sys.argv[1:] if argv is None else argv)
-  if not argv or argv[0] in ("-h", "--help") or argv[0] not in NAMES:
+  if argv and argv[0] not in NAMES + ("-h", "--help"):
+    print(f"error: unknown experiment {argv[0]!r}; choose from {', '.join(NAMES)}",
+          file=sys.stderr)
+    return 2
+  if not argv or argv[0] in ("-h", "--help"):
     print(__doc__)
-    if argv and argv[0] not in ("-h", "--help"):
-      print(f"error: unknown experiment {argv[0]!r}; choose from {', '.join(NAMES)}",
-            file=sys.stderr)
-      return 2
     return 0 if argv else 2
   return importlib.import_module(f"experiments.{argv[0]}").main(argv[1:])
