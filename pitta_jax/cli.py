@@ -407,6 +407,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+  argv = list(sys.argv[1:] if argv is None else argv)
+  if argv[:1] == ["experiment"]:  # its own parsers (flags such as --help belong to the table)
+    import experiments
+    return experiments.main(argv[1:])
   args = build_parser().parse_args(argv)
   try:
     return args.func(args)
