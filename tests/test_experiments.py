@@ -160,3 +160,12 @@ def test_sensitivity_quick(quick_out):
   studies = {r["group"] for r in payload["rows"]}
   assert studies == {"lr x steps", "BN mode", "traffic", "lambda", "sequence length"}
   assert all(_finite(r) for r in payload["rows"]) and payload["verdict"]
+
+
+def test_experiment_subcommand_dispatches_and_names_a_bad_experiment(capsys):
+  from pitta_jax.cli import main
+  assert main(["experiment", "nope"]) == 2
+  assert capsys.readouterr().err.count("\n") == 1
+  with pytest.raises(SystemExit) as e:
+    main(["experiment", "table4", "--help"])
+  assert e.value.code == 0 and "--quick" in capsys.readouterr().out
