@@ -87,7 +87,7 @@ class Entry:
   group: str
   label: str
   metrics: dict[str, float]
-  status: str = "ok"            # ok | needs weights: --weights MODEL=DIR
+  status: str = "ok"            # ok | needs weights: --weights MODEL=DIR | diverged: ...
   extra: dict[str, Any] = dataclasses.field(default_factory=dict)
   paper: dict[str, float] | None = None
   spec: RowSpec | None = None   # the row's configuration (None for derived rows)
@@ -251,15 +251,18 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
                        quiet=ctx.quiet, runners=runners, resources=resources[res_key],
                        checkpoint_dir=None if ctx.quick else ckpt,
                        checkpoint_every=0 if ctx.quick else CHECKPOINT_EVERY, resume=True)
-    return {"metrics": res.mean, "frames": len(frames), "seconds": round(res.seconds, 2),
+    return {"metrics": res.mean if res.status == "ok" else {}, "status": res.status,
+            "metrics_before_divergence": res.mean if res.status != "ok" else None,
+            "frames": len(frames), "seconds": round(res.seconds, 2),
             "fps": round(res.fps, 3), "n_skipped": res.n_skipped,
             "abs_rel_per_frame": [m["abs_rel"] for m in res.per_frame],
             "adapt": dataclasses.asdict(cfg), "method_config": dataclasses.asdict(method.config)}
 
   result = cached(ctx, key, compute)
   _remove_checkpoints(ctx.out / "rows" / f"{key}.ckpt")
-  return Entry(case, row.label, result["metrics"], spec=row, extra={
-      k: result[k] for k in ("frames", "seconds", "fps", "n_skipped", "abs_rel_per_frame")})
+  return Entry(case, row.label, result["metrics"], spec=row, status=result.get("status", "ok"),
+               extra={k: result.get(k) for k in ("frames", "seconds", "fps", "n_skipped",
+                                                 "abs_rel_per_frame", "metrics_before_divergence")})
 
 
 def _remove_checkpoints(directory: Path) -> None:

@@ -300,7 +300,8 @@ def _run_adapt(args) -> int:
     row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.fps, 2),
                                                      "frames": len(res.frame_names),
                                                      "n_skipped": res.n_skipped,
-                                                     "n_excluded": len(res.excluded)})
+                                                     "n_excluded": len(res.excluded)},
+              status="ok" if res.status == "ok" else f"{res.status}; means over the frames before")
     meta = {"command": args.command, "dataset": args.dataset, "root": args.root,
             "options": args.option, "segmentation": args.segmentation, "notes": notes,
             "source": {"images": args.source_images, "replay_root": args.replay_root,
@@ -311,6 +312,9 @@ def _run_adapt(args) -> int:
             "per_frame": res.per_frame,
             "excluded_frames": {"count": len(res.excluded), "names": res.excluded,
                                 "reason": "no valid ground-truth pixel"},
+            "nonfinite_frames": {"count": len(res.nonfinite), "names": res.nonfinite,
+                                 "first_index": res.diverged_at,
+                                 "reason": "predicted depth not finite (the method diverged)"},
             "resumed_at_frame": res.resumed_at,
             "logs": {k: v.tolist() for k, v in res.logs.items()}}
     table = write_results(out, [row], meta, group_title="Dataset")
@@ -319,6 +323,9 @@ def _run_adapt(args) -> int:
     if res.excluded:
       print(f"{len(res.excluded)} frame(s) without valid ground truth excluded from the means: "
             f"{', '.join(res.excluded[:5])}{' ...' if len(res.excluded) > 5 else ''}")
+    if res.nonfinite:
+      print(f"warning: {res.status}; the means cover the frames before "
+            f"({res.nonfinite[0]} on)", file=sys.stderr)
     print(f"{len(res.frame_names)} frames at {res.fps:.2f} frames/s; results in {out}/")
   return 0
 

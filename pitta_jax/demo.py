@@ -111,12 +111,12 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
                          quiet=quiet, keep=(len(frames) - 1,), runners=runners,
                          resources=resources[key])
       results[row] = res
-      rows.append(Row(domain, row, res.mean, {
+      rows.append(Row(domain, row, res.mean if res.status == "ok" else {}, {
           "fps": round(res.fps, 2), "seconds": round(res.seconds, 2), "frames": len(frames),
           "n_skipped": res.n_skipped, "mean_loss": float(np.mean(res.logs["loss"])),
           "ms_per_frame": round(1000.0 / res.fps, 1),
           **({"mean_instances": float(np.mean(res.logs["n_instances"]))}
-             if "n_instances" in res.logs else {})}))
+             if "n_instances" in res.logs else {})}, status=res.status))
     per_frame[domain] = {r: [m["abs_rel"] for m in res.per_frame] for r, res in results.items()}
     _figures(out / "figures", domain, frames, results, h, w)
   seconds = time.perf_counter() - t_start

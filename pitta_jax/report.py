@@ -28,6 +28,7 @@ class Row:
   method: str
   metrics: dict[str, float]
   extra: dict[str, Any] = dataclasses.field(default_factory=dict)  # fps, seconds, n_skipped...
+  status: str = "ok"   # else why there are no metrics (e.g. "diverged: ..."), shown instead
 
 
 def markdown_table(rows: Sequence[Row], group_title: str = "Shift") -> str:
@@ -38,10 +39,13 @@ def markdown_table(rows: Sequence[Row], group_title: str = "Shift") -> str:
     members = [r for r in rows if r.group == group]
     best = {}
     for m in METRIC_NAMES:
-      vals = [r.metrics[m] for r in members if m in r.metrics]
+      vals = [r.metrics[m] for r in members if m in r.metrics and r.status == "ok"]
       if len(vals) > 1:
         best[m] = max(vals) if m in HIGHER_IS_BETTER else min(vals)
     for r in members:
+      if r.status != "ok":
+        lines.append(f"| {group} | {r.method} | {r.status} |" + " — |" * (len(METRIC_NAMES) - 1))
+        continue
       cells = []
       for m in METRIC_NAMES:
         v = r.metrics.get(m, float("nan"))

@@ -62,6 +62,21 @@ class RunResult:
   n_skipped: int = 0
   excluded: list[str] = dataclasses.field(default_factory=list)  # frames without valid GT
   resumed_at: int = 0                  # frames taken from a checkpoint (--resume)
+  # frames whose predicted depth has a non-finite value (a diverged method): not scored
+  nonfinite: list[str] = dataclasses.field(default_factory=list)
+
+  @property
+  def diverged_at(self) -> int | None:
+    """Index of the first frame whose prediction is not finite (None: the run never diverged)."""
+    return self.frame_names.index(self.nonfinite[0]) if self.nonfinite else None
+
+  @property
+  def status(self) -> str:
+    """"ok", or where the method diverged: what a results table shows instead of its means."""
+    if not self.nonfinite:
+      return "ok"
+    return (f"diverged: non-finite depth from frame {self.diverged_at} of "
+            f"{len(self.frame_names)} ({len(self.nonfinite)} frames not scored)")
 
   @property
   def fps(self) -> float:
@@ -135,7 +150,10 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   against the frame's ground truth (when it has one).
 
   A frame whose ground truth has no valid pixel is excluded from the means and named in
-  `RunResult.excluded` (the run goes on).
+  `RunResult.excluded` (the run goes on). A frame whose predicted depth is not finite (the
+  method diverged: its parameters are finite but the network overflows) is not scored either; it
+  is named in `RunResult.nonfinite`, and callers report the run as diverged
+  (`RunResult.diverged_at`) rather than its means over the frames that were still finite.
 
   Args:
     weights: the network to adapt (its config gives the input size).
@@ -162,13 +180,13 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   alignment = weights.spec.alignment if eval_cfg.alignment == "model" else eval_cfg.alignment
   state, consts = init_state(weights.depth, method, cfg, tx, model,
                              {INPUT_SIZE: (h, w), **(resources or {})})
-  record = {"per_frame": [], "names": [], "excluded": [], "logs": {}}
+  record = {"per_frame": [], "names": [], "excluded": [], "nonfinite": [], "logs": {}}
   directory = Path(checkpoint_dir) if checkpoint_dir else None
   if resume and directory is not None:
     latest = _latest_checkpoint(directory)
     if latest is not None:
       state = load_state(latest, like=state)
-      record = json.loads((latest.parent / f"{latest.name}.json").read_text())
+      record = {"nonfinite": [], **json.loads((latest.parent / f"{latest.name}.json").read_text())}
       frames = frames[int(state.step):]
   start = int(state.step)
   kept: dict[int, np.ndarray] = {}
@@ -196,7 +214,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
         depth = out.depth[k]
         if index in keep:
           kept[index] = depth
-        if frame.depth is not None:
+        if not np.isfinite(depth).all():
+          record["nonfinite"].append(frame.name)
+        elif frame.depth is not None:
           try:
             record["per_frame"].append({"name": frame.name, **metrics_lib.depth_metrics(
                 depth, frame.depth, min_depth=eval_cfg.min_depth, max_depth=eval_cfg.max_depth,
@@ -232,4 +252,4 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   return RunResult(name=name, per_frame=per_frame, mean=mean, logs=logs,
                    frame_names=record["names"], seconds=seconds, kept_depths=kept,
                    n_skipped=int(state.n_skipped), excluded=record["excluded"],
-                   resumed_at=start)
+                   resumed_at=start, nonfinite=record["nonfinite"])

@@ -231,6 +231,29 @@ def test_frames_without_valid_ground_truth_are_excluded_not_fatal(tiny_weights):
   np.testing.assert_allclose(res.mean["abs_rel"], np.mean(want), rtol=1e-12)
 
 
+def test_a_diverged_method_finishes_and_is_reported_not_scored(tiny_weights):
+  """A method whose parameters stay finite but make the network overflow (here SGD at lr 1e30
+  on the BN scales) predicts non-finite depths: those frames are named, not scored, and the
+  run says where it diverged; the frames before are scored as usual (reference: frame 0's
+  metrics computed directly). A results table shows the status instead of numbers."""
+  from pitta_jax import metrics
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.checkpoint import load_weights
+  from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  from pitta_jax.report import Row, markdown_table
+  from pitta_jax.run import run_sequence
+  frames = generate_sequence(SyntheticConfig(height=H, width=W, num_frames=3, seed=100))
+  res = run_sequence(load_weights(tiny_weights), frames, AdaptConfig(optimizer="sgd", lr=1e30),
+                     quiet=True, keep=(0,))
+  assert res.nonfinite == [f.name for f in frames[1:]] and res.diverged_at == 1
+  assert [m["name"] for m in res.per_frame] == [frames[0].name]
+  assert res.mean["abs_rel"] == metrics.depth_metrics(res.kept_depths[0], frames[0].depth)["abs_rel"]
+  assert res.status.startswith("diverged: non-finite depth from frame 1 of 3")
+  table = markdown_table([Row("fog", "A", {"abs_rel": 0.3}), Row("fog", "B", {"abs_rel": 0.4}),
+                          Row("fog", "C", {}, status=res.status)])
+  assert "| fog | C | diverged: non-finite depth from frame 1" in table and "**0.300**" in table
+
+
 def test_method_requirements_are_checked_before_work(tmp_path, capsys):
   for method in ("actmad", "cotta"):
     t0 = time.time()
