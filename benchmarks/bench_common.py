@@ -69,9 +69,19 @@ def synthetic_frames(n: int, height: int, width: int, instances: int, seed: int 
   return [synthetic_frame(start + t, height, width, instances, seed) for t in range(n)]
 
 
-def step_inputs(frames: list[BenchFrame], max_segments: int, valid: int | None = None
-                ) -> StepInput:
-  """Frames -> a stacked (T, ...) `StepInput`; frames from index `valid` on are padding."""
+# MonoDepth2's KITTI intrinsics, normalised by the image width (row 0) and height (row 1)
+KITTI_K_NORMALISED = ((0.58, 0.0, 0.5), (0.0, 1.92, 0.5), (0.0, 0.0, 1.0))
+
+
+def intrinsics_matrix(height: int, width: int) -> np.ndarray:
+  """(3, 3) float32 camera matrix K of a `height` x `width` image (KITTI's, scaled)."""
+  return (np.asarray(KITTI_K_NORMALISED) * np.array([[width], [height], [1.0]])).astype(np.float32)
+
+
+def step_inputs(frames: list[BenchFrame], max_segments: int, valid: int | None = None,
+                intrinsics: bool = False) -> StepInput:
+  """Frames -> a stacked (T, ...) `StepInput`; frames from index `valid` on are padding.
+  intrinsics: give every frame K (`intrinsics_matrix`), for methods that need it."""
   n = len(frames)
   ids = np.zeros((n, max_segments), np.int32)
   cls = np.zeros((n, max_segments), np.int32)
@@ -82,10 +92,40 @@ def step_inputs(frames: list[BenchFrame], max_segments: int, valid: int | None =
     for k, (seg_id, cat) in enumerate(f.segments):
       ids[t, k], cls[t, k], ok[t, k] = seg_id, cat, True
   valid_mask = np.arange(n) < (n if valid is None else valid)
-  # no camera: intrinsics zeros, has_intrinsics False (PITTA does not use them)
+  h, w = frames[0].image.shape[:2]
+  # without a camera: intrinsics zeros, has_intrinsics False (PITTA does not use them)
+  k = np.broadcast_to(intrinsics_matrix(h, w), (n, 3, 3)) if intrinsics else np.zeros((n, 3, 3))
   return StepInput(np.stack([f.image for f in frames]), np.stack([f.panoptic for f in frames]),
-                   ids, cls, ok, valid_mask, np.zeros((n, 3, 3), np.float32),
-                   np.zeros((n,), bool))
+                   ids, cls, ok, valid_mask, np.asarray(k, np.float32),
+                   np.full((n,), intrinsics, bool))
+
+
+SOURCE_FRAMES = 8  # generated source-domain frames a method's `prepare` gets
+
+
+def method_resources(method, model: Network, variables, height: int, width: int,
+                     seed: int = 2) -> dict:
+  """A method's host-side inputs for a benchmark, from generated data: a random pose network
+  when it needs one, and `Method.prepare` on `SOURCE_FRAMES` generated frames (as images and as
+  one consecutive sequence with K), e.g. ActMAD's source statistics; always the frames'
+  (H, W) (`run.run_sequence` gives it too)."""
+  from pitta_jax.data.frame import Frame, Segment
+  from pitta_jax.methods.base import INPUT_SIZE, POSE, PoseNet, SourceData
+  resources: dict = {INPUT_SIZE: (height, width)}
+  if "pose" in method.needs:
+    from pitta_jax.models.pose import PoseNet as PoseModule
+    module = PoseModule(18)
+    resources[POSE] = PoseNet(module, module.init(jax.random.PRNGKey(seed),
+                                                  np.zeros((1, height, width, 6), np.float32)))
+  if method.prepare is not None:
+    frames = synthetic_frames(SOURCE_FRAMES, height, width, 4, seed=seed)
+    sequence = tuple(Frame(image=f.image, panoptic=f.panoptic,
+                           segments=tuple(Segment(i, c) for i, c in f.segments),
+                           name=f"source/{t}", intrinsics=intrinsics_matrix(height, width))
+                     for t, f in enumerate(frames))
+    source = SourceData(tuple(f.image for f in frames), (sequence,))
+    resources.update(method.prepare(model, variables, source))
+  return resources
 
 
 def chunk_stream(n_frames: int, chunk: int, height: int, width: int, instances: int,
@@ -114,6 +154,22 @@ def torch_and_jax_weights(seed: int = 0, num_layers: int = 18):
     _, variables, _ = convert_monodepth2(Path(tmp) / "encoder.pth", Path(tmp) / "depth.pth",
                                          num_layers=num_layers)
   return encoder, decoder, variables
+
+
+def method_configs(name: str, instances: int, window: int, frames: int):
+  """(AdaptConfig in method `name`'s own setting with chunks of `frames`, the method's default
+  config with the depth-refining term's window `window` and room for `instances` instances)."""
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.methods import method_config_class, method_setting
+  from pitta_jax.methods.depth_refining import DepthRefiningConfig
+  cls = method_config_class(name)
+  mcfg = cls()
+  if any(f.name == "ld" for f in dataclasses.fields(cls)):
+    ld = DepthRefiningConfig(window=window, max_instances=max(mcfg.ld.max_instances, instances))
+    mcfg = dataclasses.replace(mcfg, ld=ld)
+  cfg = AdaptConfig(**{**method_setting(name), "chunk_size": frames,
+                       "max_segments": max(AdaptConfig().max_segments, instances + 2)})
+  return cfg, mcfg
 
 
 CONV_RULES = ("loop_friendly", "jax")

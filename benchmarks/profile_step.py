@@ -1,7 +1,8 @@
 """Where the time of one scanned PITTA step goes: an XLA trace of the engine's chunk runner.
 
-    python benchmarks/profile_step.py                  # 640x192, N = 8 instances
+    python benchmarks/profile_step.py                  # PITTA, 640x192, N = 8 instances
     python benchmarks/profile_step.py --height 96 --width 320 --top 20
+    python benchmarks/profile_step.py --method actmad  # any method, in its own setting
 
 Runs the engine's compiled chunk (`make_chunk_runner`) after warm-up under `jax.profiler`, reads
 the trace's per-operation times, and sorts every compiled operation into a part of the step by
@@ -32,9 +33,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import jax  # noqa: E402
 
 import bench_common as bc  # noqa: E402
-from pitta_jax.adapt import (AdaptConfig, init_state, make_chunk_runner,  # noqa: E402
-                             make_optimizer, make_step)
-from pitta_jax.methods import build  # noqa: E402
+from pitta_jax.adapt import (init_state, make_chunk_runner, make_optimizer,  # noqa: E402
+                             make_step)
+from pitta_jax.methods import METHODS, build  # noqa: E402
 
 SKIP = ("ThunkExecutor", "Await", "PjitFunction", "while")
 
@@ -51,6 +52,8 @@ def call_sites(hlo_text: str) -> dict[str, str]:
 
 
 def part_of(name: str, site: str) -> str:
+  if site and "/while/" not in site:
+    return "outside the scan (once per chunk: hoisted constants, chunk in/out)"
   if "DepthNet" in site:
     phase = "network backward" if "transpose(" in site else "network forward"
     if name.startswith(("ynn_fusion", "conv_general_dilated", "convolution")):
@@ -63,20 +66,26 @@ def part_of(name: str, site: str) -> str:
 
 def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--method", default="pitta", choices=sorted(METHODS))
   p.add_argument("--height", type=int, default=192)
   p.add_argument("--width", type=int, default=640)
   p.add_argument("--instances", type=int, default=8)
   p.add_argument("--frames", type=int, default=4, help="frames in the traced chunk")
   p.add_argument("--top", type=int, default=12, help="single operations to list")
+  p.add_argument("--dump", default="", help="also write every operation (ms per frame, call "
+                                            "site) as JSON lines to this file")
   args = p.parse_args(argv)
 
-  cfg = AdaptConfig(chunk_size=args.frames)
-  model, method = bc.depth_network(), build("pitta")
-  tx = make_optimizer(cfg)
+  cfg, mcfg = bc.method_configs(args.method, args.instances, 5, args.frames)
+  model, method = bc.depth_network(), build(args.method, mcfg)
+  tx = make_optimizer(cfg, method)
   runner = make_chunk_runner(make_step(model, method, cfg, tx))
   chunk = bc.step_inputs(bc.synthetic_frames(args.frames, args.height, args.width,
-                                             args.instances, seed=1), cfg.max_segments)
-  state, consts = init_state(bc.jax_variables(0), method, cfg, tx, model)
+                                             args.instances, seed=1), cfg.max_segments,
+                         intrinsics="intrinsics" in method.needs)
+  variables = bc.jax_variables(0)
+  resources = bc.method_resources(method, model, variables, args.height, args.width)
+  state, consts = init_state(variables, method, cfg, tx, model, resources)
   sites = call_sites(runner.lower(state, chunk, consts).compile().as_text())
   for _ in range(2):  # compile + warm-up
     state, out = runner(state, chunk, consts)
@@ -103,13 +112,17 @@ def main(argv=None) -> None:
   for name, ms in per_op.items():
     parts[part_of(name, sites.get(name, ""))] += ms
   traced = sum(parts.values())
-  common = {"H": args.height, "W": args.width, "instances": args.instances,
+  common = {"method": args.method, "H": args.height, "W": args.width, "instances": args.instances,
             "frames": args.frames, "load": bc.load()}
   bc.emit({"wall_ms_per_frame": wall_ms, "traced_ms_per_frame": traced, **common})
   for part, ms in sorted(parts.items(), key=lambda kv: -kv[1]):
     bc.emit({"part": part, "ms_per_frame": round(ms, 2), "share": round(ms / traced, 3)})
   for name, ms in per_op.most_common(args.top):
     bc.emit({"op": name, "ms_per_frame": round(ms, 2), "site": sites.get(name, "")[-90:]})
+  if args.dump:
+    with open(args.dump, "w") as f:
+      for name, ms in per_op.most_common():
+        f.write(json.dumps({"op": name, "ms_per_frame": ms, "site": sites.get(name, "")}) + "\n")
 
 
 if __name__ == "__main__":

@@ -1,22 +1,36 @@
-"""Time one PITTA adaptation step: the JAX engine vs a PyTorch eager reference, same process.
+"""Time one adaptation step of a method: the JAX engine vs PyTorch, interleaved, same process.
 
-    python benchmarks/step.py                           # 640x192, N = 8 instances, s = 5
-    python benchmarks/step.py --sweep-instances 1,8,32  # N side by side
-    python benchmarks/step.py --quick                   # 320x96, fewer repetitions
+    python benchmarks/step.py                           # PITTA at 640x192, N = 8, s = 5
+    python benchmarks/step.py --method actmad           # any method in pitta_jax.methods.METHODS
+    python benchmarks/step.py --sweep-instances 1,8,32  # PITTA's N side by side
+    python benchmarks/step.py --quick                   # 320x96, fewer frames
+    python benchmarks/step.py --profile                 # + FLOPs and the parts of the step
 
-Prints JSON lines: one per implementation and configuration (`impl`, `H`, `W`, `instances`,
-`window`, `threads`, `ms_per_frame`), a `ratio` line (torch ms / jax ms) per configuration, a
-loss-parity line (both start from the same random weights and see the same frames, so their
-losses must agree), a sweep summary, and a profile: XLA's FLOP count of the step
-(`jax.jit(...).lower(...).compile().cost_analysis()`), a FLOP floor at this machine's measured
-matmul/conv rate, and the time of the parts (network forward only, forward + backward, loss
-with its gradient w.r.t. the depth only, whole step) in both frameworks.
+Implementations (`--impls`; the default is every one that exists for the method):
+- `jax`: the engine's compiled chunk runner (`make_chunk_runner`: jit of a `lax.scan` of
+  `adapt_step` over `--frames` frames, carry donated), the method in its own setting
+  (`pitta_jax.methods.method_setting`);
+- `torch-eager`: the same step as a performance-minded PyTorch user writes it
+  (`benchmarks/torch_reference.py`: upstream MonoDepth2 modules, NCHW as upstream);
+- `torch-eager-cl`: the same with `memory_format=torch.channels_last` (oneDNN's layout), PITTA;
+- `torch-compile`: the same under `torch.compile` (inductor), PITTA.
+Methods without a PyTorch step in `torch_reference.TORCH_STEPS` get a line saying so.
 
-JAX timing: the engine's compiled chunk runner (`make_chunk_runner`: jit of a `lax.scan` of
-`adapt_step` over `--frames` frames, carry donated), steady state (after compile and one warm-up
-chunk), ms per frame = chunk time / chunk length, median over `--reps` chunks. PyTorch timing:
-the same frames, one `TorchPitta.step` each after warm-up, median over `--reps` chunks.
-Both use every core (`--threads` sets PyTorch's; XLA's CPU backend uses all cores).
+Timing: every implementation is set up first (compile, first chunk, one warm-up chunk), then
+`--reps` rounds time one chunk per implementation, in a rotating order, so that a shared
+machine's load drifts over all of them alike. A JAX chunk is the engine's default chunk
+(`AdaptConfig.chunk_size` = 32 frames, `--jax-frames`: the per-chunk work, e.g. the hoisted
+kernel transposes, is spread as in a run), a PyTorch chunk `--frames` frames (the first of the
+same generated sequence). Per implementation: the median and
+the best ms per frame (wall), the median CPU ms per frame of the process (all threads; less
+sensitive to other jobs on the machine), and the compile time. Then a `ratio` line: the
+fastest PyTorch configuration's ms per frame / JAX's (median and best), a loss-parity line for
+deterministic methods (the same random weights and frames: the first chunk's losses must
+agree), and the load average before and after.
+
+With `--profile` (PITTA): XLA's FLOP count of the step (`cost_analysis`), a FLOP floor at this
+machine's measured matmul/conv rate, and the time of the parts (network forward only, forward +
+backward, loss with its gradient w.r.t. the depth only, whole step) in both frameworks.
 """
 
 from __future__ import annotations
@@ -39,97 +53,161 @@ import torch_reference as tr  # noqa: E402
 from pitta_jax import trainable as trainable_lib  # noqa: E402
 from pitta_jax.adapt import (AdaptConfig, StepInput, init_state, make_chunk_runner,  # noqa: E402
                              make_optimizer, make_step)
-from pitta_jax.methods import build  # noqa: E402
-from pitta_jax.methods.depth_refining import DepthRefiningConfig, frame_loss  # noqa: E402
-from pitta_jax.methods.pitta import PittaConfig  # noqa: E402
+from pitta_jax.methods import METHODS, build  # noqa: E402
+from pitta_jax.methods.actmad import RESOURCE as ACTMAD_STATS  # noqa: E402
+from pitta_jax.methods.depth_refining import frame_loss  # noqa: E402
+
+TORCH_IMPLS = ("torch-eager", "torch-eager-cl", "torch-compile")
+DETERMINISTIC = ("pitta", "actmad")  # same weights and frames => same losses in both frameworks
+# frames per timed chunk and rounds, per method (CoTTA's step runs 1 + 32 views: ~30x PITTA's)
+DEFAULT_FRAMES = {"cotta": 2, "comoda": 4, "adadepth": 4}
+DEFAULT_JAX_FRAMES = {"cotta": 4, "comoda": 8, "adadepth": 8}
+DEFAULT_REPS = {"cotta": 3, "comoda": 3, "adadepth": 3}
 
 
-def engine_config(instances: int, window: int, frames: int) -> tuple[AdaptConfig, PittaConfig]:
-  """The engine's and PITTA's default configs; the instance table grows only beyond its default
-  32 rows."""
-  base, ld = AdaptConfig(), DepthRefiningConfig()
-  cfg = AdaptConfig(chunk_size=frames, max_segments=max(base.max_segments, instances + 2))
-  pitta = PittaConfig(ld=DepthRefiningConfig(window=window,
-                                             max_instances=max(ld.max_instances, instances)))
-  return cfg, pitta
+class JaxImpl:
+  """The engine's compiled chunk runner for one method and config; state carried over chunks."""
 
-
-class JaxBench:
-  """The engine's compiled chunk runner, one per config (shapes), reused across frame sets."""
-
-  def __init__(self, variables, configs: tuple[AdaptConfig, PittaConfig],
-               conv_rule: str = "loop_friendly"):
-    self.variables = variables
-    self.cfg, self.pitta = configs
-    self.model, self.method = bc.depth_network(conv_rule), build("pitta", self.pitta)
-    self.tx = make_optimizer(self.cfg)
-    self.step = make_step(self.model, self.method, self.cfg, self.tx)
-    self.runner = make_chunk_runner(self.step)
-    self.consts = None
+  def __init__(self, name: str, variables, configs, resources, conv_rule: str = "loop_friendly"):
+    self.cfg, mcfg = configs
+    self.model, self.method = bc.depth_network(conv_rule), build(name, mcfg)
+    self.tx = make_optimizer(self.cfg, self.method)
+    self.runner = make_chunk_runner(make_step(self.model, self.method, self.cfg, self.tx))
+    self.state, self.consts = init_state(variables, self.method, self.cfg, self.tx, self.model,
+                                         resources)
+    self.compiled = None
     self.compile_s = None
 
-  def fresh_state(self):
-    """A fresh carry (private copies: the runner donates it); the constants are kept."""
-    state, consts = init_state(self.variables, self.method, self.cfg, self.tx, self.model)
-    if self.consts is None:
-      self.consts = consts
-    return state
+  def first(self, chunk: StepInput) -> list[float]:
+    """Compile, run the first chunk (losses from the fresh weights) and one warm-up chunk."""
+    t0 = time.perf_counter()
+    self.compiled = self.runner.lower(self.state, chunk, self.consts).compile()
+    self.compile_s = time.perf_counter() - t0
+    losses = np.asarray(self.chunk(chunk).loss).tolist()
+    self.chunk(chunk)
+    return losses
 
-  def run(self, chunk: StepInput, reps: int) -> dict:
-    state = self.fresh_state()
-    first_s, outs, med, best, _ = bc.timed_chunks(self.runner, state, chunk, self.consts, reps)
-    if self.compile_s is None:
-      self.compile_s = first_s
-    n = int(np.asarray(chunk.valid).sum())
-    return {"ms_per_frame": 1e3 * med / n, "min_ms_per_frame": 1e3 * best / n,
-            "compile_s": round(self.compile_s, 2), "first_losses": np.asarray(outs.loss).tolist()}
-
-
-def interleaved_ratio(variables, benches: dict, n_lo: int, n_hi: int, args) -> dict:
-  """JAX ms/frame at N = n_lo and n_hi, chunks alternated (lo, hi, hi, lo) `args.reps` times on
-  warm runners: the sequential sweep above is exposed to drift of a shared machine's load."""
-  runs = {}
-  for n in (n_lo, n_hi):
-    configs = engine_config(n, args.window, args.frames)
-    bench = benches.get(configs) or benches.setdefault(configs, JaxBench(variables, configs))
-    chunk = bc.step_inputs(bc.synthetic_frames(args.frames, args.height, args.width, n, seed=1),
-                           configs[0].max_segments)
-    state = bench.fresh_state()
-    state, outs = bench.runner(state, chunk, bench.consts)  # compiled already: warm-up
+  def chunk(self, chunk: StepInput):
+    self.state, outs = self.compiled(self.state, chunk, self.consts)
     jax.block_until_ready(outs)
-    runs[n] = [bench, chunk, state, []]
-  for _ in range(args.reps):
-    for n in (n_lo, n_hi, n_hi, n_lo):
-      run = runs[n]
-      t0 = time.perf_counter()
-      run[2], outs = run[0].runner(run[2], run[1], run[0].consts)
-      jax.block_until_ready(outs)
-      run[3].append(1e3 * (time.perf_counter() - t0) / args.frames)
-  lo, hi = np.median(runs[n_lo][3]), np.median(runs[n_hi][3])
-  return {"check": "N sweep, interleaved", "instances": [n_lo, n_hi],
-          "jax_ms_per_frame": [float(lo), float(hi)], "ratio_max_vs_min_N": float(hi / lo)}
+    return outs
 
 
-def torch_frames(frames: list[bc.BenchFrame]) -> list[tuple]:
-  return [(torch.from_numpy(f.image).permute(2, 0, 1)[None].contiguous(),
-           torch.from_numpy(f.panoptic), list(f.segments)) for f in frames]
+class TorchImpl:
+  """A PyTorch step object (`torch_reference.TORCH_STEPS`) run frame by frame."""
+
+  def __init__(self, step, memory_format=torch.contiguous_format):
+    self.step, self.memory_format = step, memory_format
+    self.compile_s = None
+
+  def inputs(self, frames: list[bc.BenchFrame]) -> list[tuple]:
+    return [(tr.to_input(f.image, self.memory_format), torch.from_numpy(f.panoptic),
+             list(f.segments)) for f in frames]
+
+  def first(self, frames: list[bc.BenchFrame]) -> list[float]:
+    t0 = time.perf_counter()
+    losses = [self.step.step(*x)[1] for x in self.inputs(frames)]  # torch.compile compiles here
+    self.compile_s = time.perf_counter() - t0
+    self.chunk(frames)
+    return losses
+
+  def chunk(self, frames: list[bc.BenchFrame]) -> None:
+    for x in self.inputs(frames):
+      self.step.step(*x)
 
 
-def torch_run(encoder_state, decoder_state, frames: list[bc.BenchFrame], window: int,
-              reps: int) -> dict:
-  enc, dec = tr.build()
-  enc.load_state_dict(encoder_state)
-  dec.load_state_dict(decoder_state)
-  model = tr.TorchPitta(enc, dec, window=window)
-  inputs = torch_frames(frames)
-  first_losses = [model.step(*x)[1] for x in inputs]  # warm-up; losses from the fresh weights
+def torch_impl(impl: str, method: str, resources: dict, window: int,
+               height_width: tuple[int, int], seed: int = 0):
+  """The PyTorch implementation `impl` of `method` on fresh copies of the benchmark weights, or
+  None when torch_reference has no step for the method (or this variant of it)."""
+  make = tr.TORCH_STEPS.get(method)
+  if make is None or (impl != "torch-eager" and method != "pitta"):
+    return None
+  enc, dec = tr.build(seed)
+  fmt = torch.channels_last if impl == "torch-eager-cl" else torch.contiguous_format
+  extra = {}
+  if ACTMAD_STATS in resources:  # {JAX layer path: (mean, var) (h, w, c)} -> torch (c, h, w)
+    stats = resources[ACTMAD_STATS]
+    extra["source_stats"] = {
+        name: tuple(torch.from_numpy(np.ascontiguousarray(np.moveaxis(np.asarray(a), -1, 0)))
+                    for a in stats[tr.jax_bn_path(name)]) for name, _ in tr.encoder_bns(enc)}
+  if method in tr.NEEDS_POSE:  # a random pose net, KITTI's K, consecutive source frames
+    from pitta_jax.methods import method_config_class
+    h, w = height_width
+    extra.update(pose=tr.build_pose(), K=bc.intrinsics_matrix(h, w), height=h, width=w,
+                 config=method_config_class(method)())
+    source = bc.synthetic_frames(bc.SOURCE_FRAMES, h, w, 4, seed=2)
+    extra["replay_pairs"] = torch.stack([torch.stack([tr.to_input(a.image)[0],
+                                                      tr.to_input(b.image)[0]])
+                                         for a, b in zip(source[:-1], source[1:])])
+  return TorchImpl(make(enc, dec, window=window, memory_format=fmt,
+                        compile=impl == "torch-compile", **extra), fmt)
 
-  def one():
-    for x in inputs:
-      model.step(*x)
-  med, best = bc.median_time(one, reps)
-  return {"ms_per_frame": 1e3 * med / len(inputs), "min_ms_per_frame": 1e3 * best / len(inputs),
-          "first_losses": first_losses}
+
+def time_interleaved(impls: dict, jax_chunk: StepInput, frames: list[bc.BenchFrame],
+                     reps: int) -> dict[str, dict]:
+  """`reps` rounds of one chunk per implementation, order rotated each round."""
+  names = list(impls)
+  wall = {n: [] for n in names}
+  cpu = {n: [] for n in names}
+  for r in range(reps):
+    for n in names[r % len(names):] + names[:r % len(names)]:
+      count = len(jax_chunk.valid) if n == "jax" else len(frames)
+      c0, t0 = time.process_time(), time.perf_counter()
+      impls[n].chunk(jax_chunk if n == "jax" else frames)
+      wall[n].append(1e3 * (time.perf_counter() - t0) / count)
+      cpu[n].append(1e3 * (time.process_time() - c0) / count)
+  return {n: {"ms_per_frame": float(np.median(wall[n])), "min_ms_per_frame": float(np.min(wall[n])),
+              "cpu_ms_per_frame": float(np.median(cpu[n]))} for n in names}
+
+
+def run_config(method: str, n: int, impls_wanted: list[str], variables, args, common) -> dict:
+  """Sets up, times and reports every implementation for N = n instances."""
+  jax_frames = bc.synthetic_frames(args.jax_frames, args.height, args.width, n, seed=1)
+  frames = jax_frames[:args.frames]
+  configs = bc.method_configs(method, n, args.window, args.jax_frames)
+  resources = bc.method_resources(build(method, configs[1]), bc.depth_network(), variables,
+                                  args.height, args.width)
+  jax_chunk = bc.step_inputs(jax_frames, configs[0].max_segments,
+                             intrinsics="intrinsics" in build(method).needs)
+  impls, losses, compile_s = {}, {}, {}
+  for impl in impls_wanted:
+    if impl == "jax":
+      obj = JaxImpl(method, variables, configs, resources)
+      losses[impl] = obj.first(jax_chunk)
+    else:
+      obj = torch_impl(impl, method, resources, args.window, (args.height, args.width))
+      if obj is None:
+        bc.emit({"impl": impl, "method": method, "skipped": "no PyTorch step for this method "
+                 "(or this variant of it) in benchmarks/torch_reference.py"})
+        continue
+      losses[impl] = obj.first(frames)
+    impls[impl], compile_s[impl] = obj, round(obj.compile_s, 2)
+  load_start = bc.load()
+  results = time_interleaved(impls, jax_chunk, frames, args.reps)
+  for impl, r in results.items():
+    bc.emit({"impl": impl, "method": method, **common, "instances": n, **r,
+             "compile_s": compile_s[impl], "load": load_start})
+  torch_names = [i for i in results if i != "jax"]
+  if "jax" in results and torch_names:
+    fastest = min(torch_names, key=lambda i: results[i]["ms_per_frame"])
+    best = min(torch_names, key=lambda i: results[i]["min_ms_per_frame"])
+    bc.emit({"ratio": "fastest torch ms / jax ms", "method": method, **common, "instances": n,
+             "fastest_torch": fastest, "value": results[fastest]["ms_per_frame"]
+             / results["jax"]["ms_per_frame"],
+             "value_best": results[best]["min_ms_per_frame"] / results["jax"]["min_ms_per_frame"],
+             "value_cpu": min(results[i]["cpu_ms_per_frame"] for i in torch_names)
+             / results["jax"]["cpu_ms_per_frame"],
+             "per_impl": {i: results[i]["ms_per_frame"] / results["jax"]["ms_per_frame"]
+                          for i in torch_names}, "load": bc.load()})
+  if method in DETERMINISTIC and "jax" in losses:
+    for impl in torch_names:  # the frames both saw: the first `--frames` of the sequence
+      a, b = np.asarray(losses["jax"][:len(losses[impl])]), np.asarray(losses[impl])
+      bc.emit({"check": f"loss parity jax vs {impl}, first chunk from the same weights",
+               "method": method, "instances": n,
+               "max_rel_diff": float(np.max(np.abs(a - b) / np.abs(b))),
+               "jax_loss_0": float(a[0]), "torch_loss_0": float(b[0])})
+  return results
 
 
 def matmul_and_conv_rate(reps: int = 5) -> dict:
@@ -148,11 +226,12 @@ def matmul_and_conv_rate(reps: int = 5) -> dict:
           "conv_gflops": 2 * 96 * 320 * 64 * 64 * 9 / t_conv / 1e9}
 
 
-def jax_profile(bench: JaxBench, frame: StepInput, reps: int) -> dict:
-  """FLOPs and time of the parts of one step (each part jitted alone, not scanned)."""
-  model, method, cfg, pitta = bench.model, bench.method, bench.cfg, bench.pitta
-  state = bench.fresh_state()
-  consts = bench.consts
+def jax_profile(impl: JaxImpl, frame: StepInput, reps: int) -> dict:
+  """FLOPs and time of the parts of one PITTA step (each part jitted alone, not scanned)."""
+  model, method, cfg = impl.model, impl.method, impl.cfg
+  pitta = method.config
+  state, consts = impl.state, impl.consts
+  step = make_step(model, method, cfg, impl.tx)
 
   def forward(st, image, cs):
     variables = trainable_lib.merge(st.trainable, cs.frozen, cs.batch_stats)
@@ -171,25 +250,23 @@ def jax_profile(bench: JaxBench, frame: StepInput, reps: int) -> dict:
   parts = {"forward": (forward, (state, frame.image, consts)),
            "forward_backward": (forward_backward, (state, frame, consts)),
            "loss_and_depth_grad": (loss_only, (depth, frame)),
-           "step": (bench.step, (state, frame, consts))}
+           "step": (step, (state, frame, consts))}
   out = {}
-  for name, (fn, args) in parts.items():
-    compiled = jax.jit(fn).lower(*args).compile()
+  for name, (fn, fn_args) in parts.items():
+    compiled = jax.jit(fn).lower(*fn_args).compile()
     cost = compiled.cost_analysis()
     cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-    jax.block_until_ready(compiled(*args))
-    med, _ = bc.median_time(lambda: jax.block_until_ready(compiled(*args)), reps)
+    jax.block_until_ready(compiled(*fn_args))
+    med, _ = bc.median_time(lambda: jax.block_until_ready(compiled(*fn_args)), reps)
     out[name] = {"ms": 1e3 * med, "gflop": float(cost.get("flops", float("nan"))) / 1e9}
   return out
 
 
-def torch_profile(encoder_state, decoder_state, frame: bc.BenchFrame, window: int,
-                  reps: int) -> dict:
+def torch_profile(frame: bc.BenchFrame, window: int, reps: int) -> dict:
   enc, dec = tr.build()
-  enc.load_state_dict(encoder_state)
-  dec.load_state_dict(decoder_state)
   model = tr.TorchPitta(enc, dec, window=window)
-  image, pan, segs = torch_frames([frame])[0]
+  image = tr.to_input(frame.image)
+  pan, segs = torch.from_numpy(frame.panoptic), list(frame.segments)
 
   def forward():
     with torch.no_grad():
@@ -216,89 +293,93 @@ def torch_profile(encoder_state, decoder_state, frame: bc.BenchFrame, window: in
   return out
 
 
+def compare_conv_rule(variables, args, common) -> None:
+  """The PITTA step with JAX's own conv input-gradient rule vs `models.conv_vjp`'s, interleaved."""
+  frames = bc.synthetic_frames(args.frames, args.height, args.width, args.instances, seed=1)
+  configs = bc.method_configs("pitta", args.instances, args.window, args.frames)
+  chunk = bc.step_inputs(frames, configs[0].max_segments)
+  impls = {}
+  for rule in bc.CONV_RULES:
+    impls[rule] = JaxImpl("pitta", variables, configs, {}, conv_rule=rule)
+    impls[rule].first(chunk)
+  times = {rule: [] for rule in bc.CONV_RULES}
+  for _ in range(args.reps):
+    for rule in bc.CONV_RULES:
+      t0 = time.perf_counter()
+      impls[rule].chunk(chunk)
+      times[rule].append(1e3 * (time.perf_counter() - t0) / args.frames)
+  med = {rule: float(np.median(t)) for rule, t in times.items()}
+  bc.emit({"check": "conv input-gradient rule", **common, "instances": args.instances,
+           "ms_per_frame": med, "ratio_jax_rule_vs_loop_friendly": med["jax"] / med["loop_friendly"],
+           "load": bc.load()})
+
+
 def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--method", default="pitta", choices=sorted(METHODS))
   p.add_argument("--height", type=int, default=192)
   p.add_argument("--width", type=int, default=640)
   p.add_argument("--instances", type=int, default=8, help="dynamic instances N per frame")
   p.add_argument("--sweep-instances", default="", help="comma list of N, e.g. 1,8,32")
   p.add_argument("--window", type=int, default=5, help="median window s")
-  p.add_argument("--frames", type=int, default=8, help="frames per timed chunk")
-  p.add_argument("--reps", type=int, default=3, help="timed chunks (median)")
+  p.add_argument("--frames", type=int, default=None,
+                 help=f"frames per timed PyTorch chunk (default 8; {DEFAULT_FRAMES})")
+  p.add_argument("--jax-frames", type=int, default=None,
+                 help=f"frames per timed JAX chunk (default: the engine's chunk size, "
+                      f"{AdaptConfig().chunk_size}; {DEFAULT_JAX_FRAMES})")
+  p.add_argument("--reps", type=int, default=None,
+                 help=f"timed rounds, one chunk per implementation each (default 5; {DEFAULT_REPS})")
   p.add_argument("--threads", type=int, default=os.cpu_count(), help="PyTorch threads")
-  p.add_argument("--impls", default="jax,torch", help="jax,torch or one of them")
-  p.add_argument("--no-profile", action="store_true", help="skip the per-part profile")
-  p.add_argument("--quick", action="store_true", help="320x96, 4 frames, 2 reps")
+  p.add_argument("--impls", default="", help="comma list among jax," + ",".join(TORCH_IMPLS)
+                 + " (default: all that exist for the method)")
+  p.add_argument("--profile", action="store_true", help="FLOPs and per-part times (PITTA)")
+  p.add_argument("--quick", action="store_true", help="320x96, 4 frames, 3 rounds")
   p.add_argument("--compare-conv-rule", action="store_true",
-                 help="also time the JAX step with JAX's own convolution input-gradient rule "
+                 help="also time the PITTA step with JAX's own convolution input-gradient rule "
                       "(what pitta_jax.models.conv_vjp replaces) and print the ratio")
   args = p.parse_args(argv)
+  if args.frames is None:
+    args.frames = DEFAULT_FRAMES.get(args.method, 8)
+  if args.jax_frames is None:
+    args.jax_frames = DEFAULT_JAX_FRAMES.get(args.method, AdaptConfig().chunk_size)
+  if args.reps is None:
+    args.reps = DEFAULT_REPS.get(args.method, 5)
   if args.quick:
-    args.height, args.width, args.frames, args.reps = 96, 320, 4, 2
+    args.height, args.width, args.frames, args.reps = 96, 320, min(args.frames, 4), 3
+    args.jax_frames = min(args.jax_frames, 8)
+  args.jax_frames = max(args.jax_frames, args.frames)
   torch.set_num_threads(args.threads)
-  impls = [s.strip() for s in args.impls.split(",") if s.strip()]
+  impls = [s.strip() for s in args.impls.split(",") if s.strip()] or ["jax", *TORCH_IMPLS]
+  unknown = set(impls) - {"jax", *TORCH_IMPLS}
+  if unknown:
+    p.error(f"--impls: unknown {sorted(unknown)}; use jax,{','.join(TORCH_IMPLS)}")
   sweep = [int(n) for n in args.sweep_instances.split(",") if n.strip()] or [args.instances]
 
-  enc, dec, variables = bc.torch_and_jax_weights(seed=0)
-  enc_state, dec_state = enc.state_dict(), dec.state_dict()
+  _, _, variables = bc.torch_and_jax_weights(seed=0)
   common = {"H": args.height, "W": args.width, "window": args.window, "threads": args.threads,
-            "frames": args.frames, "reps": args.reps}
-  benches: dict[tuple[AdaptConfig, PittaConfig], JaxBench] = {}
-  results: dict[str, dict[int, float]] = {impl: {} for impl in impls}
-  for n in sweep:
-    frames = bc.synthetic_frames(args.frames, args.height, args.width, n, seed=1)
-    configs = engine_config(n, args.window, args.frames)
-    max_segments = configs[0].max_segments
-    losses = {}
-    for impl in impls:
-      if impl == "jax":
-        bench = benches.get(configs) or benches.setdefault(configs, JaxBench(variables, configs))
-        r = bench.run(bc.step_inputs(frames, max_segments), args.reps)
-      else:
-        r = torch_run(enc_state, dec_state, frames, args.window, args.reps)
-      losses[impl] = r.pop("first_losses")
-      results[impl][n] = r["ms_per_frame"]
-      bc.emit({"impl": impl, **common, "instances": n, **r, "load": bc.load()})
-      if impl == "jax" and args.compare_conv_rule:
-        r_jax_rule = JaxBench(variables, configs, conv_rule="jax").run(
-            bc.step_inputs(frames, max_segments), args.reps)
-        r_jax_rule.pop("first_losses")
-        bc.emit({"impl": "jax", "conv_vjp": "jax_rule", **common, "instances": n, **r_jax_rule,
-                 "load": bc.load()})
-        bc.emit({"ratio": "jax_rule_ms / loop_friendly_ms", "instances": n, **common,
-                 "value": r_jax_rule["ms_per_frame"] / r["ms_per_frame"]})
-    if len(impls) == 2:
-      bc.emit({"ratio": "torch_ms / jax_ms", "instances": n, **common,
-               "value": results["torch"][n] / results["jax"][n]})
-      a, b = np.asarray(losses["jax"]), np.asarray(losses["torch"])
-      bc.emit({"check": "loss parity, frames 0..T-1 from the same weights", "instances": n,
-               "max_rel_diff": float(np.max(np.abs(a - b) / np.abs(b))),
-               "jax_loss_0": float(a[0]), "torch_loss_0": float(b[0])})
+            "frames": args.frames, "jax_frames": args.jax_frames, "reps": args.reps,
+            "device": jax.devices()[0].platform}
+  bc.emit({"start": "step", "method": args.method, "impls": impls, "load": bc.load()})
+  results = {n: run_config(args.method, n, impls, variables, args, common) for n in sweep}
   if len(sweep) > 1:
-    summary = {"sweep_instances": sweep,
-               **{f"{impl}_ms_per_frame": [results[impl][n] for n in sweep] for impl in impls}}
-    for impl in impls:
-      summary[f"{impl}_ratio_max_vs_min_N"] = results[impl][max(sweep)] / results[impl][min(sweep)]
-    bc.emit(summary)
-    if "jax" in impls:
-      bc.emit(interleaved_ratio(variables, benches, min(sweep), max(sweep), args))
-
-  if not args.no_profile:
+    bc.emit({"sweep_instances": sweep, **{f"{impl}_ms_per_frame": [
+        results[n][impl]["ms_per_frame"] for n in sweep] for impl in results[sweep[0]]}})
+  if args.compare_conv_rule:
+    compare_conv_rule(variables, args, common)
+  if args.profile and args.method == "pitta":
     n = sweep[0]
     frames = bc.synthetic_frames(1, args.height, args.width, n, seed=1)
-    configs = engine_config(n, args.window, args.frames)
-    bench = benches.get(configs) or JaxBench(variables, configs)
+    configs = bc.method_configs("pitta", n, args.window, args.frames)
+    impl = JaxImpl("pitta", variables, configs, {})
     frame = bc.step_inputs(frames, configs[0].max_segments)
     frame = StepInput(*(x[0] for x in frame))
     rates = matmul_and_conv_rate()
-    prof = {"profile": "jax", "instances": n, **common, **jax_profile(bench, frame, args.reps + 2),
+    prof = {"profile": "jax", "instances": n, **common, **jax_profile(impl, frame, args.reps),
             **{k: round(v, 1) for k, v in rates.items()}}
-    best = max(rates.values())
-    prof["flop_floor_ms"] = prof["step"]["gflop"] / best * 1e3
+    prof["flop_floor_ms"] = prof["step"]["gflop"] / max(rates.values()) * 1e3
     bc.emit(prof)
-    if "torch" in impls:
-      bc.emit({"profile": "torch", "instances": n, **common,
-               **torch_profile(enc_state, dec_state, frames[0], args.window, args.reps + 2)})
+    bc.emit({"profile": "torch", "instances": n, **common,
+             **torch_profile(frames[0], args.window, args.reps)})
   bc.emit({"load_end": bc.load()})
 
 

@@ -1,29 +1,48 @@
-"""A PyTorch eager PITTA step, written as a PyTorch user would: the timing reference.
+"""PyTorch steps as a performance-minded PyTorch user writes them: the timing references.
 
-Same configuration as the JAX engine's default (docs/method.md): MonoDepth2 ResNet-18 with
-upstream's layer structure (`tests/torch_monodepth2.py`), batch 1, train-mode BatchNorm with the
-frame's batch statistics and the running statistics untouched (TENT's `configure_model`:
-`track_running_stats = False`, running buffers dropped), only the encoder BN gamma/beta adapted
-by Adam (lr 1e-4), one step per frame, loss eqs. 5-10:
+PITTA (`TorchPitta`), same configuration as the JAX engine's default (docs/method.md):
+MonoDepth2 ResNet-18 with upstream's modules (`tests/torch_monodepth2.py`), batch 1, train-mode
+BatchNorm with the frame's batch statistics and the running statistics untouched (TENT's
+`configure_model`: `track_running_stats = False`, running buffers dropped), only the encoder BN
+gamma/beta adapted by Adam (lr 1e-4), one step per frame, loss eqs. 5-10:
 
 - instance masks M_j from the panoptic id map (binary g_j = 1), eqs. 3-4;
-- pseudo labels D~'_j by a median filter with the border-shrinking window (eq. 7): unfold of the
-  +inf-padded masked depths, a sort over each window, then per pixel the mean of the sorted values
-  at ranks (c-1)//2 and c//2, c = the pixel's window count (`torch.median` would return the
-  lower middle value for even counts, which is not eq. 7's rule);
+- pseudo labels D~'_j by a median filter with the border-shrinking window (eq. 7): `F.unfold`
+  of the NaN-padded masked depths and `nanmedian` over each window, all N maps in one call.
+  `nanmedian` returns the lower middle value; eq. 7 wants the mean of the two middle values when
+  the window count c is even, which happens only within s // 2 pixels of the border, so there
+  (a few thousand windows) the upper middle value, -nanmedian(-w), is averaged in;
 - L_d = 1/N sum_j sum |D~_j - D~'_j| (eq. 8), literally over the N instances, batched;
 - Laplacian edge maps with clamped (replicated) borders on the channel-mean image and the depth,
   L_e = sum |dI - dD| (eqs. 5, 6, 9); L = L_d + lambda L_e (eq. 10).
 
-Predict-then-adapt as in the engine: the returned depth is the one the loss was computed on.
+Options a PyTorch user reaches for: `memory_format=torch.channels_last` (oneDNN's preferred
+layout on CPU) and `compile=True` (`torch.compile` with inductor of the depth + loss function,
+forward and backward; the optimiser step stays eager). Predict-then-adapt as in the engine: the
+returned depth is the one the loss was computed on.
+
+The baselines' steps, in the method's own setting (`pitta_jax.methods.method_setting`), same
+loss as the JAX method, written as their upstream code does it:
+- `TorchNone`: eval mode, `torch.no_grad()` forward;
+- `TorchActmad` (jmiemirza/ActMAD): BN eval mode, forward hooks on the 20 encoder BNs, a
+  `deque(maxlen=K)` of previous frames' detached activations, L1 of the per-location mean and
+  variance against the source statistics, + L_d; SGD (Nesterov, weight decay) on every encoder
+  conv and BN parameter;
+- `TorchCotta` (qinenergy/cotta): student, EMA teacher and frozen anchor (`deepcopy`), N
+  augmented views (upstream's loop of per-view transforms, `tests/torch_tta.t_augment`) through
+  the teacher as one batch, per-pixel gate, L1 + L_d; Adam on every parameter, EMA, stochastic
+  restore.
 """
 
 from __future__ import annotations
 
+import collections
+import copy
 import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -41,19 +60,27 @@ def disp_to_depth(disp: torch.Tensor) -> torch.Tensor:
   return 1.0 / (min_disp + (max_disp - min_disp) * disp)
 
 
+def even_count_pixels(h: int, w: int, s: int) -> torch.Tensor:
+  """Flat indices of the pixels whose border-shrunk s x s window holds an even count."""
+  r = s // 2
+  i, j = torch.arange(h), torch.arange(w)
+  rows = (i + r).clamp(max=h - 1) - (i - r).clamp(min=0) + 1  # (H,)
+  cols = (j + r).clamp(max=w - 1) - (j - r).clamp(min=0) + 1  # (W,)
+  return ((rows[:, None] * cols[None, :]) % 2 == 0).flatten().nonzero().flatten()
+
+
 def median_filter(x: torch.Tensor, s: int = 5) -> torch.Tensor:
   """Eq. 7 on a batch of maps: x (B, H, W) -> (B, H, W), window shrinking at the border."""
   b, h, w = x.shape
   r = s // 2
-  padded = F.pad(x[:, None], (r, r, r, r), value=math.inf)  # out-of-image slots sort last
-  # (B, H*W, s*s), contiguous: sorting along the last axis is ~1.5x faster than along axis 1
-  windows = F.unfold(padded, s).transpose(1, 2).contiguous()
-  ordered = windows.sort(dim=-1).values
-  ones = F.pad(x.new_ones(1, 1, h, w), (r, r, r, r))
-  count = F.unfold(ones, s).sum(1).long()[0]  # (H*W,) pixels in each window
-  lower = ordered.gather(-1, ((count - 1) // 2)[None, :, None].expand(b, -1, 1))
-  upper = ordered.gather(-1, (count // 2)[None, :, None].expand(b, -1, 1))
-  return ((lower + upper) / 2).view(b, h, w)  # even count: mean of the two middle values
+  padded = F.pad(x[:, None], (r, r, r, r), value=math.nan)  # out-of-image slots are ignored
+  windows = F.unfold(padded, s)  # (B, s*s, H*W)
+  med = windows.nanmedian(1).values  # (B, H*W), the lower middle value
+  even = even_count_pixels(h, w, s)
+  if even.numel():  # eq. 7: mean of the two middle values for even counts
+    upper = -(-windows[:, :, even]).nanmedian(1).values
+    med[:, even] = (med[:, even] + upper) / 2
+  return med.view(b, h, w)
 
 
 def laplacian_edges(x: torch.Tensor) -> torch.Tensor:
@@ -71,29 +98,46 @@ def instance_masks(panoptic: torch.Tensor, segments: list[tuple[int, int]]) -> t
   return (panoptic[None] == torch.tensor(ids)[:, None, None]).float()
 
 
+def depth_refining(depth: torch.Tensor, masks: torch.Tensor, s: int = 5) -> torch.Tensor:
+  """L_d, eq. 8: depth (H, W), masks (N, H, W) -> 1/N sum_j sum |D M_j - sg(median(D M_j))|."""
+  n = masks.shape[0]
+  if not n:
+    return depth.new_zeros(())
+  masked = depth[None] * masks  # D~_j, eq. 4
+  pseudo = median_filter(masked.detach(), s)  # D~'_j, eq. 7, constants
+  return (masked - pseudo).abs().sum() / n
+
+
 def pitta_loss(image: torch.Tensor, depth: torch.Tensor, masks: torch.Tensor, s: int = 5,
                lam: float = 0.2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
   """Eq. 10: image (3, H, W), depth (H, W), masks (N, H, W) -> (L, L_d, L_e)."""
-  n = masks.shape[0]
-  if n:
-    masked = depth[None] * masks  # D~_j, eq. 4
-    pseudo = median_filter(masked.detach(), s)  # D~'_j, eq. 7, constants
-    l_d = (masked - pseudo).abs().sum() / n  # eq. 8
-  else:
-    l_d = depth.new_zeros(())
+  l_d = depth_refining(depth, masks, s)
   l_e = (laplacian_edges(image.mean(0)) - laplacian_edges(depth)).abs().sum()  # eq. 9
   total = l_e if math.isinf(lam) else l_d + lam * l_e
   return total, l_d, l_e
 
 
+def to_input(image: np.ndarray, memory_format=torch.contiguous_format) -> torch.Tensor:
+  """(H, W, 3) float32 -> (1, 3, H, W) in `memory_format`."""
+  return torch.from_numpy(image).permute(2, 0, 1)[None].contiguous(memory_format=memory_format)
+
+
 class TorchPitta:
-  """MonoDepth2 + Adam on the encoder's BN affine parameters, one `step` per frame."""
+  """MonoDepth2 + Adam on the encoder's BN affine parameters, one `step` per frame.
+
+  memory_format: torch.contiguous_format (NCHW, as upstream) or torch.channels_last.
+  compile: `torch.compile` the depth + loss function (inductor), forward and backward.
+  """
 
   def __init__(self, encoder: nn.Module, decoder: nn.Module, lr: float = 1e-4, lam: float = 0.2,
-               window: int = 5):
+               window: int = 5, memory_format=torch.contiguous_format, compile: bool = False):
     self.encoder, self.decoder, self.lam, self.window = encoder, decoder, lam, window
+    self.memory_format = memory_format
+    encoder.to(memory_format=memory_format)
+    decoder.to(memory_format=memory_format)
     params = self.configure_model()
     self.optimizer = torch.optim.Adam(params, lr=lr)
+    self.loss_fn = torch.compile(self._loss) if compile else self._loss
 
   def configure_model(self) -> list[nn.Parameter]:
     """TENT-style: train mode, batch statistics only, grads for encoder BN gamma/beta only."""
@@ -116,16 +160,332 @@ class TorchPitta:
     disp = self.decoder(self.encoder(image))[("disp", 0)]
     return disp_to_depth(disp)[0, 0]
 
+  def _loss(self, image: torch.Tensor, masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    depth = self.depth(image)
+    return pitta_loss(image[0], depth, masks, self.window, self.lam)[0], depth
+
   def step(self, image: torch.Tensor, panoptic: torch.Tensor, segments: list[tuple[int, int]]
            ) -> tuple[torch.Tensor, float]:
     """One frame: depth and loss before the update, then one Adam step. -> (depth, L)."""
     masks = instance_masks(panoptic, segments)
-    depth = self.depth(image)
-    loss, _, _ = pitta_loss(image[0], depth, masks, self.window, self.lam)
+    loss, depth = self.loss_fn(image, masks)
     self.optimizer.zero_grad(set_to_none=True)
     loss.backward()
     self.optimizer.step()
     return depth.detach(), loss.item()
+
+
+class TorchNone:
+  """No adaptation: eval-mode BN (running statistics), one no-grad forward per frame."""
+
+  def __init__(self, encoder: nn.Module, decoder: nn.Module,
+               memory_format=torch.contiguous_format):
+    self.encoder, self.decoder = encoder.eval(), decoder.eval()
+    encoder.to(memory_format=memory_format)
+    decoder.to(memory_format=memory_format)
+
+  def step(self, image, panoptic, segments) -> tuple[torch.Tensor, float]:
+    with torch.no_grad():
+      disp = self.decoder(self.encoder(image))[("disp", 0)]
+    return disp_to_depth(disp)[0, 0], 0.0
+
+
+def encoder_bns(encoder: nn.Module) -> list[tuple[str, nn.Module]]:
+  """The encoder's BatchNorm2d modules (ActMAD's hooked layers), in forward order."""
+  return [(n, m) for n, m in encoder.named_modules() if isinstance(m, nn.BatchNorm2d)]
+
+
+class TorchActmad:
+  """ActMAD + L_d: hooks on the encoder BNs, SGD on every encoder parameter (fc excluded).
+
+  source_stats: {bn module name: (mean, var)}, each (C, h, w) float32.
+  """
+
+  def __init__(self, encoder, decoder, source_stats, lr=1e-4, momentum=0.9, weight_decay=5e-4,
+               ring_size=8, ld_weight=1.0, window=5):
+    self.encoder, self.decoder, self.stats = encoder, decoder, source_stats
+    self.ld_weight, self.window = ld_weight, window
+    encoder.train(), decoder.train()
+    for _, m in encoder_bns(encoder):
+      m.eval()
+    for p in decoder.parameters():
+      p.requires_grad_(False)
+    params = [p for n, p in encoder.named_parameters() if not n.startswith("encoder.fc")]
+    self.optimizer = torch.optim.SGD(params, lr=lr, momentum=momentum,
+                                     weight_decay=weight_decay, nesterov=True)
+    self.ring = collections.deque(maxlen=ring_size)
+    self.saved: dict[str, torch.Tensor] = {}
+    for name, m in encoder_bns(encoder):  # upstream's SaveOutput hook
+      m.register_forward_hook(lambda mod, i, o, n=name: self.saved.__setitem__(n, o.clone()))
+
+  def step(self, image, panoptic, segments) -> tuple[torch.Tensor, float]:
+    self.optimizer.zero_grad(set_to_none=True)
+    disp = self.decoder(self.encoder(image))[("disp", 0)]
+    depth = disp_to_depth(disp)[0, 0]
+    loss = 0.0
+    for name, (src_mean, src_var) in self.stats.items():
+      batch = torch.cat([self.saved[name]] + [old[name] for old in self.ring])
+      mean = batch.mean(0)
+      var = batch.var(0) if batch.shape[0] > 1 else torch.zeros_like(mean)
+      loss = loss + F.l1_loss(mean, src_mean) + F.l1_loss(var, src_var)
+    loss = loss + self.ld_weight * depth_refining(depth, instance_masks(panoptic, segments),
+                                                  self.window)
+    loss.backward()
+    self.optimizer.step()
+    self.ring.append({n: a.detach() for n, a in self.saved.items()})
+    return depth.detach(), loss.item()
+
+
+class TorchCotta:
+  """CoTTA + L_d: student, EMA teacher, anchor; Adam on every parameter; BN eval mode."""
+
+  def __init__(self, encoder, decoder, lr=1e-4 / 12, n_augment=32, threshold=0.1,
+               ema=0.999, restore_p=0.01, ld_weight=1.0, window=5, seed=0):
+    self.model = nn.ModuleDict({"enc": encoder, "dec": decoder}).eval()
+    self.anchor = copy.deepcopy(self.model)
+    self.teacher = copy.deepcopy(self.model)
+    for p in list(self.anchor.parameters()) + list(self.teacher.parameters()):
+      p.requires_grad_(False)
+    self.source = {n: p.detach().clone() for n, p in self.model.named_parameters()}
+    self.optimizer = torch.optim.Adam(self.model.parameters(), lr=lr)
+    self.n, self.threshold, self.ema, self.restore_p = n_augment, threshold, ema, restore_p
+    self.ld_weight, self.window = ld_weight, window
+    self.rng = np.random.default_rng(seed)
+
+  @staticmethod
+  def disp(model, x):
+    return model["dec"](model["enc"](x))[("disp", 0)][:, 0]
+
+  def views(self, x: torch.Tensor) -> tuple[torch.Tensor, list[bool]]:
+    """N augmented views (upstream: one transform call per view), (N, 3, H, W), and which of
+    them are flipped."""
+    from torch_tta import t_augment
+    h, w = x.shape[-2:]
+    out, flips = [], []
+    for _ in range(self.n):
+      factors = self.rng.uniform([0.6, 0.7, 0.5, 0.7], [1.4, 1.3, 1.5, 1.3])
+      flips.append(bool(self.rng.random() < 0.5))
+      out.append(t_augment(x, self.rng.permutation(4), factors, self.rng.uniform(0.001, 0.5),
+                           flips[-1], 0.005 * self.rng.standard_normal((h, w, 3))))
+    return torch.cat(out).float(), flips
+
+  def step(self, image, panoptic, segments) -> tuple[torch.Tensor, float]:
+    student = self.disp(self.model, image)[0]
+    with torch.no_grad():
+      anchor = self.disp(self.anchor, image)[0]
+      views, flips = self.views(image)
+      out = self.disp(self.teacher, torch.cat([image, views]))
+      teacher = out[0]
+      outs = torch.stack([o.flip(-1) if f else o for o, f in zip(out[1:], flips)])
+      pseudo = torch.where((anchor - teacher).abs() / teacher > self.threshold,
+                           outs.mean(0), teacher)
+    loss = F.l1_loss(student, pseudo) + self.ld_weight * depth_refining(
+        disp_to_depth(student), instance_masks(panoptic, segments), self.window)
+    self.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    self.optimizer.step()
+    with torch.no_grad():
+      for t, p in zip(self.teacher.parameters(), self.model.parameters()):
+        t.mul_(self.ema).add_(p, alpha=1 - self.ema)
+      for n, p in self.model.named_parameters():
+        m = torch.rand(p.shape) < self.restore_p
+        p.copy_(torch.where(m, self.source[n], p))
+    return disp_to_depth(pseudo), loss.item()
+
+
+def _frozen_bn_params(modules) -> list[nn.Parameter]:
+  """CoMoDa's `set_adapt`: every module in eval mode, BN scale/bias frozen; the rest trainable."""
+  params = []
+  for m in modules:
+    m.eval()
+    for mod in m.modules():
+      if isinstance(mod, nn.BatchNorm2d):
+        mod.weight.requires_grad_(False)
+        mod.bias.requires_grad_(False)
+    params += [p for p in m.parameters() if p.requires_grad]
+  return params
+
+
+def _camera(K: np.ndarray, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+  """(3, 3) K -> (batch, 4, 4) K and its inverse, as MonoDepth2's data loaders give them."""
+  K4 = torch.eye(4)
+  K4[:3, :3] = torch.from_numpy(np.asarray(K, np.float32))
+  return K4.expand(batch, 4, 4).contiguous(), torch.linalg.inv(K4).expand(batch, 4, 4).contiguous()
+
+
+class _SfmBranch:
+  """A depth + pose network pair trained by MonoDepth2's loss on (previous -> current) pairs
+  (`tests/torch_sfm.Monodepth2Loss`, upstream's generate_images_pred + compute_losses)."""
+
+  def __init__(self, encoder, decoder, pose_encoder, pose_decoder, K, batch, height, width):
+    from torch_sfm import Monodepth2Loss
+    self.enc, self.dec, self.penc, self.pdec = encoder, decoder, pose_encoder, pose_decoder
+    self.K, self.inv_K = _camera(K, batch)
+    self.loss = Monodepth2Loss(batch, height, width)
+
+  def __call__(self, target, source, pixel_weights=None):
+    """target, source (B, 3, H, W) -> (loss, the target's disparities per scale)."""
+    from torch_sfm import transformation_from_parameters
+    outputs = self.dec(self.enc(target))
+    disps = [outputs[("disp", s)] for s in range(4)]
+    axisangle, translation = self.pdec([self.penc(torch.cat([source, target], 1))])
+    pose = transformation_from_parameters(axisangle[:, 0], translation[:, 0], invert=True)
+    b, _, h, w = target.shape
+    noise = torch.randn(4, b, 1, h, w)  # the identity losses' tie-break
+    loss = self.loss(target, [source], disps, self.K, self.inv_K, [pose], noise,
+                     pixel_weights=pixel_weights)[0]
+    return loss, disps
+
+
+class TorchComoda:
+  """CoMoDa + L_d (Yevkuzn/CoMoDA's adapt loop): depth and pose networks, BN eval mode and
+  frozen, Adam on everything else; batch = the test pair (t-1 -> t) with the moving-object mask
+  + `replay` source pairs with all-ones masks; the first frame makes no update.
+
+  replay_pairs: (R, 2, 3, H, W) consecutive source frames (previous, current)."""
+
+  def __init__(self, encoder, decoder, pose_encoder, pose_decoder, K, replay_pairs, lr=1e-4,
+               replay=3, ld_weight=1.0, window=5, seed=0):
+    h, w = replay_pairs.shape[-2:]
+    self.optimizer = torch.optim.Adam(
+        _frozen_bn_params((encoder, decoder, pose_encoder, pose_decoder)), lr)
+    self.branch = _SfmBranch(encoder, decoder, pose_encoder, pose_decoder, K, 1 + replay, h, w)
+    self.replay_pairs, self.replay = replay_pairs, replay
+    self.ld_weight, self.window = ld_weight, window
+    self.rng = np.random.default_rng(seed)
+    self.previous = None
+
+  def step(self, image, panoptic, segments) -> tuple[torch.Tensor, float]:
+    masks = instance_masks(panoptic, segments)
+    if self.previous is None:
+      self.previous = image
+      with torch.no_grad():
+        return disp_to_depth(self.branch.dec(self.branch.enc(image))[("disp", 0)])[0, 0], 0.0
+    idx = torch.from_numpy(self.rng.choice(len(self.replay_pairs), self.replay, replace=False))
+    target = torch.cat([image, self.replay_pairs[idx, 1]])
+    source = torch.cat([self.previous, self.replay_pairs[idx, 0]])
+    weights = torch.ones(target.shape[0], *target.shape[-2:])
+    if masks.shape[0]:
+      weights[0] = 1 - masks.amax(0)
+    own, disps = self.branch(target, source, weights)
+    depth = disp_to_depth(disps[0][0, 0])
+    loss = own + self.ld_weight * depth_refining(depth, masks, self.window)
+    self.optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    self.optimizer.step()
+    self.previous = image
+    return depth.detach(), loss.item()
+
+
+class TorchAdadepth:
+  """Ada-Depth + L_d (Malefikus/ada-depth's `Adapt.process_batch`, batch 1, frame ids (0, -1)):
+  the self-supervised branch U (its own depth + pose networks) takes one MonoDepth2 step, then
+  the student S one SILog step on the pseudo-labels filtered by the frozen source R and the EMA
+  teacher E (`augment_pseudo`), + L_d; E follows S; the reported depth is S's after its step."""
+
+  def __init__(self, encoder, decoder, pose_encoder, pose_decoder, K, height, width, config):
+    self.s = {"encoder": encoder, "depth": decoder}
+    self.ref = copy.deepcopy(self.s)
+    self.ema = copy.deepcopy(self.s)
+    self.u = {"encoder": copy.deepcopy(encoder), "depth": copy.deepcopy(decoder)}
+    for m in (*self.s.values(), *self.ref.values(), *self.ema.values(), *self.u.values(),
+              pose_encoder, pose_decoder):
+      m.eval()
+    self.cfg = config
+    self.opt_s = torch.optim.Adam([p for m in self.s.values() for p in m.parameters()], config.lr)
+    self.opt_u = torch.optim.Adam([p for m in (*self.u.values(), pose_encoder, pose_decoder)
+                                   for p in m.parameters()], config.lr)
+    self.branch = _SfmBranch(self.u["encoder"], self.u["depth"], pose_encoder, pose_decoder, K,
+                             1, height, width)
+    self.previous = None
+
+  @staticmethod
+  def depth(models, x):
+    return disp_to_depth(models["depth"](models["encoder"](x))[("disp", 0)])
+
+  def pseudo(self, ref, unsup, ema):
+    """upstream augment_pseudo on metre depths (1, 1, H, W) -> (P_S, P_U)."""
+    c = self.cfg
+    mask0 = ema > c.min_depth
+    mask0[:, :, :int(c.top_fraction * ema.shape[2]), :] = False
+    scale = torch.median(ema[mask0]) / torch.median(unsup[mask0])
+    keep_u = ((ema - unsup * scale) ** 2 / ema) < c.threshold
+    p_u = (keep_u.float() * unsup * scale).clamp(c.min_depth, c.max_depth)
+    keep_s = (((ref - ema) ** 2 / ref) < c.threshold) * mask0
+    return (keep_s.float() * ema).clamp(c.min_depth, c.max_depth), p_u
+
+  def silog(self, depth, label):
+    c = self.cfg
+    valid = label > c.label_min
+    g = torch.log(depth[valid]) - torch.log(label[valid])
+    return torch.sqrt((g ** 2).mean() - c.variance_focus * g.mean() ** 2) * c.silog_factor
+
+  def step(self, image, panoptic, segments) -> tuple[torch.Tensor, float]:
+    if self.previous is None:
+      self.previous = image
+      with torch.no_grad():
+        return self.depth(self.s, image)[0, 0], 0.0
+    loss_u, _ = self.branch(image, self.previous)
+    self.opt_u.zero_grad(set_to_none=True)
+    loss_u.backward()
+    self.opt_u.step()
+    c = self.cfg
+    depth = self.depth(self.s, image)
+    with torch.no_grad():
+      p_s, p_u = self.pseudo(c.depth_scale * self.depth(self.ref, image),
+                             c.depth_scale * self.depth(self.u, image),
+                             c.depth_scale * self.depth(self.ema, image))
+    loss = (self.silog(c.depth_scale * depth, p_s) + self.silog(c.depth_scale * depth, p_u)
+            + c.ld_weight * depth_refining(depth[0, 0], instance_masks(panoptic, segments),
+                                           c.ld.window))
+    self.opt_s.zero_grad(set_to_none=True)
+    loss.backward()
+    self.opt_s.step()
+    with torch.no_grad():
+      for key in ("encoder", "depth"):
+        for e, p in zip(self.ema[key].parameters(), self.s[key].parameters()):
+          e.mul_(c.ema_decay).add_(p, alpha=1 - c.ema_decay)
+      after = self.depth(self.s, image)[0, 0]
+    self.previous = image
+    return after, loss.item()
+
+
+def jax_bn_path(torch_name: str) -> str:
+  """An encoder BN module name -> the JAX module path: `encoder.layer2.0.downsample.1` ->
+  `encoder/layer2_0/downsample_bn`, `encoder.bn1` -> `encoder/bn1`."""
+  parts = torch_name.replace("downsample.1", "downsample_bn").split(".")[1:]
+  if parts[0].startswith("layer"):
+    parts = [f"{parts[0]}_{parts[1]}"] + parts[2:]
+  return "/".join(["encoder"] + parts)
+
+
+# method name -> a factory of its PyTorch step (keyword arguments: window, memory_format,
+# compile, source_stats; each takes what it uses)
+TORCH_STEPS = {
+    "pitta": lambda enc, dec, window=5, memory_format=torch.contiguous_format, compile=False,
+    **_: TorchPitta(enc, dec, window=window, memory_format=memory_format, compile=compile),
+    "none": lambda enc, dec, memory_format=torch.contiguous_format, **_: TorchNone(
+        enc, dec, memory_format),
+    "actmad": lambda enc, dec, source_stats=None, window=5, **_: TorchActmad(
+        enc, dec, source_stats, window=window),
+    "cotta": lambda enc, dec, window=5, **_: TorchCotta(enc, dec, window=window),
+    "comoda": lambda enc, dec, pose=None, K=None, replay_pairs=None, window=5, **_: TorchComoda(
+        enc, dec, *pose, K, replay_pairs, window=window),
+    "adadepth": lambda enc, dec, pose=None, K=None, height=None, width=None, config=None, **_:
+    TorchAdadepth(enc, dec, *pose, K, height, width, config),
+}
+
+# the methods whose PyTorch step also needs a pose network, K and (CoMoDa) source pairs
+NEEDS_POSE = ("comoda", "adadepth")
+
+
+def build_pose(seed: int = 2, num_layers: int = 18) -> tuple[nn.Module, nn.Module]:
+  """Random-weight MonoDepth2 pairs pose network: a 2-image ResNet encoder and its decoder."""
+  encoder = tm.ResnetEncoder(num_layers, num_input_images=2)
+  decoder = tm.PoseDecoder(tm.num_ch_enc(num_layers))
+  tm.randomize_(encoder, seed)
+  tm.randomize_(decoder, seed + 1)
+  return encoder, decoder
 
 
 def build(seed: int = 0, num_layers: int = 18) -> tuple[nn.Module, nn.Module]:
@@ -137,5 +497,8 @@ def build(seed: int = 0, num_layers: int = 18) -> tuple[nn.Module, nn.Module]:
   return encoder, decoder
 
 
-__all__ = ["TorchPitta", "build", "median_filter", "laplacian_edges", "instance_masks",
-           "pitta_loss", "disp_to_depth"]
+__all__ = ["TorchPitta", "TorchNone", "TorchActmad", "TorchCotta", "TorchComoda", "TorchAdadepth",
+           "TORCH_STEPS", "NEEDS_POSE", "build", "build_pose",
+           "jax_bn_path", "median_filter",
+           "laplacian_edges", "instance_masks", "pitta_loss", "depth_refining", "disp_to_depth",
+           "even_count_pixels", "to_input", "encoder_bns"]
