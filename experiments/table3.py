@@ -7,7 +7,9 @@ Depth Anything V2), adapted to DrivingStereo: rows No adaptation, Sunny, All.
 
 The paper's "No adaptation" row does not say on which test case it is measured; ours is on All
 (the case every adapted row is compared with). PITTA adapts the encoder's BatchNorm layers, or
-its LayerNorms where the encoder has no BatchNorm (Lite-Mono, Depth Anything V2).
+its LayerNorms where the encoder has no BatchNorm (Depth Anything V2). Lite-Mono's encoder has
+both (BatchNorm in its stem, downsampling and dilated-convolution blocks, LayerNorm in its
+attention blocks): its BatchNorms, as for the CNNs.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ NETWORKS = {
     "sgdepth": ("SGDepth", "encoder_bn"),
     "hrdepth": ("HR-Depth", "encoder_bn"),
     "monovit": ("MonoViT", "encoder_bn"),
-    "litemono": ("Lite-Mono", "encoder_ln"),
+    "litemono": ("Lite-Mono", "encoder_bn"),
     "depth_anything_v2": ("DepthAnythingV2", "encoder_ln"),
 }
 # (row label, method, test case)
