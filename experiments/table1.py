@@ -14,15 +14,21 @@ from experiments import common
 from experiments.common import RowSpec
 
 CASES = ("Foggy", "Rainy", "All")
-# (our label, method, network, paper's label); "BN batch stats" is ours: the source model with
-# the frame's BN statistics and no update, which separates their effect from PITTA's loss
+# (our label, method, network, paper's label). Ours, not the paper's: "BN batch stats" (the
+# source model with the frame's BN statistics and no update, which separates their effect from
+# PITTA's loss) and each baseline as published, without L_d ("(no L_d)": ld_weight 0), which
+# separates the method from the loss the paper adds to it
 ROWS = (
     RowSpec("No adaptation", "none", paper="No adaptation"),
     RowSpec("BN batch stats", "none", adapt=(("bn_stats", "batch"),)),
     RowSpec("CoMoDa + L_d", "comoda", paper="CoMoDA"),
+    RowSpec("CoMoDa (no L_d)", "comoda", method_config=(("ld_weight", 0.0),)),
     RowSpec("CoTTA + L_d", "cotta", paper="CoTTA"),
+    RowSpec("CoTTA (no L_d)", "cotta", method_config=(("ld_weight", 0.0),)),
     RowSpec("ActMAD + L_d", "actmad", paper="ActMAD"),
+    RowSpec("ActMAD (no L_d)", "actmad", method_config=(("ld_weight", 0.0),)),
     RowSpec("Ada-Depth + L_d", "adadepth", paper="Ada-Depth"),
+    RowSpec("Ada-Depth (no L_d)", "adadepth", method_config=(("ld_weight", 0.0),)),
     RowSpec("Depth Anything V2", "none", model="depth_anything_v2", paper="DepthAnythingV2"),
     RowSpec("PITTA", "pitta", paper="PITTA (ours)"),
 )
