@@ -62,21 +62,27 @@ class RunResult:
   n_skipped: int = 0
   excluded: list[str] = dataclasses.field(default_factory=list)  # frames without valid GT
   resumed_at: int = 0                  # frames taken from a checkpoint (--resume)
-  # frames whose predicted depth has a non-finite value (a diverged method): not scored
-  nonfinite: list[str] = dataclasses.field(default_factory=list)
+  # indices of the frames whose predicted depth has a non-finite value (a diverged method):
+  # not scored
+  nonfinite_indices: list[int] = dataclasses.field(default_factory=list)
+
+  @property
+  def nonfinite(self) -> list[str]:
+    """The names of the frames whose prediction is not finite."""
+    return [self.frame_names[i] for i in self.nonfinite_indices]
 
   @property
   def diverged_at(self) -> int | None:
     """Index of the first frame whose prediction is not finite (None: the run never diverged)."""
-    return self.frame_names.index(self.nonfinite[0]) if self.nonfinite else None
+    return self.nonfinite_indices[0] if self.nonfinite_indices else None
 
   @property
   def status(self) -> str:
     """"ok", or where the method diverged: what a results table shows instead of its means."""
-    if not self.nonfinite:
+    if not self.nonfinite_indices:
       return "ok"
     return (f"diverged: non-finite depth from frame {self.diverged_at} of "
-            f"{len(self.frame_names)} ({len(self.nonfinite)} frames not scored)")
+            f"{len(self.frame_names)} ({len(self.nonfinite_indices)} frames not scored)")
 
   @property
   def fps(self) -> float:
@@ -152,7 +158,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   A frame whose ground truth has no valid pixel is excluded from the means and named in
   `RunResult.excluded` (the run goes on). A frame whose predicted depth is not finite (the
   method diverged: its parameters are finite but the network overflows) is not scored either; it
-  is named in `RunResult.nonfinite`, and callers report the run as diverged
+  is named in `RunResult.nonfinite` (indices: `nonfinite_indices`), and callers report the run as diverged
   (`RunResult.diverged_at`) rather than its means over the frames that were still finite.
 
   Args:
@@ -215,7 +221,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
         if index in keep:
           kept[index] = depth
         if not np.isfinite(depth).all():
-          record["nonfinite"].append(frame.name)
+          record["nonfinite"].append(index)
         elif frame.depth is not None:
           try:
             record["per_frame"].append({"name": frame.name, **metrics_lib.depth_metrics(
@@ -252,4 +258,4 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   return RunResult(name=name, per_frame=per_frame, mean=mean, logs=logs,
                    frame_names=record["names"], seconds=seconds, kept_depths=kept,
                    n_skipped=int(state.n_skipped), excluded=record["excluded"],
-                   resumed_at=start, nonfinite=record["nonfinite"])
+                   resumed_at=start, nonfinite_indices=record["nonfinite"])

@@ -242,7 +242,10 @@ def test_a_diverged_method_finishes_and_is_reported_not_scored(tiny_weights):
   from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
   from pitta_jax.report import Row, markdown_table
   from pitta_jax.run import run_sequence
-  frames = generate_sequence(SyntheticConfig(height=H, width=W, num_frames=3, seed=100))
+  import dataclasses
+  # one name for every frame (names need not be unique): the divergence point is an index
+  frames = [dataclasses.replace(f, name="same") for f in
+            generate_sequence(SyntheticConfig(height=H, width=W, num_frames=3, seed=100))]
   res = run_sequence(load_weights(tiny_weights), frames, AdaptConfig(optimizer="sgd", lr=1e30),
                      quiet=True, keep=(0,))
   assert res.nonfinite == [f.name for f in frames[1:]] and res.diverged_at == 1
