@@ -116,10 +116,11 @@ class TorchImpl:
       self.step.step(*x)
 
 
-def torch_impl(impl: str, method: str, resources: dict, window: int,
-               height_width: tuple[int, int], seed: int = 0):
-  """The PyTorch implementation `impl` of `method` on fresh copies of the benchmark weights, or
-  None when torch_reference has no step for the method (or this variant of it)."""
+def torch_impl(impl: str, method: str, configs, resources: dict, height_width: tuple[int, int],
+               seed: int = 0):
+  """The PyTorch implementation `impl` of `method` with the JAX side's (AdaptConfig, method
+  config) on fresh copies of the benchmark weights, or None when torch_reference has no step
+  for the method (or this variant of it)."""
   make = tr.TORCH_STEPS.get(method)
   if make is None or (impl != "torch-eager" and method != "pitta"):
     return None
@@ -132,15 +133,13 @@ def torch_impl(impl: str, method: str, resources: dict, window: int,
         name: tuple(torch.from_numpy(np.ascontiguousarray(np.moveaxis(np.asarray(a), -1, 0)))
                     for a in stats[tr.jax_bn_path(name)]) for name, _ in tr.encoder_bns(enc)}
   if method in tr.NEEDS_POSE:  # a random pose net, KITTI's K, consecutive source frames
-    from pitta_jax.methods import method_config_class
     h, w = height_width
-    extra.update(pose=tr.build_pose(), K=bc.intrinsics_matrix(h, w), height=h, width=w,
-                 config=method_config_class(method)())
+    extra.update(pose=tr.build_pose(), K=bc.intrinsics_matrix(h, w), height=h, width=w)
     source = bc.synthetic_frames(bc.SOURCE_FRAMES, h, w, 4, seed=2)
     extra["replay_pairs"] = torch.stack([torch.stack([tr.to_input(a.image)[0],
                                                       tr.to_input(b.image)[0]])
                                          for a, b in zip(source[:-1], source[1:])])
-  return TorchImpl(make(enc, dec, window=window, memory_format=fmt,
+  return TorchImpl(make(enc, dec, configs[1], lr=configs[0].lr, memory_format=fmt,
                         compile=impl == "torch-compile", **extra), fmt)
 
 
@@ -176,7 +175,7 @@ def run_config(method: str, n: int, impls_wanted: list[str], variables, args, co
       obj = JaxImpl(method, variables, configs, resources)
       losses[impl] = obj.first(jax_chunk)
     else:
-      obj = torch_impl(impl, method, resources, args.window, (args.height, args.width))
+      obj = torch_impl(impl, method, configs, resources, (args.height, args.width))
       if obj is None:
         bc.emit({"impl": impl, "method": method, "skipped": "no PyTorch step for this method "
                  "(or this variant of it) in benchmarks/torch_reference.py"})

@@ -198,22 +198,22 @@ def encoder_bns(encoder: nn.Module) -> list[tuple[str, nn.Module]]:
 class TorchActmad:
   """ActMAD + L_d: hooks on the encoder BNs, SGD on every encoder parameter (fc excluded).
 
-  source_stats: {bn module name: (mean, var)}, each (C, h, w) float32.
+  source_stats: {bn module name: (mean, var)}, each (C, h, w) float32; config: the JAX method's
+  `ActmadConfig` (the same knobs on both sides).
   """
 
-  def __init__(self, encoder, decoder, source_stats, lr=1e-4, momentum=0.9, weight_decay=5e-4,
-               ring_size=8, ld_weight=1.0, window=5):
+  def __init__(self, encoder, decoder, source_stats, config):
     self.encoder, self.decoder, self.stats = encoder, decoder, source_stats
-    self.ld_weight, self.window = ld_weight, window
+    self.ld_weight, self.window = config.ld_weight, config.ld.window
     encoder.train(), decoder.train()
     for _, m in encoder_bns(encoder):
       m.eval()
     for p in decoder.parameters():
       p.requires_grad_(False)
     params = [p for n, p in encoder.named_parameters() if not n.startswith("encoder.fc")]
-    self.optimizer = torch.optim.SGD(params, lr=lr, momentum=momentum,
-                                     weight_decay=weight_decay, nesterov=True)
-    self.ring = collections.deque(maxlen=ring_size)
+    self.optimizer = torch.optim.SGD(params, lr=config.lr, momentum=config.momentum,
+                                     weight_decay=config.weight_decay, nesterov=config.nesterov)
+    self.ring = collections.deque(maxlen=config.ring_size)
     self.saved: dict[str, torch.Tensor] = {}
     for name, m in encoder_bns(encoder):  # upstream's SaveOutput hook
       m.register_forward_hook(lambda mod, i, o, n=name: self.saved.__setitem__(n, o.clone()))
@@ -237,19 +237,21 @@ class TorchActmad:
 
 
 class TorchCotta:
-  """CoTTA + L_d: student, EMA teacher, anchor; Adam on every parameter; BN eval mode."""
+  """CoTTA + L_d: student, EMA teacher, anchor; Adam on every parameter; BN eval mode.
+  config: the JAX method's `CottaConfig`."""
 
-  def __init__(self, encoder, decoder, lr=1e-4 / 12, n_augment=32, threshold=0.1,
-               ema=0.999, restore_p=0.01, ld_weight=1.0, window=5, seed=0):
+  def __init__(self, encoder, decoder, config, seed=0):
     self.model = nn.ModuleDict({"enc": encoder, "dec": decoder}).eval()
     self.anchor = copy.deepcopy(self.model)
     self.teacher = copy.deepcopy(self.model)
     for p in list(self.anchor.parameters()) + list(self.teacher.parameters()):
       p.requires_grad_(False)
     self.source = {n: p.detach().clone() for n, p in self.model.named_parameters()}
-    self.optimizer = torch.optim.Adam(self.model.parameters(), lr=lr)
-    self.n, self.threshold, self.ema, self.restore_p = n_augment, threshold, ema, restore_p
-    self.ld_weight, self.window = ld_weight, window
+    self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
+    self.n, self.threshold = config.n_augment, config.threshold
+    self.ema, self.restore_p = config.ema_decay, config.restore_p
+    self.ld_weight, self.window = config.ld_weight, config.ld.window
+    self.cfg = config
     self.rng = np.random.default_rng(seed)
 
   @staticmethod
@@ -260,13 +262,16 @@ class TorchCotta:
     """N augmented views (upstream: one transform call per view), (N, 3, H, W), and which of
     them are flipped."""
     from torch_tta import t_augment
+    c = self.cfg
     h, w = x.shape[-2:]
+    spread = np.array([c.brightness, c.contrast, c.saturation, c.gamma])
     out, flips = [], []
     for _ in range(self.n):
-      factors = self.rng.uniform([0.6, 0.7, 0.5, 0.7], [1.4, 1.3, 1.5, 1.3])
-      flips.append(bool(self.rng.random() < 0.5))
-      out.append(t_augment(x, self.rng.permutation(4), factors, self.rng.uniform(0.001, 0.5),
-                           flips[-1], 0.005 * self.rng.standard_normal((h, w, 3))))
+      factors = self.rng.uniform(1 - spread, 1 + spread)
+      flips.append(bool(self.rng.random() < c.flip_p))
+      out.append(t_augment(x, self.rng.permutation(4), factors,
+                           self.rng.uniform(c.blur_sigma_min, c.blur_sigma_max), flips[-1],
+                           c.noise_std * self.rng.standard_normal((h, w, 3))))
     return torch.cat(out).float(), flips
 
   def step(self, image, panoptic, segments) -> tuple[torch.Tensor, float]:
@@ -342,16 +347,18 @@ class TorchComoda:
   frozen, Adam on everything else; batch = the test pair (t-1 -> t) with the moving-object mask
   + `replay` source pairs with all-ones masks; the first frame makes no update.
 
-  replay_pairs: (R, 2, 3, H, W) consecutive source frames (previous, current)."""
+  replay_pairs: (R, 2, 3, H, W) consecutive source frames (previous, current); config: the JAX
+  method's `ComodaConfig`."""
 
-  def __init__(self, encoder, decoder, pose_encoder, pose_decoder, K, replay_pairs, lr=1e-4,
-               replay=3, ld_weight=1.0, window=5, seed=0):
+  def __init__(self, encoder, decoder, pose_encoder, pose_decoder, K, replay_pairs, config,
+               seed=0):
     h, w = replay_pairs.shape[-2:]
     self.optimizer = torch.optim.Adam(
-        _frozen_bn_params((encoder, decoder, pose_encoder, pose_decoder)), lr)
-    self.branch = _SfmBranch(encoder, decoder, pose_encoder, pose_decoder, K, 1 + replay, h, w)
-    self.replay_pairs, self.replay = replay_pairs, replay
-    self.ld_weight, self.window = ld_weight, window
+        _frozen_bn_params((encoder, decoder, pose_encoder, pose_decoder)), config.lr)
+    self.branch = _SfmBranch(encoder, decoder, pose_encoder, pose_decoder, K, 1 + config.replay,
+                             h, w)
+    self.replay_pairs, self.replay = replay_pairs, config.replay
+    self.ld_weight, self.window = config.ld_weight, config.ld.window
     self.rng = np.random.default_rng(seed)
     self.previous = None
 
@@ -459,19 +466,22 @@ def jax_bn_path(torch_name: str) -> str:
   return "/".join(["encoder"] + parts)
 
 
-# method name -> a factory of its PyTorch step (keyword arguments: window, memory_format,
-# compile, source_stats; each takes what it uses)
+# method name -> a factory of its PyTorch step, called as make(enc, dec, config, **keywords):
+# config is the JAX side's method config (the knobs come from it, not from literals here); the
+# keywords are lr (AdaptConfig.lr, PITTA's), memory_format, compile, source_stats, pose, K,
+# replay_pairs, height, width: each factory takes what it uses
 TORCH_STEPS = {
-    "pitta": lambda enc, dec, window=5, memory_format=torch.contiguous_format, compile=False,
-    **_: TorchPitta(enc, dec, window=window, memory_format=memory_format, compile=compile),
-    "none": lambda enc, dec, memory_format=torch.contiguous_format, **_: TorchNone(
+    "pitta": lambda enc, dec, config, lr=None, memory_format=torch.contiguous_format,
+    compile=False, **_: TorchPitta(enc, dec, lr=lr, lam=config.lam, window=config.ld.window,
+                                   memory_format=memory_format, compile=compile),
+    "none": lambda enc, dec, config, memory_format=torch.contiguous_format, **_: TorchNone(
         enc, dec, memory_format),
-    "actmad": lambda enc, dec, source_stats=None, window=5, **_: TorchActmad(
-        enc, dec, source_stats, window=window),
-    "cotta": lambda enc, dec, window=5, **_: TorchCotta(enc, dec, window=window),
-    "comoda": lambda enc, dec, pose=None, K=None, replay_pairs=None, window=5, **_: TorchComoda(
-        enc, dec, *pose, K, replay_pairs, window=window),
-    "adadepth": lambda enc, dec, pose=None, K=None, height=None, width=None, config=None, **_:
+    "actmad": lambda enc, dec, config, source_stats=None, **_: TorchActmad(
+        enc, dec, source_stats, config),
+    "cotta": lambda enc, dec, config, **_: TorchCotta(enc, dec, config),
+    "comoda": lambda enc, dec, config, pose=None, K=None, replay_pairs=None, **_: TorchComoda(
+        enc, dec, *pose, K, replay_pairs, config),
+    "adadepth": lambda enc, dec, config, pose=None, K=None, height=None, width=None, **_:
     TorchAdadepth(enc, dec, *pose, K, height, width, config),
 }
 
