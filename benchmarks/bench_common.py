@@ -115,8 +115,8 @@ def method_resources(method, model: Network, variables, height: int, width: int,
   if "pose" in method.needs:
     from pitta_jax.models.pose import PoseNet as PoseModule
     module = PoseModule(18)
-    resources[POSE] = PoseNet(module, module.init(jax.random.PRNGKey(seed),
-                                                  np.zeros((1, height, width, 6), np.float32)))
+    resources[POSE] = PoseNet(module, jax.jit(module.init)(
+        jax.random.PRNGKey(seed), np.zeros((1, height, width, 6), np.float32)))
   if method.prepare is not None:
     frames = synthetic_frames(SOURCE_FRAMES, height, width, 4, seed=seed)
     sequence = tuple(Frame(image=f.image, panoptic=f.panoptic,

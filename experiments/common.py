@@ -172,8 +172,10 @@ def _random_weights(directory: Path, model: str):
     spec = get_spec(model)
     h, w = QUICK_SIZE
     config = dict(spec.source_config(h, w)) if spec.source_config else {"height": h, "width": w}
-    depth = spec.build(config).init(jax.random.PRNGKey(0), jnp.zeros((1, h, w, 3)))
-    pose = (spec.build_pose(config).init(jax.random.PRNGKey(1), jnp.zeros((1, h, w, 6)))
+    # jitted: op by op, an init compiles each of its hundreds of small ops (~20 s per table)
+    depth = jax.jit(spec.build(config).init)(jax.random.PRNGKey(0), jnp.zeros((1, h, w, 3)))
+    pose = (jax.jit(spec.build_pose(config).init)(jax.random.PRNGKey(1),
+                                                   jnp.zeros((1, h, w, 6)))
             if spec.build_pose else None)
     save_weights(directory, model, config, jax.device_get(depth),
                  None if pose is None else jax.device_get(pose), source={"random_init": 0})

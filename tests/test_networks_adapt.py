@@ -111,8 +111,9 @@ def test_pitta_and_none_run_on_other_networks(name):
     else:
       assert not moved
   # none with batch statistics = the network's own depth with batch statistics, frame by frame
-  ref = np.stack([np.asarray(net.depth(variables, jnp.asarray(frames.image[t:t + 1]),
-                                       True))[0] for t in range(2)])
+  depth = jax.jit(lambda v, x: net.depth(v, x, True))
+  ref = np.stack([np.asarray(depth(variables, jnp.asarray(frames.image[t:t + 1])))[0]
+                  for t in range(2)])
   # (compared as inverse depth: a relative network's near-zero outputs make depth 1 / eps)
   inv = lambda d: 1.0 / np.asarray(d, np.float64)
   tol = 1e-5 * float(np.max(inv(ref)))
