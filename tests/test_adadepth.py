@@ -121,7 +121,7 @@ class TorchAdaDepth:
     K4 = torch.eye(4, dtype=torch.float64)
     K4[:3, :3] = torch.from_numpy(K)
     loss_u = self.sfm(x, [prev], [disps[("disp", s)] for s in SCALES], K4[None],
-                      torch.linalg.inv(K4)[None], [T], torch.from_numpy(noise))[0]
+                      torch.linalg.inv(K4)[None], [T], torch.from_numpy(np.array(noise)))[0]
     self.reg_model_optimizer.zero_grad()
     loss_u.backward()
     u_gnorm = _grad_norm(self.reg_model_optimizer)
@@ -154,8 +154,8 @@ class TorchAdaDepth:
     with torch.no_grad():
       after = self.depth(self.models, x)[0, 0].numpy()
     pixels = H * W
-    return {"loss": float(total), "loss_adadepth": float(loss_ada), "loss_sup": float(l_sup),
-            "loss_unsup": float(l_unsup), "loss_d": float(l_d), "loss_u": float(loss_u),
+    return {"loss": total.item(), "loss_adadepth": loss_ada.item(), "loss_sup": l_sup.item(),
+            "loss_unsup": l_unsup.item(), "loss_d": l_d.item(), "loss_u": loss_u.item(),
             "grad_norm": gnorm, "u_grad_norm": u_gnorm, "u_scale": float(u_scale),
             "keep_sup": n_sup / pixels, "keep_unsup": n_unsup / pixels, "after": after,
             "before": depth.detach()[0, 0].numpy()}

@@ -177,7 +177,7 @@ def _torch_side(enc, dec, image, panoptic, ids, dtype):
   total, l_d, l_e = t_pitta_loss(x, depth, panoptic, ids)
   total.backward()
   ties = _tie_fraction(depth.detach().double().numpy(), panoptic, ids)
-  return float(total), float(l_d), float(l_e), tm.bn_grads(enc), ties
+  return total.item(), l_d.item(), l_e.item(), tm.bn_grads(enc), ties
 
 
 def _jax_side(variables, image, panoptic, ids, dtype):
