@@ -248,9 +248,6 @@ class TorchCotta:
       p.requires_grad_(False)
     self.source = {n: p.detach().clone() for n, p in self.model.named_parameters()}
     self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
-    self.n, self.threshold = config.n_augment, config.threshold
-    self.ema, self.restore_p = config.ema_decay, config.restore_p
-    self.ld_weight, self.window = config.ld_weight, config.ld.window
     self.cfg = config
     self.rng = np.random.default_rng(seed)
 
@@ -266,7 +263,7 @@ class TorchCotta:
     h, w = x.shape[-2:]
     spread = np.array([c.brightness, c.contrast, c.saturation, c.gamma])
     out, flips = [], []
-    for _ in range(self.n):
+    for _ in range(c.n_augment):
       factors = self.rng.uniform(1 - spread, 1 + spread)
       flips.append(bool(self.rng.random() < c.flip_p))
       out.append(t_augment(x, self.rng.permutation(4), factors,
@@ -275,6 +272,7 @@ class TorchCotta:
     return torch.cat(out).float(), flips
 
   def step(self, image, panoptic, segments) -> tuple[torch.Tensor, float]:
+    c = self.cfg
     student = self.disp(self.model, image)[0]
     with torch.no_grad():
       anchor = self.disp(self.anchor, image)[0]
@@ -282,18 +280,18 @@ class TorchCotta:
       out = self.disp(self.teacher, torch.cat([image, views]))
       teacher = out[0]
       outs = torch.stack([o.flip(-1) if f else o for o, f in zip(out[1:], flips)])
-      pseudo = torch.where((anchor - teacher).abs() / teacher > self.threshold,
+      pseudo = torch.where((anchor - teacher).abs() / teacher > c.threshold,
                            outs.mean(0), teacher)
-    loss = F.l1_loss(student, pseudo) + self.ld_weight * depth_refining(
-        disp_to_depth(student), instance_masks(panoptic, segments), self.window)
+    loss = F.l1_loss(student, pseudo) + c.ld_weight * depth_refining(
+        disp_to_depth(student), instance_masks(panoptic, segments), c.ld.window)
     self.optimizer.zero_grad(set_to_none=True)
     loss.backward()
     self.optimizer.step()
     with torch.no_grad():
       for t, p in zip(self.teacher.parameters(), self.model.parameters()):
-        t.mul_(self.ema).add_(p, alpha=1 - self.ema)
+        t.mul_(c.ema_decay).add_(p, alpha=1 - c.ema_decay)
       for n, p in self.model.named_parameters():
-        m = torch.rand(p.shape) < self.restore_p
+        m = torch.rand(p.shape) < c.restore_p
         p.copy_(torch.where(m, self.source[n], p))
     return disp_to_depth(pseudo), loss.item()
 

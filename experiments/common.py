@@ -156,9 +156,9 @@ def weights_for(ctx: Context, model: str):
   if ctx.quick:
     return _random_weights(ctx.out / "weights" / model, model)
   from pitta_jax.source_model import SourceConfig, load_or_train_source
-  recipe = {} if model == "monodepth2" else {
-      **OTHER_NETWORK_SOURCE, **({"lr": OTHER_NETWORK_LR[model]} if model in OTHER_NETWORK_LR
-                                 else {})}
+  recipe = {} if model == "monodepth2" else dict(OTHER_NETWORK_SOURCE)
+  if model in OTHER_NETWORK_LR:
+    recipe["lr"] = OTHER_NETWORK_LR[model]
   return load_or_train_source(SourceConfig(model=model, **recipe), quiet=ctx.quiet)[0]
 
 

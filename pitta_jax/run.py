@@ -158,8 +158,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   A frame whose ground truth has no valid pixel is excluded from the means and named in
   `RunResult.excluded` (the run goes on). A frame whose predicted depth is not finite (the
   method diverged: its parameters are finite but the network overflows) is not scored either; it
-  is named in `RunResult.nonfinite` (indices: `nonfinite_indices`), and callers report the run as diverged
-  (`RunResult.diverged_at`) rather than its means over the frames that were still finite.
+  is named in `RunResult.nonfinite` (indices: `nonfinite_indices`), and callers report the run
+  as diverged (`RunResult.diverged_at`) rather than its means over the frames that were still
+  finite.
 
   Args:
     weights: the network to adapt (its config gives the input size).
@@ -186,13 +187,15 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   alignment = weights.spec.alignment if eval_cfg.alignment == "model" else eval_cfg.alignment
   state, consts = init_state(weights.depth, method, cfg, tx, model,
                              {INPUT_SIZE: (h, w), **(resources or {})})
-  record = {"per_frame": [], "names": [], "excluded": [], "nonfinite": [], "logs": {}}
+  record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
+            "logs": {}}
   directory = Path(checkpoint_dir) if checkpoint_dir else None
   if resume and directory is not None:
     latest = _latest_checkpoint(directory)
     if latest is not None:
       state = load_state(latest, like=state)
-      record = {"nonfinite": [], **json.loads((latest.parent / f"{latest.name}.json").read_text())}
+      sidecar = json.loads((latest.parent / f"{latest.name}.json").read_text())
+      record = {"nonfinite_indices": [], **sidecar}
       frames = frames[int(state.step):]
   start = int(state.step)
   kept: dict[int, np.ndarray] = {}
@@ -221,7 +224,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
         if index in keep:
           kept[index] = depth
         if not np.isfinite(depth).all():
-          record["nonfinite"].append(index)
+          record["nonfinite_indices"].append(index)
         elif frame.depth is not None:
           try:
             record["per_frame"].append({"name": frame.name, **metrics_lib.depth_metrics(
@@ -258,4 +261,4 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   return RunResult(name=name, per_frame=per_frame, mean=mean, logs=logs,
                    frame_names=record["names"], seconds=seconds, kept_depths=kept,
                    n_skipped=int(state.n_skipped), excluded=record["excluded"],
-                   resumed_at=start, nonfinite_indices=record["nonfinite"])
+                   resumed_at=start, nonfinite_indices=record["nonfinite_indices"])
