@@ -94,8 +94,12 @@ def table_from_dynamic_ids(dynamic_ids: Array) -> tuple[Array, Array]:
 def instance_index_map(panoptic: Array, inst_ids: Array, inst_valid: Array) -> Array:
   """Per-pixel instance index: 0 = no dynamic instance, j in 1..N_max for instance j.
 
-  Compares every pixel with the N_max table ids: O(H W N_max) elementwise work fused into one
-  loop, about 0.3 ms at 640x192 with N_max = 32 on a CPU (a binary search is slower here).
+  Compares every pixel with the N_max table ids and keeps the first matching row: O(H W N_max)
+  work in one reduction over the rows, about 0.3 ms at 640x192 with N_max = 32 on a CPU (a
+  binary search is slower here). Written as a reduction, not a chain of N_max selects: XLA
+  fuses an elementwise chain into each consumer, and the fast L_d reads the map through s*s
+  padded views, so the chain ran once per view (measured: 17 ms vs 1.7 ms for the map, its
+  views and the masked depth's views, s = 5, in a scan on 2 CPU cores).
 
   Args:
     panoptic: (H, W) int segment id map (0 = void).
@@ -110,10 +114,11 @@ def instance_index_map(panoptic: Array, inst_ids: Array, inst_valid: Array) -> A
   inst_ids = jnp.asarray(inst_ids, jnp.int32)
   inst_valid = jnp.asarray(inst_valid, bool)
   usable = inst_valid & (inst_ids > 0)  # (N_max,) invalid rows never match
-  index = jnp.zeros(panoptic.shape, jnp.int32)  # (H, W)
-  for j in reversed(range(inst_ids.shape[0])):  # unrolled and fused by XLA; first match wins
-    index = jnp.where((panoptic == inst_ids[j]) & usable[j], j + 1, index)
-  return index
+  n_max = inst_ids.shape[0]
+  rows = jnp.arange(1, n_max + 1, dtype=jnp.int32)[:, None, None]  # (N_max, 1, 1)
+  hit = (panoptic[None] == inst_ids[:, None, None]) & usable[:, None, None]  # (N_max, H, W)
+  first = jnp.min(jnp.where(hit, rows, n_max + 1), axis=0)  # (H, W), the first matching row
+  return jnp.where(first > n_max, 0, first)
 
 
 def instance_gains(n_max: int, mode: str = "binary", inst_ids: Array | None = None) -> Array:
