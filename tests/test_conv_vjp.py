@@ -25,23 +25,29 @@ CASES = [
     ((13, 14), 3, (3, 2), ((0, 2), (1, 0)), (1, 1)),
     ((12, 12), 3, (1, 2), ((2, 2), (1, 1)), (2, 2)),
     ((8, 9), 3, (1, 1), ((0, 0), (0, 0)), (1, 1)),
+    ((13, 14), 3, (1, 1), ((0, 2), (1, 0)), (1, 1)),
+    ((6, 7), 5, (1, 1), ((2, 1), (0, 0)), (1, 1)),
 ]
 
 
+# out = 1: stride-1 undilated cases take the single-output path (a product and shifted sums)
+@pytest.mark.parametrize("out", [7, 1])
 @pytest.mark.parametrize("size,ksize,strides,padding,dilation", CASES)
-def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding, dilation):
+def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding, dilation, out):
   rng = np.random.default_rng(sum(size) + ksize)
   x = rng.standard_normal((2, *size, 5), np.float32)
-  k = rng.standard_normal((ksize, ksize, 5, 7), np.float32)
+  k = rng.standard_normal((ksize, ksize, 5, out), np.float32)
 
   @jax.jit
   def run_both(x, k):
-    def run(fn):
+    def run(fn, ct=None):
       def f(x, k):
         return fn(x, k, strides, padding, rhs_dilation=dilation, dimension_numbers=NHWC)
       y, vjp = jax.vjp(f, x, k)
-      return (y, *vjp(jnp.cos(3.0 * y)))  # a cotangent that is not all ones
-    return run(lax.conv_general_dilated), run(conv_vjp.conv_general_dilated)
+      ct = jnp.cos(3.0 * y) if ct is None else ct  # a cotangent that is not all ones
+      return (y, *vjp(ct)), ct
+    ref, ct = run(lax.conv_general_dilated)
+    return ref, run(conv_vjp.conv_general_dilated, ct)[0]  # the same cotangent for both
 
   ref, got = run_both(x, k)
   for name, a, b in zip(("value", "input grad", "kernel grad"), ref, got):

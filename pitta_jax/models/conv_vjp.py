@@ -16,6 +16,10 @@ convolution in swapped layouts; inside the loop a 3x3 64->64 kernel gradient at 
 and batch swapped, with the cotangent as a canonical HWIO kernel. Values and gradients are
 those of `lax.conv_general_dilated` (tests/test_conv_vjp.py). Flax's `nn.Conv` takes it through
 its `conv_general_dilated` attribute (`models.layers.Conv`).
+
+The forward of a stride-1 convolution to a single output feature (a disparity head) is a
+matrix product and a sum of shifted planes (`_single_output_conv`): XLA:CPU's convolution
+library does not take it, and its generic loop nest was 2.6x slower.
 """
 
 from __future__ import annotations
@@ -35,8 +39,34 @@ def _dilated_size(size: int, dilation: int) -> int:
   return 0 if size == 0 else 1 + dilation * (size - 1)
 
 
+def _single_output_conv(x: jax.Array, k: jax.Array, padding: Pairs, precision: Any) -> jax.Array:
+  """A stride-1 convolution to one output feature, as a matrix product and a sum of shifts.
+
+  x (N, H, W, C), k (kh, kw, C, 1) -> (N, H', W', 1). Why: XLA:CPU's fast convolution path does
+  not take a single output feature; MonoDepth2's disparity head (3x3, 16 -> 1 at full
+  resolution) ran as a generic loop nest, 3.7 ms for a forward that is 35 MFLOP. Here every
+  pixel's C features are contracted with all kh * kw taps at once (one matrix product, taps
+  first so that each tap's plane is contiguous), and output pixel (i, j) adds tap (a, b)'s plane
+  at (i + a, j + b): 1.4 ms (640x192, 2 CPU cores). The padding is applied to the tap planes,
+  which are fewer than the input's features. Same sums, in another order (float rounding).
+  """
+  kh, kw, c, _ = k.shape
+  taps = lax.dot_general(k.reshape(kh * kw, c), x, (((1,), (3,)), ((), ())),
+                         precision=precision)  # (kh * kw, N, H, W)
+  if any(p for pair in padding for p in pair):
+    taps = lax.pad(taps, jnp.zeros((), taps.dtype),
+                   ((0, 0, 0), (0, 0, 0), *((lo, hi, 0) for lo, hi in padding)))
+  ho, wo = taps.shape[2] - kh + 1, taps.shape[3] - kw + 1
+  y = sum(taps[a * kw + b, :, a:a + ho, b:b + wo] for a in range(kh) for b in range(kw))
+  return y[..., None]  # (N, Ho, Wo, 1)
+
+
 def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
           rhs_dilation: tuple[int, int], precision: Any) -> jax.Array:
+  fits = all(n + lo + hi >= kn for n, (lo, hi), kn in zip(x.shape[1:3], padding, k.shape[:2]))
+  if k.shape[-1] == 1 and strides == (1, 1) and rhs_dilation == (1, 1) and fits and \
+      all(p >= 0 for pair in padding for p in pair):
+    return _single_output_conv(x, k, padding, precision)
   return lax.conv_general_dilated(x, k, strides, padding, None, rhs_dilation, NHWC_HWIO,
                                   precision=precision)
 
