@@ -30,13 +30,15 @@ CASES = [
 ]
 
 
-# out = 1: stride-1 undilated cases take the single-output path (a product and shifted sums)
-@pytest.mark.parametrize("out", [7, 1])
+# out = 1 with 12 input features: the stride-1 undilated cases with at most 12 taps take the
+# single-output path (a product and shifted sums), the 5x5 one does not
+@pytest.mark.parametrize("out,cin", [(7, 5), (1, 12)])
 @pytest.mark.parametrize("size,ksize,strides,padding,dilation", CASES)
-def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding, dilation, out):
+def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding, dilation, out,
+                                                  cin):
   rng = np.random.default_rng(sum(size) + ksize)
-  x = rng.standard_normal((2, *size, 5), np.float32)
-  k = rng.standard_normal((ksize, ksize, 5, out), np.float32)
+  x = rng.standard_normal((2, *size, cin), np.float32)
+  k = rng.standard_normal((ksize, ksize, cin, out), np.float32)
 
   @jax.jit
   def run_both(x, k):
