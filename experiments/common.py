@@ -383,11 +383,15 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
 def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
                  argv: Sequence[str] | None, runners: Any = None) -> int:
   """Parses, runs, and turns an expected error into one line and exit 2 (tracebacks with
-  --debug). runners: a compile cache shared with other tables of the same process."""
+  --debug). Compiled steps persist under the cache root (`$PITTA_JAX_CACHE`, as `pitta-jax
+  demo`), so another table or row at the same shapes loads them instead of compiling again.
+  runners: an in-process compile cache shared with other tables of the same process."""
   from pitta_jax.data.errors import DataError
   from pitta_jax.outputs import OutputError
+  from pitta_jax.source_model import enable_compilation_cache
   args = p.parse_args(argv)
   try:
+    enable_compilation_cache()  # the command's choice: a later run skips the step compiles
     return run(args, runners)
   except (DataError, OutputError, FileNotFoundError, ValueError, TypeError, OSError) as e:
     if args.debug:

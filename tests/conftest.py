@@ -13,6 +13,7 @@ unpinned, 22% more CPU time for a 14% shorter run), and the heaviest files go fi
 import os
 
 import jax
+import pytest
 
 
 def _pin_xdist_worker() -> None:
@@ -43,3 +44,15 @@ def pytest_collection_modifyitems(config, items):
   items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 jax.config.update("jax_default_matmul_precision", "highest")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _private_cache_root(tmp_path_factory):
+  """Every test's cache root ($PITTA_JAX_CACHE: source models, ActMAD statistics, the XLA
+  executables the commands persist) is this session's temporary directory, never the user's
+  ~/.cache; a test that needs its own sets it again (monkeypatch)."""
+  from pitta_jax.source_model import CACHE_ENV
+  mp = pytest.MonkeyPatch()
+  mp.setenv(CACHE_ENV, str(tmp_path_factory.mktemp("pitta_jax_cache")))
+  yield
+  mp.undo()

@@ -84,6 +84,10 @@ QUICK_ROWS = {"table1": "No adaptation,PITTA,Depth Anything", "table2": "No adap
 def test_method_tables_quick(name, quick_out):
   from experiments.table1 import CASES, ROWS
   assert _quick(name, quick_out, "--rows", QUICK_ROWS[name]) == 0
+  import jax
+  from pitta_jax.source_model import cache_root
+  # the command persists its compiled steps under the (here: the session's private) cache root
+  assert jax.config.jax_compilation_cache_dir == str(cache_root() / "xla")
   ROWS = [r for r in ROWS if r.label in ("No adaptation", "PITTA", "Depth Anything V2")]
   payload, lines = _check_files(quick_out[0] / name, name)
   groups = list(CASES) if name == "table1" else ["Waymo"]
