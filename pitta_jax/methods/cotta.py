@@ -164,11 +164,18 @@ def teacher_predictions(model, variables, image: jax.Array, params: AugParams
 
 
 def restore_masks(rng: jax.Array, tree, p: float):
-  """Bernoulli(p) masks shaped like `tree`'s leaves (True = restore to the source)."""
+  """Bernoulli(p) masks shaped like `tree`'s leaves (True = restore to the source).
+
+  One draw for all leaves' elements, cut into the leaves' shapes: a draw per leaf (as upstream's
+  `torch.rand(p.shape)` loop) gives XLA one random-bits program per leaf, and MonoDepth2's 88
+  leaves took 24 s to compile instead of 3 s. The masks' law is the same (i.i.d. elements)."""
   leaves, treedef = jax.tree_util.tree_flatten(tree)
-  keys = jax.random.split(rng, max(len(leaves), 1))
-  return jax.tree_util.tree_unflatten(
-      treedef, [jax.random.bernoulli(k, p, x.shape) for k, x in zip(keys, leaves)])
+  draw = jax.random.bernoulli(rng, p, (sum(x.size for x in leaves),))
+  masks, start = [], 0
+  for x in leaves:
+    masks.append(draw[start:start + x.size].reshape(x.shape))
+    start += x.size
+  return jax.tree_util.tree_unflatten(treedef, masks)
 
 
 def _disp(model, variables, image):
