@@ -96,7 +96,15 @@ def test_batch_norm_at_zero_variance_matches_torch():
 
   (_, out), (gp, gx) = jax.value_and_grad(f, argnums=(0, 1), has_aux=True)(
       variables["params"], jnp.asarray(x))
-  np.testing.assert_allclose(np.asarray(out), y.detach().permute(0, 2, 3, 1).numpy(), atol=1e-5)
+  out, ref = np.asarray(out), y.detach().permute(0, 2, 3, 1).numpy()
+  varying = [0, 2]
+  np.testing.assert_allclose(out[..., varying], ref[..., varying], atol=1e-5)
+  # The constant channel: x - mean is 0 up to the rounding of the mean, which PyTorch's CPU
+  # kernel leaves at up to an ulp of 0.7 depending on the instruction set (seen on AVX2, not
+  # AVX-512); normalisation multiplies it by scale / sqrt(eps) = 158.
+  amplified = 2 * np.spacing(np.float32(0.7)) * scale[1] / np.sqrt(1e-5)
+  np.testing.assert_allclose(out[..., 1], bias[1], atol=amplified)
+  np.testing.assert_allclose(ref[..., 1], bias[1], atol=amplified)
   np.testing.assert_allclose(np.asarray(gx), xt.grad.permute(0, 2, 3, 1).numpy(), atol=1e-4)
   np.testing.assert_allclose(np.asarray(gp["scale"]), bn.weight.grad.numpy(), atol=1e-4)
   np.testing.assert_allclose(np.asarray(gp["bias"]), bn.bias.grad.numpy(), atol=1e-5)
