@@ -65,12 +65,23 @@ def cubic_matrix(n_in: int, n_out: int, align_corners: bool, a: float = CUBIC_A)
 
 
 def _resize(x: jax.Array, size: tuple[int, int], matrix) -> jax.Array:
+  """Each axis through its matrix; an axis whose matrix is the identity (same size: every
+  mode's source coordinates are then the pixels themselves) is left as it is, so a resize to
+  the input's own size (e.g. MonoDepth2's loss upsampling scale 0) costs nothing and puts no
+  (H, H) constant into the program."""
   h, w = x.shape[-3], x.shape[-2]
-  mh = jnp.asarray(matrix(h, size[0]))  # (H', H)
-  mw = jnp.asarray(matrix(w, size[1]))  # (W', W)
+  mh = matrix(h, size[0])  # (H', H)
+  mw = matrix(w, size[1])  # (W', W)
   hp = jax.lax.Precision.HIGHEST
-  y = jnp.einsum("ph,...hwc->...pwc", mh, x, precision=hp)
-  return jnp.einsum("qw,...pwc->...pqc", mw, y, precision=hp)
+  if not _is_identity(mh):
+    x = jnp.einsum("ph,...hwc->...pwc", jnp.asarray(mh), x, precision=hp)
+  if not _is_identity(mw):
+    x = jnp.einsum("qw,...pwc->...pqc", jnp.asarray(mw), x, precision=hp)
+  return x
+
+
+def _is_identity(m: np.ndarray) -> bool:
+  return m.shape[0] == m.shape[1] and np.array_equal(m, np.eye(m.shape[0], dtype=m.dtype))
 
 
 def resize_bilinear(x: jax.Array, size: tuple[int, int], align_corners: bool) -> jax.Array:
