@@ -180,6 +180,11 @@ def test_all_finite_flags_any_nan_or_inf_leaf():
   cases = [base, {**base, "a": np.array([[1.0, np.nan]] * 3, np.float32)},
            {**base, "e": np.array(-np.inf)}, {**base, "a": np.full((3, 2), 3e38, np.float32)},
            {}]
+  # leaves of one shape (flags summed before one reduction), of one shape and another dtype
+  twin = np.full((3, 2), 3e38, np.float32)
+  cases += [{**base, "f": twin}, {**base, "f": twin, "g": twin},
+            {**base, "f": np.array([[0.0, np.inf]] * 3, np.float32)},
+            {**base, "f": twin, "g": np.array([[np.nan, 0.0]] * 3, np.float16)}]
   for tree in cases:
     want = all(np.all(np.isfinite(x)) for x in jax.tree_util.tree_leaves(tree))
     assert bool(all_finite(tree)) == want and bool(jax.jit(all_finite)(tree)) == want

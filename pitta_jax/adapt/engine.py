@@ -129,20 +129,32 @@ def init_state(variables: Tree, method: Method, cfg: AdaptConfig,
 def all_finite(tree: Tree) -> jax.Array:
   """() bool: every leaf of `tree` is finite.
 
-  Written as sqrt(sum over the leaves of a 0-or-NaN count) so that XLA computes the predicate
-  once: an `and` of per-leaf flags is a chain of cheap scalar ops that XLA's fusion copies into
-  every consumer, i.e. into each guarded leaf's select (with hundreds of leaves, minutes of
-  compile time and a 100 MB program); sqrt is an op it does not duplicate.
+  Leaves of one shape and dtype are summed elementwise as 0-or-NaN flags before one reduction
+  per shape: a reduction per leaf is a separate XLA kernel, and the guard of an Adam step on
+  MonoDepth2's 88 parameter leaves (gradients, parameters, both moments) compiled 831 of them
+  (6.3 s; grouped: 4 s). The predicate is sqrt of the total so that XLA computes it once: an
+  `and` of per-leaf flags is a chain of cheap scalar ops that XLA's fusion copies into every
+  consumer, i.e. into each guarded leaf's select (with hundreds of leaves, minutes of compile
+  time and a 100 MB program); sqrt is an op it does not duplicate.
   """
-  leaves = jax.tree_util.tree_leaves(tree)
-  if not leaves:
+  groups: dict[tuple, list[jax.Array]] = {}
+  for x in jax.tree_util.tree_leaves(tree):
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.inexact):  # integers and booleans are always finite
+      groups.setdefault((x.shape, x.dtype), []).append(x)
+  if not groups:
     return jnp.array(True)
-  nan_if_any = sum(jnp.sum(jnp.where(jnp.isfinite(x), 0.0, jnp.nan)) for x in leaves)
+  nan_if_any = sum(jnp.sum(sum(jnp.where(jnp.isfinite(x), 0.0, jnp.nan) for x in group))
+                   for group in groups.values())
   return jnp.isfinite(jnp.sqrt(nan_if_any))
 
 
 def select(pred: jax.Array, on_true: Tree, on_false: Tree) -> Tree:
-  """Leafwise `where(pred, on_true, on_false)` of two trees of the same structure."""
+  """Leafwise `where(pred, on_true, on_false)` of two trees of the same structure.
+
+  Not a `lax.cond`: that compiles fewer kernels (a guarded Adam step on MonoDepth2's parameters:
+  1.2 s less), but Ada-Depth's step took 9% longer with it (320x96, interleaved: 1066 vs 957
+  ms/frame)."""
   return jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b), on_true, on_false)
 
 
@@ -157,7 +169,7 @@ def optax_update(state: AdaptState, grads: Tree, loss: jax.Array, tx: optax.Grad
   updates, new_opt = tx.update(grads, state.opt_state, state.trainable)
   new_tr = optax.apply_updates(state.trainable, updates)
   if cfg.skip_nonfinite:
-    ok = (jnp.isfinite(loss) & all_finite(grads) & all_finite(new_tr) & all_finite(new_opt))
+    ok = jnp.isfinite(loss) & all_finite((grads, new_tr, new_opt))
     new_tr = select(ok, new_tr, state.trainable)
     new_opt = select(ok, new_opt, state.opt_state)
     skipped = ~ok

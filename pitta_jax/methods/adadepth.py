@@ -219,8 +219,8 @@ def branch_step(branch: Branch, batch_stats: Tree, frame, previous: jax.Array,
       config.sfm)
   updates, opt_state = optax.adam(config.lr).update(grads, branch.opt_state, branch.params)
   params = optax.apply_updates(branch.params, updates)
-  ok = (has_previous & frame.has_intrinsics & jnp.isfinite(value) & all_finite(grads)
-        & all_finite(params) & all_finite(opt_state))
+  ok = (has_previous & frame.has_intrinsics & jnp.isfinite(value)
+        & all_finite((grads, params, opt_state)))
   params, opt_state = select(ok, (params, opt_state), (branch.params, branch.opt_state))
   return branch.replace(params=params, opt_state=opt_state), value, optax.tree.norm(grads), ok
 
