@@ -313,6 +313,25 @@ def compare_conv_rule(variables, args, common) -> None:
            "load": bc.load()})
 
 
+def compile_parts(method: str, n: int, variables, args, common) -> None:
+  """Where a step's compile goes: JAX's trace and lowering, then XLA's compile."""
+  frames = bc.synthetic_frames(args.jax_frames, args.height, args.width, n, seed=1)
+  configs = bc.method_configs(method, n, args.window, args.jax_frames)
+  resources = bc.method_resources(build(method, configs[1]), bc.depth_network(), variables,
+                                  args.height, args.width)
+  chunk = bc.step_inputs(frames, configs[0].max_segments,
+                         intrinsics="intrinsics" in build(method).needs)
+  impl = JaxImpl(method, variables, configs, resources)
+  load = bc.load()
+  t0 = time.perf_counter()
+  lowered = impl.runner.lower(impl.state, chunk, impl.consts)
+  t1 = time.perf_counter()
+  lowered.compile()
+  t2 = time.perf_counter()
+  bc.emit({"compile": "jax", "method": method, **common, "instances": n,
+           "trace_lower_s": round(t1 - t0, 2), "xla_compile_s": round(t2 - t1, 2), "load": load})
+
+
 def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--method", default="pitta", choices=sorted(METHODS))
@@ -333,6 +352,9 @@ def main(argv=None) -> None:
                  + " (default: all that exist for the method)")
   p.add_argument("--profile", action="store_true", help="FLOPs and per-part times (PITTA)")
   p.add_argument("--quick", action="store_true", help="320x96, 4 frames, 3 rounds")
+  p.add_argument("--compile-only", action="store_true",
+                 help="only trace, lower and compile the JAX chunk runner and print the seconds "
+                      "of each part (no timing of steps)")
   p.add_argument("--compare-conv-rule", action="store_true",
                  help="also time the PITTA step with JAX's own convolution input-gradient rule "
                       "(what pitta_jax.models.conv_vjp replaces) and print the ratio")
@@ -358,6 +380,9 @@ def main(argv=None) -> None:
   common = {"H": args.height, "W": args.width, "window": args.window, "threads": args.threads,
             "frames": args.frames, "jax_frames": args.jax_frames, "reps": args.reps,
             "device": jax.devices()[0].platform}
+  if args.compile_only:
+    compile_parts(args.method, sweep[0], variables, args, common)
+    return
   bc.emit({"start": "step", "method": args.method, "impls": impls, "load": bc.load()})
   results = {n: run_config(args.method, n, impls, variables, args, common) for n in sweep}
   if len(sweep) > 1:
