@@ -160,15 +160,22 @@ def time_interleaved(impls: dict, jax_chunk: StepInput, frames: list[bc.BenchFra
               "cpu_ms_per_frame": float(np.median(cpu[n]))} for n in names}
 
 
-def run_config(method: str, n: int, impls_wanted: list[str], variables, args, common) -> dict:
-  """Sets up, times and reports every implementation for N = n instances."""
-  jax_frames = bc.synthetic_frames(args.jax_frames, args.height, args.width, n, seed=1)
-  frames = jax_frames[:args.frames]
+def method_inputs(method: str, n: int, variables, args):
+  """Generated frames (--jax-frames of them), the method's configs and resources, and the JAX
+  chunk of those frames."""
+  frames = bc.synthetic_frames(args.jax_frames, args.height, args.width, n, seed=1)
   configs = bc.method_configs(method, n, args.window, args.jax_frames)
   resources = bc.method_resources(build(method, configs[1]), bc.depth_network(), variables,
                                   args.height, args.width)
-  jax_chunk = bc.step_inputs(jax_frames, configs[0].max_segments,
-                             intrinsics="intrinsics" in build(method).needs)
+  chunk = bc.step_inputs(frames, configs[0].max_segments,
+                         intrinsics="intrinsics" in build(method).needs)
+  return frames, configs, resources, chunk
+
+
+def run_config(method: str, n: int, impls_wanted: list[str], variables, args, common) -> dict:
+  """Sets up, times and reports every implementation for N = n instances."""
+  jax_frames, configs, resources, jax_chunk = method_inputs(method, n, variables, args)
+  frames = jax_frames[:args.frames]
   impls, losses, compile_s = {}, {}, {}
   for impl in impls_wanted:
     if impl == "jax":
@@ -315,12 +322,7 @@ def compare_conv_rule(variables, args, common) -> None:
 
 def compile_parts(method: str, n: int, variables, args, common) -> None:
   """Where a step's compile goes: JAX's trace and lowering, then XLA's compile."""
-  frames = bc.synthetic_frames(args.jax_frames, args.height, args.width, n, seed=1)
-  configs = bc.method_configs(method, n, args.window, args.jax_frames)
-  resources = bc.method_resources(build(method, configs[1]), bc.depth_network(), variables,
-                                  args.height, args.width)
-  chunk = bc.step_inputs(frames, configs[0].max_segments,
-                         intrinsics="intrinsics" in build(method).needs)
+  _, configs, resources, chunk = method_inputs(method, n, variables, args)
   impl = JaxImpl(method, variables, configs, resources)
   load = bc.load()
   t0 = time.perf_counter()
