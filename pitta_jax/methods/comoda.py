@@ -172,7 +172,7 @@ def _adam_step(config: ComodaConfig, params: Tree, grads: Tree, opt_state: Tree)
   g, _ = ravel_pytree(grads)
   u, new_opt = _adam(config).update(g, opt_state, p)
   new = p + u
-  finite = jnp.all(jnp.isfinite(g)) & jnp.all(jnp.isfinite(new)) & all_finite(new_opt)
+  finite = all_finite((g, new, new_opt))
   return p, new, u, new_opt, finite, unravel
 
 
