@@ -114,6 +114,9 @@ class Context:
   replay_root: str | None = None
   runners: Any = None           # a `run.Runners` compile cache shared by the rows (None: fresh)
   rows: tuple[str, ...] = ()    # --rows: compute only rows whose labels contain one of these
+  # the weights of each model, read once per command (`weights_for`): reading and checking a
+  # directory traces the network's init, ~3 s a row at 64x96 on 2 cores, for every row
+  loaded: dict[str, Any] = dataclasses.field(default_factory=dict)
 
   def wants(self, *labels: str) -> bool:
     """Whether --rows selects a row known by any of `labels` (no --rows: every row)."""
@@ -146,7 +149,14 @@ def method_of(row: RowSpec):
 def weights_for(ctx: Context, model: str):
   """The weights of `model`: the user's directory, else on synthetic the cached source model
   (--quick: a seeded random network at QUICK_SIZE, no training); None when only a user
-  checkpoint can provide them (a network train-source cannot train, on real data any)."""
+  checkpoint can provide them (a network train-source cannot train, on real data any). Read
+  once per command: the rows of a table share them (`Context.loaded`)."""
+  if model not in ctx.loaded:
+    ctx.loaded[model] = _read_weights(ctx, model)
+  return ctx.loaded[model]
+
+
+def _read_weights(ctx: Context, model: str):
   from pitta_jax.checkpoint import load_weights
   from pitta_jax.models.registry import get_spec
   if model in ctx.weights:

@@ -81,9 +81,14 @@ QUICK_ROWS = {"table1": "No adaptation,PITTA,Depth Anything", "table2": "No adap
 
 
 @pytest.mark.parametrize("name", ["table1", "table2"])
-def test_method_tables_quick(name, quick_out):
+def test_method_tables_quick(name, quick_out, monkeypatch):
   from experiments.table1 import CASES, ROWS
+  from pitta_jax import checkpoint
+  reads = []
+  load = checkpoint.load_weights
+  monkeypatch.setattr(checkpoint, "load_weights", lambda d: reads.append(d) or load(d))
   assert _quick(name, quick_out, "--rows", QUICK_ROWS[name]) == 0
+  assert len(reads) == 1  # the rows share one read of the weights
   import jax
   from pitta_jax.source_model import cache_root
   # the command persists its compiled steps under the (here: the session's private) cache root
