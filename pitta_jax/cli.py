@@ -198,7 +198,9 @@ def _add_adapt(sub, name: str) -> None:
                   if adapting else "evaluate a depth network without adaptation"),
       description=("Online test-time adaptation over a frame sequence (predict-then-adapt), "
                    "evaluated with the 7 Eigen metrics (MonoDepth2 protocol)." if adapting else
-                   "Evaluate the network as it is (running BN statistics, no update)."))
+                   "Evaluate the network as it is (running BN statistics, no update).")
+                  + " Compiled steps are kept under $PITTA_JAX_CACHE/xla (default "
+                    "~/.cache/pitta-jax/xla), so a rerun or a --resume skips the compiles.")
   p.add_argument("--dataset", choices=DATASETS, required=True)
   p.add_argument("--root", help="dataset root (not needed for synthetic)")
   p.add_argument("--weights", help="weights directory; default for synthetic: the cached "
@@ -286,6 +288,8 @@ def _run_adapt(args) -> int:
     notes += list(reader.notes if reader is not None else ())
     for note in notes:
       print(f"note: {note}", file=sys.stderr)
+    from pitta_jax.source_model import enable_compilation_cache
+    enable_compilation_cache()  # as the demo: a rerun or a --resume loads the compiled steps
     weights = open_weights(args.weights, args.dataset, quiet=args.quiet, model=args.model)
     frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
                          weights.height, weights.width, reader=reader)

@@ -70,6 +70,8 @@ def test_adapt_and_evaluate_on_synthetic(demo_out, tmp_path, monkeypatch):
   common = ["--dataset", "synthetic", "--weights", weights, "--option", "num_frames=3",
             "--option", "domain=fog", "--quiet"]
   assert main(["adapt", *common, "--out", str(tmp_path / "a"), "--lam", "0.5"]) == 0
+  import jax  # the command persists its compiled steps (a rerun or --resume loads them)
+  assert jax.config.jax_compilation_cache_dir == str(cache / "xla")
   assert main(["evaluate", *common, "--out", str(tmp_path / "e")]) == 0
   adapt = json.loads((tmp_path / "a" / "results.json").read_text())
   evaluate = json.loads((tmp_path / "e" / "results.json").read_text())
