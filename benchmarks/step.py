@@ -165,10 +165,9 @@ def method_inputs(method: str, n: int, variables, args):
   chunk of those frames."""
   frames = bc.synthetic_frames(args.jax_frames, args.height, args.width, n, seed=1)
   configs = bc.method_configs(method, n, args.window, args.jax_frames)
-  resources = bc.method_resources(build(method, configs[1]), bc.depth_network(), variables,
-                                  args.height, args.width)
-  chunk = bc.step_inputs(frames, configs[0].max_segments,
-                         intrinsics="intrinsics" in build(method).needs)
+  m = build(method, configs[1])
+  resources = bc.method_resources(m, bc.depth_network(), variables, args.height, args.width)
+  chunk = bc.step_inputs(frames, configs[0].max_segments, intrinsics="intrinsics" in m.needs)
   return frames, configs, resources, chunk
 
 
