@@ -126,8 +126,19 @@ def init_state(variables: Tree, method: Method, cfg: AdaptConfig,
   return state, consts
 
 
+def _same_shape_groups(tree: Tree) -> list[list[jax.Array]]:
+  """The inexact leaves of `tree`, grouped by (shape, dtype): elementwise work on a group
+  followed by one reduction is one XLA kernel where a reduction per leaf is one kernel each."""
+  groups: dict[tuple, list[jax.Array]] = {}
+  for x in jax.tree_util.tree_leaves(tree):
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.inexact):
+      groups.setdefault((x.shape, x.dtype), []).append(x)
+  return list(groups.values())
+
+
 def all_finite(tree: Tree) -> jax.Array:
-  """() bool: every leaf of `tree` is finite.
+  """() bool: every leaf of `tree` is finite (integers and booleans always are).
 
   Leaves of one shape and dtype are summed elementwise as 0-or-NaN flags before one reduction
   per shape: a reduction per leaf is a separate XLA kernel, and the guard of an Adam step on
@@ -137,16 +148,22 @@ def all_finite(tree: Tree) -> jax.Array:
   consumer, i.e. into each guarded leaf's select (with hundreds of leaves, minutes of compile
   time and a 100 MB program); sqrt is an op it does not duplicate.
   """
-  groups: dict[tuple, list[jax.Array]] = {}
-  for x in jax.tree_util.tree_leaves(tree):
-    x = jnp.asarray(x)
-    if jnp.issubdtype(x.dtype, jnp.inexact):  # integers and booleans are always finite
-      groups.setdefault((x.shape, x.dtype), []).append(x)
+  groups = _same_shape_groups(tree)
   if not groups:
     return jnp.array(True)
   nan_if_any = sum(jnp.sum(sum(jnp.where(jnp.isfinite(x), 0.0, jnp.nan) for x in group))
-                   for group in groups.values())
+                   for group in groups)
   return jnp.isfinite(jnp.sqrt(nan_if_any))
+
+
+def tree_norm(tree: Tree) -> jax.Array:
+  """() the global L2 norm of `tree`'s inexact leaves (`optax.tree.norm`'s value), with one
+  reduction per leaf shape (see `all_finite`): the engine logs the gradient's and the update's
+  norm every step, and per leaf that is two kernels per parameter leaf."""
+  groups = _same_shape_groups(tree)
+  if not groups:
+    return jnp.zeros(())
+  return jnp.sqrt(sum(jnp.sum(sum(x * x for x in group)) for group in groups))
 
 
 def select(pred: jax.Array, on_true: Tree, on_false: Tree) -> Tree:
@@ -175,7 +192,7 @@ def optax_update(state: AdaptState, grads: Tree, loss: jax.Array, tx: optax.Grad
     skipped = ~ok
   else:
     skipped = jnp.array(False)
-  unorm = jnp.where(skipped, 0.0, optax.tree.norm(updates))
+  unorm = jnp.where(skipped, 0.0, tree_norm(updates))
   state = state.replace(trainable=new_tr, opt_state=new_opt,
                         n_skipped=state.n_skipped + skipped.astype(jnp.int32))
   return state, skipped, unorm
@@ -207,7 +224,7 @@ def adapt_step(state: AdaptState, frame: StepInput, consts: Consts, *, model: An
                                 model=model, cfg=cfg, mcfg=method.config)
     if method.adapts:
       (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.trainable)
-      gnorm = optax.tree.norm(grads)
+      gnorm = tree_norm(grads)
       state, skipped, unorm = update(state, grads, loss, aux, jax.random.fold_in(rng, k))
     else:
       loss, aux = loss_fn(state.trainable)
