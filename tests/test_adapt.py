@@ -190,6 +190,57 @@ def test_all_finite_flags_any_nan_or_inf_leaf():
     assert bool(all_finite(tree)) == want and bool(jax.jit(all_finite)(tree)) == want
 
 
+def test_tree_norm_is_the_global_l2_norm():
+  """engine.tree_norm against a NumPy float64 loop over the leaves: leaves of one shape (one
+  reduction for the group), other shapes and dtypes, integer leaves left out, an empty tree."""
+  from pitta_jax.adapt.engine import tree_norm
+  rng = np.random.default_rng(0)
+  tree = {"a": rng.normal(size=(3, 2)).astype(np.float32),
+          "b": [rng.normal(size=(3, 2)).astype(np.float32), rng.normal(size=(5,))],
+          "c": np.arange(4, dtype=np.int32), "d": rng.normal(size=(3, 2)).astype(np.float16)}
+  want = np.sqrt(sum(float(np.sum(np.asarray(x, np.float64) ** 2))
+                     for x in jax.tree_util.tree_leaves(tree) if x.dtype.kind == "f"))
+  for fn in (tree_norm, jax.jit(tree_norm)):
+    np.testing.assert_allclose(float(fn(tree)), want, rtol=1e-3)  # float16 leaf: 1e-3
+  assert float(tree_norm({})) == 0.0 and float(tree_norm({"i": np.arange(3)})) == 0.0
+
+
+def test_flat_optimiser_gives_the_tree_optimisers_numbers():
+  """flat_optim.flat(adam) on a tree against optax.adam on the same tree (the independent,
+  per-leaf optimiser): the same updates and moments over three steps, to a few units in the
+  last place (XLA:CPU's vectorised loop and its scalar remainder may round differently, and an
+  element's path depends on its array's length); flat_step's
+  new parameters are params + update, its finiteness flag sees a NaN gradient, and its gradient
+  norm is the NumPy norm."""
+  import optax
+  from pitta_jax.flat_optim import flat, flat_step
+  rng = np.random.default_rng(1)
+  params = {"w": jnp.asarray(rng.normal(size=(3, 4)), jnp.float32),
+            "b": [jnp.asarray(rng.normal(size=(4,)), jnp.float32)]}
+  tree_tx, flat_tx = optax.adam(1e-2), flat(optax.adam(1e-2))
+  s_tree, s_flat = tree_tx.init(params), flat_tx.init(params)
+  for k in range(3):
+    grads = jax.tree_util.tree_map(lambda x: x * (k + 1) - 0.5, params)
+    u_tree, s_tree = jax.jit(tree_tx.update)(grads, s_tree, params)
+    u_flat, s_flat = jax.jit(flat_tx.update)(grads, s_flat, params)
+    for a, b in zip(jax.tree_util.tree_leaves(u_tree), jax.tree_util.tree_leaves(u_flat)):
+      np.testing.assert_allclose(a, b, rtol=1e-6, atol=0)
+  for moment in ("mu", "nu"):
+    tree = np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(getattr(s_tree[0],
+                                                                                  moment))])
+    np.testing.assert_allclose(tree, getattr(s_flat[0], moment), rtol=1e-6, atol=0)
+  step = flat_step(optax.adam(1e-2), params, grads, s_flat)
+  np.testing.assert_array_equal(step.new, step.old + step.update)
+  np.testing.assert_allclose(float(step.grad_norm), np.sqrt(sum(
+      np.sum(np.asarray(g, np.float64) ** 2) for g in jax.tree_util.tree_leaves(grads))),
+      rtol=1e-6)
+  assert bool(step.finite)
+  bad = {**grads, "w": grads["w"].at[0, 0].set(jnp.nan)}
+  assert not bool(flat_step(optax.adam(1e-2), params, bad, s_flat).finite)
+  back = step.unravel(step.new)
+  assert jax.tree_util.tree_structure(back) == jax.tree_util.tree_structure(params)
+
+
 def test_reset_policy_restores_source_parameters(variables):
   cfg = dataclasses.replace(CFG, reset_every=2)
   model, method = _model(), build("pitta", PITTA)

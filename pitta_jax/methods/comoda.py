@@ -45,9 +45,9 @@ its Adam state (`PoseState`), the last 1 + latency frames (`base.ring_*`) and th
 method state. `loss` computes both networks' gradients in one backward pass and gives the engine
 a value with the depth gradient attached (`_attach_gradient`); the pose gradient reaches
 `update` in `Aux.carry`. `update` steps both networks under one non-finite guard (engine
-`optax_update`'s semantics) on raveled parameter vectors (`flat`). A new sequence starts from
-the source weights (the engine's `init_state`); `AdaptConfig.reset_every` resets the depth
-network and its optimiser only.
+`optax_update`'s semantics) on raveled parameter vectors (`pitta_jax.flat_optim`). A new
+sequence starts from the source weights (the engine's `init_state`); `AdaptConfig.reset_every`
+resets the depth network and its optimiser only.
 """
 
 from __future__ import annotations
@@ -60,10 +60,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import struct
-from jax.flatten_util import ravel_pytree
 
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, finite, option
+from pitta_jax.flat_optim import flat, flat_step
 from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, ring_valid,
                                     variables_of)
 from pitta_jax.methods.depth_refining import (DepthRefiningConfig, depth_refining_term,
@@ -141,39 +141,9 @@ def _adam(config: ComodaConfig) -> optax.GradientTransformation:
 
 
 def optimizer(config: ComodaConfig) -> optax.GradientTransformation:
-  """The depth network's optimiser as the engine sees it (its state, init and reset); `update`
-  steps it on the raveled vector directly."""
+  """The depth network's optimiser as the engine sees it (its state, init and reset): Adam on the
+  raveled tree (`flat_optim`); `update` steps it on the raveled vector directly."""
   return flat(_adam(config))
-
-
-def flat(tx: optax.GradientTransformation) -> optax.GradientTransformation:
-  """`tx` applied to the tree raveled into one vector (its state is the vector's).
-
-  Why: an element-wise optimiser gives the same numbers either way, but XLA:CPU compiles Adam +
-  the non-finite guard over the 88 leaves of MonoDepth2 in 45 s of CPU time and over the
-  raveled vector in 3 s."""
-  def init(params):
-    return tx.init(ravel_pytree(params)[0])
-
-  def update(updates, state, params=None):
-    g, unravel = ravel_pytree(updates)
-    u, state = tx.update(g, state, None if params is None else ravel_pytree(params)[0])
-    return unravel(u), state
-
-  return optax.GradientTransformation(init, update)
-
-
-def _adam_step(config: ComodaConfig, params: Tree, grads: Tree, opt_state: Tree):
-  """One Adam step on the raveled tree (the state of `optimizer(config)`): (params (P,), new
-  params (P,), update (P,), new optimiser state, all finite (grads, new params, new state),
-  unravel)."""
-  from pitta_jax.adapt.engine import all_finite
-  p, unravel = ravel_pytree(params)
-  g, _ = ravel_pytree(grads)
-  u, new_opt = _adam(config).update(g, opt_state, p)
-  new = p + u
-  finite = all_finite((g, new, new_opt))
-  return p, new, u, new_opt, finite, unravel
 
 
 # ----------------------------------------------------------------------------- replay set
@@ -389,21 +359,19 @@ def build(config: ComodaConfig = ComodaConfig()) -> Method:
     ms = state.method_state
     pose: PoseState = ms["pose"]
     c = aux.carry
-    d_old, d_new, d_upd, d_opt, d_ok, d_unravel = _adam_step(config, state.trainable, grads,
-                                                             state.opt_state)
-    p_old, p_new, _, p_opt, p_ok, p_unravel = _adam_step(config, pose.trainable,
-                                                         c["pose_grads"], pose.opt_state)
-    ok = jnp.isfinite(loss_value) & d_ok & p_ok if cfg.skip_nonfinite else jnp.array(True)
+    d = flat_step(_adam(config), state.trainable, grads, state.opt_state)
+    p = flat_step(_adam(config), pose.trainable, c["pose_grads"], pose.opt_state)
+    ok = jnp.isfinite(loss_value) & d.finite & p.finite if cfg.skip_nonfinite else jnp.array(True)
     move, skipped = c["active"] & ok, c["active"] & ~ok
-    pose = pose.replace(trainable=p_unravel(jnp.where(move, p_new, p_old)),
-                        opt_state=select(move, p_opt, pose.opt_state))
+    pose = pose.replace(trainable=p.unravel(jnp.where(move, p.new, p.old)),
+                        opt_state=select(move, p.opt_state, pose.opt_state))
     ring = {name: ring_push(r, getattr(c["frame"], name)) for name, r in ms["ring"].items()}
     state = state.replace(
-        trainable=d_unravel(jnp.where(move, d_new, d_old)),
-        opt_state=select(move, d_opt, state.opt_state),
+        trainable=d.unravel(jnp.where(move, d.new, d.old)),
+        opt_state=select(move, d.opt_state, state.opt_state),
         n_skipped=state.n_skipped + skipped.astype(jnp.int32),
         method_state={**ms, "pose": pose, "ring": ring})
-    return state, skipped, jnp.where(move, jnp.sqrt(jnp.sum(d_upd * d_upd)), 0.0)
+    return state, skipped, jnp.where(move, jnp.sqrt(jnp.sum(d.update * d.update)), 0.0)
 
   def prepare(model, variables, source):
     del model, variables
