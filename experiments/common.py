@@ -177,18 +177,19 @@ def _random_weights(directory: Path, model: str):
   import jax
   import jax.numpy as jnp
   from pitta_jax.checkpoint import load_weights, save_weights
+  from pitta_jax.models.random_init import init_variables
   from pitta_jax.models.registry import get_spec
   if not (directory / "model.json").is_file():
     spec = get_spec(model)
     h, w = QUICK_SIZE
     config = dict(spec.source_config(h, w)) if spec.source_config else {"height": h, "width": w}
-    # jitted: op by op, an init compiles each of its hundreds of small ops (~20 s per table)
-    depth = jax.jit(spec.build(config).init)(jax.random.PRNGKey(0), jnp.zeros((1, h, w, 3)))
-    pose = (jax.jit(spec.build_pose(config).init)(jax.random.PRNGKey(1),
-                                                   jnp.zeros((1, h, w, 6)))
+    # jitted (op by op, an init compiles each of its hundreds of small ops) from an RBG key
+    depth = init_variables(spec.build(config), 0, jnp.zeros((1, h, w, 3)))
+    pose = (init_variables(spec.build_pose(config), 1, jnp.zeros((1, h, w, 6)))
             if spec.build_pose else None)
     save_weights(directory, model, config, jax.device_get(depth),
-                 None if pose is None else jax.device_get(pose), source={"random_init": 0})
+                 None if pose is None else jax.device_get(pose),
+                 source={"random_init": 0, "prng": "rbg"})
   return load_weights(directory)
 
 

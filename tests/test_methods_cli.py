@@ -33,7 +33,7 @@ def dataset(tmp_path_factory):
   from pitta_jax.data.image_io import write_image
   from pitta_jax.data.synthetic import SyntheticConfig, export_drivingstereo, generate_sequence
   from pitta_jax.models.pose import PoseNet
-  from pitta_jax.models.random_init import random_monodepth2_variables
+  from pitta_jax.models.random_init import init_variables, random_monodepth2_variables
   root = tmp_path_factory.mktemp("ds")
   export_drivingstereo(generate_sequence(SyntheticConfig(height=H, width=W, num_frames=N,
                                                          domain="fog", seed=7)), root, "foggy")
@@ -48,7 +48,7 @@ def dataset(tmp_path_factory):
   K = clear[0].intrinsics
   p_rect = f"{K[0, 0]} 0 {K[0, 2]} 0 0 {K[1, 1]} {K[1, 2]} 0 0 0 1 0"
   (date / "calib_cam_to_cam.txt").write_text(f"S_rect_02: {W}.0 {H}.0\nP_rect_02: {p_rect}\n")
-  pose = jax.jit(PoseNet(18).init)(jax.random.PRNGKey(1), jnp.zeros((1, H, W, 6)))
+  pose = init_variables(PoseNet(18), 1, jnp.zeros((1, H, W, 6)))
   weights = root / "weights"
   save_weights(weights, "monodepth2", {"num_layers": 18, "height": H, "width": W},
                random_monodepth2_variables(0), jax.device_get(pose))

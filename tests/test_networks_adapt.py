@@ -19,6 +19,7 @@ from pitta_jax.adapt import AdaptConfig, adapt_stream, init_state, make_chunk_ru
 from pitta_jax.methods import build
 from pitta_jax.methods.depth_refining import DepthRefiningConfig
 from pitta_jax.methods.pitta import PittaConfig
+from pitta_jax.models.random_init import init_variables
 from pitta_jax.models.registry import MODELS, network
 
 import adapt_frames
@@ -89,7 +90,7 @@ def test_pitta_and_none_run_on_other_networks(name):
   above for all, parity in each network's own test file."""
   config, (h, w), selector, kind = CASES[name]
   net = network(name, {"height": h, "width": w, **config})
-  variables = jax.jit(net.module.init)(jax.random.PRNGKey(0), jnp.zeros((1, h, w, 3)))
+  variables = init_variables(net.module, 0, jnp.zeros((1, h, w, 3)))
   variables = {"params": variables["params"], "batch_stats": variables.get("batch_stats", {})}
   sel = trainable.parse_selector(selector)
   frames = _frames(h, w)
