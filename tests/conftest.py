@@ -12,8 +12,14 @@ unpinned, 22% more CPU time for a 14% shorter run), and the heaviest files go fi
 
 import os
 
-import jax
-import pytest
+# Every process of the suite, the commands the tests start as subprocesses included, traces
+# with full float32 precision: the precision is part of the compiled program, so a subprocess
+# and the test that started it then share XLA's persistent compilation cache (a command killed
+# and resumed in-process compiles its step once, not twice).
+os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 
 def _pin_xdist_worker() -> None:
