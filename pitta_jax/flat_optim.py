@@ -4,9 +4,12 @@ Why: an element-wise optimiser (Adam, SGD) gives the same numbers on the tree an
 raveled vector (to a few units in the last place: XLA:CPU's vectorised loop and its scalar
 remainder may round differently, and an element's path depends on its array's length), but
 XLA:CPU compiles one kernel per leaf for each of its operations and for the non-finite guard's
-selects: Adam + guard over MonoDepth2's 88 leaves compiles in 45 s of CPU
-time, over the raveled vector in 3 s. The methods that step whole networks inside their own
-update (CoMoDa's depth and pose networks, Ada-Depth's self-supervised branch) use this.
+selects: Adam + guard over MonoDepth2's 88 leaves compiled in 45 s of CPU time, over the
+raveled vector in 3 s (measured before the guard grouped leaves by shape, `engine.all_finite`;
+per leaf it costs less now). The price is memory traffic: each step concatenates the
+gradient and the parameters and slices the result back, which for a whole network is a
+visible share of the step (Ada-Depth's branch: 10-17% of its frame time, so it stays per
+leaf). CoMoDa steps its depth and pose networks with this.
 """
 
 from __future__ import annotations
@@ -14,7 +17,6 @@ from __future__ import annotations
 from typing import Any, Callable, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import optax
 from jax.flatten_util import ravel_pytree
 
@@ -42,7 +44,6 @@ class FlatStep(NamedTuple):
   update: jax.Array                 # new - old as the optimiser gave it
   opt_state: Tree                   # the new optimiser state (of the raveled vector)
   finite: jax.Array                 # () bool: gradient, new parameters and new state all finite
-  grad_norm: jax.Array              # () L2 norm of the gradient
   unravel: Callable[[jax.Array], Tree]  # (P,) -> a tree of the parameters' structure
 
 
@@ -55,5 +56,4 @@ def flat_step(tx: optax.GradientTransformation, params: Tree, grads: Tree,
   g, _ = ravel_pytree(grads)
   u, new_opt = tx.update(g, opt_state, p)
   new = p + u
-  return FlatStep(p, new, u, new_opt, all_finite((g, new, new_opt)), jnp.sqrt(jnp.sum(g * g)),
-                  unravel)
+  return FlatStep(p, new, u, new_opt, all_finite((g, new, new_opt)), unravel)

@@ -209,9 +209,8 @@ def test_flat_optimiser_gives_the_tree_optimisers_numbers():
   """flat_optim.flat(adam) on a tree against optax.adam on the same tree (the independent,
   per-leaf optimiser): the same updates and moments over three steps, to a few units in the
   last place (XLA:CPU's vectorised loop and its scalar remainder may round differently, and an
-  element's path depends on its array's length); flat_step's
-  new parameters are params + update, its finiteness flag sees a NaN gradient, and its gradient
-  norm is the NumPy norm."""
+  element's path depends on its array's length); flat_step's new parameters are params +
+  update, and its finiteness flag sees a NaN gradient."""
   import optax
   from pitta_jax.flat_optim import flat, flat_step
   rng = np.random.default_rng(1)
@@ -231,9 +230,6 @@ def test_flat_optimiser_gives_the_tree_optimisers_numbers():
     np.testing.assert_allclose(tree, getattr(s_flat[0], moment), rtol=1e-6, atol=0)
   step = flat_step(optax.adam(1e-2), params, grads, s_flat)
   np.testing.assert_array_equal(step.new, step.old + step.update)
-  np.testing.assert_allclose(float(step.grad_norm), np.sqrt(sum(
-      np.sum(np.asarray(g, np.float64) ** 2) for g in jax.tree_util.tree_leaves(grads))),
-      rtol=1e-6)
   assert bool(step.finite)
   bad = {**grads, "w": grads["w"].at[0, 0].set(jnp.nan)}
   assert not bool(flat_step(optax.adam(1e-2), params, bad, s_flat).finite)
