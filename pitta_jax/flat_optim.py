@@ -9,7 +9,9 @@ raveled vector in 3 s (measured before the guard grouped leaves by shape, `engin
 per leaf it costs less now). The price is memory traffic: each step concatenates the
 gradient and the parameters and slices the result back, which for a whole network is a
 visible share of the step (Ada-Depth's branch: 10-17% of its frame time, so it stays per
-leaf). CoMoDa steps its depth and pose networks with this.
+leaf). CoMoDa steps its depth and pose networks with this: its batch-4 step hides the traffic
+(320x96, 2 vCPU, one interleaved pair: raveled 1831 ms/frame and a 51 s compile, per leaf 1854
+ms/frame and 60 s).
 """
 
 from __future__ import annotations
