@@ -22,6 +22,7 @@ import numpy as np
 
 from pitta_jax.adapt.engine import StepInput
 from pitta_jax.models.depth_decoder import DepthNet
+from pitta_jax.models.random_init import jit_init
 from pitta_jax.models.random_init import random_monodepth2_variables as jax_variables  # noqa: F401
 from pitta_jax.models.registry import Network, network
 
@@ -115,8 +116,8 @@ def method_resources(method, model: Network, variables, height: int, width: int,
   if "pose" in method.needs:
     from pitta_jax.models.pose import PoseNet as PoseModule
     module = PoseModule(18)
-    resources[POSE] = PoseNet(module, jax.jit(module.init)(
-        jax.random.PRNGKey(seed), np.zeros((1, height, width, 6), np.float32)))
+    resources[POSE] = PoseNet(module, jit_init(
+        module, jax.random.PRNGKey(seed), np.zeros((1, height, width, 6), np.float32)))
   if method.prepare is not None:
     frames = synthetic_frames(SOURCE_FRAMES, height, width, 4, seed=seed)
     sequence = tuple(Frame(image=f.image, panoptic=f.panoptic,

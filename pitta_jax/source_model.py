@@ -58,6 +58,7 @@ from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
 from pitta_jax.configs import check, finite, option
 from pitta_jax.models.depth_decoder import disp_to_depth
 from pitta_jax.models.pose import transformation_from_parameters
+from pitta_jax.models.random_init import jit_init
 from pitta_jax.nonsmooth import absolute
 
 CACHE_ENV = "PITTA_JAX_CACHE"
@@ -280,7 +281,7 @@ def _fit(net, example: np.ndarray, loss, batches: Callable[[], tuple[np.ndarray,
          ) -> tuple[dict, list[float]]:
   """Initialises `net` from `key` and runs `steps` Adam steps (5% warm-up, cosine decay to
   0.01 lr) on `batches()`; returns the Flax variables and the per-step losses."""
-  variables = dict(jax.jit(net.init)(key, jnp.zeros((1,) + example.shape[1:], jnp.float32)))
+  variables = dict(jit_init(net, key, jnp.zeros((1,) + example.shape[1:], jnp.float32)))
   variables.setdefault("batch_stats", {})
   warmup = min(max(1, steps // 20), steps - 1)  # a single step has no warm-up
   schedule = optax.warmup_cosine_decay_schedule(0.0, lr, warmup, steps, lr * 0.01)

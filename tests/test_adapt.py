@@ -23,6 +23,7 @@ from pitta_jax.methods import build
 from pitta_jax.methods.depth_refining import DepthRefiningConfig
 from pitta_jax.methods.pitta import PittaConfig
 from pitta_jax.models.depth_decoder import DepthNet, disp_to_depth
+from pitta_jax.models.random_init import jit_init
 from pitta_jax.models.registry import network
 
 import adapt_frames
@@ -37,7 +38,7 @@ def _slice(x: StepInput, a: int, b: int) -> StepInput:
 
 @pytest.fixture(scope="module")
 def variables():
-  v = jax.jit(DepthNet(18).init)(jax.random.PRNGKey(1), jnp.zeros((1, H, W, 3)))
+  v = jit_init(DepthNet(18), jax.random.PRNGKey(1), jnp.zeros((1, H, W, 3)))
   # non-trivial running statistics so that "batch" and "running" BN modes differ
   return jax.tree_util.tree_map_with_path(
       lambda p, a: a + 0.1 if "mean" in jax.tree_util.keystr(p) else a, v)

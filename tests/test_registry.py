@@ -16,7 +16,7 @@ import pytest
 
 from pitta_jax.checkpoint import WeightsError, load_weights, save_weights
 from pitta_jax.models.depth_decoder import DepthNet
-from pitta_jax.models.random_init import random_monodepth2_variables
+from pitta_jax.models.random_init import jit_init, random_monodepth2_variables
 from pitta_jax.models.registry import MODELS, get_spec, network
 
 H, W = 64, 96
@@ -109,3 +109,26 @@ def test_not_an_object_corrupt_or_nonfinite_weights(weights_dir, tmp_path, varia
       f.write_bytes(b"garbage")
   with pytest.raises(WeightsError, match="cannot read the checkpoint"):
     load_weights(corrupt)
+
+
+def test_jit_init_draws_bitwise_what_the_default_compile_draws():
+  """`jit_init` compiles an init at -O1 on the CPU: the threefry bits and the initialisers'
+  float transforms (truncated normal, normal, uniform, BN constants) must come out as under
+  `jax.jit(module.init)` at XLA's default level, or `train-source` would not reproduce a seed."""
+  import flax.linen as nn
+
+  class Net(nn.Module):
+    @nn.compact
+    def __call__(self, x):                                     # (1, 8, 12, 3)
+      x = nn.Conv(8, (3, 3))(x)                                # lecun_normal: truncated normal
+      x = nn.BatchNorm(use_running_average=False)(x)
+      x = nn.Conv(4, (3, 3), kernel_init=nn.initializers.variance_scaling(
+          2.0, "fan_out", "normal"), bias_init=nn.initializers.normal(0.1))(x)
+      return nn.Dense(3, kernel_init=nn.initializers.he_uniform(),
+                      bias_init=nn.initializers.uniform(0.2))(x)
+  x = jnp.zeros((1, 8, 12, 3), jnp.float32)
+  for key in (jax.random.PRNGKey(0), jax.random.fold_in(jax.random.PRNGKey(0), 1)):
+    ours, default = jit_init(Net(), key, x), jax.jit(Net().init)(key, x)
+    assert jax.tree_util.tree_structure(ours) == jax.tree_util.tree_structure(default)
+    for a, b in zip(jax.tree_util.tree_leaves(ours), jax.tree_util.tree_leaves(default)):
+      assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
