@@ -11,6 +11,7 @@ unpinned, 22% more CPU time for a 14% shorter run), and the heaviest files go fi
 """
 
 import os
+from pathlib import Path
 
 # Every process of the suite, the commands the tests start as subprocesses included, traces
 # with full float32 precision: the precision is part of the compiled program, so a subprocess
@@ -49,16 +50,35 @@ def pytest_collection_modifyitems(config, items):
   rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
   items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
-jax.config.update("jax_default_matmul_precision", "highest")
+
+
+def _suite_xla_cache(tmp_path_factory) -> Path:
+  """One directory of persisted XLA executables for the whole run, shared by the xdist workers
+  (their base temporary directories are siblings), this run's alone outside xdist."""
+  base = tmp_path_factory.getbasetemp()
+  path = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "xla-cache"
+  path.mkdir(exist_ok=True)
+  return path
 
 
 @pytest.fixture(scope="session", autouse=True)
 def _private_cache_root(tmp_path_factory):
   """Every test's cache root ($PITTA_JAX_CACHE: source models, ActMAD statistics, the XLA
   executables the commands persist) is this session's temporary directory, never the user's
-  ~/.cache; a test that needs its own sets it again (monkeypatch)."""
+  ~/.cache; a test that needs its own sets it again (monkeypatch).
+
+  Every compile of a second or more is persisted from the first test on (JAX fixes its cache
+  directory at the first compile that finds one set), in one directory that the root's `xla`
+  links to: a program that two test files, two workers, or a test and the command it starts as
+  a subprocess compile is compiled once. Executables are keyed by their program, compile
+  options and JAX version, so sharing them changes no result."""
   from pitta_jax.source_model import CACHE_ENV
+  root = tmp_path_factory.mktemp("pitta_jax_cache")
+  shared = _suite_xla_cache(tmp_path_factory)
+  (root / "xla").symlink_to(shared, target_is_directory=True)
+  jax.config.update("jax_compilation_cache_dir", str(shared))
+  jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
   mp = pytest.MonkeyPatch()
-  mp.setenv(CACHE_ENV, str(tmp_path_factory.mktemp("pitta_jax_cache")))
+  mp.setenv(CACHE_ENV, str(root))
   yield
   mp.undo()
