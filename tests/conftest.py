@@ -18,6 +18,11 @@ from pathlib import Path
 # and the test that started it then share XLA's persistent compilation cache (a command killed
 # and resumed in-process compiles its step once, not twice).
 os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
+# With the persistent cache on, JAX also points XLA's GPU autotuning cache at a path inside the
+# configured cache directory, and that path string enters every executable's cache key: a test
+# or command that names the same cache by another path (its own $PITTA_JAX_CACHE) would miss.
+# The suite does not use that GPU-only cache; without it the keys depend on the program alone.
+os.environ["JAX_PERSISTENT_CACHE_ENABLE_XLA_CACHES"] = "none"
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -37,6 +42,10 @@ def _pin_xdist_worker() -> None:
 
 
 _pin_xdist_worker()
+
+# The same two settings for this process, in case a plugin imported JAX before this file ran.
+jax.config.update("jax_default_matmul_precision", "highest")
+jax.config.update("jax_persistent_cache_enable_xla_caches", "none")
 
 # The heaviest files (single-process seconds on 2 cores, 2026-12-01), started first so that
 # the two workers finish together instead of one running the last big file alone.
