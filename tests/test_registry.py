@@ -112,9 +112,10 @@ def test_not_an_object_corrupt_or_nonfinite_weights(weights_dir, tmp_path, varia
 
 
 def test_jit_init_draws_bitwise_what_the_default_compile_draws():
-  """`jit_init` compiles an init at -O1 on the CPU: the threefry bits and the initialisers'
-  float transforms (truncated normal, normal, uniform, BN constants) must come out as under
-  `jax.jit(module.init)` at XLA's default level, or `train-source` would not reproduce a seed."""
+  """`jit_init` compiles an init at optimisation level 1 on the CPU: the threefry bits and the
+  initialisers' float transforms (truncated normal, normal, uniform, BN constants) must come out
+  as under `jax.jit(module.init)` at XLA's default level, or `train-source` would not reproduce
+  a seed."""
   import flax.linen as nn
 
   class Net(nn.Module):

@@ -45,15 +45,16 @@ def random_monodepth2_variables(seed: int = 0, num_layers: int = 18) -> dict[str
   return jax.tree_util.tree_map_with_path(draw, shapes)
 
 
-# LLVM's -O1 instead of XLA's default -O2 for an init: it runs once, so its code need not be
-# fast, and it compiles ~2.6x faster (MonoDepth2 ResNet-18 at 64x96, 2 vCPU: 23 s -> 8.7 s).
-# On XLA:CPU the draws are bitwise those of the default compile (threefry's hash is integer
+# Backend optimisation level 1 instead of XLA's default 3 for an init: it runs once, so its
+# code need not be fast, and it compiles ~2.6x faster (MonoDepth2 ResNet-18 at 64x96, 2 vCPU:
+# 23 s -> 8.7 s). On XLA:CPU the draws are bitwise those of the default compile (threefry's hash is integer
 # arithmetic; checked for the depth and pose nets). Only on the CPU, where it was checked.
 _INIT_OPTIONS_CPU = {"xla_backend_optimization_level": 1}
 
 
 def jit_init(module: Any, key: jax.Array, *inputs: jax.Array) -> dict[str, Any]:
-  """`jax.jit(module.init)(key, *inputs)`, compiled at -O1 on the CPU (see `_INIT_OPTIONS_CPU`)."""
+  """`jax.jit(module.init)(key, *inputs)`, compiled at optimisation level 1 on the CPU
+  (`_INIT_OPTIONS_CPU`)."""
   options = _INIT_OPTIONS_CPU if jax.default_backend() == "cpu" else {}
   return jax.jit(module.init).lower(key, *inputs).compile(compiler_options=options)(key, *inputs)
 
@@ -63,7 +64,7 @@ def init_variables(module: Any, seed: int, *inputs: jax.Array) -> dict[str, Any]
 
   Why not `jax.random.PRNGKey`: XLA compiles a threefry hash kernel for every parameter leaf,
   an RBG key a `RngBitGenerator`; MonoDepth2's init at 64x96 compiles in 17 s with the first and
-  7 s with the second (2 vCPU, default -O2). RBG's bits may differ between backends and JAX
+  7 s with the second (2 vCPU, default level). RBG's bits may differ between backends and JAX
   versions, so this is for weights that only need to be random and seeded within one
   installation, not for a seed that must reproduce a trained model (`pitta-jax train-source`
   keeps threefry).
