@@ -47,8 +47,9 @@ def random_monodepth2_variables(seed: int = 0, num_layers: int = 18) -> dict[str
 
 # Backend optimisation level 1 instead of XLA's default 3 for an init: it runs once, so its
 # code need not be fast, and it compiles ~2.6x faster (MonoDepth2 ResNet-18 at 64x96, 2 vCPU:
-# 23 s -> 8.7 s). On XLA:CPU the draws are bitwise those of the default compile (threefry's hash is integer
-# arithmetic; checked for the depth and pose nets). Only on the CPU, where it was checked.
+# 23 s -> 8.7 s). On XLA:CPU the draws are bitwise those of the default compile (threefry's
+# hash is integer arithmetic; checked for the depth and pose nets). Only on the CPU, where it
+# was checked.
 _INIT_OPTIONS_CPU = {"xla_backend_optimization_level": 1}
 
 
