@@ -60,7 +60,6 @@ def pytest_collection_modifyitems(config, items):
   items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
-
 def _suite_xla_cache(tmp_path_factory) -> Path:
   """One directory of persisted XLA executables for the whole run, shared by the xdist workers
   (their base temporary directories are siblings), this run's alone outside xdist."""
@@ -81,13 +80,11 @@ def _private_cache_root(tmp_path_factory):
   links to: a program that two test files, two workers, or a test and the command it starts as
   a subprocess compile is compiled once. Executables are keyed by their program, compile
   options and JAX version, so sharing them changes no result."""
-  from pitta_jax.source_model import CACHE_ENV
+  from pitta_jax.source_model import CACHE_ENV, enable_compilation_cache
   root = tmp_path_factory.mktemp("pitta_jax_cache")
-  shared = _suite_xla_cache(tmp_path_factory)
-  (root / "xla").symlink_to(shared, target_is_directory=True)
-  jax.config.update("jax_compilation_cache_dir", str(shared))
-  jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+  (root / "xla").symlink_to(_suite_xla_cache(tmp_path_factory), target_is_directory=True)
   mp = pytest.MonkeyPatch()
   mp.setenv(CACHE_ENV, str(root))
+  enable_compilation_cache()  # as the commands do: root/xla, their minimum compile time
   yield
   mp.undo()
