@@ -8,6 +8,9 @@ align_corners=True)` (the pre-1.3 default MonoDepth2 ran with), `torch.min(dim=1
 defaults: not v1_multiscale, not avg_reprojection, auto-masking on, SSIM on. The only change:
 the tie-break noise (torch.randn upstream) is passed in so both sides use the same draw, and the
 scale-s colour image (a data-loader resize upstream) is `F.avg_pool2d(target, 2**s)`.
+For the tests' float32 comparisons a call also keeps (detached, not part of the loss) the sampling
+coordinates and the |target - warped| residuals: where float32 rounding decides a kink of the
+loss (a floor or border of the sampler, the sign of an L1 residual), the float64 values locate it.
 """
 
 from __future__ import annotations
@@ -164,8 +167,11 @@ class Monodepth2Loss:
     disable_automasking).
     colors: the target at each scale (default F.avg_pool2d).
     Returns (loss, per-scale losses (S,), identity selection (S, B, H, W) or None, the candidates
-    of the per-pixel minimum (S, B, 2N or N, H, W))."""
+    of the per-pixel minimum (S, B, 2N or N, H, W)). Kept on the object: `pixel_coords`
+    (S, N, B, H, W, 2), the sampled (x, y) in source pixels, and `residuals` (S, N, B, 3, H, W),
+    target minus each warped source."""
     total_loss, per_scale, selections, candidates = 0, [], [], []
+    coords, residuals = [], []
     for k, scale in enumerate(self.scales):
       disp = F.interpolate(disps[k], [self.height, self.width], mode="bilinear",
                            align_corners=False)
@@ -176,6 +182,9 @@ class Monodepth2Loss:
         pix_coords = self.project_3d(cam_points, K, poses[i])
         preds.append(F.grid_sample(source, pix_coords, padding_mode="border",
                                    align_corners=True))
+        coords.append((pix_coords.detach() + 1) / 2 * pix_coords.new_tensor(
+            [self.width - 1, self.height - 1]))
+        residuals.append((target - preds[-1]).detach())
       loss = 0
       reprojection_losses = torch.cat(
           [self.compute_reprojection_loss(p, target) for p in preds], 1)
@@ -207,5 +216,8 @@ class Monodepth2Loss:
       total_loss += loss
       per_scale.append(loss)
     selections = torch.stack(selections) if selections else None
+    n = len(sources)
+    self.pixel_coords = torch.stack(coords).reshape(len(self.scales), n, *coords[0].shape)
+    self.residuals = torch.stack(residuals).reshape(len(self.scales), n, *residuals[0].shape)
     return (total_loss / len(self.scales), torch.stack(per_scale), selections,
             torch.stack(candidates))
