@@ -31,13 +31,14 @@ CASES = [
 
 
 # out = 1 with 12 input features: the stride-1 undilated cases with at most 12 taps take the
-# single-output path (a product and shifted sums), the 5x5 one does not
-@pytest.mark.parametrize("out,cin", [(7, 5), (1, 12)])
+# single-output path (a product and shifted sums), the 5x5 one does not; 64 -> 64 features in a
+# batch of 2: the kernel gradient as a product of the input's patches
+@pytest.mark.parametrize("out,cin", [(7, 5), (1, 12), (conv_vjp.PATCHES_MIN_FEATURES,) * 2])
 @pytest.mark.parametrize("size,ksize,strides,padding,dilation", CASES)
 def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding, dilation, out,
                                                   cin):
   rng = np.random.default_rng(sum(size) + ksize)
-  x = rng.standard_normal((2, *size, cin), np.float32)
+  x = rng.standard_normal((conv_vjp.PATCHES_MIN_BATCH, *size, cin), np.float32)
   k = rng.standard_normal((ksize, ksize, cin, out), np.float32)
 
   @jax.jit
@@ -99,7 +100,8 @@ def test_input_gradient_kernel_is_canonical_inside_scan():
 
 def test_kernel_gradient_is_canonical_inside_scan():
   """Adapting conv kernels (CoMoDa, ActMAD's cnn layers): the kernel gradient inside the while
-  loop is a canonical b01f x 01io convolution too; JAX's rule is not."""
+  loop is a canonical b01f x 01io convolution too (one image, 8 features: not the product of
+  patches); JAX's rule is not."""
   ours = _kernel_layouts(conv_vjp.conv_general_dilated, 1)
   theirs = _kernel_layouts(lax.conv_general_dilated, 1)
   print("lax rule:", theirs, "ours:", ours)
