@@ -116,6 +116,7 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
                        (((1,), (0,)), ((), ())), precision=precision)  # (kh kw C, O)
   return dk.reshape(kh, kw, c, o)
 
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4, 5))
 def conv_nhwc(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
               rhs_dilation: tuple[int, int], precision: Any = None) -> jax.Array:
@@ -129,11 +130,7 @@ def _conv_fwd(x, k, strides, padding, rhs_dilation, precision):
 
 def _conv_bwd(strides, padding, rhs_dilation, precision, residuals, g):
   x, k = residuals
-  # kernel gradient (XLA drops it when the kernel is not differentiated):
-  # dk[a, b, c, o] = sum_{n,i,j} x_pad[n, i s + a d, j s + b d, c] g[n, i, j, o], i.e. the
-  # correlation of x (features <-> batch swapped: (C, H, W, N)) with g as an HWIO kernel
-  # (Ho, Wo, N, O), window stride d and kernel dilation s; rows past the kernel's extent (the
-  # forward convolution's unused trailing input) are cut off
+  # kernel gradient (XLA drops it when the kernel is not differentiated)
   dk = _kernel_grad(x, g, k.shape[:2], strides, padding, rhs_dilation, precision)
   # input gradient: full correlation of the stride-dilated cotangent with the flipped kernel
   window = [_dilated_size(s, d) for s, d in zip(k.shape[:2], rhs_dilation)]
