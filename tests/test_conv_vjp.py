@@ -27,6 +27,13 @@ CASES = [
     ((8, 9), 3, (1, 1), ((0, 0), (0, 0)), (1, 1)),
     ((13, 14), 3, (1, 1), ((0, 2), (1, 0)), (1, 1)),
     ((6, 7), 5, (1, 1), ((2, 1), (0, 0)), (1, 1)),
+    # inputs smaller than the kernel (a product of patches; for the strided ones only the input
+    # gradient, whose stride-dilated cotangent is smaller than the kernel)
+    ((2, 3), 3, (1, 1), ((1, 1), (1, 1)), (1, 1)),
+    ((1, 5), 3, (1, 1), ((1, 1), (1, 1)), (1, 1)),
+    ((4, 3), 3, (2, 2), ((1, 1), (1, 0)), (1, 1)),
+    ((3, 5), 3, (1, 2), ((2, 2), (2, 1)), (2, 2)),
+    ((2, 2), 5, (2, 1), ((2, 2), (1, 2)), (1, 1)),
 ]
 
 
@@ -59,6 +66,27 @@ def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding,
     err = float(np.max(np.abs(a - b)) / (np.max(np.abs(a)) + 1e-12))
     print(f"{name}: max rel diff {err:.2e}")
     assert err < 1e-6, name
+
+
+def test_float64_growing_convolutions_match_jax_rule():
+  """float64 convolutions whose output is larger than the input (padding past the kernel's
+  half width: the input gradient of an unpadded convolution) take the product of patches;
+  values and both gradients as JAX's rule, to float64 rounding."""
+  rng = np.random.default_rng(7)
+  with jax.enable_x64(True):
+    for size, padding, strides in [((5, 7), ((2, 2), (2, 2)), (1, 1)),
+                                   ((6, 4), ((3, 1), (2, 3)), (2, 1))]:
+      x = jnp.asarray(rng.standard_normal((2, *size, 6)))
+      k = jnp.asarray(rng.standard_normal((3, 3, 6, 5)))
+      ct = None
+      results = []
+      for fn in (lax.conv_general_dilated, conv_vjp.conv_general_dilated):
+        y, vjp = jax.vjp(lambda x, k: fn(x, k, strides, padding, dimension_numbers=NHWC), x, k)
+        ct = jnp.cos(3.0 * y) if ct is None else ct
+        results.append((y, *vjp(ct)))
+      assert any(m > n for m, n in zip(results[0][0].shape[1:3], size))  # the output grows
+      for a, b in zip(*results):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=1e-12)
 
 
 def test_other_forms_fall_back_to_lax():

@@ -20,7 +20,10 @@ its `conv_general_dilated` attribute (`models.layers.Conv`).
 
 The forward of a stride-1 convolution to a single output feature (a disparity head) is a
 matrix product and a sum of shifted planes (`_single_output_conv`): XLA:CPU's convolution
-library does not take it, and its generic loop nest was 2.6x slower.
+library does not take it, and its generic loop nest was 2.6x slower. A convolution (forward or
+input gradient) whose input is smaller than the kernel, and in float64 one whose output is
+larger than its input, is one matrix product of the input's patches (`_small_input_conv`):
+XLA:CPU runs both through slow generic code.
 """
 
 from __future__ import annotations
@@ -63,14 +66,68 @@ def _single_output_conv(x: jax.Array, k: jax.Array, padding: Pairs, precision: A
   return y[..., None]  # (N, Ho, Wo, 1)
 
 
+def _tap_planes(xp: jax.Array, axes: tuple[int, int], kernel_size: tuple[int, int],
+                strides: tuple[int, int], rhs_dilation: tuple[int, int],
+                out_size: tuple[int, int]) -> list[jax.Array]:
+  """The kh * kw strided views of the padded input xp that kernel tap (a, b) reads, taps in
+  row-major order; `axes` are xp's two spatial axes. Each view is out_size along them."""
+  views = []
+  for a in range(kernel_size[0]):
+    for b in range(kernel_size[1]):
+      start, limit, step = [0] * xp.ndim, list(xp.shape), [1] * xp.ndim
+      for ax, tap, s, d, m in zip(axes, (a, b), strides, rhs_dilation, out_size):
+        start[ax], limit[ax], step[ax] = tap * d, tap * d + s * (m - 1) + 1, s
+      views.append(lax.slice(xp, start, limit, step))
+  return views
+
+
+def _small_input_conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
+                      lhs_dilation: tuple[int, int], rhs_dilation: tuple[int, int],
+                      precision: Any) -> jax.Array:
+  """A convolution as one matrix product of the input's patches: (N Ho Wo, kh kw C) @ (kh kw C, O).
+
+  x (N, H, W, C), k (kh, kw, C, O) -> (N, Ho, Wo, O). Why: XLA:CPU gives a convolution to its
+  library only when the (input-dilated, unpadded) input is at least as large as the kernel's
+  extent; otherwise it runs a generic loop nest. That is the deepest ResNet stage of a small
+  image (a 64x96 input leaves 2x3 pixels): a 3x3 512 -> 512 convolution of a 2x3 input took
+  24 ms in float32 and float64 alike, as a product of its patches 0.9 ms (2 vCPUs). In float64
+  the convolutions whose output is larger than the input (the input gradient of an unpadded
+  convolution: MonoDepth2's reflection-padded decoder) run in a fallback at 0.1-1 GFLOP/s:
+  (1, 12, 40, 256) -> (1, 14, 42, 256) took 584 ms, as patches 8 ms. The patches are a kh * kw
+  times larger copy of the input, cheap for these. Same sums, in another order (float
+  rounding). Measured in one process on 2 vCPUs (Intel, AVX-512); Ada-Depth's float64 step at
+  64x96 (its parity test) 1.95 -> 0.96 s.
+  """
+  kh, kw, c, o = k.shape
+  xp = lax.pad(x, jnp.zeros((), x.dtype),
+               ((0, 0, 0), *((lo, hi, d - 1) for (lo, hi), d in zip(padding, lhs_dilation)),
+                (0, 0, 0)))                                                     # (N, Hp, Wp, C)
+  out = tuple((n - _dilated_size(kn, d)) // s + 1
+              for n, kn, d, s in zip(xp.shape[1:3], (kh, kw), rhs_dilation, strides))
+  cols = jnp.concatenate(_tap_planes(xp, (1, 2), (kh, kw), strides, rhs_dilation, out),
+                         axis=-1)                                               # (N, Ho, Wo, kh kw C)
+  return lax.dot_general(cols, k.reshape(kh * kw * c, o), (((3,), (0,)), ((), ())),
+                         precision=precision)                                   # (N, Ho, Wo, O)
+
+
 def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
-          rhs_dilation: tuple[int, int], precision: Any) -> jax.Array:
-  fits = all(n + lo + hi >= kn for n, (lo, hi), kn in zip(x.shape[1:3], padding, k.shape[:2]))
+          rhs_dilation: tuple[int, int], precision: Any,
+          lhs_dilation: tuple[int, int] = (1, 1)) -> jax.Array:
+  """The forward convolution (and the input gradient's, with `lhs_dilation`), by the fastest of
+  XLA's convolution, a product of patches for inputs smaller than the kernel, and the
+  single-output form."""
+  sizes = [_dilated_size(n, d) for n, d in zip(x.shape[1:3], lhs_dilation)]
+  extents = [_dilated_size(kn, d) for kn, d in zip(k.shape[:2], rhs_dilation)]
+  grows = any((n + lo + hi - e) // s + 1 > n
+              for n, (lo, hi), e, s in zip(sizes, padding, extents, strides))
+  if any(n < e for n, e in zip(sizes, extents)) or (grows and x.dtype == jnp.float64):
+    return _small_input_conv(x, k, strides, padding, lhs_dilation, rhs_dilation, precision)
+  fits = all(n + lo + hi >= kn for n, (lo, hi), kn in zip(sizes, padding, k.shape[:2]))
   small_taps = k.shape[0] * k.shape[1] <= k.shape[2]  # tap planes no larger than the input
   if k.shape[-1] == 1 and strides == (1, 1) and rhs_dilation == (1, 1) and fits and \
-      small_taps and all(p >= 0 for pair in padding for p in pair):
+      small_taps and lhs_dilation == (1, 1) and all(p >= 0 for pair in padding for p in pair):
     return _single_output_conv(x, k, padding, precision)
-  return lax.conv_general_dilated(x, k, strides, padding, None, rhs_dilation, NHWC_HWIO,
+  return lax.conv_general_dilated(x, k, strides, padding, lhs_dilation, rhs_dilation, NHWC_HWIO,
                                   precision=precision)
 
 
@@ -107,11 +164,8 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
     return jnp.transpose(dk[:, :kh, :kw], (1, 2, 0, 3))
   xt = lax.pad(jnp.transpose(x, (3, 0, 1, 2)), jnp.zeros((), x.dtype),
                ((0, 0, 0), (0, 0, 0), *((lo, hi, 0) for lo, hi in padding)))  # (C, N, Hp, Wp)
-  (sh, sw), (dh, dw) = strides, rhs_dilation
-  patches = jnp.stack([lax.slice(xt, (0, 0, a * dh, b * dw),
-                                 (c, n, a * dh + sh * (ho - 1) + 1, b * dw + sw * (wo - 1) + 1),
-                                 (1, 1, sh, sw))
-                       for a in range(kh) for b in range(kw)])        # (kh kw, C, N, Ho, Wo)
+  patches = jnp.stack(_tap_planes(xt, (2, 3), kernel_size, strides, rhs_dilation,
+                                  (ho, wo)))                          # (kh kw, C, N, Ho, Wo)
   dk = lax.dot_general(patches.reshape(kh * kw * c, n * ho * wo), g.reshape(n * ho * wo, o),
                        (((1,), (0,)), ((), ())), precision=precision)  # (kh kw C, O)
   return dk.reshape(kh, kw, c, o)
@@ -138,8 +192,7 @@ def _conv_bwd(strides, padding, rhs_dilation, precision, residuals, g):
   hi = [n + w - 1 - _dilated_size(m, s) - l
         for n, w, m, s, l in zip(x.shape[1:3], window, g.shape[1:3], strides, lo)]
   k_t = jnp.transpose(jnp.flip(k, (0, 1)), (0, 1, 3, 2))  # (kh, kw, O, C), canonical HWIO
-  dx = lax.conv_general_dilated(g, k_t, (1, 1), tuple(zip(lo, hi)), strides, rhs_dilation,
-                                NHWC_HWIO, precision=precision)
+  dx = _conv(g, k_t, (1, 1), tuple(zip(lo, hi)), rhs_dilation, precision, lhs_dilation=strides)
   return dx, dk
 
 
