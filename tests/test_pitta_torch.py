@@ -13,9 +13,12 @@ and an image with flat regions (Laplacian exactly 0). Checked:
   float32 JAX vs float64 PyTorch within 1e-3 of the largest component with the same sign in
   every component;
 - dL/d(encoder BN gamma, beta) of a converted MonoDepth2 at 640x192 in train-mode BN: float64
-  JAX vs float64 PyTorch at 1e-6; float32 JAX vs float64 PyTorch no further than PyTorch's own
-  float32 gradient (batch-1 BN backward in float32 is ill-conditioned, see
-  test_monodepth2_parity) and with the same sign wherever float32 PyTorch agrees in sign.
+  JAX vs float64 PyTorch at 1e-6; float32 JAX vs float64 PyTorch no further than twice PyTorch's
+  own float32 gradient (or 2e-3 of the leaf's largest component; batch-1 BN backward in float32
+  is ill-conditioned, see test_monodepth2_parity) and with the same sign wherever float32
+  PyTorch agrees in sign. PyTorch's CPU kernels sum BN's per-channel statistics in float64; with
+  one-stage float32 sums JAX was 2.5e-3 (one thread) to 1.3e-2 (two threads) off here, PyTorch
+  7.9e-4 (`models.layers.BatchNorm` sums rows first).
 """
 
 from __future__ import annotations
@@ -234,5 +237,5 @@ def test_pitta_loss_and_bn_gradient_match_torch_at_640x192(network_case):
         f"jax32 {w32:.1e}, torch32 {wt32:.1e}; jax32 sign disagreements {flips} of {n_big} "
         f"components above 1% of their leaf's largest")
   assert w64 < 1e-6
-  assert w32 < 1e-2
+  assert w32 < max(2 * wt32, 2e-3)
   assert flips == 0
