@@ -44,6 +44,30 @@ def _channel_broadcast(v: jax.Array, shape: tuple[int, ...]) -> jax.Array:
   return jnp.broadcast_to(rows[:, :, None, :], shape)
 
 
+# BatchNorm's steps are jitted so that an un-jitted `apply` runs each as one program, not op by op
+@jax.jit
+def _centre(x: jax.Array, mean: jax.Array) -> jax.Array:
+  """x (B, H, W, C) minus the per-channel mean (C,)."""
+  return x - _channel_broadcast(mean, x.shape)
+
+
+@jax.jit
+def _batch_moments(x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """x (B, H, W, C) -> (x - mean, mean, biased variance), the moments (C,) over pixels."""
+  n = x.size // x.shape[-1]
+  mean = _channel_sum(x) / n
+  centred = _centre(x, mean)
+  return centred, mean, _channel_sum(jnp.square(centred)) / n
+
+
+@jax.jit
+def _normalize(centred: jax.Array, var: jax.Array, scale: jax.Array, bias: jax.Array,
+               epsilon: jax.Array) -> jax.Array:
+  """(x - mean) / sqrt(var + eps) * gamma + beta over (B, H, W, C), per-channel (C,) inputs."""
+  inv = jax.lax.rsqrt(var + epsilon) * scale
+  return centred * _channel_broadcast(inv, centred.shape) + _channel_broadcast(bias, centred.shape)
+
+
 class BatchNorm(nn.Module):
   """BatchNorm over the channel (last) axis with PyTorch semantics.
 
@@ -82,20 +106,17 @@ class BatchNorm(nn.Module):
     ra_var = self.variable("batch_stats", "var", lambda: jnp.ones((features,), jnp.float32))
 
     if use_batch_stats:
-      n = x.size // features
-      mean = _channel_sum(x) / n
-      centred = x - _channel_broadcast(mean, x.shape)
-      var = _channel_sum(jnp.square(centred)) / n  # biased, as PyTorch normalises
+      centred, mean, var = _batch_moments(x)  # var biased, as PyTorch normalises
       if not self.is_initializing() and self.is_mutable_collection("batch_stats"):
+        n = x.size // features
         unbiased = var * (n / max(n - 1, 1))  # PyTorch stores the unbiased estimate
         m = self.momentum
         ra_mean.value = (1.0 - m) * ra_mean.value + m * jax.lax.stop_gradient(mean)
         ra_var.value = (1.0 - m) * ra_var.value + m * jax.lax.stop_gradient(unbiased)
     else:
-      centred = x - _channel_broadcast(ra_mean.value, x.shape)
+      centred = _centre(x, ra_mean.value)
       var = ra_var.value
-    inv = jax.lax.rsqrt(var + self.epsilon) * scale
-    return centred * _channel_broadcast(inv, x.shape) + _channel_broadcast(bias, x.shape)
+    return _normalize(centred, var, scale, bias, jnp.asarray(self.epsilon, x.dtype))
 
 
 def conv(features: int, kernel: int, stride: int = 1, padding: int = 0, use_bias: bool = False,
