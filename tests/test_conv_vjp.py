@@ -37,6 +37,19 @@ CASES = [
 ]
 
 
+def _both_rules(x, k, strides, padding, dilation=(1, 1)):
+  """(value, input grad, kernel grad) of lax's convolution and of conv_vjp's, both pulled back
+  with the same cotangent (not all ones)."""
+  def run(fn, ct=None):
+    def f(x, k):
+      return fn(x, k, strides, padding, rhs_dilation=dilation, dimension_numbers=NHWC)
+    y, vjp = jax.vjp(f, x, k)
+    ct = jnp.cos(3.0 * y) if ct is None else ct
+    return (y, *vjp(ct)), ct
+  ref, ct = run(lax.conv_general_dilated)
+  return ref, run(conv_vjp.conv_general_dilated, ct)[0]
+
+
 # out = 1 with 12 input features: the stride-1 undilated cases with at most 12 taps take the
 # single-output path (a product and shifted sums), the 5x5 one does not; 64 -> 64 features in a
 # batch of 2: the kernel gradient as a product of the input's patches
@@ -48,18 +61,7 @@ def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding,
   x = rng.standard_normal((conv_vjp.PATCHES_MIN_BATCH, *size, cin), np.float32)
   k = rng.standard_normal((ksize, ksize, cin, out), np.float32)
 
-  @jax.jit
-  def run_both(x, k):
-    def run(fn, ct=None):
-      def f(x, k):
-        return fn(x, k, strides, padding, rhs_dilation=dilation, dimension_numbers=NHWC)
-      y, vjp = jax.vjp(f, x, k)
-      ct = jnp.cos(3.0 * y) if ct is None else ct  # a cotangent that is not all ones
-      return (y, *vjp(ct)), ct
-    ref, ct = run(lax.conv_general_dilated)
-    return ref, run(conv_vjp.conv_general_dilated, ct)[0]  # the same cotangent for both
-
-  ref, got = run_both(x, k)
+  ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding, dilation))(x, k)
   for name, a, b in zip(("value", "input grad", "kernel grad"), ref, got):
     a, b = np.asarray(a), np.asarray(b)
     assert a.shape == b.shape, name
@@ -78,14 +80,9 @@ def test_float64_growing_convolutions_match_jax_rule():
                                    ((6, 4), ((3, 1), (2, 3)), (2, 1))]:
       x = jnp.asarray(rng.standard_normal((2, *size, 6)))
       k = jnp.asarray(rng.standard_normal((3, 3, 6, 5)))
-      ct = None
-      results = []
-      for fn in (lax.conv_general_dilated, conv_vjp.conv_general_dilated):
-        y, vjp = jax.vjp(lambda x, k: fn(x, k, strides, padding, dimension_numbers=NHWC), x, k)
-        ct = jnp.cos(3.0 * y) if ct is None else ct
-        results.append((y, *vjp(ct)))
-      assert any(m > n for m, n in zip(results[0][0].shape[1:3], size))  # the output grows
-      for a, b in zip(*results):
+      ref, got = _both_rules(x, k, strides, padding)
+      assert any(m > n for m, n in zip(ref[0].shape[1:3], size))  # the output grows
+      for a, b in zip(ref, got):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=1e-12)
 
 
