@@ -122,7 +122,7 @@ def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
               for n, (lo, hi), e, s in zip(sizes, padding, extents, strides))
   if any(n < e for n, e in zip(sizes, extents)) or (grows and x.dtype == jnp.float64):
     return _small_input_conv(x, k, strides, padding, lhs_dilation, rhs_dilation, precision)
-  fits = all(n + lo + hi >= kn for n, (lo, hi), kn in zip(sizes, padding, k.shape[:2]))
+  fits = all(n + lo + hi >= e for n, (lo, hi), e in zip(sizes, padding, extents))
   small_taps = k.shape[0] * k.shape[1] <= k.shape[2]  # tap planes no larger than the input
   if k.shape[-1] == 1 and strides == (1, 1) and rhs_dilation == (1, 1) and fits and \
       small_taps and lhs_dilation == (1, 1) and all(p >= 0 for pair in padding for p in pair):
