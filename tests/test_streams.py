@@ -68,6 +68,31 @@ def _max_diff(a, b) -> float:
              for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
 
 
+def _close_but_for_ties(x, y, atol: float, outlier_atol: float, label: str) -> None:
+  """|x - y| <= atol on every element but a few (at most 1% of the leaf, at least one), and
+  <= outlier_atol on those few.
+
+  Why a few: eq. 8's gradient is discontinuous. sign(D~ - D~') flips at a pixel whose depth is
+  within rounding of its window's median, and two programs that round differently (a batch-K
+  and a batch-1 convolution, or one code generator and another) flip different pixels, so a
+  handful of BN coordinates get a different gradient contribution. Adam then moves such a
+  coordinate by about lr whatever its gradient's size. A wrong stream, key or optimiser state
+  changes most elements of a leaf, which this still fails on.
+  """
+  x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+  d = np.abs(x - y)
+  out = int(np.sum(d > atol))
+  assert out <= max(1, d.size // 100), f"{label}: {out} of {d.size} elements differ by > {atol:.2e}"
+  assert float(np.max(d, initial=0.0)) <= outlier_atol, (
+      f"{label}: max diff {float(np.max(d)):.2e} > {outlier_atol:.2e}")
+
+
+# an element whose gradient's sign differs between two runs moves by up to ~lr per Adam step the
+# other way in each: 2 T lr apart after T frames (`_close_but_for_ties`)
+PARAM_OUTLIER = 2 * T * CFG.lr
+MOMENT_OUTLIER = 0.1  # of the leaf's largest |value|
+
+
 def _assert_state_close(got, want, label: str) -> None:
   """Counters, keys and source parameters exactly; parameters and Adam moments to float noise.
 
@@ -79,19 +104,25 @@ def _assert_state_close(got, want, label: str) -> None:
   with PyTorch's derivative of |x| (0 at x = 0, so a pixel exactly at its pseudo label adds
   nothing) a coordinate whose gradient is small (a few % of its leaf's largest) moves by
   lr * m / sqrt(v), and batch-K vs batch-1 rounding of its few contributions changes that ratio
-  by up to ~8% of lr (measured: 8.5e-6 at lr 1e-4, encoder/layer4_0/bn2/bias, stream 1).
+  by up to ~8% of lr (measured: 8.5e-6 at lr 1e-4, encoder/layer4_0/bn2/bias, stream 1). A few
+  elements per leaf may exceed that (`_close_but_for_ties`): with another code generator
+  (`--xla_backend_extra_options=xla_cpu_disable_loop_unrolling`) one Adam first moment in 256
+  differed by 12% of itself.
   """
   for name in ("source", "step", "rng", "n_skipped", "method_state"):
     jax.tree_util.tree_map(np.testing.assert_array_equal, getattr(got, name), getattr(want, name))
   print(f"{label}: trainable max abs diff {_max_diff(got.trainable, want.trainable):.2e} "
         f"(lr {CFG.lr:g}), adam moments {_max_diff(got.opt_state, want.opt_state):.2e}")
-  jax.tree_util.tree_map(
-      lambda x, y: np.testing.assert_allclose(x, y, rtol=0, atol=0.2 * CFG.lr),
+  jax.tree_util.tree_map_with_path(
+      lambda p, x, y: _close_but_for_ties(x, y, 0.2 * CFG.lr, PARAM_OUTLIER,
+                                          f"{label} trainable{jax.tree_util.keystr(p)}"),
       got.trainable, want.trainable)
-  jax.tree_util.tree_map(
-      lambda x, y: np.testing.assert_allclose(
-          x, y, rtol=0, atol=1e-2 * float(np.max(np.abs(np.asarray(y))) + 1e-30)),
-      got.opt_state, want.opt_state)
+
+  def moments(p, x, y):
+    scale = float(np.max(np.abs(np.asarray(y)))) + 1e-30
+    _close_but_for_ties(x, y, 1e-2 * scale, MOMENT_OUTLIER * scale,
+                        f"{label} opt_state{jax.tree_util.keystr(p)}")
+  jax.tree_util.tree_map_with_path(moments, got.opt_state, want.opt_state)
 
 
 K = 4  # streams; divisible by the 4 devices of the sharding test
@@ -258,10 +289,16 @@ def test_sharded_streams_equal_unsharded_run(multi_run, tmp_path):
     b = np.asarray(b)
     assert a.shape == b.shape and a.dtype == b.dtype
     bitwise &= bool(np.array_equal(a, b))
-    diff = float(np.max(np.abs(a.astype(np.float64) - b.astype(np.float64)), initial=0.0))
-    rel = diff / max(float(np.max(np.abs(b.astype(np.float64)), initial=0.0)), 1e-30)
-    tol = _tolerance(jax.tree_util.keystr(path))
-    worst[tol] = max(worst.get(tol, 0.0), rel)
-    assert rel <= tol, (jax.tree_util.keystr(path), rel, tol)
+    key = jax.tree_util.keystr(path)
+    scale = max(float(np.max(np.abs(b.astype(np.float64)), initial=0.0)), 1e-30)
+    d = np.abs(a.astype(np.float64) - b.astype(np.float64)) / scale
+    tol = _tolerance(key)
+    worst[tol] = max(worst.get(tol, 0.0), float(np.max(d, initial=0.0)))
+    if "trainable" in key:  # a few tie-flipped coordinates (`_close_but_for_ties`)
+      _close_but_for_ties(a, b, tol * scale, PARAM_OUTLIER, key)
+    elif "opt_state" in key and a.dtype.kind == "f":
+      _close_but_for_ties(a, b, tol * scale, MOMENT_OUTLIER * scale, key)
+    else:
+      assert float(np.max(d, initial=0.0)) <= tol, (key, float(np.max(d)), tol)
   print(f"sharded vs unsharded: bitwise identical {bitwise}; max scale-relative diff per "
         f"tolerance class: {worst}")
