@@ -23,15 +23,38 @@ os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
 # or command that names the same cache by another path (its own $PITTA_JAX_CACHE) would miss.
 # The suite does not use that GPU-only cache; without it the keys depend on the program alone.
 os.environ["JAX_PERSISTENT_CACHE_ENABLE_XLA_CACHES"] = "none"
-# The suite is compile-bound, and most of a compile is LLVM optimising XLA:CPU's generated loops.
+# The suite is compile-bound, and most of a compile is XLA:CPU turning fusions into machine code.
 # The tests check values, not speed: compile with LLVM at -O1, no loop unrolling and no SLP
-# vectorisation (none of which reassociates floating-point arithmetic). Measured on 2 vCPUs
-# (2026-12-02): Ada-Depth's float64 step compiled in 80 s instead of 103 s and ran no slower
-# (2.69 vs 2.78 s at 64x96); the suite took 888 s and 944 s instead of 1047 s. Placed first,
-# so that flags of the caller's own XLA_FLAGS (the last of a repeated flag wins) override them.
+# vectorisation, and with XLA's older LLVM-IR fusion emitters instead of its MLIR-based ones
+# (none of which reassociates floating-point arithmetic). Measured on 2 vCPUs (2026-12-02/03,
+# Ada-Depth's float64 step at 64x96, one core each, pairs run side by side): -O1 and the two
+# LLVM options 103 -> 80 s, the step no slower (2.69 vs 2.78 s); the older emitters on top
+# 116-138 -> 85-111 s (three pairs). Placed first, so that flags of the caller's own XLA_FLAGS
+# (the last of a repeated flag wins) override them.
 TEST_CODEGEN_FLAGS = ("--xla_backend_optimization_level=1 --xla_backend_extra_options="
-                      "xla_cpu_disable_loop_unrolling,xla_cpu_disable_slp_vectorizer")
-os.environ["XLA_FLAGS"] = f"{TEST_CODEGEN_FLAGS} {os.environ.get('XLA_FLAGS', '')}".strip()
+                      "xla_cpu_disable_loop_unrolling,xla_cpu_disable_slp_vectorizer "
+                      "--xla_cpu_use_fusion_emitters=false")
+# XLA aborts the process on a flag it does not know, and these are XLA's, not JAX's API: another
+# jaxlib may rename or drop one. One subprocess (started once per run: its verdict is passed on
+# to the xdist workers and the tests' subprocesses through the environment) tries them first;
+# without them the suite is slower, not wrong.
+_PROBED = "PITTA_JAX_TEST_CODEGEN_FLAGS"
+
+
+def _codegen_flags() -> str:
+  """TEST_CODEGEN_FLAGS when this jaxlib accepts them, else ""."""
+  if _PROBED not in os.environ:
+    import subprocess
+    import sys
+    env = {**os.environ, "XLA_FLAGS": TEST_CODEGEN_FLAGS, "JAX_PLATFORMS": "cpu"}
+    code = "import jax; jax.numpy.zeros(1).block_until_ready()"
+    probe = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=300)
+    os.environ[_PROBED] = TEST_CODEGEN_FLAGS if probe.returncode == 0 else ""
+  return os.environ[_PROBED]
+
+
+if not os.environ.get("XLA_FLAGS", "").startswith(TEST_CODEGEN_FLAGS):  # not yet (xdist workers)
+  os.environ["XLA_FLAGS"] = f"{_codegen_flags()} {os.environ.get('XLA_FLAGS', '')}".strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
