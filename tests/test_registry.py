@@ -7,7 +7,10 @@ each bad weights directory must give one WeightsError naming the file.
 from __future__ import annotations
 
 import json
+import os
 import re
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +19,7 @@ import pytest
 
 from pitta_jax.checkpoint import WeightsError, load_weights, save_weights
 from pitta_jax.models.depth_decoder import DepthNet
-from pitta_jax.models.random_init import jit_init, random_monodepth2_variables
+from pitta_jax.models.random_init import random_monodepth2_variables
 from pitta_jax.models.registry import MODELS, get_spec, network
 
 H, W = 64, 96
@@ -111,25 +114,38 @@ def test_not_an_object_corrupt_or_nonfinite_weights(weights_dir, tmp_path, varia
     load_weights(corrupt)
 
 
+JIT_INIT_SCRIPT = """
+import flax.linen as nn, jax, jax.numpy as jnp, numpy as np
+from pitta_jax.models.random_init import jit_init
+
+class Net(nn.Module):
+  @nn.compact
+  def __call__(self, x):                                     # (1, 8, 12, 3)
+    x = nn.Conv(8, (3, 3))(x)                                # lecun_normal: truncated normal
+    x = nn.BatchNorm(use_running_average=False)(x)
+    x = nn.Conv(4, (3, 3), kernel_init=nn.initializers.variance_scaling(
+        2.0, "fan_out", "normal"), bias_init=nn.initializers.normal(0.1))(x)
+    return nn.Dense(3, kernel_init=nn.initializers.he_uniform(),
+                    bias_init=nn.initializers.uniform(0.2))(x)
+
+x = jnp.zeros((1, 8, 12, 3), jnp.float32)
+for key in (jax.random.PRNGKey(0), jax.random.fold_in(jax.random.PRNGKey(0), 1)):
+  ours, default = jit_init(Net(), key, x), jax.jit(Net().init)(key, x)
+  assert jax.tree_util.tree_structure(ours) == jax.tree_util.tree_structure(default)
+  for a, b in zip(jax.tree_util.tree_leaves(ours), jax.tree_util.tree_leaves(default)):
+    assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
+print("bitwise")
+"""
+
+
 def test_jit_init_draws_bitwise_what_the_default_compile_draws():
   """`jit_init` compiles an init at optimisation level 1 on the CPU: the threefry bits and the
   initialisers' float transforms (truncated normal, normal, uniform, BN constants) must come out
   as under `jax.jit(module.init)` at XLA's default level, or `train-source` would not reproduce
-  a seed."""
-  import flax.linen as nn
-
-  class Net(nn.Module):
-    @nn.compact
-    def __call__(self, x):                                     # (1, 8, 12, 3)
-      x = nn.Conv(8, (3, 3))(x)                                # lecun_normal: truncated normal
-      x = nn.BatchNorm(use_running_average=False)(x)
-      x = nn.Conv(4, (3, 3), kernel_init=nn.initializers.variance_scaling(
-          2.0, "fan_out", "normal"), bias_init=nn.initializers.normal(0.1))(x)
-      return nn.Dense(3, kernel_init=nn.initializers.he_uniform(),
-                      bias_init=nn.initializers.uniform(0.2))(x)
-  x = jnp.zeros((1, 8, 12, 3), jnp.float32)
-  for key in (jax.random.PRNGKey(0), jax.random.fold_in(jax.random.PRNGKey(0), 1)):
-    ours, default = jit_init(Net(), key, x), jax.jit(Net().init)(key, x)
-    assert jax.tree_util.tree_structure(ours) == jax.tree_util.tree_structure(default)
-    for a, b in zip(jax.tree_util.tree_leaves(ours), jax.tree_util.tree_leaves(default)):
-      assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
+  a seed. In a subprocess without XLA_FLAGS: the suite compiles its own programs with other
+  code-generation flags (tests/conftest.py), and XLA's defaults are what a user gets."""
+  env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+  env["JAX_PLATFORMS"] = "cpu"
+  proc = subprocess.run([sys.executable, "-c", JIT_INIT_SCRIPT], env=env, capture_output=True,
+                        text=True, timeout=300)
+  assert proc.returncode == 0 and proc.stdout.strip() == "bitwise", proc.stderr[-4000:]
