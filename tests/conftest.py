@@ -48,8 +48,12 @@ def _codegen_flags() -> str:
     import sys
     env = {**os.environ, "XLA_FLAGS": TEST_CODEGEN_FLAGS, "JAX_PLATFORMS": "cpu"}
     code = "import jax; jax.numpy.zeros(1).block_until_ready()"
-    probe = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, timeout=300)
-    os.environ[_PROBED] = TEST_CODEGEN_FLAGS if probe.returncode == 0 else ""
+    try:
+      ok = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                          timeout=300).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+      ok = False
+    os.environ[_PROBED] = TEST_CODEGEN_FLAGS if ok else ""
   return os.environ[_PROBED]
 
 
