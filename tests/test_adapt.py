@@ -85,16 +85,17 @@ def test_predict_then_adapt_matches_manual_adam_steps(variables, engine):
   opt = optax.adam(CFG.lr)
   tr, opt_state = parts.trainable, opt.init(parts.trainable)
   dyn = np.array([11, 12, 13, 0], np.int32)
-  @jax.jit
-  def loss_and_grad(tr_, image, panoptic):
+  @jax.jit  # the frozen weights are arguments: closed over, XLA would fold them as constants
+  def loss_and_grad(tr_, frozen, stats, image, panoptic):
     def loss_fn(tr_):
-      v = trainable.merge(tr_, parts.frozen, parts.batch_stats)
+      v = trainable.merge(tr_, frozen, stats)
       depth = disp_to_depth(net.apply(v, image[None], train=True)[0][0, ..., 0])
       return losses.pitta_loss(image, depth, panoptic, dyn, s=3, lam=0.2).total, depth
     return jax.value_and_grad(loss_fn, has_aux=True)(tr_)
 
   for t in range(4):
-    (loss, depth), g = loss_and_grad(tr, frames.image[t], frames.panoptic[t])
+    (loss, depth), g = loss_and_grad(tr, parts.frozen, parts.batch_stats, frames.image[t],
+                                     frames.panoptic[t])
     d = float(np.max(np.abs(np.asarray(depth) - out.depth[t]) / np.asarray(depth)))
     print(f"frame {t}: loss engine {out.loss[t]:.6f} manual {float(loss):.6f}, depth rel diff {d:.1e}")
     assert d < 1e-5
