@@ -122,3 +122,19 @@ def test_engine_chunk_runner_hoists():
     engine.hoist_invariants = real
   assert calls == [("transpose",)]
   np.testing.assert_allclose(float(state), 2 * 36.0)
+
+
+def test_engine_chunk_runner_passes_compiler_options():
+  """`make_chunk_runner(step, compiler_options)` compiles with those XLA options: a valid one
+  gives the same sums, an unknown one is refused by XLA (so it did reach the compile)."""
+  from pitta_jax.adapt import engine
+
+  def step(state, frame, consts):
+    return state + jnp.sum(frame * consts), state
+
+  frames, consts = jnp.arange(6.0).reshape(3, 2), jnp.array([1.0, 10.0])
+  state, before = engine.make_chunk_runner(step, {"xla_backend_optimization_level": 0})(
+      jnp.zeros(()), frames, consts)
+  assert float(state) == 0 + 10 + 2 + 30 + 4 + 50 and list(np.asarray(before)) == [0, 10, 42]
+  with pytest.raises(Exception, match="xla_no_such_option"):
+    engine.make_chunk_runner(step, {"xla_no_such_option": 1})(jnp.zeros(()), frames, consts)

@@ -247,13 +247,15 @@ def make_step(model: Any, method: Method, cfg: AdaptConfig,
                            tx=tx or make_optimizer(cfg, method))
 
 
-def make_chunk_runner(step):
+def make_chunk_runner(step, compiler_options: dict[str, Any] | None = None):
   """jit(lax.scan(step)) over a chunk of frames, carry donated:
   `(state, frames, consts) -> (state, outputs)`; `consts` is an ordinary (not donated) input.
 
   The step's work that depends on `consts` alone (e.g. the frozen convolutions' input-gradient
-  kernels) runs once per chunk, before the scan (`hoist.hoist_invariants`)."""
-  @functools.partial(jax.jit, donate_argnums=0)
+  kernels) runs once per chunk, before the scan (`hoist.hoist_invariants`).
+  compiler_options: XLA options for this program alone (`jax.jit`'s), e.g.
+  `{"xla_backend_optimization_level": 0}` for a run too short to repay a full compile."""
+  @functools.partial(jax.jit, donate_argnums=0, compiler_options=compiler_options)
   def run_chunk(state, frames, consts):
     one = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), frames)
     body, _ = hoist_invariants(lambda c, s, f: step(s, f, c), consts, state, one)
