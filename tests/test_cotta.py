@@ -28,6 +28,7 @@ from flax.traverse_util import flatten_dict, unflatten_dict
 import adapt_frames
 import torch_monodepth2 as tm
 import torch_tta
+from xla_options import QUICK_COMPILE
 from pitta_jax.adapt import AdaptConfig, StepInput, init_state, make_optimizer, make_step
 from pitta_jax.methods import build
 from pitta_jax.methods.cotta import CottaConfig, restore_masks, sample_augment
@@ -86,7 +87,7 @@ def jax_run(case):
     model = network("monodepth2", {"num_layers": 18})
     method = build("cotta", mcfg)
     tx = make_optimizer(CFG, method)
-    step = jax.jit(make_step(model, method, CFG, tx))
+    step = jax.jit(make_step(model, method, CFG, tx), compiler_options=QUICK_COMPILE)
     init, consts = init_state(v64, method, CFG, tx, model)
     init = init.replace(method_state={
         **init.method_state,

@@ -18,6 +18,7 @@ import pytest
 import torch
 
 import torch_monodepth2 as tm
+from xla_options import QUICK_COMPILE
 from pitta_jax import trainable
 from pitta_jax.checkpoint import load_weights
 from pitta_jax.models.depth_decoder import DepthNet
@@ -183,7 +184,7 @@ def _bn_grads_jax(variables, x, weights, dtype):
     disps = net.apply(trainable.merge(tr, frozen, batch_stats), x, train=True)
     return sum(jnp.mean(d * w) for d, w in zip(disps, weights))
 
-  loss, grads = jax.jit(jax.value_and_grad(loss_fn))(
+  loss, grads = jax.jit(jax.value_and_grad(loss_fn), compiler_options=QUICK_COMPILE)(
       parts.trainable, parts.frozen, parts.batch_stats, cast(x), cast(weights))
   flat = flatten_dict(grads["encoder"], sep="/")
   return float(loss), {k: np.asarray(v, np.float64) for k, v in flat.items()}

@@ -23,6 +23,7 @@ from pitta_jax.models.random_init import init_variables
 from pitta_jax.models.registry import MODELS, network
 
 import adapt_frames
+from xla_options import QUICK_COMPILE
 
 # network -> (config, input (H, W), default selector, its norm kind)
 CASES = {
@@ -100,7 +101,7 @@ def test_pitta_and_none_run_on_other_networks(name):
   for method in (pitta, build("none")):
     tx = make_optimizer(cfg)
     state, consts = init_state(variables, method, cfg, tx, net)
-    runner = make_chunk_runner(make_step(net, method, cfg, tx))
+    runner = make_chunk_runner(make_step(net, method, cfg, tx), QUICK_COMPILE)
     (state, out), = adapt_stream(state, consts, [frames], runner)
     assert np.all(np.isfinite(out.depth)) and not np.any(out.skipped)
     depths[method.name] = out.depth
