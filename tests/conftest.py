@@ -84,9 +84,11 @@ jax.config.update("jax_default_matmul_precision", "highest")
 jax.config.update("jax_persistent_cache_enable_xla_caches", "none")
 
 # The heaviest files (single-process seconds on 2 cores, 2026-12-01), started first so that
-# the two workers finish together instead of one running the last big file alone.
+# the two workers finish together instead of one running the last big file alone. test_streams
+# compiles one of test_adapt's programs: three files apart, it finds it in the shared XLA cache
+# instead of compiling it at the same time in the other worker.
 HEAVY_FIRST = ("test_experiments.py", "test_cli.py", "test_adadepth.py", "test_adapt.py",
-               "test_streams.py", "test_faults.py", "test_comoda.py",
+               "test_faults.py", "test_comoda.py", "test_streams.py",
                "test_monodepth2_parity.py", "test_methods_cli.py", "test_networks_adapt.py")
 
 
