@@ -159,7 +159,8 @@ def encoder_bn_grads(net, variables, x, weights):
     disps = net.apply({"params": params, "batch_stats": stats}, x, train=True)
     return sum(jnp.mean(d * w) for d, w in zip(disps, weights))
 
-  loss, grads = jax.jit(jax.value_and_grad(loss_fn), compiler_options=QUICK_COMPILE)(bn, rest, jnp.asarray(x, jnp.float64))
+  loss, grads = jax.jit(jax.value_and_grad(loss_fn), compiler_options=QUICK_COMPILE)(
+      bn, rest, jnp.asarray(x, jnp.float64))
   return float(loss), {k[len("encoder/"):]: np.asarray(g) for k, g in grads.items()}
 
 
