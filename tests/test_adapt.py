@@ -2,7 +2,10 @@
 
 References: the public single-frame loss `pitta_jax.losses.pitta_loss` + `jax.grad` + an
 optax Adam step written out in the test (independent of the engine's scan/split plumbing), and
-bitwise comparisons between runs. Random-weight ResNet-18 at 64x96 keeps compiles short.
+bitwise comparisons between runs. A random-weight MonoDepth2-shaped network (`tiny_net`:
+MonoDepth2's layers, a few of each) at 64x96 keeps the compiles short: what is tested here is the
+engine, which sees a network only through `Network`; the networks are tested in their own files
+and PITTA on MonoDepth2 against PyTorch in test_pitta_torch.
 """
 
 from __future__ import annotations
@@ -22,11 +25,10 @@ from pitta_jax.adapt import (AdaptConfig, StepInput, adapt_stream, init_state, l
 from pitta_jax.methods import build
 from pitta_jax.methods.depth_refining import DepthRefiningConfig
 from pitta_jax.methods.pitta import PittaConfig
-from pitta_jax.models.depth_decoder import DepthNet, disp_to_depth
-from pitta_jax.models.random_init import jit_init
-from pitta_jax.models.registry import network
+from pitta_jax.models.depth_decoder import disp_to_depth
 
 import adapt_frames
+from tiny_net import TINY, TinyDepthNet, tiny_variables
 
 H, W, S = adapt_frames.H, adapt_frames.W, adapt_frames.S
 _frames = adapt_frames.make_frames
@@ -38,10 +40,7 @@ def _slice(x: StepInput, a: int, b: int) -> StepInput:
 
 @pytest.fixture(scope="module")
 def variables():
-  v = jit_init(DepthNet(18), jax.random.PRNGKey(1), jnp.zeros((1, H, W, 3)))
-  # non-trivial running statistics so that "batch" and "running" BN modes differ
-  return jax.tree_util.tree_map_with_path(
-      lambda p, a: a + 0.1 if "mean" in jax.tree_util.keystr(p) else a, v)
+  return tiny_variables(1)  # running statistics away from 0 and 1: "batch" and "running" differ
 
 
 CFG = AdaptConfig(lr=1e-2, chunk_size=2)
@@ -49,7 +48,7 @@ PITTA = PittaConfig(ld=DepthRefiningConfig(max_instances=4, window=3))
 
 
 def _model():
-  return network("monodepth2", {"num_layers": 18})
+  return TINY
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +80,7 @@ def test_predict_then_adapt_matches_manual_adam_steps(variables, engine):
   _, out = _run(state, frames, runner, 2)
 
   parts = trainable.split(variables)
-  net = DepthNet(18)
+  net = TinyDepthNet()
   opt = optax.adam(CFG.lr)
   tr, opt_state = parts.trainable, opt.init(parts.trainable)
   dyn = np.array([11, 12, 13, 0], np.int32)
@@ -259,7 +258,7 @@ def test_no_adaptation_is_the_released_model(variables):
   frames = _frames(2, seed=7)
   state0 = init_state(variables, method, cfg, tx)
   state, out = _run(state0, frames, runner, 2)
-  ref = disp_to_depth(jax.jit(functools.partial(DepthNet(18).apply, train=False))(
+  ref = disp_to_depth(jax.jit(functools.partial(TinyDepthNet().apply, train=False))(
       variables, frames.image)[0][..., 0])  # the plain module in eval mode
   np.testing.assert_allclose(out.depth, np.asarray(ref), rtol=1e-6)
   for a, b in zip(jax.tree_util.tree_leaves(state.trainable),

@@ -1,6 +1,7 @@
 """Random network variables for tests, benchmarks and `--quick` tables.
 
-`random_monodepth2_variables`: MonoDepth2 variables whose activations stay O(1).
+`random_monodepth2_variables`, `random_variables`: MonoDepth2's (any conv + BN network's)
+variables whose activations stay O(1).
 `init_variables`: any Flax module's own initialisers, compiled cheaply.
 `jit_init`: `jax.jit(module.init)`, compiled for a program that runs once.
 
@@ -22,14 +23,19 @@ from pitta_jax.models.depth_decoder import DepthNet
 
 
 def random_monodepth2_variables(seed: int = 0, num_layers: int = 18) -> dict[str, Any]:
-  """{"params", "batch_stats"} of a `DepthNet(num_layers)`.
+  """{"params", "batch_stats"} of a `DepthNet(num_layers)` (`random_variables`'s draws). The
+  variables do not depend on the image size."""
+  return random_variables(DepthNet(num_layers), seed, jnp.zeros((1, 64, 64, 3)))
+
+
+def random_variables(module: Any, seed: int, *inputs: jax.Array) -> dict[str, Any]:
+  """{"params", "batch_stats"} of a conv + BatchNorm `module` called on `inputs`.
 
   Kernels ~ N(0, 1 / fan_in), BN gamma ~ U[0.3, 0.8], biases and beta ~ 0.1 N(0, 1), running
-  means ~ 0.2 N(0, 1) and variances ~ U[0.5, 1.5]. The variables do not depend on the image size.
+  means ~ 0.2 N(0, 1) and variances ~ U[0.5, 1.5].
   """
   rng = np.random.default_rng(seed)
-  shapes = jax.eval_shape(DepthNet(num_layers).init, jax.random.PRNGKey(0),
-                          jnp.zeros((1, 64, 64, 3)))
+  shapes = jax.eval_shape(module.init, jax.random.PRNGKey(0), *inputs)
 
   def draw(path, x):
     name = jax.tree_util.keystr(path)
