@@ -4,8 +4,8 @@
   including maps of 1 pixel (NumPy's rule);
 - `reflect_conv3x3` (padded conv with the ring sliced off, or VALID) equals the VALID conv of
   the reflection-padded map, bit for bit, on both sides of the `padded_conv_is_cheap` rule;
-- `upsample_reflect_conv3x3` (four 2x2 phase convs at low resolution) and `UpConv3x3` equal
-  the composition upstream writes (nearest 2x upsampling with `np.repeat`, concatenation,
+- `upsample_reflect_conv3x3` (four 2x2 phase convs at low resolution, or the direct form below
+  `phase_form_pays`' threshold) and `UpConv3x3` equal the composition upstream writes (nearest 2x upsampling with `np.repeat`, concatenation,
   reflection padding, VALID 3x3 conv, bias), value and input gradients, within float32
   rounding, on even, odd and 1-pixel maps; `UpConv3x3` has `nn.Conv`'s parameter tree.
 """
@@ -59,9 +59,13 @@ def upstream_upconv(x, skip, k, b):
                                   precision=lax.Precision.HIGHEST) + b
 
 
+@pytest.mark.parametrize("phase_form", [True, False])
 @pytest.mark.parametrize("h, w, skip_channels", [(1, 1, 0), (1, 3, 2), (3, 5, 0), (4, 6, 3),
                                                  (7, 9, 4)])
-def test_upconv_equals_upsample_concat_reflect_conv(h, w, skip_channels):
+def test_upconv_equals_upsample_concat_reflect_conv(h, w, skip_channels, phase_form, monkeypatch):
+  """Both forms of `upsample_reflect_conv3x3` (the threshold set to take the one asked for)."""
+  monkeypatch.setattr(layers, "PHASE_FORM_MIN_MACS", 0 if phase_form else 2 ** 62)
+  assert layers.phase_form_pays(h, w, 3, 4) == phase_form
   rng = np.random.default_rng(h * 100 + w)
   c, o = 3, 4
   x = jnp.asarray(rng.standard_normal((2, h, w, c)).astype(np.float32))
@@ -85,3 +89,13 @@ def test_upconv_equals_upsample_concat_reflect_conv(h, w, skip_channels):
   for a, r in zip(ours, theirs):
     if r is not None:
       np.testing.assert_allclose(np.asarray(a), np.asarray(r), rtol=1e-5, atol=1e-5)
+
+
+def test_monodepth2_decoder_takes_the_phase_form_from_320x96():
+  """Every upconv_i_1 of MonoDepth2's decoder (x: 2 ** -(i + 1) of the input, C = O = its
+  channels) does the same work, so one side of the threshold per input size."""
+  channels = (16, 32, 64, 128, 256)
+  for (height, width), want in [((64, 96), False), ((96, 320), True), ((192, 640), True)]:
+    got = {layers.phase_form_pays(height >> (i + 1), width >> (i + 1), channels[i], channels[i])
+           for i in range(5)}
+    assert got == {want}, (height, width, got)

@@ -3,7 +3,8 @@
 Decoder: from the 1/32 feature map up to full resolution, five stages i = 4..0, each
 `upconv_i_0` (3x3 conv, reflection padding, ELU), nearest x2 upsampling, concatenation with the
 encoder skip `features[i - 1]` (i > 0), `upconv_i_1` (3x3 conv, reflection padding, ELU); the
-last three steps run as one layer (`layers.UpConv3x3`, which never builds the upsampled map).
+last three steps run as one layer (`layers.UpConv3x3`, which from 320x96 inputs never builds
+the upsampled map: `layers.phase_form_pays`).
 Channels (16, 32, 64, 128, 256). A sigmoid disparity head `dispconv_s` (3x3 conv, reflection
 padding) at scales s = 0..3, scale s at 1/2**s of the input resolution.
 

@@ -243,10 +243,32 @@ def reflect_conv3x3(x: jax.Array, kernel: jax.Array,
   return _conv(reflect_pad(x), kernel, ((0, 0), (0, 0)), conv_general_dilated)
 
 
+# `upsample_reflect_conv3x3` takes its phase form from this many multiply-adds of the direct form.
+PHASE_FORM_MIN_MACS = 2 ** 25
+
+
+def phase_form_pays(h: int, w: int, c: int, o: int) -> bool:
+  """Whether `upsample_reflect_conv3x3` of a (h, w, c) map to o features uses its phase form:
+  when the direct form's 2h * 2w * 9 * c * o multiply-adds reach `PHASE_FORM_MIN_MACS`.
+
+  Why a threshold: the phase form saves 20 of every 36 multiply-adds and the upsampled map, but
+  it is four convolutions with their slices, folded kernels and interleaving, forward and
+  backward: ~30 more kernels for XLA to compile per layer and network pass. MonoDepth2's
+  decoder halves the channels where it doubles the resolution, so all five of its upconv_i_1
+  layers do the same work: 70.8 M multiply-adds each at 320x96, where the phase form is
+  1.0-1.7x faster per layer (forward + backward, best of 9) and the PITTA step 132 against
+  148 ms/frame, and 14.2 M at 64x96, where the step ran as fast either way (66.8 against 66.2)
+  and compiled in 18.0 s directly against 24.3 s (813 against 966 loop kernels). Best of 5,
+  interleaved, 2 vCPUs (Intel Xeon, 2026-12-03, a busy host). 2^25 sits between the two sizes.
+  """
+  return 4 * h * w * 9 * c * o >= PHASE_FORM_MIN_MACS
+
+
 def upsample_reflect_conv3x3(x: jax.Array, kernel: jax.Array,
                              conv_general_dilated: Callable = conv_vjp.conv_general_dilated
                              ) -> jax.Array:
-  """`reflect_conv3x3(upsample_nearest2x(x), kernel)`, computed at x's resolution.
+  """`reflect_conv3x3(upsample_nearest2x(x), kernel)`, computed at x's resolution where that
+  pays (`phase_form_pays`), else literally.
 
   x: (B, h, w, C), kernel: (3, 3, C, O) -> (B, 2h, 2w, O).
 
@@ -261,6 +283,8 @@ def upsample_reflect_conv3x3(x: jax.Array, kernel: jax.Array,
   """
   b, h, w, c = x.shape
   o = kernel.shape[-1]
+  if not phase_form_pays(h, w, c, o):
+    return reflect_conv3x3(upsample_nearest2x(x), kernel, conv_general_dilated)
   xe = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="edge")  # (B, h + 2, w + 2, C)
 
   def taps(k: jax.Array, phase: int) -> jax.Array:
