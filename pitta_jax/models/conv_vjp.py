@@ -132,9 +132,12 @@ def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
 
 
 # the kernel gradient is a matrix product of the input's patches for batches of at least this
-# many images whose features (in and out) are all at least this many (`_kernel_grad`)
+# many images whose features (in and out) are all at least this many, and for inputs of at most
+# PATCHES_MAX_INPUT_FEATURES features (an image: the encoders' first convolution) at any batch
+# (`_kernel_grad`)
 PATCHES_MIN_BATCH = 2
 PATCHES_MIN_FEATURES = 64
+PATCHES_MAX_INPUT_FEATURES = 8
 
 
 def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
@@ -151,13 +154,20 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   the input's patches instead, taps and features first: (kh kw C, N Ho Wo) @ (N Ho Wo, O).
   Measured on 2 vCPUs (Intel, AVX-512): CoMoDa's step (depth and pose networks, batch 4) 3075-3098
   -> 2794-2837 ms/frame at 640x192; with one image or fewer features the copy of the patches
-  cost more than the product saved (the ActMAD step, batch 1, was 2% slower). Same sums, in
-  another order (float rounding).
+  cost more than the product saved (the ActMAD step, batch 1, was 2% slower). An input of at
+  most `PATCHES_MAX_INPUT_FEATURES` features (the encoders' first 7x7 stride-2 convolution of
+  the image, or of two stacked images in the pose encoder) takes the patches at any batch: as
+  a convolution its "features" are the batch images and its kernel the whole 96x320 cotangent,
+  which XLA:CPU ran at 2-20 GFLOP/s. Measured inside a loop on 2 vCPUs (Intel, AVX-512),
+  convolution vs patches, ms: 3 -> 64 features at 640x192, batch 1 26 vs 20, batch 4 219 vs
+  85, batch 8 229 vs 241; 6 -> 64 batch 1 52 vs 36, batch 4 425 vs 156, batch 8 420 vs 327
+  (PyTorch's oneDNN kernel gradient of the same: 5, 19, 55; 20, 84, 174). Same sums, in another order (float rounding).
   """
   kh, kw = kernel_size
   n, ho, wo, o = g.shape
   c = x.shape[3]
-  if n < PATCHES_MIN_BATCH or min(c, o) < PATCHES_MIN_FEATURES:
+  if c > PATCHES_MAX_INPUT_FEATURES and (n < PATCHES_MIN_BATCH or
+                                         min(c, o) < PATCHES_MIN_FEATURES):
     dk = lax.conv_general_dilated(jnp.transpose(x, (3, 1, 2, 0)), jnp.transpose(g, (1, 2, 0, 3)),
                                   rhs_dilation, padding, None, strides, NHWC_HWIO,
                                   precision=precision)                # (C, >= kh, >= kw, O)
