@@ -1,0 +1,145 @@
+"""The kernel gradient of MonoDepth2's convolutions: XLA:CPU's forms against PyTorch's oneDNN.
+
+    python benchmarks/kernel_grad.py                 # batch 1 and 4, every layer below
+    python benchmarks/kernel_grad.py --batch 4 --layers conv1,upconv_1_1
+
+Why: the baselines that adapt convolution kernels (CoMoDa: the depth and pose networks at batch
+4; ActMAD and Ada-Depth: batch 1) spend much of their step in kernel gradients, a contraction
+over every pixel, and that is where the JAX steps lose to PyTorch (the README's Performance).
+Each layer's kernel gradient dk[a, b, c, o] = sum_{n,i,j} x_pad[n, i s + a, j s + b, c]
+g[n, i, j, o] (x: (N, H, W, C) NHWC, g: (N, Ho, Wo, O)) is timed in several forms, each inside
+a compiled `lax.fori_loop` of `--loops` iterations (the engine's step is the body of a scan,
+and XLA:CPU compiles loop bodies differently from straight-line code), its input produced by a
+ReLU in the loop as in a network:
+- `model`: what `models.conv_vjp` compiles for this shape (its `_kernel_grad`);
+- `conv`: a convolution of x (batch and features swapped) with g as the kernel;
+- `patches`: one matrix product of x's patches, (kh kw C, N Ho Wo) @ (N Ho Wo, O);
+- `per_image`: `conv` for each image, summed (N convolutions of one image);
+- `torch`: `torch.ops.aten.convolution_backward` with only the weight gradient asked (NCHW, as
+  a PyTorch user runs it; oneDNN), same threads.
+Every form is checked against `conv` (relative 1e-4). Prints one JSON line per layer and batch:
+the best ms of `--reps` runs per form, the GFLOP of the contraction, and the load average.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from jax import lax  # noqa: E402
+
+import bench_common as bc  # noqa: E402
+from pitta_jax.models import conv_vjp  # noqa: E402
+
+# name: (H, W, C, O, kernel, stride, padding) of the input x before padding, at 640x192.
+# The decoder's layers pad by reflection before an unpadded convolution: their x is padded.
+LAYERS = {
+    "conv1": (192, 640, 3, 64, 7, 2, 3),            # depth encoder, the image
+    "pose_conv1": (192, 640, 6, 64, 7, 2, 3),       # pose encoder, two stacked images
+    "layer1": (48, 160, 64, 64, 3, 1, 1),
+    "layer3": (12, 40, 256, 256, 3, 1, 1),
+    "upconv_1_1": (98, 322, 96, 32, 3, 1, 0),
+    "upconv_0_0": (98, 322, 32, 16, 3, 1, 0),
+    "upconv_0_1": (194, 642, 16, 16, 3, 1, 0),
+}
+
+
+def _conv_form(x, g, k, s, p):
+  dk = lax.conv_general_dilated(jnp.transpose(x, (3, 1, 2, 0)), jnp.transpose(g, (1, 2, 0, 3)),
+                                (1, 1), ((p, p), (p, p)), None, (s, s), conv_vjp.NHWC_HWIO)
+  return jnp.transpose(dk[:, :k, :k], (1, 2, 0, 3))  # (k, k, C, O)
+
+
+def _patches_form(x, g, k, s, p):
+  n, ho, wo, o = g.shape
+  c = x.shape[3]
+  xt = jnp.pad(jnp.transpose(x, (3, 0, 1, 2)), ((0, 0), (0, 0), (p, p), (p, p)))  # (C, N, Hp, Wp)
+  taps = jnp.stack(conv_vjp._tap_planes(xt, (2, 3), (k, k), (s, s), (1, 1), (ho, wo)))
+  dk = lax.dot_general(taps.reshape(k * k * c, n * ho * wo), g.reshape(n * ho * wo, o),
+                       (((1,), (0,)), ((), ())))
+  return dk.reshape(k, k, c, o)
+
+
+def _per_image_form(x, g, k, s, p):
+  return sum(_conv_form(x[i:i + 1], g[i:i + 1], k, s, p) for i in range(x.shape[0]))
+
+
+def _model_form(x, g, k, s, p):
+  return conv_vjp._kernel_grad(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1), None)
+
+
+FORMS = {"model": _model_form, "conv": _conv_form, "patches": _patches_form,
+         "per_image": _per_image_form}
+
+
+def time_jax(form, x, g, k, s, p, loops: int, reps: int) -> tuple[float, np.ndarray]:
+  """Best ms per kernel gradient inside a compiled loop, and the (last) value."""
+  def run(x, g):
+    def body(i, acc):
+      return acc + form(jax.nn.relu(x + i.astype(x.dtype)), g, k, s, p)
+    return lax.fori_loop(0, loops, body, jnp.zeros((k, k, x.shape[3], g.shape[3]), x.dtype))
+  compiled = jax.jit(run).lower(x, g).compile()
+  value = np.asarray(compiled(x, g))
+  best = min(bc.median_time(lambda: compiled(x, g).block_until_ready(), reps))
+  return 1e3 * best / loops, value / loops
+
+
+def time_torch(x, g, k, s, p, reps: int) -> float:
+  xt = torch.from_numpy(np.array(x)).permute(0, 3, 1, 2).contiguous()
+  gt = torch.from_numpy(np.array(g)).permute(0, 3, 1, 2).contiguous()
+  w = torch.zeros(g.shape[3], x.shape[3], k, k)
+
+  def one():
+    torch.ops.aten.convolution_backward(gt, torch.relu(xt), w, None, [s, s], [p, p], [1, 1],
+                                        False, [0, 0], 1, [False, True, False])
+  one()
+  return 1e3 * bc.median_time(one, reps)[1]
+
+
+def main(argv=None) -> None:
+  ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+  ap.add_argument("--batch", default="1,4", help="comma-separated batch sizes (default 1,4)")
+  ap.add_argument("--layers", default=",".join(LAYERS), help="comma-separated, of: "
+                  + ", ".join(LAYERS))
+  ap.add_argument("--forms", default=",".join(FORMS), help="comma-separated JAX forms")
+  ap.add_argument("--loops", type=int, default=3, help="kernel gradients per compiled loop")
+  ap.add_argument("--reps", type=int, default=3, help="timed runs per form (best reported)")
+  ap.add_argument("--threads", type=int, default=os.cpu_count(), help="PyTorch threads")
+  args = ap.parse_args(argv)
+  layers = args.layers.split(",")
+  forms = args.forms.split(",")
+  for name in layers + forms:
+    if name not in LAYERS and name not in FORMS:
+      ap.error(f"unknown layer or form {name!r}")
+  torch.set_num_threads(args.threads)
+  rng = np.random.default_rng(0)
+  for n in (int(b) for b in args.batch.split(",")):
+    for name in layers:
+      h, w, c, o, k, s, p = LAYERS[name]
+      ho, wo = (h + 2 * p - k) // s + 1, (w + 2 * p - k) // s + 1
+      x = jnp.asarray(rng.standard_normal((n, h, w, c)), jnp.float32)
+      g = jnp.asarray(rng.standard_normal((n, ho, wo, o)), jnp.float32)
+      ms, ref = {}, None
+      for form in ["conv"] + [f for f in forms if f != "conv"]:
+        ms[form], value = time_jax(FORMS[form], x, g, k, s, p, args.loops, args.reps)
+        if ref is None:
+          ref = value
+        err = float(np.max(np.abs(value - ref)) / np.max(np.abs(ref)))
+        assert err < 1e-4, (name, form, err)
+      ms["torch"] = time_torch(x, g, k, s, p, args.reps)
+      bc.emit({"layer": name, "batch": n, "x": [n, h, w, c], "out_features": o, "kernel": k,
+               "stride": s, "threads": args.threads, "gflop": round(2 * k * k * c * o * n * ho * wo / 1e9, 3),
+               "best_ms": {f: round(v, 1) for f, v in ms.items()}, "load": bc.load()})
+
+
+if __name__ == "__main__":
+  main()
