@@ -12,8 +12,10 @@ a compiled `lax.fori_loop` of `--loops` iterations (the engine's step is the bod
 and XLA:CPU compiles loop bodies differently from straight-line code), its input produced by a
 ReLU in the loop as in a network:
 - `model`: what `models.conv_vjp` compiles for this shape (its `_kernel_grad`);
-- `conv`: a convolution of x (batch and features swapped) with g as the kernel;
-- `patches`: one matrix product of x's patches, (kh kw C, N Ho Wo) @ (N Ho Wo, O);
+- `conv`: a convolution of x (batch and features swapped) with g as the kernel
+  (`conv_vjp.kernel_grad_conv`);
+- `patches`: one matrix product of x's patches, (kh kw C, N Ho Wo) @ (N Ho Wo, O)
+  (`conv_vjp.kernel_grad_patches`);
 - `per_image`: `conv` for each image, summed (N convolutions of one image);
 - `torch`: `torch.ops.aten.convolution_backward` with only the weight gradient asked (NCHW, as
   a PyTorch user runs it; oneDNN), same threads.
@@ -26,7 +28,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -54,19 +55,11 @@ LAYERS = {
 
 
 def _conv_form(x, g, k, s, p):
-  dk = lax.conv_general_dilated(jnp.transpose(x, (3, 1, 2, 0)), jnp.transpose(g, (1, 2, 0, 3)),
-                                (1, 1), ((p, p), (p, p)), None, (s, s), conv_vjp.NHWC_HWIO)
-  return jnp.transpose(dk[:, :k, :k], (1, 2, 0, 3))  # (k, k, C, O)
+  return conv_vjp.kernel_grad_conv(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
 
 
 def _patches_form(x, g, k, s, p):
-  n, ho, wo, o = g.shape
-  c = x.shape[3]
-  xt = jnp.pad(jnp.transpose(x, (3, 0, 1, 2)), ((0, 0), (0, 0), (p, p), (p, p)))  # (C, N, Hp, Wp)
-  taps = jnp.stack(conv_vjp._tap_planes(xt, (2, 3), (k, k), (s, s), (1, 1), (ho, wo)))
-  dk = lax.dot_general(taps.reshape(k * k * c, n * ho * wo), g.reshape(n * ho * wo, o),
-                       (((1,), (0,)), ((), ())))
-  return dk.reshape(k, k, c, o)
+  return conv_vjp.kernel_grad_patches(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
 
 
 def _per_image_form(x, g, k, s, p):
@@ -89,7 +82,7 @@ def time_jax(form, x, g, k, s, p, loops: int, reps: int) -> tuple[float, np.ndar
     return lax.fori_loop(0, loops, body, jnp.zeros((k, k, x.shape[3], g.shape[3]), x.dtype))
   compiled = jax.jit(run).lower(x, g).compile()
   value = np.asarray(compiled(x, g))
-  best = min(bc.median_time(lambda: compiled(x, g).block_until_ready(), reps))
+  best = bc.median_time(lambda: compiled(x, g).block_until_ready(), reps)[1]
   return 1e3 * best / loops, value / loops
 
 
@@ -137,7 +130,8 @@ def main(argv=None) -> None:
         assert err < 1e-4, (name, form, err)
       ms["torch"] = time_torch(x, g, k, s, p, args.reps)
       bc.emit({"layer": name, "batch": n, "x": [n, h, w, c], "out_features": o, "kernel": k,
-               "stride": s, "threads": args.threads, "gflop": round(2 * k * k * c * o * n * ho * wo / 1e9, 3),
+               "stride": s, "threads": args.threads,
+               "gflop": round(2 * k * k * c * o * n * ho * wo / 1e9, 3),
                "best_ms": {f: round(v, 1) for f, v in ms.items()}, "load": bc.load()})
 
 

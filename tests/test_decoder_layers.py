@@ -5,9 +5,10 @@
 - `reflect_conv3x3` (padded conv with the ring sliced off, or VALID) equals the VALID conv of
   the reflection-padded map, bit for bit, on both sides of the `padded_conv_is_cheap` rule;
 - `upsample_reflect_conv3x3` (four 2x2 phase convs at low resolution, or the direct form below
-  `phase_form_pays`' threshold) and `UpConv3x3` equal the composition upstream writes (nearest 2x upsampling with `np.repeat`, concatenation,
-  reflection padding, VALID 3x3 conv, bias), value and input gradients, within float32
-  rounding, on even, odd and 1-pixel maps; `UpConv3x3` has `nn.Conv`'s parameter tree.
+  `phase_form_pays`' threshold) and `UpConv3x3` equal the composition upstream writes (nearest
+  2x upsampling with `np.repeat`, concatenation, reflection padding, VALID 3x3 conv, bias),
+  value and input gradients, within float32 rounding, on even, odd and 1-pixel maps;
+  `UpConv3x3` has `nn.Conv`'s parameter tree.
 """
 
 from __future__ import annotations

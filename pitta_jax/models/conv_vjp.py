@@ -161,17 +161,34 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   which XLA:CPU ran at 2-20 GFLOP/s. Measured inside a loop on 2 vCPUs (Intel, AVX-512),
   convolution vs patches, ms: 3 -> 64 features at 640x192, batch 1 26 vs 20, batch 4 219 vs
   85, batch 8 229 vs 241; 6 -> 64 batch 1 52 vs 36, batch 4 425 vs 156, batch 8 420 vs 327
-  (PyTorch's oneDNN kernel gradient of the same: 5, 19, 55; 20, 84, 174). Same sums, in another order (float rounding).
+  (PyTorch's oneDNN kernel gradient of the same: 5, 19, 55; 20, 84, 174). Same sums, in
+  another order (float rounding).
   """
+  n, o, c = g.shape[0], g.shape[3], x.shape[3]
+  if c > PATCHES_MAX_INPUT_FEATURES and (n < PATCHES_MIN_BATCH or
+                                         min(c, o) < PATCHES_MIN_FEATURES):
+    return kernel_grad_conv(x, g, kernel_size, strides, padding, rhs_dilation, precision)
+  return kernel_grad_patches(x, g, kernel_size, strides, padding, rhs_dilation, precision)
+
+
+def kernel_grad_conv(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
+                     strides: tuple[int, int], padding: Pairs, rhs_dilation: tuple[int, int],
+                     precision: Any = None) -> jax.Array:
+  """`_kernel_grad` as a convolution of x (C, H, W, N) with g as an HWIO kernel (Ho, Wo, N, O)."""
+  kh, kw = kernel_size
+  dk = lax.conv_general_dilated(jnp.transpose(x, (3, 1, 2, 0)), jnp.transpose(g, (1, 2, 0, 3)),
+                                rhs_dilation, padding, None, strides, NHWC_HWIO,
+                                precision=precision)                  # (C, >= kh, >= kw, O)
+  return jnp.transpose(dk[:, :kh, :kw], (1, 2, 0, 3))
+
+
+def kernel_grad_patches(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
+                        strides: tuple[int, int], padding: Pairs, rhs_dilation: tuple[int, int],
+                        precision: Any = None) -> jax.Array:
+  """`_kernel_grad` as one product of x's patches: (kh kw C, N Ho Wo) @ (N Ho Wo, O)."""
   kh, kw = kernel_size
   n, ho, wo, o = g.shape
   c = x.shape[3]
-  if c > PATCHES_MAX_INPUT_FEATURES and (n < PATCHES_MIN_BATCH or
-                                         min(c, o) < PATCHES_MIN_FEATURES):
-    dk = lax.conv_general_dilated(jnp.transpose(x, (3, 1, 2, 0)), jnp.transpose(g, (1, 2, 0, 3)),
-                                  rhs_dilation, padding, None, strides, NHWC_HWIO,
-                                  precision=precision)                # (C, >= kh, >= kw, O)
-    return jnp.transpose(dk[:, :kh, :kw], (1, 2, 0, 3))
   xt = lax.pad(jnp.transpose(x, (3, 0, 1, 2)), jnp.zeros((), x.dtype),
                ((0, 0, 0), (0, 0, 0), *((lo, hi, 0) for lo, hi in padding)))  # (C, N, Hp, Wp)
   patches = jnp.stack(_tap_planes(xt, (2, 3), kernel_size, strides, rhs_dilation,
