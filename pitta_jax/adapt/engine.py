@@ -143,7 +143,12 @@ def all_finite(tree: Tree) -> jax.Array:
   Leaves of one shape and dtype are summed elementwise as 0-or-NaN flags before one reduction
   per shape: a reduction per leaf is a separate XLA kernel, and the guard of an Adam step on
   MonoDepth2's 88 parameter leaves (gradients, parameters, both moments) compiled 831 of them
-  (6.3 s; grouped: 4 s). The predicate is sqrt of the total so that XLA computes it once: an
+  (6.3 s; grouped: 4 s). A leaf's flag is `x * 0` (0 where x is finite, NaN where it is
+  infinite or NaN; no sum of flags can overflow): XLA:CPU fuses the product into the
+  reduction, where `where(isfinite(x), 0, nan)` was one more full-size kernel per leaf. That
+  guard on MonoDepth2's parameters: 666 -> 550 kernels, 300 -> 110-129 ms per step alone (one
+  vCPU); Ada-Depth's step at 640x192: 3625 -> 3469 kernels, compile 82.5 -> 78.7 s, 2314 ->
+  2284 ms/frame best of 5 interleaved on a busy host. The predicate is sqrt of the total so that XLA computes it once: an
   `and` of per-leaf flags is a chain of cheap scalar ops that XLA's fusion copies into every
   consumer, i.e. into each guarded leaf's select (with hundreds of leaves, minutes of compile
   time and a 100 MB program); sqrt is an op it does not duplicate.
@@ -151,8 +156,7 @@ def all_finite(tree: Tree) -> jax.Array:
   groups = _same_shape_groups(tree)
   if not groups:
     return jnp.array(True)
-  nan_if_any = sum(jnp.sum(sum(jnp.where(jnp.isfinite(x), 0.0, jnp.nan) for x in group))
-                   for group in groups)
+  nan_if_any = sum(jnp.sum(sum(x * 0 for x in group)) for group in groups)
   return jnp.isfinite(jnp.sqrt(nan_if_any))
 
 
