@@ -161,12 +161,22 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   which XLA:CPU ran at 2-20 GFLOP/s. Measured inside a loop on 2 vCPUs (Intel, AVX-512),
   convolution vs patches, ms: 3 -> 64 features at 640x192, batch 1 26 vs 20, batch 4 219 vs
   85, batch 8 229 vs 241; 6 -> 64 batch 1 52 vs 36, batch 4 425 vs 156, batch 8 420 vs 327
-  (PyTorch's oneDNN kernel gradient of the same: 5, 19, 55; 20, 84, 174). Same sums, in
-  another order (float rounding).
+  (PyTorch's oneDNN kernel gradient of the same: 5, 19, 55; 20, 84, 174). A batch of at least
+  `PATCHES_MIN_BATCH` images whose input has at least `PATCHES_MIN_FEATURES` features and whose
+  output has fewer (the decoder's wide, shallow layers: `upconv_1_1`, 96 -> 32 at 322x98) is one
+  convolution per image, summed: as one convolution its batch of 4 is the "features" of a
+  4 -> 32 convolution, 729 ms inside a loop at batch 4, per image 321 ms (PyTorch 91;
+  `benchmarks/kernel_grad.py`); CoMoDa's step at 640x192 (batch 4),
+  interleaved in one process (two runs, 4 and 6 rounds): wall best 5222 -> 5055 and 4891 -> 4643
+  ms/frame, median 5409 -> 5235 and 4956 -> 4854, CPU best 9670 -> 9577 and 9160 -> 8784.
+  Same sums, in another order (float rounding).
   """
   n, o, c = g.shape[0], g.shape[3], x.shape[3]
   if c > PATCHES_MAX_INPUT_FEATURES and (n < PATCHES_MIN_BATCH or
                                          min(c, o) < PATCHES_MIN_FEATURES):
+    if n >= PATCHES_MIN_BATCH and c >= PATCHES_MIN_FEATURES > o:
+      return sum(kernel_grad_conv(x[i:i + 1], g[i:i + 1], kernel_size, strides, padding,
+                                  rhs_dilation, precision) for i in range(n))
     return kernel_grad_conv(x, g, kernel_size, strides, padding, rhs_dilation, precision)
   return kernel_grad_patches(x, g, kernel_size, strides, padding, rhs_dilation, precision)
 
