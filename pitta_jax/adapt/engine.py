@@ -148,10 +148,10 @@ def all_finite(tree: Tree) -> jax.Array:
   reduction, where `where(isfinite(x), 0, nan)` was one more full-size kernel per leaf. That
   guard on MonoDepth2's parameters: 666 -> 550 kernels, 300 -> 110-129 ms per step alone (one
   vCPU); Ada-Depth's step at 640x192: 3625 -> 3469 kernels, compile 82.5 -> 78.7 s, 2314 ->
-  2284 ms/frame best of 5 interleaved on a busy host. The predicate is sqrt of the total so that XLA computes it once: an
-  `and` of per-leaf flags is a chain of cheap scalar ops that XLA's fusion copies into every
-  consumer, i.e. into each guarded leaf's select (with hundreds of leaves, minutes of compile
-  time and a 100 MB program); sqrt is an op it does not duplicate.
+  2284 ms/frame best of 5 interleaved on a busy host. The predicate is sqrt of the total so
+  that XLA computes it once: an `and` of per-leaf flags is a chain of cheap scalar ops that
+  XLA's fusion copies into every consumer, i.e. into each guarded leaf's select (with hundreds
+  of leaves, minutes of compile time and a 100 MB program); sqrt is an op it does not duplicate.
   """
   groups = _same_shape_groups(tree)
   if not groups:

@@ -172,13 +172,13 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   Same sums, in another order (float rounding).
   """
   n, o, c = g.shape[0], g.shape[3], x.shape[3]
-  if c > PATCHES_MAX_INPUT_FEATURES and (n < PATCHES_MIN_BATCH or
-                                         min(c, o) < PATCHES_MIN_FEATURES):
-    if n >= PATCHES_MIN_BATCH and c >= PATCHES_MIN_FEATURES > o:
-      return sum(kernel_grad_conv(x[i:i + 1], g[i:i + 1], kernel_size, strides, padding,
-                                  rhs_dilation, precision) for i in range(n))
-    return kernel_grad_conv(x, g, kernel_size, strides, padding, rhs_dilation, precision)
-  return kernel_grad_patches(x, g, kernel_size, strides, padding, rhs_dilation, precision)
+  args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
+  batched = n >= PATCHES_MIN_BATCH
+  if c <= PATCHES_MAX_INPUT_FEATURES or (batched and min(c, o) >= PATCHES_MIN_FEATURES):
+    return kernel_grad_patches(*args)
+  if batched and c >= PATCHES_MIN_FEATURES > o:
+    return kernel_grad_per_image(*args)
+  return kernel_grad_conv(*args)
 
 
 def kernel_grad_conv(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
@@ -190,6 +190,14 @@ def kernel_grad_conv(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
                                 rhs_dilation, padding, None, strides, NHWC_HWIO,
                                 precision=precision)                  # (C, >= kh, >= kw, O)
   return jnp.transpose(dk[:, :kh, :kw], (1, 2, 0, 3))
+
+
+def kernel_grad_per_image(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
+                          strides: tuple[int, int], padding: Pairs,
+                          rhs_dilation: tuple[int, int], precision: Any = None) -> jax.Array:
+  """`_kernel_grad` as the sum over the batch of `kernel_grad_conv` of one image each."""
+  return sum(kernel_grad_conv(x[i:i + 1], g[i:i + 1], kernel_size, strides, padding,
+                              rhs_dilation, precision) for i in range(x.shape[0]))
 
 
 def kernel_grad_patches(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
