@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pitta_jax import prng
 from pitta_jax.configs import check, finite, option
 from pitta_jax.models.depth_decoder import MAX_DEPTH, MIN_DEPTH, disp_to_depth
 from pitta_jax.models.interpolate import resize_bilinear
@@ -249,7 +250,7 @@ def monodepth2_loss(target: Array, sources: Array, disps: Sequence[Array], K: Ar
   check(len(disps) == n_scales, f"need one disparity per scale {cfg.scales}, got {len(disps)}")
   if cfg.automask and noise is None:
     check(rng is not None, "monodepth2_loss with automask needs rng or noise")
-    noise = jax.random.normal(rng, (n_scales, b, n, h, w), target.dtype)
+    noise = jax.random.normal(prng.unrolled(rng), (n_scales, b, n, h, w), target.dtype)
 
   # All scales and sources go through one batched backprojection, warp and reprojection loss
   # (the same arithmetic as upstream's loops, a fraction of the program to compile).

@@ -61,6 +61,7 @@ import numpy as np
 import optax
 from flax import struct
 
+from pitta_jax import prng
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, finite, option
 from pitta_jax.flat_optim import flat, flat_step
@@ -188,7 +189,7 @@ def step_draws(rng: jax.Array, n_replay_set: int, config: ComodaConfig, height: 
   else:
     idx = jnp.zeros((0,), jnp.int32)
   shape = (1, 1 + n, len(config.offsets), height, width)
-  noise = jax.random.normal(k_noise, shape, dtype)
+  noise = jax.random.normal(prng.unrolled(k_noise), shape, dtype)  # = jax.random's, faster
   return idx.astype(jnp.int32), jnp.broadcast_to(noise, (len(config.sfm.scales),) + shape[1:])
 
 
