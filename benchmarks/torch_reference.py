@@ -250,6 +250,7 @@ class TorchCotta:
     self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr)
     self.cfg = config
     self.rng = np.random.default_rng(seed)
+    self.noise_rng = torch.Generator().manual_seed(seed)
 
   @staticmethod
   def disp(model, x):
@@ -257,7 +258,7 @@ class TorchCotta:
 
   def views(self, x: torch.Tensor) -> tuple[torch.Tensor, list[bool]]:
     """N augmented views (upstream: one transform call per view), (N, 3, H, W), and which of
-    them are flipped."""
+    them are flipped. The noise is upstream's `GaussianNoise`: `torch.randn`, float32."""
     from torch_tta import t_augment
     c = self.cfg
     h, w = x.shape[-2:]
@@ -268,7 +269,7 @@ class TorchCotta:
       flips.append(bool(self.rng.random() < c.flip_p))
       out.append(t_augment(x, self.rng.permutation(4), factors,
                            self.rng.uniform(c.blur_sigma_min, c.blur_sigma_max), flips[-1],
-                           c.noise_std * self.rng.standard_normal((h, w, 3))))
+                           c.noise_std * torch.randn((1, 3, h, w), generator=self.noise_rng)))
     return torch.cat(out).float(), flips
 
   def step(self, image, panoptic, segments) -> tuple[torch.Tensor, float]:

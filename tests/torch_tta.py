@@ -142,7 +142,8 @@ class ActMAD:
 
 def t_augment(img: torch.Tensor, order, factors, sigma, flip, noise) -> torch.Tensor:
   """One view of img (1, 3, H, W): clip, jitter in `order` (0 brightness, 1 contrast,
-  2 saturation, 3 gamma), blur, flip, noise (H, W, 3), clip."""
+  2 saturation, 3 gamma), blur, flip, noise, clip. noise: a (1, 3, H, W) tensor (upstream's
+  `torch.randn` draw) or an (H, W, 3) array (the JAX run's draws, added in float64)."""
   x = img.clamp(0.0, 1.0)
   gray = lambda t: (0.2989 * t[:, 0] + 0.587 * t[:, 1] + 0.114 * t[:, 2]).unsqueeze(1)
   for j in order:
@@ -162,7 +163,9 @@ def t_augment(img: torch.Tensor, order, factors, sigma, flip, noise) -> torch.Te
   x = F.conv2d(F.pad(x, (2, 2, 2, 2), mode="reflect"), kernel, groups=3)
   if flip:
     x = x.flip(-1)
-  return (x + torch.from_numpy(np.array(noise, np.float64)).permute(2, 0, 1)[None]).clamp(0, 1)
+  if not isinstance(noise, torch.Tensor):
+    noise = torch.from_numpy(np.array(noise, np.float64)).permute(2, 0, 1)[None]
+  return (x + noise).clamp(0, 1)
 
 
 class CoTTA:
