@@ -37,9 +37,8 @@ SAMPLERS = {
 
 
 @pytest.mark.parametrize("name", sorted(SAMPLERS))
-@pytest.mark.parametrize("seed", [0, 12345])
-def test_same_draws_as_jax_random(name, seed):
-  draw = SAMPLERS[name]
+def test_same_draws_as_jax_random(name):
+  draw, seed = SAMPLERS[name], 1000 * sorted(SAMPLERS).index(name)
   with jax.enable_x64(True):  # float64 and uint64 as asked
     _check_same_draws(draw, seed)
 
