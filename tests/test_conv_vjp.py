@@ -76,6 +76,28 @@ def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding,
     assert err < 1e-6, name
 
 
+@pytest.mark.parametrize("strides,padding", [((1, 1), ((1, 1), (1, 1))),
+                                            ((2, 2), ((1, 1), (1, 1)))])
+def test_few_pixels_many_features_take_patches_and_match_jax_rule(strides, padding):
+  """A 3x3 convolution of FEW_PIXELS_MIN_FEATURES features with at most FEW_PIXELS_MAX_OUTPUT
+  output pixels (ResNet's last stage at 640x192: 6x20) is a product of patches, with JAX's
+  values and gradients to float32 rounding."""
+  c = conv_vjp.FEW_PIXELS_MIN_FEATURES
+  size = (6, 20) if strides == (1, 1) else (12, 40)
+  assert size[0] * size[1] // (strides[0] * strides[1]) <= conv_vjp.FEW_PIXELS_MAX_OUTPUT
+  rng = np.random.default_rng(3)
+  x = rng.standard_normal((1, *size, c), np.float32)
+  k = rng.standard_normal((3, 3, c, c), np.float32) / 48.0
+  forward = jax.jit(lambda x, k: conv_vjp.conv_general_dilated(
+      x, k, strides, padding, dimension_numbers=NHWC)).lower(x, k).as_text()
+  assert "convolution" not in forward and "dot_general" in forward
+  ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding))(x, k)
+  for name, a, b in zip(("value", "input grad", "kernel grad"), ref, got):
+    a, b = np.asarray(a), np.asarray(b)
+    err = float(np.max(np.abs(a - b)) / np.max(np.abs(a)))
+    assert err < 1e-6, (name, err)
+
+
 def test_float64_growing_convolutions_match_jax_rule():
   """float64 convolutions whose output is larger than the input (padding past the kernel's
   half width: the input gradient of an unpadded convolution) take the product of patches;

@@ -23,7 +23,8 @@ matrix product and a sum of shifted planes (`_single_output_conv`): XLA:CPU's co
 library does not take it, and its generic loop nest was 2.6x slower. A convolution (forward or
 input gradient) whose input is smaller than the kernel, and in float64 one whose output is
 larger than its input, is one matrix product of the input's patches (`_small_input_conv`):
-XLA:CPU runs both through slow generic code.
+XLA:CPU runs both through slow generic code. So is one with few output pixels and many
+features (ResNet's last stage), where the product is ~25% faster than XLA's convolution.
 """
 
 from __future__ import annotations
@@ -110,17 +111,32 @@ def _small_input_conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padd
                          precision=precision)                                   # (N, Ho, Wo, O)
 
 
+# a convolution (forward or input gradient) with at most this many output pixels, all images
+# together, and at least this many features on both sides is a product of patches (`_conv`)
+FEW_PIXELS_MAX_OUTPUT = 128
+FEW_PIXELS_MIN_FEATURES = 256
+
+
 def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
           rhs_dilation: tuple[int, int], precision: Any,
           lhs_dilation: tuple[int, int] = (1, 1)) -> jax.Array:
   """The forward convolution (and the input gradient's, with `lhs_dilation`), by the fastest of
-  XLA's convolution, a product of patches for inputs smaller than the kernel, and the
-  single-output form."""
+  XLA's convolution, a product of patches, and the single-output form.
+
+  A product of patches (`_small_input_conv`) for inputs smaller than the kernel, in float64 for
+  outputs larger than the input, and for a kh x kw > 1 convolution with few output pixels and
+  many features (`FEW_PIXELS_*`: ResNet's last stage and the decoder's first layer at 640x192,
+  6x20 pixels, 256-512 features), where XLA:CPU's convolution runs at ~70 GFLOP/s: a 3x3 512 ->
+  512 convolution of a 6x20 map 8.0 ms, its patches product 5.9-6.2 ms (PyTorch's oneDNN
+  7.4-7.6 ms; 2 vCPUs); the 12x40 maps of the stage before are faster as a convolution."""
   sizes = [_dilated_size(n, d) for n, d in zip(x.shape[1:3], lhs_dilation)]
   extents = [_dilated_size(kn, d) for kn, d in zip(k.shape[:2], rhs_dilation)]
-  grows = any((n + lo + hi - e) // s + 1 > n
-              for n, (lo, hi), e, s in zip(sizes, padding, extents, strides))
-  if any(n < e for n, e in zip(sizes, extents)) or (grows and x.dtype == jnp.float64):
+  out = [(n + lo + hi - e) // s + 1 for n, (lo, hi), e, s in zip(sizes, padding, extents, strides)]
+  grows = any(m > n for m, n in zip(out, sizes))
+  few_pixels = (x.shape[0] * out[0] * out[1] <= FEW_PIXELS_MAX_OUTPUT and
+                k.shape[0] * k.shape[1] > 1 and min(k.shape[2:]) >= FEW_PIXELS_MIN_FEATURES)
+  if any(n < e for n, e in zip(sizes, extents)) or (grows and x.dtype == jnp.float64) or \
+      few_pixels:
     return _small_input_conv(x, k, strides, padding, lhs_dilation, rhs_dilation, precision)
   fits = all(n + lo + hi >= e for n, (lo, hi), e in zip(sizes, padding, extents))
   small_taps = k.shape[0] * k.shape[1] <= k.shape[2]  # tap planes no larger than the input
