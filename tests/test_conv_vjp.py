@@ -81,7 +81,7 @@ def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding,
 def test_few_pixels_many_features_take_patches_and_match_jax_rule(strides, padding):
   """A 3x3 convolution of FEW_PIXELS_MIN_FEATURES features with at most FEW_PIXELS_MAX_OUTPUT
   output pixels (ResNet's last stage at 640x192: 6x20) is a product of patches, with JAX's
-  values and gradients to float32 rounding."""
+  values and gradients to float32 rounding; in float64 it stays a convolution."""
   c = conv_vjp.FEW_PIXELS_MIN_FEATURES
   size = (6, 20) if strides == (1, 1) else (12, 40)
   assert size[0] * size[1] // (strides[0] * strides[1]) <= conv_vjp.FEW_PIXELS_MAX_OUTPUT
@@ -91,6 +91,11 @@ def test_few_pixels_many_features_take_patches_and_match_jax_rule(strides, paddi
   forward = jax.jit(lambda x, k: conv_vjp.conv_general_dilated(
       x, k, strides, padding, dimension_numbers=NHWC)).lower(x, k).as_text()
   assert "convolution" not in forward and "dot_general" in forward
+  with jax.enable_x64(True):
+    forward64 = jax.jit(lambda x, k: conv_vjp.conv_general_dilated(
+        x, k, strides, padding, dimension_numbers=NHWC)).lower(
+            x.astype(np.float64), k.astype(np.float64)).as_text()
+  assert "convolution" in forward64
   ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding))(x, k)
   for name, a, b in zip(("value", "input grad", "kernel grad"), ref, got):
     a, b = np.asarray(a), np.asarray(b)

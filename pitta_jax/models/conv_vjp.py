@@ -128,13 +128,15 @@ def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
   many features (`FEW_PIXELS_*`: ResNet's last stage and the decoder's first layer at 640x192,
   6x20 pixels, 256-512 features), where XLA:CPU's convolution runs at ~70 GFLOP/s: a 3x3 512 ->
   512 convolution of a 6x20 map 8.0 ms, its patches product 5.9-6.2 ms (PyTorch's oneDNN
-  7.4-7.6 ms; 2 vCPUs); the 12x40 maps of the stage before are faster as a convolution."""
+  7.4-7.6 ms; 2 vCPUs); the 12x40 maps of the stage before are faster as a convolution. That
+  is float32 (XLA:CPU's YNNPACK path); float64 convolutions keep XLA's, whose program compiles
+  faster (Ada-Depth's float64 parity step: 95 s with it, 105 s with the patches)."""
   sizes = [_dilated_size(n, d) for n, d in zip(x.shape[1:3], lhs_dilation)]
   extents = [_dilated_size(kn, d) for kn, d in zip(k.shape[:2], rhs_dilation)]
   out = [(n + lo + hi - e) // s + 1 for n, (lo, hi), e, s in zip(sizes, padding, extents, strides)]
   grows = any(m > n for m, n in zip(out, sizes))
-  few_pixels = (x.shape[0] * out[0] * out[1] <= FEW_PIXELS_MAX_OUTPUT and
-                k.shape[0] * k.shape[1] > 1 and min(k.shape[2:]) >= FEW_PIXELS_MIN_FEATURES)
+  few_pixels = (x.dtype == jnp.float32 and x.shape[0] * out[0] * out[1] <= FEW_PIXELS_MAX_OUTPUT
+                and k.shape[0] * k.shape[1] > 1 and min(k.shape[2:]) >= FEW_PIXELS_MIN_FEATURES)
   if any(n < e for n, e in zip(sizes, extents)) or (grows and x.dtype == jnp.float64) or \
       few_pixels:
     return _small_input_conv(x, k, strides, padding, lhs_dilation, rhs_dilation, precision)
