@@ -54,9 +54,10 @@ def _random_bits(key: jax.Array, bit_width: int, shape: tuple[int, ...]) -> jax.
   """JAX's partitionable threefry bits: element i (row-major) hashes the counter pair
   (i // 2**32, i % 2**32); 32-bit draws are the two output words xor-ed, 64-bit draws the two
   words side by side, narrower ones the xor truncated. key: (2,) uint32."""
-  if math.prod(shape) >= 2 ** 32:  # counters with a high word: JAX's own lowering
+  size = math.prod(shape)
+  if size >= 2 ** 32:  # counters with a high word: JAX's own lowering
     return _THREEFRY.random_bits(key, bit_width, shape)
-  counters = jax.lax.iota(np.uint32, math.prod(shape)).reshape(shape)
+  counters = jax.lax.iota(np.uint32, size).reshape(shape)
   hi, lo = threefry2x32(key[0], key[1], jnp.zeros_like(counters), counters)
   if bit_width == 64:
     return (hi.astype(np.uint64) << np.uint64(32)) | lo.astype(np.uint64)

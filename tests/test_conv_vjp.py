@@ -88,14 +88,13 @@ def test_few_pixels_many_features_take_patches_and_match_jax_rule(strides, paddi
   rng = np.random.default_rng(3)
   x = rng.standard_normal((1, *size, c), np.float32)
   k = rng.standard_normal((3, 3, c, c), np.float32) / 48.0
-  forward = jax.jit(lambda x, k: conv_vjp.conv_general_dilated(
-      x, k, strides, padding, dimension_numbers=NHWC)).lower(x, k).as_text()
-  assert "convolution" not in forward and "dot_general" in forward
+  def forward(x, k) -> str:  # the lowered forward program
+    return jax.jit(lambda x, k: conv_vjp.conv_general_dilated(
+        x, k, strides, padding, dimension_numbers=NHWC)).lower(x, k).as_text()
+  text = forward(x, k)
+  assert "convolution" not in text and "dot_general" in text
   with jax.enable_x64(True):
-    forward64 = jax.jit(lambda x, k: conv_vjp.conv_general_dilated(
-        x, k, strides, padding, dimension_numbers=NHWC)).lower(
-            x.astype(np.float64), k.astype(np.float64)).as_text()
-  assert "convolution" in forward64
+    assert "convolution" in forward(x.astype(np.float64), k.astype(np.float64))
   ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding))(x, k)
   for name, a, b in zip(("value", "input grad", "kernel grad"), ref, got):
     a, b = np.asarray(a), np.asarray(b)
