@@ -36,6 +36,7 @@ backward, loss with its gradient w.r.t. the depth only, whole step) in both fram
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -53,6 +54,7 @@ import torch_reference as tr  # noqa: E402
 from pitta_jax import trainable as trainable_lib  # noqa: E402
 from pitta_jax.adapt import (AdaptConfig, StepInput, init_state, make_chunk_runner,  # noqa: E402
                              make_optimizer, make_step)
+from pitta_jax.adapt.xla_cpu import CONV_LIBRARIES, step_compiler_options  # noqa: E402
 from pitta_jax.methods import METHODS, build  # noqa: E402
 from pitta_jax.methods.actmad import RESOURCE as ACTMAD_STATS  # noqa: E402
 from pitta_jax.methods.depth_refining import frame_loss  # noqa: E402
@@ -68,11 +70,16 @@ DEFAULT_REPS = {"cotta": 3, "comoda": 3, "adadepth": 3}
 class JaxImpl:
   """The engine's compiled chunk runner for one method and config; state carried over chunks."""
 
-  def __init__(self, name: str, variables, configs, resources, conv_rule: str = "loop_friendly"):
+  def __init__(self, name: str, variables, configs, resources, conv_rule: str = "loop_friendly",
+               conv_library: str | None = None):
     self.cfg, mcfg = configs
+    if conv_library is not None:
+      self.cfg = dataclasses.replace(self.cfg, conv_library=conv_library)
     self.model, self.method = bc.depth_network(conv_rule), build(name, mcfg)
     self.tx = make_optimizer(self.cfg, self.method)
-    self.runner = make_chunk_runner(make_step(self.model, self.method, self.cfg, self.tx))
+    self.compiler_options = step_compiler_options(self.cfg, self.method)
+    self.runner = make_chunk_runner(make_step(self.model, self.method, self.cfg, self.tx),
+                                    self.compiler_options)
     self.state, self.consts = init_state(variables, self.method, self.cfg, self.tx, self.model,
                                          resources)
     self.compiled = None
@@ -178,7 +185,7 @@ def run_config(method: str, n: int, impls_wanted: list[str], variables, args, co
   impls, losses, compile_s = {}, {}, {}
   for impl in impls_wanted:
     if impl == "jax":
-      obj = JaxImpl(method, variables, configs, resources)
+      obj = JaxImpl(method, variables, configs, resources, conv_library=args.conv_library)
       losses[impl] = obj.first(jax_chunk)
     else:
       obj = torch_impl(impl, method, configs, resources, (args.height, args.width))
@@ -191,7 +198,10 @@ def run_config(method: str, n: int, impls_wanted: list[str], variables, args, co
   load_start = bc.load()
   results = time_interleaved(impls, jax_chunk, frames, args.reps)
   for impl, r in results.items():
-    bc.emit({"impl": impl, "method": method, **common, "instances": n, **r,
+    extra = ({"conv_library": impls[impl].cfg.conv_library,
+              "eigen_convolutions": impls[impl].compiler_options is not None}
+             if impl == "jax" else {})
+    bc.emit({"impl": impl, "method": method, **common, "instances": n, **r, **extra,
              "compile_s": compile_s[impl], "load": load_start})
   torch_names = [i for i in results if i != "jax"]
   if "jax" in results and torch_names:
@@ -298,25 +308,31 @@ def torch_profile(frame: bc.BenchFrame, window: int, reps: int) -> dict:
   return out
 
 
-def compare_conv_rule(variables, args, common) -> None:
-  """The PITTA step with JAX's own conv input-gradient rule vs `models.conv_vjp`'s, interleaved."""
-  frames = bc.synthetic_frames(args.frames, args.height, args.width, args.instances, seed=1)
-  configs = bc.method_configs("pitta", args.instances, args.window, args.frames)
-  chunk = bc.step_inputs(frames, configs[0].max_segments)
-  impls = {}
-  for rule in bc.CONV_RULES:
-    impls[rule] = JaxImpl("pitta", variables, configs, {}, conv_rule=rule)
-    impls[rule].first(chunk)
-  times = {rule: [] for rule in bc.CONV_RULES}
-  for _ in range(args.reps):
-    for rule in bc.CONV_RULES:
+def compare_jax(method: str, variants: dict[str, dict], what: str, variables, args,
+                common) -> None:
+  """The method's JAX step in several variants (`JaxImpl` keyword arguments), interleaved."""
+  _, configs, resources, chunk = method_inputs(method, args.instances, variables, args)
+  impls, losses, compile_s = {}, {}, {}
+  for name, kwargs in variants.items():
+    impls[name] = JaxImpl(method, variables, configs, resources, **kwargs)
+    losses[name] = np.asarray(impls[name].first(chunk))
+    compile_s[name] = round(impls[name].compile_s, 2)
+  load = bc.load()
+  times = {name: [] for name in variants}
+  for r in range(args.reps):
+    for name in list(variants)[r % len(variants):] + list(variants)[:r % len(variants)]:
       t0 = time.perf_counter()
-      impls[rule].chunk(chunk)
-      times[rule].append(1e3 * (time.perf_counter() - t0) / args.frames)
-  med = {rule: float(np.median(t)) for rule, t in times.items()}
-  bc.emit({"check": "conv input-gradient rule", **common, "instances": args.instances,
-           "ms_per_frame": med, "ratio_jax_rule_vs_loop_friendly": med["jax"] / med["loop_friendly"],
-           "load": bc.load()})
+      impls[name].chunk(chunk)
+      times[name].append(1e3 * (time.perf_counter() - t0) / len(chunk.valid))
+  med = {name: float(np.median(t)) for name, t in times.items()}
+  first, *rest = variants
+  bc.emit({"check": what, "method": method, **common, "instances": args.instances,
+           "ms_per_frame": med, "min_ms_per_frame": {n: float(np.min(t)) for n, t in times.items()},
+           **{f"ratio_{n}_vs_{first}": med[n] / med[first] for n in rest},
+           "compile_s": compile_s,
+           "max_rel_loss_diff": {n: float(np.max(np.abs(losses[n] - losses[first])
+                                                 / np.abs(losses[first]))) for n in rest},
+           "load": load, "load_end": bc.load()})
 
 
 def compile_parts(method: str, n: int, variables, args, common) -> None:
@@ -364,6 +380,15 @@ def main(argv=None) -> None:
   p.add_argument("--compare-conv-rule", action="store_true",
                  help="also time the PITTA step with JAX's own convolution input-gradient rule "
                       "(what pitta_jax.models.conv_vjp replaces) and print the ratio")
+  p.add_argument("--conv-library", choices=CONV_LIBRARIES, default=None,
+                 help="XLA:CPU's convolution library for the JAX step (AdaptConfig.conv_library; "
+                      "default: the method setting's, auto)")
+  p.add_argument("--compare-conv-library", action="store_true",
+                 help="also time the method's JAX step with XLA's default convolution library "
+                      "and with Eigen's, interleaved, and print the ratio")
+  p.add_argument("--compare-only", action="store_true",
+                 help="with --compare-conv-rule/--compare-conv-library: skip the JAX vs PyTorch "
+                      "timing")
   args = p.parse_args(argv)
   if args.frames is None:
     args.frames = DEFAULT_FRAMES.get(args.method, 8)
@@ -390,12 +415,17 @@ def main(argv=None) -> None:
     compile_parts(args.method, sweep[0], variables, args, common)
     return
   bc.emit({"start": "step", "method": args.method, "impls": impls, "load": bc.load()})
-  results = {n: run_config(args.method, n, impls, variables, args, common) for n in sweep}
-  if len(sweep) > 1:
+  results = {} if args.compare_only else {
+      n: run_config(args.method, n, impls, variables, args, common) for n in sweep}
+  if len(results) > 1:
     bc.emit({"sweep_instances": sweep, **{f"{impl}_ms_per_frame": [
         results[n][impl]["ms_per_frame"] for n in sweep] for impl in results[sweep[0]]}})
-  if args.compare_conv_rule:
-    compare_conv_rule(variables, args, common)
+  if args.compare_conv_rule:  # JAX's own conv input-gradient rule vs `models.conv_vjp`'s
+    compare_jax("pitta", {rule: {"conv_rule": rule} for rule in bc.CONV_RULES},
+                "conv input-gradient rule", variables, args, common)
+  if args.compare_conv_library:
+    compare_jax(args.method, {lib: {"conv_library": lib} for lib in ("default", "eigen")},
+                "XLA:CPU convolution library", variables, args, common)
   if args.profile and args.method == "pitta":
     n = sweep[0]
     frames = bc.synthetic_frames(1, args.height, args.width, n, seed=1)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from pitta_jax.adapt.xla_cpu import CONV_LIBRARIES
 from pitta_jax.configs import check, finite, option
 from pitta_jax.trainable import parse_selector
 
@@ -33,6 +34,9 @@ class AdaptConfig:
   max_segments: int = option(64, "S_max: panoptic segments per frame kept (padded)")
   chunk_size: int = option(32, "frames per compiled scan; memory is flat in sequence length")
   seed: int = option(0, "PRNG seed of the run (per frame: fold_in(seed, frame index))")
+  conv_library: str = option("auto", "XLA:CPU's library for convolutions: auto (Eigen when no "
+                                     "conv kernel adapts, XLA's default otherwise) | default | "
+                                     "eigen; other backends ignore it")
 
   def __post_init__(self):
     check(self.optimizer in ("adam", "sgd"), f"optimizer must be adam or sgd, got {self.optimizer!r}")
@@ -46,3 +50,5 @@ class AdaptConfig:
     check(self.reset_every >= 0, f"reset_every must be >= 0, got {self.reset_every}")
     check(self.max_segments >= 1, f"max_segments must be >= 1, got {self.max_segments}")
     check(self.chunk_size >= 1, f"chunk_size must be >= 1, got {self.chunk_size}")
+    check(self.conv_library in CONV_LIBRARIES,
+          f"conv_library must be one of {', '.join(CONV_LIBRARIES)}, got {self.conv_library!r}")
