@@ -96,10 +96,14 @@ def test_few_pixels_many_features_take_patches_and_match_jax_rule(strides, paddi
   with jax.enable_x64(True):
     assert "convolution" in forward(x.astype(np.float64), k.astype(np.float64))
   ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding))(x, k)
+  # each value is a float32 sum of 9c products, which the two forms (and XLA:CPU's convolution
+  # libraries) add in different orders: they agree to about eps * sqrt(9c) of the largest value
+  # (8e-6 at c = 512; measured 1.5e-6 with YNNPACK on an AMD Zen 3, < 1e-6 on an Intel Xeon)
+  tol = float(np.finfo(np.float32).eps * np.sqrt(9 * c))
   for name, a, b in zip(("value", "input grad", "kernel grad"), ref, got):
     a, b = np.asarray(a), np.asarray(b)
     err = float(np.max(np.abs(a - b)) / np.max(np.abs(a)))
-    assert err < 1e-6, (name, err)
+    assert err < tol, (name, err, tol)
 
 
 def test_float64_growing_convolutions_match_jax_rule():
