@@ -330,8 +330,10 @@ def compare_jax(method: str, variants: dict[str, dict], what: str, variables, ar
            "ms_per_frame": med, "min_ms_per_frame": {n: float(np.min(t)) for n, t in times.items()},
            **{f"ratio_{n}_vs_{first}": med[n] / med[first] for n in rest},
            "compile_s": compile_s,
-           "max_rel_loss_diff": {n: float(np.max(np.abs(losses[n] - losses[first])
-                                                 / np.abs(losses[first]))) for n in rest},
+           # relative to the largest loss (`none` computes no loss: 0)
+           "max_rel_loss_diff": {n: float(np.max(np.abs(losses[n] - losses[first]))
+                                          / max(np.max(np.abs(losses[first])), 1e-30))
+                                 for n in rest},
            "load": load, "load_end": bc.load()})
 
 

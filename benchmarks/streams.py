@@ -31,6 +31,7 @@ import bench_common as bc  # noqa: E402
 from pitta_jax.adapt import (AdaptConfig, init_state, make_chunk_runner,  # noqa: E402
                              make_optimizer, make_step)
 from pitta_jax.adapt import streams  # noqa: E402
+from pitta_jax.adapt.xla_cpu import step_compiler_options  # noqa: E402
 from pitta_jax.methods import build  # noqa: E402
 from pitta_jax.methods.pitta import PittaConfig  # noqa: E402
 
@@ -56,6 +57,7 @@ def main(argv=None) -> None:
   cfg, pitta = AdaptConfig(chunk_size=args.frames), PittaConfig()
   model, method = bc.depth_network(), build("pitta", pitta)
   tx = make_optimizer(cfg)
+  options = step_compiler_options(cfg, method)  # as `pitta-jax adapt` compiles the step
   variables = bc.jax_variables(seed=0)
   t = args.frames
 
@@ -67,7 +69,7 @@ def main(argv=None) -> None:
     return jax.tree_util.tree_map(jnp.copy, state)
 
   # plain engine, one stream
-  runner = make_chunk_runner(make_step(model, method, cfg, tx))
+  runner = make_chunk_runner(make_step(model, method, cfg, tx), options)
   state, consts = init_state(variables, method, cfg, tx, model)
   first, _, med, _, _ = bc.timed_chunks(runner, state, chunk(0), consts, args.reps)
   base_fps = t / med
@@ -75,7 +77,7 @@ def main(argv=None) -> None:
            "ms_per_frame": 1e3 * med / t, "first_chunk_s": round(first, 1), "load": bc.load()})
 
   # K independent streams
-  multi = make_chunk_runner(streams.make_multi_stream_step(model, method, cfg, tx))
+  multi = make_chunk_runner(streams.make_multi_stream_step(model, method, cfg, tx), options)
   for k in [int(x) for x in args.ks.split(",")]:
     frames = streams.stack_stream_inputs([chunk(100 + i) for i in range(k)])
     states, consts = streams.init_streams(variables, method, cfg, k, tx, model=model)
@@ -87,13 +89,13 @@ def main(argv=None) -> None:
   # Table 4: 12 lambdas, same frames; one call vs one after another
   lams = TABLE4_LAMBDAS
   shared = chunk(7)
-  sweep = make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx, pitta=pitta))
+  sweep = make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx, pitta=pitta), options)
   states, consts = streams.init_lambda_sweep(variables, lams, cfg, tx, pitta=pitta, model=model)
   first, _, med_sweep, _, _ = bc.timed_chunks(sweep, states, shared, consts, args.reps)
   # the sequential reference: the plain engine with PittaConfig(lam=lam), one run per lambda.
   # lambda is a method-state value, so all 12 share one compiled runner (PittaConfig(lam=0.2)'s);
   # each run's state comes from its own method (method_state {"lam": lam})
-  one = make_chunk_runner(make_step(model, method, cfg, tx))
+  one = make_chunk_runner(make_step(model, method, cfg, tx), options)
   singles = [init_state(variables, build("pitta", dataclasses.replace(pitta, lam=lam)), cfg, tx,
                         model) for lam in lams]
   consts = singles[0][1]

@@ -132,8 +132,8 @@ class RunnerStats:
 
   def wrap_factory(self, make_chunk_runner: Callable) -> Callable:
     @functools.wraps(make_chunk_runner)
-    def make(step):
-      runner = make_chunk_runner(step)
+    def make(step, compiler_options=None):
+      runner = make_chunk_runner(step, compiler_options)
       stats = {"runner": len(self.runners), "method": getattr(
           getattr(step, "keywords", {}).get("method"), "name", "?"), "compile_s": 0.0,
                "step_s": 0.0, "frames": 0, "chunks": 0}

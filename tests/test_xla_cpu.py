@@ -5,12 +5,14 @@
 - the option reaches the compile: in the compiled program of a convolution that XLA:CPU hands
   to YNNPACK by default (a `__ynn_fusion` around it), Eigen's option leaves it a plain
   convolution, and both agree with a literal NumPy loop of the convolution;
-- the engine's callers pass it: `run.Runners` compiles PITTA's step with Eigen's option and
-  CoTTA's (every weight adapts) without; a bad `--conv-library` is refused before any work.
+- the engine's callers pass it: `run.Runners` compiles PITTA's step with Eigen's option,
+  ActMAD's (encoder kernels adapt) without, CoTTA's with (its own choice); a bad
+  `--conv-library` or method choice is refused before any work.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import jax
@@ -47,11 +49,31 @@ def test_adapts_conv_kernels(selector, adapts, expected):
   assert adapts_conv_kernels(selector, adapts) is expected
 
 
+def test_method_choice_overrides_auto_only():
+  """`auto` takes the method's `cpu_conv_library` where it has one; an explicit config wins."""
+  from types import SimpleNamespace
+
+  from pitta_jax.adapt.xla_cpu import step_compiler_options
+  if jax.default_backend() != "cpu":
+    pytest.skip("XLA:CPU's option")
+  plain = SimpleNamespace(adapts=True, cpu_conv_library="auto")
+  prefers_eigen = SimpleNamespace(adapts=True, cpu_conv_library="eigen")
+  every = AdaptConfig(selector="all")
+  assert step_compiler_options(every, plain) is None
+  assert step_compiler_options(every, prefers_eigen) == EIGEN
+  assert step_compiler_options(dataclasses.replace(every, conv_library="default"),
+                               prefers_eigen) is None
+  assert step_compiler_options(AdaptConfig(), plain) == EIGEN  # encoder BN only
+
+
 def test_unknown_library_is_refused():
   with pytest.raises(ValueError, match="conv_library must be one of auto, default, eigen"):
     conv_library_options("mkl", False, "cpu")
   with pytest.raises(ValueError, match="conv_library"):
     AdaptConfig(conv_library="ynn")
+  from pitta_jax.methods import build
+  with pytest.raises(ValueError, match="cpu_conv_library"):
+    dataclasses.replace(build("none"), cpu_conv_library="mkl")
 
 
 def _conv(x, k):  # (B, H, W, Cin), (3, 3, Cin, Cout) -> (B, H, W, Cout), zero padding 1
@@ -109,8 +131,9 @@ def test_runners_pass_the_step_options(monkeypatch):
   # what Runners.get reads of a Weights; the network is not traced (the runner is stubbed)
   weights = SimpleNamespace(spec=SimpleNamespace(name="net"), config={}, network=lambda: None)
   runners = run.Runners()
-  for name in ("pitta", "cotta"):
+  for name in ("pitta", "actmad", "cotta"):
     method = build(name)
     runners.get(weights, method, AdaptConfig(**method_setting(name)))
   eigen = EIGEN if jax.default_backend() == "cpu" else None
-  assert seen == [eigen, None]
+  # PITTA: encoder BN only; ActMAD: every encoder kernel adapts; CoTTA: its own choice
+  assert seen == [eigen, None, eigen]

@@ -34,9 +34,10 @@ class AdaptConfig:
   max_segments: int = option(64, "S_max: panoptic segments per frame kept (padded)")
   chunk_size: int = option(32, "frames per compiled scan; memory is flat in sequence length")
   seed: int = option(0, "PRNG seed of the run (per frame: fold_in(seed, frame index))")
-  conv_library: str = option("auto", "XLA:CPU's library for convolutions: auto (Eigen when no "
-                                     "conv kernel adapts, XLA's default otherwise) | default | "
-                                     "eigen; other backends ignore it")
+  conv_library: str = option("auto", "XLA:CPU's library for convolutions (speed only): auto "
+                                     "(Eigen when no conv kernel adapts or the method prefers "
+                                     "it, XLA's default otherwise) | default | eigen; other "
+                                     "backends ignore it")
 
   def __post_init__(self):
     check(self.optimizer in ("adam", "sgd"), f"optimizer must be adam or sgd, got {self.optimizer!r}")

@@ -2,15 +2,19 @@
 
 XLA:CPU hands convolutions to one of two libraries: YNNPACK (jaxlib 0.10's default, through its
 "YNN fusions") or Eigen's tensor contractions (XLA's older path). Neither is faster everywhere.
-On a 2-core AMD EPYC (Zen 3, AVX2) host, interleaved, 640x192: a PITTA step that adapts only
-BatchNorm parameters (forward convolutions and their input gradients) ran 11.6% faster with
-Eigen and its program compiled in 16 s instead of 26 s, while Ada-Depth's step, which also
-differentiates every convolution kernel, ran 3.4% slower (README, Performance). The choice is
-per compiled program (`jax.jit(..., compiler_options=...)`), never process-wide, and fixed
-before the compile: no run-time autotuning, so that a run's numerics do not depend on timings.
+Measured on a 2-core AMD EPYC (Zen 3, AVX2) host, each step interleaved with itself, 640x192
+(README, Performance): Eigen's forward convolutions and input gradients are faster (no
+adaptation 16% and PITTA, which adapts only BatchNorm parameters, 6-12% faster per frame), its
+kernel gradients slower (ActMAD and CoMoDa, which adapt convolution kernels, 8% slower by the
+median; Ada-Depth 1-3%), unless forward passes dominate the step (CoTTA: 35 forward passes per
+kernel gradient, 21% faster). Hence `auto`: Eigen for a step that differentiates no convolution
+kernel, XLA's default otherwise, or the method's own measured choice (`Method.cpu_conv_library`).
+The choice is per compiled program (`jax.jit(..., compiler_options=...)`), never process-wide,
+and fixed before the compile: no run-time autotuning, so that a run's numerics do not depend on
+timings.
 
 Both libraries compute the same float32 convolutions up to the order of summation (a PITTA
-loss differs by ~1e-6 relative between them).
+loss differs by 1e-7 to 1e-6 relative between them).
 """
 
 from __future__ import annotations
@@ -57,5 +61,9 @@ def conv_library_options(library: str, conv_kernel_grads: bool,
 
 def step_compiler_options(cfg: Any, method: Any) -> dict[str, Any] | None:
   """`conv_library_options` for the step of `method` (a `methods.Method`) under `cfg` (an
-  `AdaptConfig`): what `make_chunk_runner` takes as `compiler_options`."""
-  return conv_library_options(cfg.conv_library, adapts_conv_kernels(cfg.selector, method.adapts))
+  `AdaptConfig`): what `make_chunk_runner` takes as `compiler_options`. `auto` takes the
+  method's own choice (`Method.cpu_conv_library`) where it has one."""
+  library = cfg.conv_library
+  if library == "auto":
+    library = method.cpu_conv_library
+  return conv_library_options(library, adapts_conv_kernels(cfg.selector, method.adapts))

@@ -27,6 +27,9 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
   needs: what the method needs besides a frame's image and panoptic input, checked before any
       work: "pose" (the weights' pose network, given as resources["pose"] = PoseNet(module,
       variables)), "intrinsics" (every frame's K), "previous_frame" (consecutive frames).
+  cpu_conv_library: what `AdaptConfig.conv_library = "auto"` means for this method's step
+      on a CPU (`adapt.xla_cpu`): "auto" (Eigen's convolutions unless conv kernels adapt), or
+      "eigen" / "default" where the method's step was measured faster with that library.
   report_after_update: the frame's evaluated depth is the adapted network's prediction *after*
       the frame's update (`predict` with the new trainable leaves, one more forward pass) instead
       of `Aux.depth` (e.g. Ada-Depth, whose official code evaluates the student after its step).
@@ -106,8 +109,14 @@ class Method:
   setting: tuple[tuple[str, Any], ...] = ()
   # evaluate the depth predicted after the frame's update instead of Aux.depth
   report_after_update: bool = False
+  # `AdaptConfig.conv_library = "auto"` for this method on a CPU (see the module docstring)
+  cpu_conv_library: str = "auto"
 
   def __post_init__(self):
+    from pitta_jax.adapt.xla_cpu import CONV_LIBRARIES
+    if self.cpu_conv_library not in CONV_LIBRARIES:
+      raise ValueError(f"method {self.name}: cpu_conv_library must be one of {CONV_LIBRARIES}, "
+                       f"got {self.cpu_conv_library!r}")
     unknown = set(self.needs) - set(NEEDS)
     if unknown:
       raise ValueError(f"method {self.name}: unknown needs {sorted(unknown)}; use {NEEDS}")

@@ -249,4 +249,7 @@ def build(config: CottaConfig = CottaConfig()) -> Method:
   return Method("cotta", config, init=init, loss=loss, update=update,
                 optimizer=lambda cfg: optax.adam(config.lr),
                 requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),),
-                setting=(("selector", "all"),))
+                setting=(("selector", "all"),),
+                # 35 forward passes per update outweigh its kernel gradients: on a Zen 3 CPU
+                # the step ran 21.5% faster with Eigen's convolutions (README, Performance)
+                cpu_conv_library="eigen")
