@@ -66,9 +66,10 @@ def _sweep_runner(weights, cfg):
   """(model, optimiser, the compiled chunk of the vmapped lambda-sweep step)."""
   from pitta_jax.adapt import streams
   from pitta_jax.adapt.engine import make_chunk_runner, make_optimizer
-  from pitta_jax.adapt.xla_cpu import adapts_conv_kernels, conv_library_options
+  from pitta_jax.adapt.xla_cpu import step_compiler_options
+  from pitta_jax.methods import build
   model, tx = weights.network(), make_optimizer(cfg)
-  options = conv_library_options(cfg.conv_library, adapts_conv_kernels(cfg.selector))
+  options = step_compiler_options(cfg, build("pitta"))  # the sweep runs PITTA's step
   return model, tx, make_chunk_runner(streams.make_lambda_sweep_step(model, cfg, tx), options)
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from pitta_jax.adapt.xla_cpu import CONV_LIBRARIES
+from pitta_jax.adapt.xla_cpu import check_library
 from pitta_jax.configs import check, finite, option
 from pitta_jax.trainable import parse_selector
 
@@ -51,5 +51,4 @@ class AdaptConfig:
     check(self.reset_every >= 0, f"reset_every must be >= 0, got {self.reset_every}")
     check(self.max_segments >= 1, f"max_segments must be >= 1, got {self.max_segments}")
     check(self.chunk_size >= 1, f"chunk_size must be >= 1, got {self.chunk_size}")
-    check(self.conv_library in CONV_LIBRARIES,
-          f"conv_library must be one of {', '.join(CONV_LIBRARIES)}, got {self.conv_library!r}")
+    check_library(self.conv_library)

@@ -32,6 +32,12 @@ YNN_FUSION_FLAG = "xla_cpu_experimental_ynn_fusion_type"
 YNN_WITHOUT_CONVOLUTIONS = "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT,LIBRARY_FUSION_TYPE_REDUCE"
 
 
+def check_library(value: str, what: str = "conv_library") -> None:
+  """ValueError (one line naming `what`) unless `value` is one of CONV_LIBRARIES."""
+  if value not in CONV_LIBRARIES:
+    raise ValueError(f"{what} must be one of {', '.join(CONV_LIBRARIES)}, got {value!r}")
+
+
 def adapts_conv_kernels(selector: str, adapts: bool = True) -> bool:
   """Whether a step differentiates convolution kernels: the method updates parameters and the
   selector (`AdaptConfig.selector`) includes conv kernels (all, no_bn, fraction with cnn > 0)."""
@@ -50,8 +56,7 @@ def conv_library_options(library: str, conv_kernel_grads: bool,
   platform: the backend the program compiles for (default: JAX's default backend). The options
     are XLA:CPU's: on any other backend the result is None.
   """
-  if library not in CONV_LIBRARIES:
-    raise ValueError(f"conv_library must be one of {', '.join(CONV_LIBRARIES)}, got {library!r}")
+  check_library(library)
   platform = platform or jax.default_backend()
   eigen = library == "eigen" or (library == "auto" and not conv_kernel_grads)
   if platform != "cpu" or not eigen:

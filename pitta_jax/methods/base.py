@@ -113,10 +113,8 @@ class Method:
   cpu_conv_library: str = "auto"
 
   def __post_init__(self):
-    from pitta_jax.adapt.xla_cpu import CONV_LIBRARIES
-    if self.cpu_conv_library not in CONV_LIBRARIES:
-      raise ValueError(f"method {self.name}: cpu_conv_library must be one of {CONV_LIBRARIES}, "
-                       f"got {self.cpu_conv_library!r}")
+    from pitta_jax.adapt.xla_cpu import check_library  # lazy: pitta_jax.adapt imports methods
+    check_library(self.cpu_conv_library, f"method {self.name}: cpu_conv_library")
     unknown = set(self.needs) - set(NEEDS)
     if unknown:
       raise ValueError(f"method {self.name}: unknown needs {sorted(unknown)}; use {NEEDS}")
