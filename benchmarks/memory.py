@@ -42,16 +42,14 @@ def _current_mb() -> float:
 def child(args) -> None:
   import jax  # noqa: F401  (imported here: the parent process never touches JAX)
   import bench_common as bc
-  from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, make_chunk_runner,
-                               make_optimizer, make_step)
-  from pitta_jax.adapt.xla_cpu import step_compiler_options
+  from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, make_method_runner,
+                               make_optimizer)
   from pitta_jax.methods import build
 
   cfg = AdaptConfig(chunk_size=args.chunk)
   model, method = bc.depth_network(), build("pitta")
   tx = make_optimizer(cfg)
-  options = step_compiler_options(cfg, method)  # as `pitta-jax adapt` compiles the step
-  runner = make_chunk_runner(make_step(model, method, cfg, tx), options)
+  runner = make_method_runner(model, method, cfg, tx)  # as `pitta-jax adapt` compiles the step
   state, consts = init_state(bc.jax_variables(seed=0), method, cfg, tx, model)
   chunks = bc.chunk_stream(args.frames, cfg.chunk_size, args.height, args.width, args.instances,
                            cfg.max_segments, seed=2)

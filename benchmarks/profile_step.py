@@ -33,9 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import jax  # noqa: E402
 
 import bench_common as bc  # noqa: E402
-from pitta_jax.adapt import (init_state, make_chunk_runner, make_optimizer,  # noqa: E402
-                             make_step)
-from pitta_jax.adapt.xla_cpu import step_compiler_options  # noqa: E402
+from pitta_jax.adapt import init_state, make_method_runner, make_optimizer  # noqa: E402
 from pitta_jax.methods import METHODS, build  # noqa: E402
 
 SKIP = ("ThunkExecutor", "Await", "PjitFunction", "while")
@@ -80,8 +78,7 @@ def main(argv=None) -> None:
   cfg, mcfg = bc.method_configs(args.method, args.instances, 5, args.frames)
   model, method = bc.depth_network(), build(args.method, mcfg)
   tx = make_optimizer(cfg, method)
-  options = step_compiler_options(cfg, method)  # as `pitta-jax adapt` compiles the step
-  runner = make_chunk_runner(make_step(model, method, cfg, tx), options)
+  runner = make_method_runner(model, method, cfg, tx)  # as `pitta-jax adapt` compiles the step
   chunk = bc.step_inputs(bc.synthetic_frames(args.frames, args.height, args.width,
                                              args.instances, seed=1), cfg.max_segments,
                          intrinsics="intrinsics" in method.needs)

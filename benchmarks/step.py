@@ -52,8 +52,8 @@ import torch  # noqa: E402
 import bench_common as bc  # noqa: E402
 import torch_reference as tr  # noqa: E402
 from pitta_jax import trainable as trainable_lib  # noqa: E402
-from pitta_jax.adapt import (AdaptConfig, StepInput, init_state, make_chunk_runner,  # noqa: E402
-                             make_optimizer, make_step)
+from pitta_jax.adapt import (AdaptConfig, StepInput, init_state,  # noqa: E402
+                             make_method_runner, make_optimizer, make_step)
 from pitta_jax.adapt.xla_cpu import CONV_LIBRARIES, step_compiler_options  # noqa: E402
 from pitta_jax.methods import METHODS, build  # noqa: E402
 from pitta_jax.methods.actmad import RESOURCE as ACTMAD_STATS  # noqa: E402
@@ -78,8 +78,7 @@ class JaxImpl:
     self.model, self.method = bc.depth_network(conv_rule), build(name, mcfg)
     self.tx = make_optimizer(self.cfg, self.method)
     self.compiler_options = step_compiler_options(self.cfg, self.method)
-    self.runner = make_chunk_runner(make_step(self.model, self.method, self.cfg, self.tx),
-                                    self.compiler_options)
+    self.runner = make_method_runner(self.model, self.method, self.cfg, self.tx)
     self.state, self.consts = init_state(variables, self.method, self.cfg, self.tx, self.model,
                                          resources)
     self.compiled = None

@@ -4,7 +4,7 @@
     python benchmarks/streams.py --quick         # 320x96
 
 Prints JSON lines:
-- `impl: engine`: the plain single-stream engine (`make_chunk_runner(make_step(...))`);
+- `impl: engine`: the plain single-stream engine (`make_method_runner`);
 - `impl: vmap`, K = 1, 4, 12 independent streams (own frames, parameters and Adam state), one
   `jax.vmap`-ed step scanned over a chunk: total frames/s = K * T / chunk time;
 - `impl: lambda_sweep`: the 12 lambdas of the paper's Table 4 ({0, 0.1, ..., 1.0, inf}) as 12
@@ -29,7 +29,7 @@ import jax.numpy as jnp  # noqa: E402
 
 import bench_common as bc  # noqa: E402
 from pitta_jax.adapt import (AdaptConfig, init_state, make_chunk_runner,  # noqa: E402
-                             make_optimizer, make_step)
+                             make_method_runner, make_optimizer)
 from pitta_jax.adapt import streams  # noqa: E402
 from pitta_jax.adapt.xla_cpu import step_compiler_options  # noqa: E402
 from pitta_jax.methods import build  # noqa: E402
@@ -69,7 +69,7 @@ def main(argv=None) -> None:
     return jax.tree_util.tree_map(jnp.copy, state)
 
   # plain engine, one stream
-  runner = make_chunk_runner(make_step(model, method, cfg, tx), options)
+  runner = make_method_runner(model, method, cfg, tx)
   state, consts = init_state(variables, method, cfg, tx, model)
   first, _, med, _, _ = bc.timed_chunks(runner, state, chunk(0), consts, args.reps)
   base_fps = t / med
@@ -95,7 +95,7 @@ def main(argv=None) -> None:
   # the sequential reference: the plain engine with PittaConfig(lam=lam), one run per lambda.
   # lambda is a method-state value, so all 12 share one compiled runner (PittaConfig(lam=0.2)'s);
   # each run's state comes from its own method (method_state {"lam": lam})
-  one = make_chunk_runner(make_step(model, method, cfg, tx), options)
+  one = make_method_runner(model, method, cfg, tx)
   singles = [init_state(variables, build("pitta", dataclasses.replace(pitta, lam=lam)), cfg, tx,
                         model) for lam in lams]
   consts = singles[0][1]

@@ -20,9 +20,8 @@ from tqdm import tqdm
 
 from pitta_jax import metrics as metrics_lib
 from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, load_state,
-                             make_chunk_runner, make_optimizer, make_step, save_state)
+                             make_method_runner, make_optimizer, save_state)
 from pitta_jax.adapt.inputs import chunks
-from pitta_jax.adapt.xla_cpu import step_compiler_options
 from pitta_jax.checkpoint import Weights
 from pitta_jax.configs import check, option
 from pitta_jax.methods import Method, build as build_method
@@ -113,8 +112,7 @@ class Runners:
     if key not in self._cache:
       model = weights.network()
       tx = make_optimizer(cfg, method)
-      self._cache[key] = (model, tx, make_chunk_runner(make_step(model, method, cfg, tx),
-                                                       step_compiler_options(cfg, method)))
+      self._cache[key] = (model, tx, make_method_runner(model, method, cfg, tx))
     return self._cache[key]
 
 

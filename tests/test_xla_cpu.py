@@ -119,14 +119,16 @@ def test_eigen_option_reaches_the_compile():
 
 
 def test_runners_pass_the_step_options(monkeypatch):
-  """`run.Runners.get` compiles each method's chunk with `step_compiler_options`."""
+  """`run.Runners.get` compiles each method's chunk with `step_compiler_options` (through
+  `engine.make_method_runner`)."""
   from types import SimpleNamespace
 
   from pitta_jax import run
+  from pitta_jax.adapt import engine
   from pitta_jax.methods import build, method_setting
 
   seen = []
-  monkeypatch.setattr(run, "make_chunk_runner",
+  monkeypatch.setattr(engine, "make_chunk_runner",
                       lambda step, options=None: seen.append(options) or (lambda *a: None))
   # what Runners.get reads of a Weights; the network is not traced (the runner is stubbed)
   weights = SimpleNamespace(spec=SimpleNamespace(name="net"), config={}, network=lambda: None)

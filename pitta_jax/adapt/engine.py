@@ -28,6 +28,7 @@ from flax import struct
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.adapt.config import AdaptConfig
 from pitta_jax.adapt.hoist import hoist_invariants
+from pitta_jax.adapt.xla_cpu import step_compiler_options
 from pitta_jax.methods.base import Method, predict
 
 Tree = Any
@@ -249,6 +250,15 @@ def make_step(model: Any, method: Method, cfg: AdaptConfig,
   """`adapt_step` with its static arguments bound: `step(state, frame, consts)`."""
   return functools.partial(adapt_step, model=model, method=method, cfg=cfg,
                            tx=tx or make_optimizer(cfg, method))
+
+
+def make_method_runner(model: Any, method: Method, cfg: AdaptConfig,
+                       tx: optax.GradientTransformation | None = None):
+  """The compiled chunk runner of `method`'s step under `cfg`, as every command compiles it:
+  `make_chunk_runner(make_step(...))` with the step's XLA options (`xla_cpu.step_compiler_options`:
+  the convolution library of `cfg.conv_library`). tx: the optimiser that `init_state` got
+  (default `make_optimizer(cfg, method)`)."""
+  return make_chunk_runner(make_step(model, method, cfg, tx), step_compiler_options(cfg, method))
 
 
 def make_chunk_runner(step, compiler_options: dict[str, Any] | None = None):
