@@ -2,6 +2,7 @@
 
     python benchmarks/kernel_grad.py                 # batch 1 and 4, every layer below
     python benchmarks/kernel_grad.py --batch 4 --layers conv1,upconv_1_1
+    python benchmarks/kernel_grad.py --batch 1 --forms model --libraries default,eigen,onednn
 
 Why: the baselines that adapt convolution kernels (CoMoDa: the depth and pose networks at batch
 4; ActMAD and Ada-Depth: batch 1) spend much of their step in kernel gradients, a contraction
@@ -19,6 +20,12 @@ ReLU in the loop as in a network:
 - `per_image`: `conv` for each image, summed (`conv_vjp.kernel_grad_per_image`);
 - `torch`: `torch.ops.aten.convolution_backward` with only the weight gradient asked (NCHW, as
   a PyTorch user runs it; oneDNN), same threads.
+`--libraries` compiles every JAX form once per XLA:CPU convolution library (`form@library`):
+`default` (XLA's choice, YNNPACK), `eigen` (`pitta_jax.adapt.xla_cpu`'s Eigen option) and
+`onednn`: Eigen's option plus XLA's oneDNN switches (`ONEDNN_OPTIONS`), which take effect only in
+a jaxlib built with oneDNN; the line says whether they changed any value
+(`onednn_changes_values`: false means the oneDNN path is not in this jaxlib, as in the CPU wheels
+of jaxlib 0.10.2 measured here).
 Every form is checked against `conv` (relative 1e-4). Prints one JSON line per layer and batch:
 the best ms of `--reps` runs per form, the GFLOP of the contraction, and the load average.
 """
@@ -39,6 +46,7 @@ import torch  # noqa: E402
 from jax import lax  # noqa: E402
 
 import bench_common as bc  # noqa: E402
+from pitta_jax.adapt.xla_cpu import conv_library_options  # noqa: E402
 from pitta_jax.models import conv_vjp  # noqa: E402
 
 # name: (H, W, C, O, kernel, stride, padding) of the input x before padding, at 640x192.
@@ -73,14 +81,22 @@ def _model_form(x, g, k, s, p):
 FORMS = {"model": _model_form, "conv": _conv_form, "patches": _patches_form,
          "per_image": _per_image_form}
 
+# XLA:CPU's oneDNN switches (flags of jaxlib 0.10's XLA; they act only where XLA was built with
+# oneDNN, i.e. with INTEL_MKL)
+ONEDNN_OPTIONS = {"xla_cpu_use_onednn": True, "xla_cpu_experimental_onednn_custom_call": True}
+LIBRARIES = {"default": lambda: None,
+             "eigen": lambda: conv_library_options("eigen", True, "cpu"),
+             "onednn": lambda: {**conv_library_options("eigen", True, "cpu"), **ONEDNN_OPTIONS}}
 
-def time_jax(form, x, g, k, s, p, loops: int, reps: int) -> tuple[float, np.ndarray]:
+
+def time_jax(form, x, g, k, s, p, loops: int, reps: int, compiler_options: dict | None = None
+             ) -> tuple[float, np.ndarray]:
   """Best ms per kernel gradient inside a compiled loop, and the (last) value."""
   def run(x, g):
     def body(i, acc):
       return acc + form(jax.nn.relu(x + i.astype(x.dtype)), g, k, s, p)
     return lax.fori_loop(0, loops, body, jnp.zeros((k, k, x.shape[3], g.shape[3]), x.dtype))
-  compiled = jax.jit(run).lower(x, g).compile()
+  compiled = jax.jit(run, compiler_options=compiler_options).lower(x, g).compile()
   value = np.asarray(compiled(x, g))
   best = bc.median_time(lambda: compiled(x, g).block_until_ready(), reps)[1]
   return 1e3 * best / loops, value / loops
@@ -104,15 +120,24 @@ def main(argv=None) -> None:
   ap.add_argument("--layers", default=",".join(LAYERS), help="comma-separated, of: "
                   + ", ".join(LAYERS))
   ap.add_argument("--forms", default=",".join(FORMS), help="comma-separated JAX forms")
+  ap.add_argument("--libraries", default="default", help="comma-separated XLA:CPU convolution "
+                  "libraries to compile each form with, of: " + ", ".join(LIBRARIES))
   ap.add_argument("--loops", type=int, default=3, help="kernel gradients per compiled loop")
   ap.add_argument("--reps", type=int, default=3, help="timed runs per form (best reported)")
   ap.add_argument("--threads", type=int, default=os.cpu_count(), help="PyTorch threads")
   args = ap.parse_args(argv)
   layers = args.layers.split(",")
   forms = args.forms.split(",")
+  libraries = args.libraries.split(",")
   for name in layers + forms:
     if name not in LAYERS and name not in FORMS:
       ap.error(f"unknown layer or form {name!r}")
+  for name in libraries:
+    if name not in LIBRARIES:
+      ap.error(f"--libraries: unknown {name!r}; of {', '.join(LIBRARIES)}")
+  if jax.default_backend() != "cpu" and libraries != ["default"]:
+    ap.error("--libraries: the convolution libraries are XLA:CPU's; this backend is "
+             + jax.default_backend())
   torch.set_num_threads(args.threads)
   rng = np.random.default_rng(0)
   for n in (int(b) for b in args.batch.split(",")):
@@ -121,18 +146,25 @@ def main(argv=None) -> None:
       ho, wo = (h + 2 * p - k) // s + 1, (w + 2 * p - k) // s + 1
       x = jnp.asarray(rng.standard_normal((n, h, w, c)), jnp.float32)
       g = jnp.asarray(rng.standard_normal((n, ho, wo, o)), jnp.float32)
-      ms, ref = {}, None
+      ms, values, ref = {}, {}, None
       for form in ["conv"] + [f for f in forms if f != "conv"]:
-        ms[form], value = time_jax(FORMS[form], x, g, k, s, p, args.loops, args.reps)
-        if ref is None:
-          ref = value
-        err = float(np.max(np.abs(value - ref)) / np.max(np.abs(ref)))
-        assert err < 1e-4, (name, form, err)
+        for lib in libraries:
+          key = form if libraries == ["default"] else f"{form}@{lib}"
+          ms[key], values[key] = time_jax(FORMS[form], x, g, k, s, p, args.loops, args.reps,
+                                          LIBRARIES[lib]())
+          if ref is None:
+            ref = values[key]
+          err = float(np.max(np.abs(values[key] - ref)) / np.max(np.abs(ref)))
+          assert err < 1e-4, (name, key, err)
       ms["torch"] = time_torch(x, g, k, s, p, args.reps)
+      extra = {}
+      if {"eigen", "onednn"} <= set(libraries):
+        extra["onednn_changes_values"] = any(
+            not np.array_equal(values[f"{f}@onednn"], values[f"{f}@eigen"]) for f in forms)
       bc.emit({"layer": name, "batch": n, "x": [n, h, w, c], "out_features": o, "kernel": k,
                "stride": s, "threads": args.threads,
                "gflop": round(2 * k * k * c * o * n * ho * wo / 1e9, 3),
-               "best_ms": {f: round(v, 1) for f, v in ms.items()}, "load": bc.load()})
+               "best_ms": {f: round(v, 1) for f, v in ms.items()}, **extra, "load": bc.load()})
 
 
 if __name__ == "__main__":

@@ -7,9 +7,9 @@
     python benchmarks/step.py --profile                 # + FLOPs and the parts of the step
 
 Implementations (`--impls`; the default is every one that exists for the method):
-- `jax`: the engine's compiled chunk runner (`make_chunk_runner`: jit of a `lax.scan` of
-  `adapt_step` over `--frames` frames, carry donated), the method in its own setting
-  (`pitta_jax.methods.method_setting`);
+- `jax`: the engine's compiled chunk runner (`make_method_runner`: jit of a `lax.scan` of
+  `adapt_step` over `--frames` frames, carry donated, compiled with the step's XLA options), the
+  method in its own setting (`pitta_jax.methods.method_setting`);
 - `torch-eager`: the same step as a performance-minded PyTorch user writes it
   (`benchmarks/torch_reference.py`: upstream MonoDepth2 modules, NCHW as upstream);
 - `torch-eager-cl`: the same with `memory_format=torch.channels_last` (oneDNN's layout), PITTA;
@@ -27,6 +27,11 @@ sensitive to other jobs on the machine), and the compile time. Then a `ratio` li
 fastest PyTorch configuration's ms per frame / JAX's (median and best), a loss-parity line for
 deterministic methods (the same random weights and frames: the first chunk's losses must
 agree), and the load average before and after.
+
+`--compare-conv-rule`, `--compare-conv-library` and `--compare-kernel-grads` time variants of
+the JAX step against each other in the same interleaved way (one `check` line each: median and
+best ms per frame, ratios, compile seconds, first losses' difference); `--compare-only` skips
+the PyTorch comparison.
 
 With `--profile` (PITTA): XLA's FLOP count of the step (`cost_analysis`), a FLOP floor at this
 machine's measured matmul/conv rate, and the time of the parts (network forward only, forward +
@@ -58,6 +63,7 @@ from pitta_jax.adapt.xla_cpu import CONV_LIBRARIES, step_compiler_options  # noq
 from pitta_jax.methods import METHODS, build  # noqa: E402
 from pitta_jax.methods.actmad import RESOURCE as ACTMAD_STATS  # noqa: E402
 from pitta_jax.methods.depth_refining import frame_loss  # noqa: E402
+from pitta_jax.models import conv_vjp  # noqa: E402
 
 TORCH_IMPLS = ("torch-eager", "torch-eager-cl", "torch-compile")
 DETERMINISTIC = ("pitta", "actmad")  # same weights and frames => same losses in both frameworks
@@ -67,11 +73,25 @@ DEFAULT_JAX_FRAMES = {"cotta": 4, "comoda": 8, "adadepth": 8}
 DEFAULT_REPS = {"cotta": 3, "comoda": 3, "adadepth": 3}
 
 
+def conv_form_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation, precision):
+  """An alternative to `conv_vjp._kernel_grad`'s choice, for `--compare-kernel-grads`: the
+  patches product for an input of at most `PATCHES_MAX_INPUT_FEATURES` features (the encoders'
+  first convolution), the convolution form at any batch otherwise (no batch >= 2 rules: those
+  were measured with XLA's default library, `benchmarks/kernel_grad.py --libraries`)."""
+  args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
+  if x.shape[3] <= conv_vjp.PATCHES_MAX_INPUT_FEATURES:
+    return conv_vjp.kernel_grad_patches(*args)
+  return conv_vjp.kernel_grad_conv(*args)
+
+
+KERNEL_GRAD_CHOICES = {"model": None, "conv": conv_form_kernel_grads}
+
+
 class JaxImpl:
   """The engine's compiled chunk runner for one method and config; state carried over chunks."""
 
   def __init__(self, name: str, variables, configs, resources, conv_rule: str = "loop_friendly",
-               conv_library: str | None = None):
+               conv_library: str | None = None, kernel_grads: str = "model"):
     self.cfg, mcfg = configs
     if conv_library is not None:
       self.cfg = dataclasses.replace(self.cfg, conv_library=conv_library)
@@ -83,11 +103,18 @@ class JaxImpl:
                                          resources)
     self.compiled = None
     self.compile_s = None
+    self.kernel_grads = KERNEL_GRAD_CHOICES[kernel_grads]
 
   def first(self, chunk: StepInput) -> list[float]:
     """Compile, run the first chunk (losses from the fresh weights) and one warm-up chunk."""
     t0 = time.perf_counter()
-    self.compiled = self.runner.lower(self.state, chunk, self.consts).compile()
+    model_choice = conv_vjp._kernel_grad
+    if self.kernel_grads is not None:  # read while the step is traced (a benchmark's swap)
+      conv_vjp._kernel_grad = self.kernel_grads
+    try:
+      self.compiled = self.runner.lower(self.state, chunk, self.consts).compile()
+    finally:
+      conv_vjp._kernel_grad = model_choice
     self.compile_s = time.perf_counter() - t0
     losses = np.asarray(self.chunk(chunk).loss).tolist()
     self.chunk(chunk)
@@ -387,9 +414,14 @@ def main(argv=None) -> None:
   p.add_argument("--compare-conv-library", action="store_true",
                  help="also time the method's JAX step with XLA's default convolution library "
                       "and with Eigen's, interleaved, and print the ratio")
+  p.add_argument("--compare-kernel-grads", action="store_true",
+                 help="also time the method's JAX step three ways, interleaved: XLA's default "
+                      "library with the model's kernel-gradient forms (models.conv_vjp), Eigen's "
+                      "with them, and Eigen's with the convolution form for every layer but the "
+                      "first (what benchmarks/kernel_grad.py --libraries found faster on Eigen)")
   p.add_argument("--compare-only", action="store_true",
-                 help="with --compare-conv-rule/--compare-conv-library: skip the JAX vs PyTorch "
-                      "timing")
+                 help="with --compare-conv-rule/--compare-conv-library/--compare-kernel-grads: "
+                      "skip the JAX vs PyTorch timing")
   args = p.parse_args(argv)
   if args.frames is None:
     args.frames = DEFAULT_FRAMES.get(args.method, 8)
@@ -427,6 +459,12 @@ def main(argv=None) -> None:
   if args.compare_conv_library:
     compare_jax(args.method, {lib: {"conv_library": lib} for lib in ("default", "eigen")},
                 "XLA:CPU convolution library", variables, args, common)
+  if args.compare_kernel_grads:
+    compare_jax(args.method, {
+        "default+model": {"conv_library": "default"},
+        "eigen+model": {"conv_library": "eigen"},
+        "eigen+conv": {"conv_library": "eigen", "kernel_grads": "conv"}},
+        "XLA:CPU convolution library and kernel-gradient forms", variables, args, common)
   if args.profile and args.method == "pitta":
     n = sweep[0]
     frames = bc.synthetic_frames(1, args.height, args.width, n, seed=1)
