@@ -19,7 +19,8 @@ def _python_block(containing: str) -> str:
 def test_adaptation_example_runs():
   code = _python_block("make_method_runner")
   assert "num_frames=64" in code and "AdaptConfig()" in code
-  # 3 frames in chunks of 3: the program test_cli's demo compiles (shared XLA cache)
+  # 3 frames in one chunk of 3 (with the default 32, 29 padded steps would run too); the
+  # program is the example's own compile (no other test compiles the shipped model's step)
   code = code.replace("num_frames=64", "num_frames=3").replace("AdaptConfig()",
                                                                "AdaptConfig(chunk_size=3)")
   out = io.StringIO()
