@@ -6,8 +6,8 @@
   to YNNPACK by default (a `__ynn_fusion` around it), Eigen's option leaves it a plain
   convolution, and both agree with a literal NumPy loop of the convolution;
 - the engine's callers pass it: `run.Runners` compiles PITTA's step with Eigen's option,
-  ActMAD's (encoder kernels adapt) without, CoTTA's with (its own choice); a bad
-  `--conv-library` or method choice is refused before any work.
+  ActMAD's (encoder kernels adapt) and Ada-Depth's (its own branch's kernels) without, CoTTA's
+  with (its own choice); a bad `--conv-library` or method choice is refused before any work.
 """
 
 from __future__ import annotations
@@ -56,14 +56,18 @@ def test_method_choice_overrides_auto_only():
   from pitta_jax.adapt.xla_cpu import step_compiler_options
   if jax.default_backend() != "cpu":
     pytest.skip("XLA:CPU's option")
-  plain = SimpleNamespace(adapts=True, cpu_conv_library="auto")
-  prefers_eigen = SimpleNamespace(adapts=True, cpu_conv_library="eigen")
+  plain = SimpleNamespace(adapts=True, cpu_conv_library="auto", own_conv_kernel_grads=False)
+  prefers_eigen = SimpleNamespace(adapts=True, cpu_conv_library="eigen",
+                                  own_conv_kernel_grads=False)
   every = AdaptConfig(selector="all")
   assert step_compiler_options(every, plain) is None
   assert step_compiler_options(every, prefers_eigen) == EIGEN
   assert step_compiler_options(dataclasses.replace(every, conv_library="default"),
                                prefers_eigen) is None
   assert step_compiler_options(AdaptConfig(), plain) == EIGEN  # encoder BN only
+  # kernel gradients of the method's own networks count whatever the selector
+  own_kernels = SimpleNamespace(adapts=True, cpu_conv_library="auto", own_conv_kernel_grads=True)
+  assert step_compiler_options(AdaptConfig(), own_kernels) is None
 
 
 def test_unknown_library_is_refused():
@@ -133,9 +137,11 @@ def test_runners_pass_the_step_options(monkeypatch):
   # what Runners.get reads of a Weights; the network is not traced (the runner is stubbed)
   weights = SimpleNamespace(spec=SimpleNamespace(name="net"), config={}, network=lambda: None)
   runners = run.Runners()
-  for name in ("pitta", "actmad", "cotta"):
+  for name in ("pitta", "actmad", "cotta", "adadepth"):
     method = build(name)
     runners.get(weights, method, AdaptConfig(**method_setting(name)))
   eigen = EIGEN if jax.default_backend() == "cpu" else None
-  # PITTA: encoder BN only; ActMAD: every encoder kernel adapts; CoTTA: its own choice
-  assert seen == [eigen, None, eigen]
+  # PITTA: encoder BN only; ActMAD: every encoder kernel adapts; CoTTA: its own choice;
+  # Ada-Depth: its student adapts the encoder BN (the default selector), but its
+  # self-supervised branch differentiates every kernel of its own networks
+  assert seen == [eigen, None, eigen, None]

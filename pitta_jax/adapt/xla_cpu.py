@@ -67,8 +67,11 @@ def conv_library_options(library: str, conv_kernel_grads: bool,
 def step_compiler_options(cfg: Any, method: Any) -> dict[str, Any] | None:
   """`conv_library_options` for the step of `method` (a `methods.Method`) under `cfg` (an
   `AdaptConfig`): what `make_chunk_runner` takes as `compiler_options`. `auto` takes the
-  method's own choice (`Method.cpu_conv_library`) where it has one."""
+  method's own choice (`Method.cpu_conv_library`) where it has one. A method whose step
+  differentiates kernels of its own networks (`Method.own_conv_kernel_grads`) counts as
+  adapting conv kernels whatever the selector."""
   library = cfg.conv_library
   if library == "auto":
     library = method.cpu_conv_library
-  return conv_library_options(library, adapts_conv_kernels(cfg.selector, method.adapts))
+  kernel_grads = adapts_conv_kernels(cfg.selector, method.adapts) or method.own_conv_kernel_grads
+  return conv_library_options(library, kernel_grads)

@@ -310,4 +310,6 @@ def build(config: AdadepthConfig = AdadepthConfig()) -> Method:
                 optimizer=lambda cfg: optax.adam(config.lr),
                 requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),
                           ("steps_per_frame", 1, "updates once per frame")),
-                needs=("pose", "intrinsics", "previous_frame"), report_after_update=True)
+                needs=("pose", "intrinsics", "previous_frame"), report_after_update=True,
+                # U's Adam step differentiates every kernel of its depth and pose networks
+                own_conv_kernel_grads=True)

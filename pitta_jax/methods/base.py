@@ -30,6 +30,9 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
   cpu_conv_library: what `AdaptConfig.conv_library = "auto"` means for this method's step
       on a CPU (`adapt.xla_cpu`): "auto" (Eigen's convolutions unless conv kernels adapt), or
       "eigen" / "default" where the method's step was measured faster with that library.
+  own_conv_kernel_grads: the step differentiates convolution kernels outside the trainable
+      tree, whatever `AdaptConfig.selector` says (Ada-Depth's self-supervised branch U, which
+      adapts every weight of its own networks); `auto` then treats it as adapting conv kernels.
   report_after_update: the frame's evaluated depth is the adapted network's prediction *after*
       the frame's update (`predict` with the new trainable leaves, one more forward pass) instead
       of `Aux.depth` (e.g. Ada-Depth, whose official code evaluates the student after its step).
@@ -111,6 +114,8 @@ class Method:
   report_after_update: bool = False
   # `AdaptConfig.conv_library = "auto"` for this method on a CPU (see the module docstring)
   cpu_conv_library: str = "auto"
+  # conv kernel gradients outside the trainable tree, whatever the selector (module docstring)
+  own_conv_kernel_grads: bool = False
 
   def __post_init__(self):
     from pitta_jax.adapt.xla_cpu import check_library  # lazy: pitta_jax.adapt imports methods
