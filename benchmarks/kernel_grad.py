@@ -17,7 +17,8 @@ ReLU in the loop as in a network:
   (`conv_vjp.kernel_grad_conv`);
 - `patches`: one matrix product of x's patches, (kh kw C, N Ho Wo) @ (N Ho Wo, O)
   (`conv_vjp.kernel_grad_patches`);
-- `per_image`: `conv` for each image, summed (`conv_vjp.kernel_grad_per_image`);
+- `per_image`: `conv` for each image, summed (what `conv_vjp` used for the decoder's wide,
+  shallow layers at batch >= 2 until 2026-12-05);
 - `torch`: `torch.ops.aten.convolution_backward` with only the weight gradient asked (NCHW, as
   a PyTorch user runs it; oneDNN), same threads.
 `--libraries` compiles every JAX form once per XLA:CPU convolution library (`form@library`):
@@ -71,7 +72,7 @@ def _patches_form(x, g, k, s, p):
 
 
 def _per_image_form(x, g, k, s, p):
-  return conv_vjp.kernel_grad_per_image(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
+  return sum(_conv_form(x[i:i + 1], g[i:i + 1], k, s, p) for i in range(x.shape[0]))
 
 
 def _model_form(x, g, k, s, p):

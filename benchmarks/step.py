@@ -73,18 +73,24 @@ DEFAULT_JAX_FRAMES = {"cotta": 4, "comoda": 8, "adadepth": 8}
 DEFAULT_REPS = {"cotta": 3, "comoda": 3, "adadepth": 3}
 
 
-def conv_form_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation, precision):
-  """An alternative to `conv_vjp._kernel_grad`'s choice, for `--compare-kernel-grads`: the
-  patches product for an input of at most `PATCHES_MAX_INPUT_FEATURES` features (the encoders'
-  first convolution), the convolution form at any batch otherwise (no batch >= 2 rules: those
-  were measured with XLA's default library, `benchmarks/kernel_grad.py --libraries`)."""
+def batched_forms_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation, precision):
+  """What `conv_vjp._kernel_grad` chose until 2026-12-05, tuned for XLA's default convolution
+  library, for `--compare-kernel-grads`: at batch >= 2 the patches product where both sides
+  have >= 64 features, one convolution per image where only the input has; the patches product
+  for an input of <= `PATCHES_MAX_INPUT_FEATURES` features at any batch; the convolution form
+  otherwise. `_kernel_grad` now takes the convolution form at batch >= 2 (fastest on Eigen's
+  library, which `auto` gives the one step that takes batched kernel gradients, CoMoDa's)."""
   args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
-  if x.shape[3] <= conv_vjp.PATCHES_MAX_INPUT_FEATURES:
+  n, c, o = x.shape[0], x.shape[3], g.shape[3]
+  if c <= conv_vjp.PATCHES_MAX_INPUT_FEATURES or (n >= 2 and min(c, o) >= 64):
     return conv_vjp.kernel_grad_patches(*args)
+  if n >= 2 and c >= 64 > o:
+    return sum(conv_vjp.kernel_grad_conv(*(x[i:i + 1], g[i:i + 1], *args[2:]))
+               for i in range(n))
   return conv_vjp.kernel_grad_conv(*args)
 
 
-KERNEL_GRAD_CHOICES = {"model": None, "conv": conv_form_kernel_grads}
+KERNEL_GRAD_CHOICES = {"model": None, "batched": batched_forms_kernel_grads}
 
 
 class JaxImpl:
@@ -416,9 +422,10 @@ def main(argv=None) -> None:
                       "and with Eigen's, interleaved, and print the ratio")
   p.add_argument("--compare-kernel-grads", action="store_true",
                  help="also time the method's JAX step three ways, interleaved: XLA's default "
-                      "library with the model's kernel-gradient forms (models.conv_vjp), Eigen's "
-                      "with them, and Eigen's with the convolution form for every layer but the "
-                      "first (what benchmarks/kernel_grad.py --libraries found faster on Eigen)")
+                      "library and Eigen's with the model's kernel-gradient forms "
+                      "(models.conv_vjp), and XLA's default library with the batched forms "
+                      "conv_vjp used until 2026-12-05 (patches products and per-image "
+                      "convolutions at batch >= 2)")
   p.add_argument("--compare-only", action="store_true",
                  help="with --compare-conv-rule/--compare-conv-library/--compare-kernel-grads: "
                       "skip the JAX vs PyTorch timing")
@@ -461,9 +468,9 @@ def main(argv=None) -> None:
                 "XLA:CPU convolution library", variables, args, common)
   if args.compare_kernel_grads:
     compare_jax(args.method, {
+        "default+batched": {"conv_library": "default", "kernel_grads": "batched"},
         "default+model": {"conv_library": "default"},
-        "eigen+model": {"conv_library": "eigen"},
-        "eigen+conv": {"conv_library": "eigen", "kernel_grads": "conv"}},
+        "eigen+model": {"conv_library": "eigen"}},
         "XLA:CPU convolution library and kernel-gradient forms", variables, args, common)
   if args.profile and args.method == "pitta":
     n = sweep[0]

@@ -52,19 +52,17 @@ def _both_rules(x, k, strides, padding, dilation=(1, 1)):
 
 # out = 1 with 12 input features: the stride-1 undilated cases with at most 12 taps take the
 # single-output path (a product and shifted sums), the 5x5 one does not, and the kernel gradient
-# is a convolution; 64 -> 64 features in a batch of 2, and 5 input features (at most
-# PATCHES_MAX_INPUT_FEATURES, an image's): the kernel gradient as a product of the input's
-# patches; 64 -> 7 in a batch of 2: one convolution per image
-@pytest.mark.parametrize("out,cin", [(7, 5), (1, 12), (conv_vjp.PATCHES_MIN_FEATURES,) * 2,
-                                     (7, conv_vjp.PATCHES_MIN_FEATURES)])
+# is a convolution; one image of 5 input features (at most PATCHES_MAX_INPUT_FEATURES, an
+# image's): the kernel gradient as a product of the input's patches; the same features in a
+# batch of 2, and 64 -> 64 features in a batch of 2: a convolution
+@pytest.mark.parametrize("out,cin,batch", [(7, 5, 1), (7, 5, 2), (1, 12, 2), (64, 64, 2)])
 @pytest.mark.parametrize("size,ksize,strides,padding,dilation", CASES)
 def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding, dilation, out,
-                                                  cin):
-  # the cases reach the three forms of the kernel gradient
-  assert 5 <= conv_vjp.PATCHES_MAX_INPUT_FEATURES < 12 <= conv_vjp.PATCHES_MIN_FEATURES
-  assert conv_vjp.PATCHES_MIN_BATCH == 2 and 7 < conv_vjp.PATCHES_MIN_FEATURES
+                                                  cin, batch):
+  # the cases reach both forms of the kernel gradient
+  assert 5 <= conv_vjp.PATCHES_MAX_INPUT_FEATURES < 12
   rng = np.random.default_rng(sum(size) + ksize)
-  x = rng.standard_normal((conv_vjp.PATCHES_MIN_BATCH, *size, cin), np.float32)
+  x = rng.standard_normal((batch, *size, cin), np.float32)
   k = rng.standard_normal((ksize, ksize, cin, out), np.float32)
 
   ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding, dilation))(x, k)

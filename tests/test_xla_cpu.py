@@ -7,7 +7,8 @@
   convolution, and both agree with a literal NumPy loop of the convolution;
 - the engine's callers pass it: `run.Runners` compiles PITTA's step with Eigen's option,
   ActMAD's (encoder kernels adapt) and Ada-Depth's (its own branch's kernels) without, CoTTA's
-  with (its own choice); a bad `--conv-library` or method choice is refused before any work.
+  and CoMoDa's with (their own choice); a bad `--conv-library` or method choice is refused
+  before any work.
 """
 
 from __future__ import annotations
@@ -137,11 +138,11 @@ def test_runners_pass_the_step_options(monkeypatch):
   # what Runners.get reads of a Weights; the network is not traced (the runner is stubbed)
   weights = SimpleNamespace(spec=SimpleNamespace(name="net"), config={}, network=lambda: None)
   runners = run.Runners()
-  for name in ("pitta", "actmad", "cotta", "adadepth"):
+  for name in ("pitta", "actmad", "cotta", "adadepth", "comoda"):
     method = build(name)
     runners.get(weights, method, AdaptConfig(**method_setting(name)))
   eigen = EIGEN if jax.default_backend() == "cpu" else None
-  # PITTA: encoder BN only; ActMAD: every encoder kernel adapts; CoTTA: its own choice;
-  # Ada-Depth: its student adapts the encoder BN (the default selector), but its
+  # PITTA: encoder BN only; ActMAD: every encoder kernel adapts; CoTTA and CoMoDa: their own
+  # choice; Ada-Depth: its student adapts the encoder BN (the default selector), but its
   # self-supervised branch differentiates every kernel of its own networks
-  assert seen == [eigen, None, eigen, None]
+  assert seen == [eigen, None, eigen, None, eigen]

@@ -384,4 +384,7 @@ def build(config: ComodaConfig = ComodaConfig()) -> Method:
                           ("selector", SELECTOR, "adapts every weight except BatchNorm "
                                                  "scale/bias"),
                           ("steps_per_frame", 1, "makes one step per frame")),
-                needs=("pose", "intrinsics", "previous_frame"))
+                needs=("pose", "intrinsics", "previous_frame"),
+                # kernel gradients of a batch (1 + 3 replay images) are fastest as convolutions
+                # on Eigen's library (models.conv_vjp._kernel_grad; README, Performance)
+                cpu_conv_library="eigen")

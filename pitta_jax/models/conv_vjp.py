@@ -13,8 +13,8 @@ flipped and transposed kernel, already in canonical HWIO, with the same padding 
 JAX's own transpose rule uses. The kernel gradient has the same problem (JAX's rule is a
 convolution in swapped layouts; inside the loop a 3x3 64->64 kernel gradient at 32x48 took
 1.37 s for 4 frames instead of 0.023 s): it is written as a convolution of the input, features
-and batch swapped, with the cotangent as a canonical HWIO kernel, or, for batches with many
-features, as a matrix product of the input's patches (`_kernel_grad`). Values and gradients are
+and batch swapped, with the cotangent as a canonical HWIO kernel, or, for the image input of a
+single frame, as a matrix product of the input's patches (`_kernel_grad`). Values and gradients are
 those of `lax.conv_general_dilated` (tests/test_conv_vjp.py). Flax's `nn.Conv` takes it through
 its `conv_general_dilated` attribute (`models.layers.Conv`).
 
@@ -149,12 +149,8 @@ def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
                                   precision=precision)
 
 
-# the kernel gradient is a matrix product of the input's patches for batches of at least this
-# many images whose features (in and out) are all at least this many, and for inputs of at most
-# PATCHES_MAX_INPUT_FEATURES features (an image: the encoders' first convolution) at any batch
-# (`_kernel_grad`)
-PATCHES_MIN_BATCH = 2
-PATCHES_MIN_FEATURES = 64
+# the kernel gradient of a single image with at most this many input features (the encoders'
+# first convolution) is a matrix product of the input's patches (`_kernel_grad`)
 PATCHES_MAX_INPUT_FEATURES = 8
 
 
@@ -164,38 +160,30 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   """dk[a, b, c, o] = sum_{n,i,j} x_pad[n, i s + a d, j s + b d, c] g[n, i, j, o].
 
   x: (N, H, W, C), g: (N, Ho, Wo, O) -> (kh, kw, C, O).
-  In general a convolution of x (features <-> batch swapped: (C, H, W, N)) with g as an HWIO
-  kernel (Ho, Wo, N, O), window stride d and kernel dilation s, the rows past the kernel's extent
-  (the forward convolution's unused trailing input) cut off. XLA:CPU runs that convolution, a
-  contraction over every pixel, at 30-60 GFLOP/s. For a batch of at least `PATCHES_MIN_BATCH`
-  images with at least `PATCHES_MIN_FEATURES` features on both sides it is one matrix product of
-  the input's patches instead, taps and features first: (kh kw C, N Ho Wo) @ (N Ho Wo, O).
-  Measured on 2 vCPUs (Intel, AVX-512): CoMoDa's step (depth and pose networks, batch 4) 3075-3098
-  -> 2794-2837 ms/frame at 640x192; with one image or fewer features the copy of the patches
-  cost more than the product saved (the ActMAD step, batch 1, was 2% slower). An input of at
-  most `PATCHES_MAX_INPUT_FEATURES` features (the encoders' first 7x7 stride-2 convolution of
-  the image, or of two stacked images in the pose encoder) takes the patches at any batch: as
-  a convolution its "features" are the batch images and its kernel the whole 96x320 cotangent,
-  which XLA:CPU ran at 2-20 GFLOP/s. Measured inside a loop on 2 vCPUs (Intel, AVX-512),
-  convolution vs patches, ms: 3 -> 64 features at 640x192, batch 1 26 vs 20, batch 4 219 vs
-  85, batch 8 229 vs 241; 6 -> 64 batch 1 52 vs 36, batch 4 425 vs 156, batch 8 420 vs 327
-  (PyTorch's oneDNN kernel gradient of the same: 5, 19, 55; 20, 84, 174). A batch of at least
-  `PATCHES_MIN_BATCH` images whose input has at least `PATCHES_MIN_FEATURES` features and whose
-  output has fewer (the decoder's wide, shallow layers: `upconv_1_1`, 96 -> 32 at 322x98) is one
-  convolution per image, summed: as one convolution its batch of 4 is the "features" of a
-  4 -> 32 convolution, 729 ms inside a loop at batch 4, per image 321 ms (PyTorch 91;
-  `benchmarks/kernel_grad.py`); CoMoDa's step at 640x192 (batch 4),
-  interleaved in one process (two runs, 4 and 6 rounds): wall best 5222 -> 5055 and 4891 -> 4643
-  ms/frame, median 5409 -> 5235 and 4956 -> 4854, CPU best 9670 -> 9577 and 9160 -> 8784.
-  Same sums, in another order (float rounding).
+  A convolution of x (features <-> batch swapped: (C, H, W, N)) with g as an HWIO kernel
+  (Ho, Wo, N, O), window stride d and kernel dilation s, the rows past the kernel's extent (the
+  forward convolution's unused trailing input) cut off (`kernel_grad_conv`). For a single image
+  with at most `PATCHES_MAX_INPUT_FEATURES` input features (the encoders' 7x7 stride-2
+  convolution of the image, or of two stacked images in the pose encoder) it is one matrix
+  product of the input's patches instead (`kernel_grad_patches`): as a convolution its
+  "features" are the one image and its kernel the whole 96x320 cotangent. Measured inside a
+  compiled loop at 640x192 on 2 vCPUs (Intel, AVX-512; `benchmarks/kernel_grad.py`, README,
+  Performance, 2026-12-05), best ms, convolution vs patches, batch 1: 3 -> 64 features 16.0 vs
+  11.7 (XLA's default library) and 18.1 vs 11.6 (Eigen's), 6 -> 64 30.6 vs 22.2 and 32.5 vs 21.5.
+
+  At batch 4 the convolution form is the fastest on Eigen's library for every layer shape of
+  MonoDepth2 (3 -> 64: 31 ms against 50 for the patches; 64 -> 64 at 160x48: 22 against 48;
+  96 -> 32 at 322x98: 76 against 423), though not on XLA's default one (66 against 48 for
+  64 -> 64, 405 for 96 -> 32, where one convolution per image took 206). The only step that
+  takes kernel gradients of a batch is CoMoDa's (1 + 3 replay images), and `auto` compiles it
+  with Eigen's convolutions (`Method.cpu_conv_library`): on that machine its step took 2524
+  ms/frame this way against 3077 with XLA's default library and the patch and per-image forms
+  this function used for batches before (interleaved, 4 rounds); on a 2-core AMD EPYC (Zen 3)
+  3786 against 3966 (5 rounds). Same sums, in another order (float rounding).
   """
-  n, o, c = g.shape[0], g.shape[3], x.shape[3]
   args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
-  batched = n >= PATCHES_MIN_BATCH
-  if c <= PATCHES_MAX_INPUT_FEATURES or (batched and min(c, o) >= PATCHES_MIN_FEATURES):
+  if g.shape[0] == 1 and x.shape[3] <= PATCHES_MAX_INPUT_FEATURES:
     return kernel_grad_patches(*args)
-  if batched and c >= PATCHES_MIN_FEATURES > o:
-    return kernel_grad_per_image(*args)
   return kernel_grad_conv(*args)
 
 
@@ -208,14 +196,6 @@ def kernel_grad_conv(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
                                 rhs_dilation, padding, None, strides, NHWC_HWIO,
                                 precision=precision)                  # (C, >= kh, >= kw, O)
   return jnp.transpose(dk[:, :kh, :kw], (1, 2, 0, 3))
-
-
-def kernel_grad_per_image(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
-                          strides: tuple[int, int], padding: Pairs,
-                          rhs_dilation: tuple[int, int], precision: Any = None) -> jax.Array:
-  """`_kernel_grad` as the sum over the batch of `kernel_grad_conv` of one image each."""
-  return sum(kernel_grad_conv(x[i:i + 1], g[i:i + 1], kernel_size, strides, padding,
-                              rhs_dilation, precision) for i in range(x.shape[0]))
 
 
 def kernel_grad_patches(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
