@@ -8,6 +8,7 @@ lower part of the image, moving a pixel per frame. The same frames feed the JAX 
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import os
@@ -21,6 +22,8 @@ import jax
 import numpy as np
 
 from pitta_jax.adapt.engine import StepInput
+from pitta_jax.adapt.xla_cpu import conv_library_options
+from pitta_jax.models import conv_vjp
 from pitta_jax.models.depth_decoder import DepthNet
 from pitta_jax.models.random_init import jit_init
 from pitta_jax.models.random_init import random_monodepth2_variables as jax_variables  # noqa: F401
@@ -215,6 +218,58 @@ def median_time(fn: Callable[[], object], reps: int) -> tuple[float, float]:
     fn()
     times.append(time.perf_counter() - t0)
   return float(np.median(times)), float(np.min(times))
+
+
+# XLA:CPU's two convolution libraries as per-program compiler options, for the per-layer
+# benchmarks (`kernel_grad.py`, `conv_forward.py`)
+CONV_LIBRARY_OPTIONS: dict[str, Callable[[], dict | None]] = {
+    "default": lambda: None, "eigen": lambda: conv_library_options("eigen", True, "cpu")}
+
+
+def per_image_kernel_grad(x: jax.Array, g: jax.Array, *conv_args) -> jax.Array:
+  """A convolution's kernel gradient as the sum over the batch of `conv_vjp.kernel_grad_conv`
+  of one image each (x: (N, H, W, C), g: (N, Ho, Wo, O); `conv_args`: kernel size, strides,
+  padding, kernel dilation[, precision]): what `conv_vjp` used for the decoder's wide, shallow
+  layers at batch >= 2 until 2026-12-05, kept for comparisons."""
+  return sum(conv_vjp.kernel_grad_conv(x[i:i + 1], g[i:i + 1], *conv_args)
+             for i in range(x.shape[0]))
+
+
+def add_per_layer_args(parser: argparse.ArgumentParser, layers, forms, libraries, *,
+                       default_libraries: str, loops: int, reps: int, per_loop: str) -> None:
+  """The options the per-layer benchmarks share (`kernel_grad.py`, `conv_forward.py`): which
+  layers, JAX forms and XLA:CPU libraries to time, loop length, timed runs, PyTorch threads."""
+  parser.add_argument("--layers", default=",".join(layers),
+                      help="comma-separated, of: " + ", ".join(layers))
+  parser.add_argument("--forms", default=",".join(forms),
+                      help="comma-separated JAX forms, of: " + ", ".join(forms))
+  parser.add_argument("--libraries", default=default_libraries,
+                      help="comma-separated XLA:CPU convolution libraries to compile each form "
+                           "with, of: " + ", ".join(libraries))
+  parser.add_argument("--loops", type=int, default=loops, help=f"{per_loop} per compiled loop")
+  parser.add_argument("--reps", type=int, default=reps,
+                      help="timed runs per form (best reported)")
+  parser.add_argument("--threads", type=int, default=os.cpu_count(), help="PyTorch threads")
+
+
+def parse_per_layer_args(parser: argparse.ArgumentParser, argv, layers, forms, libraries
+                         ) -> tuple[argparse.Namespace, list[str], list[str], list[str]]:
+  """Parses `argv` with the options of `add_per_layer_args` and checks them before any work:
+  (args, layers, forms, libraries), or `parser.error` (one line naming the flag, exit 2) on an
+  unknown name or on libraries other than XLA's default on a backend other than XLA:CPU."""
+  args = parser.parse_args(argv)
+  chosen = []
+  for flag, value, known in (("--layers", args.layers, layers), ("--forms", args.forms, forms),
+                             ("--libraries", args.libraries, libraries)):
+    names = value.split(",")
+    unknown = [n for n in names if n not in known]
+    if unknown:
+      parser.error(f"{flag}: unknown {unknown}; of {', '.join(known)}")
+    chosen.append(names)
+  if jax.default_backend() != "cpu" and chosen[2] != ["default"]:
+    parser.error("--libraries: the convolution libraries are XLA:CPU's; this backend is "
+                 + jax.default_backend())
+  return args, *chosen
 
 
 def load() -> list[float]:

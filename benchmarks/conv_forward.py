@@ -22,7 +22,6 @@ ms of `--reps` runs per form, its GFLOP/s, and the load average.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -35,7 +34,6 @@ import torch  # noqa: E402
 from jax import lax  # noqa: E402
 
 import bench_common as bc  # noqa: E402
-from pitta_jax.adapt.xla_cpu import conv_library_options  # noqa: E402
 
 # name: (H, W, C) of the layer's input at 640x192; every layer maps C -> C features
 LAYERS = {
@@ -45,7 +43,7 @@ LAYERS = {
     "layer4": (6, 20, 512),    # the last stage (conv_vjp's patches product)
     "upconv_1": (96, 320, 32),
 }
-LIBRARIES = {"default": lambda: None, "eigen": lambda: conv_library_options("eigen", False, "cpu")}
+LIBRARIES = bc.CONV_LIBRARY_OPTIONS
 
 
 def _shifted(x: jax.Array) -> list[jax.Array]:
@@ -102,26 +100,9 @@ def time_torch(x, k, loops: int, reps: int, channels_last: bool) -> float:
 
 def main(argv=None) -> None:
   ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-  ap.add_argument("--layers", default=",".join(LAYERS), help="comma-separated, of: "
-                  + ", ".join(LAYERS))
-  ap.add_argument("--forms", default=",".join(FORMS), help="comma-separated, of: "
-                  + ", ".join(FORMS))
-  ap.add_argument("--libraries", default="default,eigen", help="comma-separated XLA:CPU "
-                  "convolution libraries, of: " + ", ".join(LIBRARIES))
-  ap.add_argument("--loops", type=int, default=10, help="convolutions per compiled loop")
-  ap.add_argument("--reps", type=int, default=5, help="timed runs per form (best reported)")
-  ap.add_argument("--threads", type=int, default=os.cpu_count(), help="PyTorch threads")
-  args = ap.parse_args(argv)
-  layers, forms, libraries = (args.layers.split(","), args.forms.split(","),
-                              args.libraries.split(","))
-  for flag, names, known in (("--layers", layers, LAYERS), ("--forms", forms, FORMS),
-                             ("--libraries", libraries, LIBRARIES)):
-    unknown = [n for n in names if n not in known]
-    if unknown:
-      ap.error(f"{flag}: unknown {unknown}; of {', '.join(known)}")
-  if jax.default_backend() != "cpu" and libraries != ["default"]:
-    ap.error("--libraries: the convolution libraries are XLA:CPU's; this backend is "
-             + jax.default_backend())
+  bc.add_per_layer_args(ap, LAYERS, FORMS, LIBRARIES, default_libraries="default,eigen",
+                        loops=10, reps=5, per_loop="convolutions")
+  args, layers, forms, libraries = bc.parse_per_layer_args(ap, argv, LAYERS, FORMS, LIBRARIES)
   torch.set_num_threads(args.threads)
   rng = np.random.default_rng(0)
   for name in layers:

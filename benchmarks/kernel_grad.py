@@ -34,7 +34,6 @@ the best ms of `--reps` runs per form, the GFLOP of the contraction, and the loa
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -47,7 +46,6 @@ import torch  # noqa: E402
 from jax import lax  # noqa: E402
 
 import bench_common as bc  # noqa: E402
-from pitta_jax.adapt.xla_cpu import conv_library_options  # noqa: E402
 from pitta_jax.models import conv_vjp  # noqa: E402
 
 # name: (H, W, C, O, kernel, stride, padding) of the input x before padding, at 640x192.
@@ -72,7 +70,7 @@ def _patches_form(x, g, k, s, p):
 
 
 def _per_image_form(x, g, k, s, p):
-  return sum(_conv_form(x[i:i + 1], g[i:i + 1], k, s, p) for i in range(x.shape[0]))
+  return bc.per_image_kernel_grad(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
 
 
 def _model_form(x, g, k, s, p):
@@ -85,9 +83,8 @@ FORMS = {"model": _model_form, "conv": _conv_form, "patches": _patches_form,
 # XLA:CPU's oneDNN switches (flags of jaxlib 0.10's XLA; they act only where XLA was built with
 # oneDNN, i.e. with INTEL_MKL)
 ONEDNN_OPTIONS = {"xla_cpu_use_onednn": True, "xla_cpu_experimental_onednn_custom_call": True}
-LIBRARIES = {"default": lambda: None,
-             "eigen": lambda: conv_library_options("eigen", True, "cpu"),
-             "onednn": lambda: {**conv_library_options("eigen", True, "cpu"), **ONEDNN_OPTIONS}}
+LIBRARIES = {**bc.CONV_LIBRARY_OPTIONS,
+             "onednn": lambda: {**bc.CONV_LIBRARY_OPTIONS["eigen"](), **ONEDNN_OPTIONS}}
 
 
 def time_jax(form, x, g, k, s, p, loops: int, reps: int, compiler_options: dict | None = None
@@ -118,27 +115,9 @@ def time_torch(x, g, k, s, p, reps: int) -> float:
 def main(argv=None) -> None:
   ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   ap.add_argument("--batch", default="1,4", help="comma-separated batch sizes (default 1,4)")
-  ap.add_argument("--layers", default=",".join(LAYERS), help="comma-separated, of: "
-                  + ", ".join(LAYERS))
-  ap.add_argument("--forms", default=",".join(FORMS), help="comma-separated JAX forms")
-  ap.add_argument("--libraries", default="default", help="comma-separated XLA:CPU convolution "
-                  "libraries to compile each form with, of: " + ", ".join(LIBRARIES))
-  ap.add_argument("--loops", type=int, default=3, help="kernel gradients per compiled loop")
-  ap.add_argument("--reps", type=int, default=3, help="timed runs per form (best reported)")
-  ap.add_argument("--threads", type=int, default=os.cpu_count(), help="PyTorch threads")
-  args = ap.parse_args(argv)
-  layers = args.layers.split(",")
-  forms = args.forms.split(",")
-  libraries = args.libraries.split(",")
-  for name in layers + forms:
-    if name not in LAYERS and name not in FORMS:
-      ap.error(f"unknown layer or form {name!r}")
-  for name in libraries:
-    if name not in LIBRARIES:
-      ap.error(f"--libraries: unknown {name!r}; of {', '.join(LIBRARIES)}")
-  if jax.default_backend() != "cpu" and libraries != ["default"]:
-    ap.error("--libraries: the convolution libraries are XLA:CPU's; this backend is "
-             + jax.default_backend())
+  bc.add_per_layer_args(ap, LAYERS, FORMS, LIBRARIES, default_libraries="default", loops=3,
+                        reps=3, per_loop="kernel gradients")
+  args, layers, forms, libraries = bc.parse_per_layer_args(ap, argv, LAYERS, FORMS, LIBRARIES)
   torch.set_num_threads(args.threads)
   rng = np.random.default_rng(0)
   for n in (int(b) for b in args.batch.split(",")):

@@ -85,8 +85,7 @@ def batched_forms_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation
   if c <= conv_vjp.PATCHES_MAX_INPUT_FEATURES or (n >= 2 and min(c, o) >= 64):
     return conv_vjp.kernel_grad_patches(*args)
   if n >= 2 and c >= 64 > o:
-    return sum(conv_vjp.kernel_grad_conv(*(x[i:i + 1], g[i:i + 1], *args[2:]))
-               for i in range(n))
+    return bc.per_image_kernel_grad(*args)
   return conv_vjp.kernel_grad_conv(*args)
 
 

@@ -14,9 +14,9 @@ JAX's own transpose rule uses. The kernel gradient has the same problem (JAX's r
 convolution in swapped layouts; inside the loop a 3x3 64->64 kernel gradient at 32x48 took
 1.37 s for 4 frames instead of 0.023 s): it is written as a convolution of the input, features
 and batch swapped, with the cotangent as a canonical HWIO kernel, or, for the image input of a
-single frame, as a matrix product of the input's patches (`_kernel_grad`). Values and gradients are
-those of `lax.conv_general_dilated` (tests/test_conv_vjp.py). Flax's `nn.Conv` takes it through
-its `conv_general_dilated` attribute (`models.layers.Conv`).
+single frame, as a matrix product of the input's patches (`_kernel_grad`). Values and gradients
+are those of `lax.conv_general_dilated` (tests/test_conv_vjp.py). Flax's `nn.Conv` takes it
+through its `conv_general_dilated` attribute (`models.layers.Conv`).
 
 The forward of a stride-1 convolution to a single output feature (a disparity head) is a
 matrix product and a sum of shifted planes (`_single_output_conv`): XLA:CPU's convolution
@@ -176,9 +176,10 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   96 -> 32 at 322x98: 76 against 423), though not on XLA's default one (66 against 48 for
   64 -> 64, 405 for 96 -> 32, where one convolution per image took 206). The only step that
   takes kernel gradients of a batch is CoMoDa's (1 + 3 replay images), and `auto` compiles it
-  with Eigen's convolutions (`Method.cpu_conv_library`): on that machine its step took 2524
-  ms/frame this way against 3077 with XLA's default library and the patch and per-image forms
+  with Eigen's convolutions (`Method.cpu_conv_library`): on that machine its step took 2742
+  ms/frame this way against 3622 with XLA's default library and the patch and per-image forms
   this function used for batches before (interleaved, 4 rounds); on a 2-core AMD EPYC (Zen 3)
+  a close variant (Eigen, the convolution form but the patches for the first convolutions)
   3786 against 3966 (5 rounds). Same sums, in another order (float rounding).
   """
   args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
