@@ -30,8 +30,10 @@ agree), and the load average before and after.
 
 `--compare-conv-rule`, `--compare-conv-library` and `--compare-kernel-grads` time variants of
 the JAX step against each other in the same interleaved way (one `check` line each: median and
-best ms per frame, ratios, compile seconds, first losses' difference); `--compare-only` skips
-the PyTorch comparison.
+best ms per frame, ratios, compile seconds, first losses' difference);
+`--compare-torch-optimizers` does the same for the PyTorch eager step with fused optimiser
+kernels (the references' default, `torch_reference.FUSED_OPTIMIZERS`) and with PyTorch's default
+for-loop ones; `--compare-only` skips the JAX vs PyTorch comparison.
 
 With `--profile` (PITTA): XLA's FLOP count of the step (`cost_analysis`), a FLOP floor at this
 machine's measured matmul/conv rate, and the time of the parts (network forward only, forward +
@@ -155,10 +157,11 @@ class TorchImpl:
 
 
 def torch_impl(impl: str, method: str, configs, resources: dict, height_width: tuple[int, int],
-               seed: int = 0):
+               seed: int = 0, fused: bool = tr.FUSED_OPTIMIZERS):
   """The PyTorch implementation `impl` of `method` with the JAX side's (AdaptConfig, method
   config) on fresh copies of the benchmark weights, or None when torch_reference has no step
-  for the method (or this variant of it)."""
+  for the method (or this variant of it). fused: PyTorch's fused optimiser kernels, else the
+  for-loop implementation (PyTorch's default on CPU)."""
   make = tr.TORCH_STEPS.get(method)
   if make is None or (impl != "torch-eager" and method != "pitta"):
     return None
@@ -178,7 +181,7 @@ def torch_impl(impl: str, method: str, configs, resources: dict, height_width: t
                                                       tr.to_input(b.image)[0]])
                                          for a, b in zip(source[:-1], source[1:])])
   return TorchImpl(make(enc, dec, configs[1], lr=configs[0].lr, memory_format=fmt,
-                        compile=impl == "torch-compile", **extra), fmt)
+                        compile=impl == "torch-compile", fused=fused, **extra), fmt)
 
 
 def time_interleaved(impls: dict, jax_chunk: StepInput, frames: list[bc.BenchFrame],
@@ -368,6 +371,39 @@ def compare_jax(method: str, variants: dict[str, dict], what: str, variables, ar
            "load": load, "load_end": bc.load()})
 
 
+def compare_torch_optimizers(method: str, variables, args, common) -> None:
+  """The method's PyTorch eager step with fused optimiser kernels and with PyTorch's default
+  for-loop ones (CPU), interleaved: what `torch_reference.FUSED_OPTIMIZERS` is worth."""
+  frames, configs, resources, _ = method_inputs(method, args.instances, variables, args)
+  frames = frames[:args.frames]
+  impls, losses = {}, {}
+  for name, fused in (("fused", True), ("for-loop", False)):
+    impls[name] = torch_impl("torch-eager", method, configs, resources,
+                             (args.height, args.width), fused=fused)
+    if impls[name] is None:
+      bc.emit({"check": "PyTorch optimisers", "method": method, "skipped": "no PyTorch step"})
+      return
+    losses[name] = np.asarray(impls[name].first(frames))
+  load = bc.load()
+  times = {name: [] for name in impls}
+  for r in range(args.reps):
+    for name in list(impls)[r % 2:] + list(impls)[:r % 2]:
+      t0 = time.perf_counter()
+      impls[name].chunk(frames)
+      times[name].append(1e3 * (time.perf_counter() - t0) / len(frames))
+  med = {name: float(np.median(t)) for name, t in times.items()}
+  bc.emit({"check": "PyTorch optimisers", "method": method, **common,
+           "instances": args.instances, "ms_per_frame": med,
+           "min_ms_per_frame": {n: float(np.min(t)) for n, t in times.items()},
+           "ratio_for-loop_vs_fused": med["for-loop"] / med["fused"],
+           # NaN where both are NaN (Ada-Depth's SILog at S = E = R, as upstream's) counts as 0
+           "max_rel_loss_diff": float(np.nanmax(np.abs(losses["for-loop"] - losses["fused"]))
+                                      / max(np.nanmax(np.abs(losses["fused"])), 1e-30)),
+           "same_nan_losses": bool(np.array_equal(np.isnan(losses["for-loop"]),
+                                                  np.isnan(losses["fused"]))),
+           "load": load, "load_end": bc.load()})
+
+
 def compile_parts(method: str, n: int, variables, args, common) -> None:
   """Where a step's compile goes: JAX's trace and lowering, then XLA's compile."""
   _, configs, resources, chunk = method_inputs(method, n, variables, args)
@@ -425,9 +461,13 @@ def main(argv=None) -> None:
                       "(models.conv_vjp), and XLA's default library with the batched forms "
                       "conv_vjp used until 2026-12-05 (patches products and per-image "
                       "convolutions at batch >= 2)")
+  p.add_argument("--compare-torch-optimizers", action="store_true",
+                 help="also time the method's PyTorch eager step with fused optimiser kernels "
+                      "(the references' default) and with PyTorch's default for-loop ones, "
+                      "interleaved, and print the ratio")
   p.add_argument("--compare-only", action="store_true",
-                 help="with --compare-conv-rule/--compare-conv-library/--compare-kernel-grads: "
-                      "skip the JAX vs PyTorch timing")
+                 help="with --compare-conv-rule/--compare-conv-library/--compare-kernel-grads/"
+                      "--compare-torch-optimizers: skip the JAX vs PyTorch timing")
   args = p.parse_args(argv)
   if args.frames is None:
     args.frames = DEFAULT_FRAMES.get(args.method, 8)
@@ -471,6 +511,8 @@ def main(argv=None) -> None:
         "default+model": {"conv_library": "default"},
         "eigen+model": {"conv_library": "eigen"}},
         "XLA:CPU convolution library and kernel-gradient forms", variables, args, common)
+  if args.compare_torch_optimizers:
+    compare_torch_optimizers(args.method, variables, args, common)
   if args.profile and args.method == "pitta":
     n = sweep[0]
     frames = bc.synthetic_frames(1, args.height, args.width, n, seed=1)
