@@ -210,6 +210,27 @@ def timed_chunks(runner, state, chunk, consts, reps: int):
   return first_s, first_outs, med, best, holder[0]
 
 
+def interleaved_ms(runs: dict[str, Callable[[], object]], reps: int,
+                   units: int | dict[str, int] = 1
+                   ) -> tuple[dict[str, list[float]], dict[str, list[float]]]:
+  """`reps` rounds of one call of each of `runs` (each must block until its work is done), the
+  order rotated every round so that a shared machine's load drifts over all of them alike.
+
+  units: what one call does (frames, updates), for all or per name. Returns (wall, cpu): by
+  name, the ms per unit of each call, wall-clock and the process's CPU time (all threads)."""
+  names = list(runs)
+  wall: dict[str, list[float]] = {n: [] for n in names}
+  cpu: dict[str, list[float]] = {n: [] for n in names}
+  for r in range(reps):
+    for n in names[r % len(names):] + names[:r % len(names)]:
+      count = units[n] if isinstance(units, dict) else units
+      c0, t0 = time.process_time(), time.perf_counter()
+      runs[n]()
+      wall[n].append(1e3 * (time.perf_counter() - t0) / count)
+      cpu[n].append(1e3 * (time.process_time() - c0) / count)
+  return wall, cpu
+
+
 def median_time(fn: Callable[[], object], reps: int) -> tuple[float, float]:
   """(median, min) wall seconds of `fn()` over `reps` calls; fn must block until done."""
   times = []

@@ -91,12 +91,12 @@ def main(argv=None) -> None:
     return AdaptState(copy, tx.init(copy), {}, {}, jnp.int32(0), jax.random.PRNGKey(0),
                       jnp.int32(0))
 
-  jax_runs = {}
+  compiled, states, compile_s = {}, {}, {}
   for name, guard in (("optax", False), ("optax+guard", True)):
     t0 = time.perf_counter()
-    compiled = jax_update(tx, guard, args.steps).lower(fresh_state(), grads).compile()
-    jax_runs[name] = (compiled, fresh_state(), time.perf_counter() - t0)
-  holders = {name: [state] for name, (_, state, _) in jax_runs.items()}
+    compiled[name] = jax_update(tx, guard, args.steps).lower(fresh_state(), grads).compile()
+    compile_s[name] = round(time.perf_counter() - t0, 2)
+    states[name] = fresh_state()
 
   torch_opts = {}
   for name, kw in TORCH_VARIANTS.items():
@@ -106,33 +106,26 @@ def main(argv=None) -> None:
     torch_opts[name] = torch.optim.Adam(ps, lr=args.lr, **kw)
 
   def run_jax(name):
-    compiled = jax_runs[name][0]
-    holders[name][0] = compiled(holders[name][0], grads)
-    jax.block_until_ready(holders[name][0])
+    states[name] = compiled[name](states[name], grads)
+    jax.block_until_ready(states[name])
 
   def run_torch(name):
     for _ in range(args.steps):
       torch_opts[name].step()
 
-  impls = {**{k: (lambda k=k: run_jax(k)) for k in jax_runs},
+  impls = {**{k: (lambda k=k: run_jax(k)) for k in compiled},
            **{k: (lambda k=k: run_torch(k)) for k in torch_opts}}
   for fn in impls.values():  # warm-up: first steps, allocations
     fn()
   load = bc.load()
-  times = {k: [] for k in impls}
-  names = list(impls)
-  for r in range(args.reps):
-    for k in names[r % len(names):] + names[:r % len(names)]:
-      t0 = time.perf_counter()
-      impls[k]()
-      times[k].append(1e3 * (time.perf_counter() - t0) / args.steps)
+  times, _ = bc.interleaved_ms(impls, args.reps, args.steps)
   med = {k: round(float(np.median(t)), 2) for k, t in times.items()}
   bc.emit({"bench": "optimizer", "tree": args.tree, "parameters": n, "leaves": len(leaves),
            "steps": args.steps, "reps": args.reps, "threads": args.threads,
            "device": jax.devices()[0].platform, "ms_per_update": med,
            "min_ms_per_update": {k: round(float(np.min(t)), 2) for k, t in times.items()},
            "ratio_vs_torch-fused": {k: round(med[k] / med["torch-fused"], 2) for k in med},
-           "jax_compile_s": {k: round(v[2], 2) for k, v in jax_runs.items()},
+           "jax_compile_s": compile_s,
            "load": load, "load_end": bc.load()})
 
 

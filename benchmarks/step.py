@@ -188,15 +188,9 @@ def time_interleaved(impls: dict, jax_chunk: StepInput, frames: list[bc.BenchFra
                      reps: int) -> dict[str, dict]:
   """`reps` rounds of one chunk per implementation, order rotated each round."""
   names = list(impls)
-  wall = {n: [] for n in names}
-  cpu = {n: [] for n in names}
-  for r in range(reps):
-    for n in names[r % len(names):] + names[:r % len(names)]:
-      count = len(jax_chunk.valid) if n == "jax" else len(frames)
-      c0, t0 = time.process_time(), time.perf_counter()
-      impls[n].chunk(jax_chunk if n == "jax" else frames)
-      wall[n].append(1e3 * (time.perf_counter() - t0) / count)
-      cpu[n].append(1e3 * (time.process_time() - c0) / count)
+  wall, cpu = bc.interleaved_ms(
+      {n: (lambda n=n: impls[n].chunk(jax_chunk if n == "jax" else frames)) for n in names}, reps,
+      {n: len(jax_chunk.valid) if n == "jax" else len(frames) for n in names})
   return {n: {"ms_per_frame": float(np.median(wall[n])), "min_ms_per_frame": float(np.min(wall[n])),
               "cpu_ms_per_frame": float(np.median(cpu[n]))} for n in names}
 
@@ -352,12 +346,8 @@ def compare_jax(method: str, variants: dict[str, dict], what: str, variables, ar
     losses[name] = np.asarray(impls[name].first(chunk))
     compile_s[name] = round(impls[name].compile_s, 2)
   load = bc.load()
-  times = {name: [] for name in variants}
-  for r in range(args.reps):
-    for name in list(variants)[r % len(variants):] + list(variants)[:r % len(variants)]:
-      t0 = time.perf_counter()
-      impls[name].chunk(chunk)
-      times[name].append(1e3 * (time.perf_counter() - t0) / len(chunk.valid))
+  times, _ = bc.interleaved_ms({name: (lambda name=name: impls[name].chunk(chunk))
+                                for name in variants}, args.reps, len(chunk.valid))
   med = {name: float(np.median(t)) for name, t in times.items()}
   first, *rest = variants
   bc.emit({"check": what, "method": method, **common, "instances": args.instances,
@@ -385,12 +375,8 @@ def compare_torch_optimizers(method: str, variables, args, common) -> None:
       return
     losses[name] = np.asarray(impls[name].first(frames))
   load = bc.load()
-  times = {name: [] for name in impls}
-  for r in range(args.reps):
-    for name in list(impls)[r % 2:] + list(impls)[:r % 2]:
-      t0 = time.perf_counter()
-      impls[name].chunk(frames)
-      times[name].append(1e3 * (time.perf_counter() - t0) / len(frames))
+  times, _ = bc.interleaved_ms({name: (lambda name=name: impls[name].chunk(frames))
+                                for name in impls}, args.reps, len(frames))
   med = {name: float(np.median(t)) for name, t in times.items()}
   bc.emit({"check": "PyTorch optimisers", "method": method, **common,
            "instances": args.instances, "ms_per_frame": med,
