@@ -127,13 +127,74 @@ def check_aspect(frame: Frame, tolerance: float = 0.01) -> None:
                                            f"cannot be resized onto it")
 
 
-def _latest_checkpoint(directory: Path) -> Path | None:
-  """The newest `state_NNNNNN` under `directory` that has its results sidecar, or None."""
+CHECKPOINT_PATTERN = "state_[0-9][0-9][0-9][0-9][0-9][0-9]"
+
+
+def run_fingerprint(weights: Weights, method: Method, cfg: AdaptConfig, eval_cfg: EvalConfig,
+                    names: Sequence[str]) -> str:
+  """A digest of everything that decides a run's results: the network (spec, model.json, the
+  parameter values), the method and its config, the run's and the evaluation's configs, and the
+  frames' names in order. A checkpoint carries it, so that a resume continues only its own run."""
+  import hashlib
+  import jax
+  digest = hashlib.sha256()
+  text = json.dumps({"network": weights.spec.name, "config": weights.config,
+                     "method": method.name, "method_config": repr(method.config),
+                     "adapt": repr(cfg), "eval": repr(eval_cfg), "frames": list(names)},
+                    sort_keys=True, default=str)
+  digest.update(text.encode())
+  for leaf in jax.tree_util.tree_leaves(weights.depth):
+    digest.update(np.ascontiguousarray(leaf).tobytes())
+  return digest.hexdigest()[:32]
+
+
+def _frame_names(frames: Sequence[Frame]) -> list[str]:
+  """The frames' names, without reading a lazily loaded sequence."""
+  names = getattr(frames, "names", None)
+  return list(names) if names is not None else [frame.name for frame in frames]
+
+
+def _resume_point(directory: Path, fingerprint: str, names: Sequence[str]
+                  ) -> tuple[Path, dict] | None:
+  """The newest `state_NNNNNN` under `directory` whose results sidecar is readable and says it
+  belongs to this run (`run_fingerprint`, and its frames are the first of `names`), with that
+  sidecar; None when there is no checkpoint. DataError when there are checkpoints but none of
+  this run (another run's: other frames, weights or settings)."""
   if not directory.is_dir():
     return None
-  done = sorted(p for p in directory.glob("state_[0-9][0-9][0-9][0-9][0-9][0-9]")
-                if (p.parent / f"{p.name}.json").is_file())
-  return done[-1] if done else None
+  others = 0
+  for path in sorted(directory.glob(CHECKPOINT_PATTERN), reverse=True):
+    sidecar = path.parent / f"{path.name}.json"
+    if not sidecar.is_file():
+      continue  # killed between the state and its sidecar: never used
+    try:
+      record = json.loads(sidecar.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+      others += 1  # unreadable: an older checkpoint may still be good
+      continue
+    done = record.get("names") if isinstance(record, dict) else None
+    if (record.get("fingerprint") if isinstance(record, dict) else None) != fingerprint or \
+        not isinstance(done, list) or done != list(names[:len(done)]):
+      others += 1
+      continue
+    return path, record
+  if others:
+    raise DataError(directory, f"{others} checkpoint(s) here, none of this run (another run's "
+                               "frames, weights or settings, or unreadable): resume with the "
+                               "interrupted run's command, or run without --resume to start "
+                               "afresh")
+  return None
+
+
+def _clear_checkpoints(directory: Path) -> None:
+  """Removes the checkpoints a previous run left under `directory` (a fresh run's first step:
+  they would otherwise mix with its own)."""
+  import shutil
+  if not directory.is_dir():
+    return
+  for path in directory.glob(CHECKPOINT_PATTERN):
+    (path.parent / f"{path.name}.json").unlink(missing_ok=True)  # sidecar first: never a
+    shutil.rmtree(path) if path.is_dir() else path.unlink()      # sidecar without its state
 
 
 def _save_checkpoint(directory: Path, state, record: dict) -> None:
@@ -187,16 +248,19 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   alignment = weights.spec.alignment if eval_cfg.alignment == "model" else eval_cfg.alignment
   state, consts = init_state(weights.depth, method, cfg, tx, model,
                              {INPUT_SIZE: (h, w), **(resources or {})})
-  record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
-            "logs": {}}
   directory = Path(checkpoint_dir) if checkpoint_dir else None
-  if resume and directory is not None:
-    latest = _latest_checkpoint(directory)
-    if latest is not None:
-      state = load_state(latest, like=state)
-      sidecar = json.loads((latest.parent / f"{latest.name}.json").read_text())
-      record = {"nonfinite_indices": [], **sidecar}
+  fingerprint = None if directory is None else run_fingerprint(weights, method, cfg, eval_cfg,
+                                                               _frame_names(frames))
+  record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
+            "logs": {}, "fingerprint": fingerprint}
+  if directory is not None and resume:
+    found = _resume_point(directory, fingerprint, _frame_names(frames))
+    if found is not None:
+      state = load_state(found[0], like=state)
+      record = {"nonfinite_indices": [], **found[1]}
       frames = frames[int(state.step):]
+  elif directory is not None:
+    _clear_checkpoints(directory)
   start = int(state.step)
   kept: dict[int, np.ndarray] = {}
   keep = set(keep)

@@ -177,6 +177,26 @@ def test_kill_then_resume_equals_an_uninterrupted_run(tiny_weights, tmp_path):
   assert resumed["rows"][0]["metrics"] == full["rows"][0]["metrics"]
 
 
+def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, capsys):
+  """A checkpoint carries its run's fingerprint (frames, weights, settings): --resume refuses
+  another run's with one line (exit 2), and a fresh run clears the checkpoints it finds."""
+  out = tmp_path / "out"
+  ckpt = out / "checkpoints"
+  assert main(_adapt_args(tiny_weights, out)) == 0  # N frames: checkpoints at 2, 4, 6
+  assert sorted(p.name for p in ckpt.glob("state_??????")) == [
+      f"state_{k:06d}" for k in range(K, N + 1, K)]
+  fewer = ["--option", f"num_frames={N - K}"]  # the same first frames, another sequence
+  capsys.readouterr()
+  assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 2
+  err = capsys.readouterr().err.strip()
+  assert len(err.splitlines()) == 1 and str(ckpt) in err and "none of this run" in err
+  assert main(_adapt_args(tiny_weights, out, *fewer)) == 0  # fresh: the old ones go
+  assert sorted(p.name for p in ckpt.glob("state_*")) == [
+      f"state_{k:06d}{ext}" for k in range(K, N - K + 1, K) for ext in ("", ".json")]
+  assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
+  assert json.loads((out / "results.json").read_text())["resumed_at_frame"] == N - K
+
+
 def test_garbage_in_readers_is_refused(tmp_path):
   from pitta_jax.data.errors import DataError
   from pitta_jax.data.folder import open_folder
