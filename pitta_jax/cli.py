@@ -379,7 +379,8 @@ def _run_source_stats(args) -> int:
   weights = load_weights(args.weights)
   shapes = layer_shapes(weights, cfg.layers)
   if not shapes:
-    raise ValueError(f"--layers {cfg.layers!r} matches no module of the {weights.spec.name}")
+    raise ValueError(f"--layers {cfg.layers!r} matches no module of the {weights.spec.name} "
+                     "whose output is one feature map")
   source = SourceData(images)
   stats = build("actmad", cfg).prepare(weights.network(), weights.depth, source)[RESOURCE]
   save_source_stats(args.out, stats, weights, cfg.layers, len(images))

@@ -128,6 +128,20 @@ def test_adapt_with_mismatching_file_fails_in_one_line(written, tmp_path, capsys
   assert not (tmp_path / "x.npz").exists()
 
 
+def test_layers_matching_only_modules_with_several_outputs_fail_in_one_line(written, tmp_path,
+                                                                            capsys):
+  """`encoder` and `decoder` return several maps (no statistics of their own) and a pattern
+  matching only them is refused before any work, as a pattern matching nothing."""
+  root, _, _, _, _ = written
+  for layers in ("decoder", "encoder", "nothing"):
+    assert main(["source-stats", "--weights", str(root / "weights"), "--images",
+                 str(root / "src" / "*" / "*.png"), "--layers", layers, "--out",
+                 str(tmp_path / "x.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--layers {layers!r} matches no module" in err, err
+  assert not (tmp_path / "x.npz").exists()
+
+
 def test_synthetic_statistics_are_cached(written, tmp_path, monkeypatch):
   root = written[0]
   weights = load_weights(root / "weights")

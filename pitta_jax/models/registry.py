@@ -56,7 +56,9 @@ class Network:
   def capture(self, variables: Any, images: jax.Array, use_batch_stats: bool,
               pattern: str) -> tuple[tuple, dict[str, jax.Array]]:
     """The outputs and the output of every submodule whose `/`-joined path matches `pattern`
-    (a regular expression, e.g. r"encoder/.*bn\\d*$"), keyed by path, in call order."""
+    (a regular expression, e.g. r"encoder/.*bn\\d*$") and whose output is one array (a feature
+    map; a module returning several, e.g. the whole encoder's list of features, is skipped),
+    keyed by path, in call order."""
     rx = re.compile(pattern)
 
     def keep(module: nn.Module, method_name: str) -> bool:
@@ -65,7 +67,8 @@ class Network:
     out, state = self.module.apply(variables, images, train=use_batch_stats,
                                    capture_intermediates=keep, mutable=["intermediates"])
     flat = flatten_dict(state.get("intermediates", {}), sep="/")
-    return out, {k[: -len("/__call__")]: v[0] for k, v in flat.items()}
+    return out, {k[: -len("/__call__")]: v[0] for k, v in flat.items()
+                 if isinstance(v[0], jax.Array)}
 
   def forward_order(self) -> list[str]:
     """Module paths that own parameters, in forward (creation) order (fraction selector)."""
