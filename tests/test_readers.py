@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import os
 import pickle
 import zipfile
@@ -500,3 +501,34 @@ def test_kitti_intrinsics_from_calib_cam_to_cam(tmp_path):
                                                      [0, 721.5377, 172.854], [0, 0, 1]])
   with pytest.raises(DataError, match="P_rect_03"):
     read_cam_to_cam(p, 3)
+
+
+@pytest.mark.parametrize("values, message", [
+    ("nan 0 609 0 0 721 172 0 0 0 1 0", "non-finite"),
+    ("inf 0 609 0 0 721 172 0 0 0 1 0", "non-finite"),
+    ("0 0 0 0 0 0 0 0 0 0 0 0", "positive focal lengths"),
+    ("-721 0 609 0 0 721 172 0 0 0 1 0", "positive focal lengths"),
+    ("721 0 609 0 0 721 172 0 5 5 5 0", "pinhole camera matrix")])
+def test_camera_matrices_that_are_not_pinhole_are_refused(tmp_path, values, message):
+  """K is inverted by the methods that warp (CoMoDa, Ada-Depth): a calibration whose K is not
+  finite, has a focal length <= 0 or another bottom row than (0, 0, 1) is refused, naming the
+  file, in both formats."""
+  from pitta_jax.data.calib import read_calib_json
+  from pitta_jax.data.kitti import read_cam_to_cam
+  p = tmp_path / "calib_cam_to_cam.txt"
+  p.write_text(f"P_rect_02: {values}\n")
+  with pytest.raises(DataError, match=f"^{re.escape(str(p))}: .*{message}"):
+    read_cam_to_cam(p, 2)
+  K = np.array([float(v) for v in values.split()]).reshape(3, 4)[:, :3]
+  j = tmp_path / "calib.json"
+  j.write_text(json.dumps({"K": K.tolist(), "width": 8, "height": 6}))
+  with pytest.raises(DataError, match=f"^{re.escape(str(j))}: .*{message}"):
+    read_calib_json(j)
+
+
+def test_calib_json_sizes_must_be_integers_not_booleans(tmp_path):
+  from pitta_jax.data.calib import read_calib_json
+  j = tmp_path / "calib.json"
+  j.write_text(json.dumps({"K": np.eye(3).tolist(), "width": True, "height": 6}))
+  with pytest.raises(DataError, match="width and height must be positive integers"):
+    read_calib_json(j)

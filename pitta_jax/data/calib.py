@@ -35,6 +35,21 @@ class Calib:
     return None if self.width is None or self.height is None else (self.height, self.width)
 
 
+def check_intrinsics(K: np.ndarray, path: PathLike, what: str = "K") -> np.ndarray:
+  """K (3, 3) if it is a pinhole camera matrix: finite, focal lengths fx, fy > 0, no skew
+  requirement, bottom row (0, 0, 1); DataError naming the file otherwise (methods that warp
+  with K invert it)."""
+  if not np.all(np.isfinite(K)):
+    raise DataError(path, f"{what} has non-finite values: {K.tolist()}")
+  if not (K[0, 0] > 0 and K[1, 1] > 0):
+    raise DataError(path, f"{what} must have positive focal lengths fx = K[0][0], fy = K[1][1], "
+                          f"got {K[0, 0]:g}, {K[1, 1]:g}")
+  if not np.array_equal(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+    raise DataError(path, f"{what} must be a pinhole camera matrix [[fx, s, cx], [0, fy, cy], "
+                          f"[0, 0, 1]], got {K.tolist()}")
+  return K
+
+
 def read_calib_txt(path: PathLike) -> dict[str, np.ndarray]:
   """Every numeric `key: v1 v2 ...` entry of a KITTI-style calibration file (float64 arrays)."""
   path = require_file(path, "calibration file")
@@ -66,7 +81,8 @@ def rectified_calib(path: PathLike, camera: str) -> Calib:
       raise DataError(path, f"S_rect_{camera} must be 2 positive integers (width height), got "
                             f"{size.tolist()}")
     width, height = int(size[0]), int(size[1])
-  return Calib(K=p.reshape(3, 4)[:, :3].copy(), width=width, height=height)
+  K = check_intrinsics(p.reshape(3, 4)[:, :3].copy(), path, f"P_rect_{camera}'s left 3x3")
+  return Calib(K=K, width=width, height=height)
 
 
 def read_calib_json(path: PathLike) -> Calib:
@@ -79,6 +95,6 @@ def read_calib_json(path: PathLike) -> Calib:
   except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as e:
     raise DataError(path, f"expected JSON with K (3x3), width and height ({type(e).__name__}: "
                           f"{e})") from None
-  if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+  if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (width, height)):
     raise DataError(path, f"width and height must be positive integers, got {width!r}, {height!r}")
-  return Calib(K=K, width=width, height=height)
+  return Calib(K=check_intrinsics(K, path), width=width, height=height)
