@@ -220,6 +220,28 @@ def case_frames(ctx: Context, parts: Sequence[dict], height: int, width: int) ->
   return frames
 
 
+def check_cases(ctx: Context, cases: Sequence[tuple[str, Sequence[dict]]]) -> None:
+  """Opens the reader of every part of `cases` (paths only, no frame is read): a missing or
+  empty part of a real dataset fails before the first row is computed, not after it."""
+  if ctx.dataset == "synthetic":
+    return
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.sources import open_reader
+  for case, parts in cases:
+    for part in parts:
+      options = [*ctx.options, *(f"{k}={v}" for k, v in part.items())]
+      if len(open_reader(ctx.dataset, ctx.root, options, ctx.segmentation)) == 0:
+        raise DataError(ctx.root, f"test case {case} ({', '.join(options)}): no frames")
+
+
+def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str]) -> None:
+  """--rows that selects nothing is an error (an empty table is not a result)."""
+  from pitta_jax.data.errors import DataError
+  if ctx.rows and not selected:
+    raise DataError(None, f"--rows {','.join(ctx.rows)}: matches none of this table's rows "
+                          f"({', '.join(dict.fromkeys(labels))})")
+
+
 # ----------------------------------------------------------------------------- rows
 
 
@@ -323,14 +345,17 @@ def paper_fields(e: Entry, with_case: bool = True) -> dict[str, Any] | None:
 
 
 def parser(name: str, description: str,
-           datasets: Sequence[str] = ("synthetic", "drivingstereo")) -> argparse.ArgumentParser:
+           datasets: Sequence[str] = ("synthetic", "drivingstereo"),
+           rows: bool = True) -> argparse.ArgumentParser:
+  """The table command's parser; `rows`: whether it takes --rows (a table of rows)."""
   p = argparse.ArgumentParser(prog=f"pitta-jax experiment {name}", description=description)
-  add_arguments(p, datasets)
+  add_arguments(p, datasets, rows)
   return p
 
 
 def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthetic",
-                                                                         "drivingstereo")) -> None:
+                                                                         "drivingstereo"),
+                  rows: bool = True) -> None:
   p.add_argument("--dataset", default="synthetic", choices=list(datasets),
                  help="synthetic (default: the embedded benchmark, see the caption) or the real "
                       "dataset at --root")
@@ -350,9 +375,11 @@ def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthe
   p.add_argument("--quick", action="store_true",
                  help=f"a tiny run for trying and testing: {QUICK_FRAMES} frames per part, "
                       f"random {QUICK_SIZE[1]}x{QUICK_SIZE[0]} networks on synthetic")
-  p.add_argument("--rows", default="",
-                 help="comma-separated row names (or parts of them, case-insensitive): compute "
-                      "only these rows, e.g. --rows 'No adaptation,PITTA' (default: all)")
+  if rows:
+    p.add_argument("--rows", default="",
+                   help="comma-separated row names (or parts of them, case-insensitive): "
+                        "compute only these rows, e.g. --rows 'No adaptation,PITTA' (default: "
+                        "all)")
   p.add_argument("--out", default=None, help="output directory (default experiments_out/NAME)")
   p.add_argument("--quiet", action="store_true", help="no progress bars")
   p.add_argument("--debug", action="store_true", help="full tracebacks")
@@ -386,9 +413,12 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   frames = args.frames or (QUICK_FRAMES if args.quick else (FRAMES if args.dataset == "synthetic"
                                                             else 0))
   out = Path(args.out or Path("experiments_out") / name)
+  if out.exists() and not out.is_dir():
+    raise DataError(out, "--out: exists and is not a directory")
   return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
                  args.quick, frames, args.quiet, args.source_images, args.replay_root,
-                 runners, tuple(r.strip() for r in args.rows.split(",") if r.strip()))
+                 runners, tuple(r.strip() for r in getattr(args, "rows", "").split(",")
+                                if r.strip()))
 
 
 def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,

@@ -136,7 +136,8 @@ def verdict(entries: Sequence[Entry], noise: float = 0.002) -> str:
 
 
 def main(argv: Sequence[str] | None = None, runners=None) -> int:
-  p = common.parser("sensitivity", __doc__.split("\n\n")[0], datasets=("synthetic",))
+  p = common.parser("sensitivity", __doc__.split("\n\n")[0], datasets=("synthetic",),
+                    rows=False)
   return common.main_wrapper(run, p, argv, runners)
 
 

@@ -51,6 +51,8 @@ def run(args, runners=None) -> int:
   cases = dict(ctx.cases(("Sunny", "All")))
   shared, resources, entries = common.runners(ctx), {}, []
   todo = [(g, c, r) for g, c, r in rows() if ctx.wants(g, r.model)]
+  common.check_selection(ctx, todo, [g for g, _, _ in rows()])
+  common.check_cases(ctx, [(c, cases[c]) for c in dict.fromkeys(c for _, c, _ in todo)])
   for group, case, row in tqdm(todo, desc="rows", unit="row", disable=ctx.quiet):
     entry = common.run_row(ctx, row, case, cases[case], shared, resources)
     entry.group = group

@@ -106,7 +106,8 @@ def run(args, runners=None) -> int:
 
 
 def main(argv: Sequence[str] | None = None, runners=None) -> int:
-  p = common.parser("table4", __doc__.split("\n\n")[0], datasets=("synthetic", "waymo"))
+  p = common.parser("table4", __doc__.split("\n\n")[0], datasets=("synthetic", "waymo"),
+                    rows=False)
   return common.main_wrapper(run, p, argv, runners)
 
 

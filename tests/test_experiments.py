@@ -43,6 +43,33 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   assert "--root" in err and err.count("\n") == 1 and not (tmp_path / "o").exists()
   assert table1.main(["--weights", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
   assert "model.json" in capsys.readouterr().err
+  # --rows that selects nothing, an --out that is a file: one line, nothing written
+  assert table1.main(["--quick", "--rows", "zzz", "--out", str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err
+  assert "--rows zzz: matches none of this table's rows (No adaptation, " in err
+  assert err.count("\n") == 1 and not (tmp_path / "o").exists()
+  (tmp_path / "file").write_text("")
+  assert table1.main(["--quick", "--out", str(tmp_path / "file")]) == 2
+  assert f"{tmp_path / 'file'}: --out: exists and is not a directory" in capsys.readouterr().err
+
+
+def test_a_real_datasets_cases_are_opened_before_the_first_row(tmp_path, capsys):
+  """A DrivingStereo root with the foggy part only: the table fails on the rainy part before it
+  computes the foggy rows."""
+  from experiments import common, table1
+  from pitta_jax.data.errors import DataError
+  computed = []
+  with pytest.MonkeyPatch.context() as m:
+    m.setattr(common, "run_row", lambda *a, **k: computed.append(a) or None)
+    m.setattr("pitta_jax.sources.open_reader", lambda dataset, root, options, seg: (
+        [0] if "weather=foggy" in options else _raise(DataError(root, "no rainy frames"))))
+    assert table1.main(["--dataset", "drivingstereo", "--root", str(tmp_path), "--rows",
+                        "No adaptation", "--quiet", "--out", str(tmp_path / "o")]) == 2
+  assert "no rainy frames" in capsys.readouterr().err and computed == []
+
+
+def _raise(error):
+  raise error
 
 
 @pytest.fixture(scope="module")
