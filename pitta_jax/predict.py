@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import glob
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -33,8 +33,8 @@ def expand_images(spec: str, unique_stems: bool = True) -> list[Path]:
   overwrite each other); False where nothing is written per image (source statistics).
   """
   path = Path(spec)
-  if path.is_dir():
-    paths = sorted(list_images(path).values())
+  if path.is_dir():  # every image, `a.png` and `a.jpg` too (the stem check below refuses them)
+    paths = sorted(list_images(path, IMAGE_SUFFIXES, all_suffixes=True).values())
   elif path.is_file():
     paths = [path]
   else:
@@ -48,6 +48,20 @@ def expand_images(spec: str, unique_stems: bool = True) -> list[Path]:
                          f"overwrite each other (predict one directory at a time)")
     stems[p.stem] = p
   return paths
+
+
+def check_images(paths: Sequence[Path], quiet: bool = False) -> None:
+  """Reads every image once before anything is written (DataError naming the first unreadable
+  one): a bad image found halfway would leave half of the outputs behind."""
+  for path in tqdm(paths, desc="checking images", unit="img", disable=quiet or len(paths) < 50):
+    read_image(path)
+
+
+def without_own_outputs(paths: Sequence[Path], out_dir: Path, suffix: str) -> list[Path]:
+  """`paths` less the files a previous run of the command wrote into `out_dir` (names ending in
+  `suffix`), so that a rerun with --out in the image directory does not take them as input."""
+  out = out_dir.resolve()
+  return [p for p in paths if not (p.name.endswith(suffix) and p.resolve().parent == out)]
 
 
 def make_predictor(network):
@@ -70,9 +84,13 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   weights = load_weights(weights_dir)
   h, w = size if size is not None else (weights.height, weights.width)
   weights.spec.check_size(h, w)  # ValueError naming the network's rule
-  images = expand_images(images) if isinstance(images, str) else list(images)
-  predict = make_predictor(weights.network())
   out = Path(out_dir)
+  images = expand_images(images) if isinstance(images, str) else list(images)
+  images = without_own_outputs(images, out, "_disp.png")
+  if not images:
+    raise DataError(out, "no image to predict besides this command's own outputs")
+  check_images(images, quiet)
+  predict = make_predictor(weights.network())
   out.mkdir(parents=True, exist_ok=True)
   written = []
   for path in tqdm(images, desc="predict", unit="img", disable=quiet):

@@ -65,6 +65,32 @@ def test_predict_glob_and_errors(converted, tmp_path, capsys):
   assert "model.json" in capsys.readouterr().err
 
 
+def test_predict_checks_every_image_first_and_skips_its_own_outputs(converted, tmp_path, capsys):
+  """An unreadable image fails before anything is written; `a.png` beside `a.jpg` is two
+  images with one stem (refused); with --out in the image directory a rerun does not predict on
+  the `_disp.png` files of the first run."""
+  weights = converted[0]
+  rng = np.random.default_rng(1)
+  d = tmp_path / "imgs"
+  d.mkdir()
+  for name in ("000", "001", "002"):
+    cv2.imwrite(str(d / f"{name}.png"), rng.integers(0, 256, (64, 96, 3), dtype=np.uint8))
+  good = (d / "002.png").read_bytes()
+  (d / "002.png").write_bytes(good[:len(good) // 2])  # truncated
+  args = ["predict", "--weights", str(weights), "--images", str(d), "--quiet", "--out"]
+  assert main([*args, str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err
+  assert str(d / "002.png") in err and err.count("\n") == 1 and not (tmp_path / "o").exists()
+  (d / "002.png").write_bytes(good)
+  cv2.imwrite(str(d / "001.jpg"), rng.integers(0, 256, (64, 96, 3), dtype=np.uint8))
+  assert main([*args, str(tmp_path / "o")]) == 2
+  assert "same file stem" in capsys.readouterr().err
+  (d / "001.jpg").unlink()
+  assert main([*args, str(d)]) == 0 and main([*args, str(d)]) == 0
+  assert sorted(p.name for p in d.glob("*.png")) == [
+      f"{n}{s}.png" for n in ("000", "001", "002") for s in ("", "_disp")]
+
+
 def test_convert_errors_exit_2(converted, tmp_path, capsys):
   root = converted[3]
   assert main(["convert", "monodepth2", "--encoder", str(root / "depth.pth"), "--depth",

@@ -206,3 +206,8 @@ def test_cli_argument_errors(weights, image_dir, tmp_path, capsys):
   write_image(tmp_path / "x" / "a.png", np.zeros((H, W, 3), np.uint8))
   with pytest.raises(DataError, match="same file stem"):  # outputs are named by stem
     segment_images(weights[0], [image_dir / "a.png", tmp_path / "x" / "a.png"], tmp_path / "o")
+  # --out in the image directory would write a.png's panoptic map over a.png
+  before = (tmp_path / "x" / "a.png").read_bytes()
+  with pytest.raises(DataError, match="would overwrite this input"):
+    segment_images(weights[0], str(tmp_path / "x"), tmp_path / "x")
+  assert (tmp_path / "x" / "a.png").read_bytes() == before

@@ -175,8 +175,8 @@ def depth_loader(depth_dir: Path, stem: str, *, png_scale: float = DEPTH_PNG_SCA
   raise DataError(png, missing)
 
 
-def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES
-                ) -> dict[str, Path]:
+def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES,
+                all_suffixes: bool = False) -> dict[str, Path]:
   """Image files of `directory` (not recursive) by stem, suffix case-insensitive.
 
   Hidden files (`.name`, e.g. macOS `._*` resource forks in zip archives) are skipped.
@@ -185,6 +185,8 @@ def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES
     directory: the directory to list; DataError when missing.
     suffixes: accepted suffixes (lower case, with the dot), in order of preference: when a stem
       exists with two suffixes (`a.png` and `a.jpg`) the earlier one wins.
+    all_suffixes: keep every file instead, keyed by file name (a stem with two suffixes is two
+      images).
   """
   directory = require_dir(directory, "image directory")
   found: dict[str, Path] = {}
@@ -195,6 +197,9 @@ def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES
     if path.is_symlink() and not path.exists():
       raise DataError(path, "is a dangling symbolic link (its target is missing)")
     if not path.is_file():
+      continue
+    if all_suffixes:
+      found[path.name] = path
       continue
     other = found.get(path.stem)
     if other is None or suffixes.index(suffix) < suffixes.index(other.suffix.lower()):
