@@ -143,6 +143,6 @@ def test_runners_pass_the_step_options(monkeypatch):
     runners.get(weights, method, AdaptConfig(**method_setting(name)))
   eigen = EIGEN if jax.default_backend() == "cpu" else None
   # PITTA: encoder BN only; ActMAD: every encoder kernel adapts; CoTTA and CoMoDa: their own
-  # choice; Ada-Depth: its student adapts the encoder BN (the default selector), but its
-  # self-supervised branch differentiates every kernel of its own networks
+  # choice; Ada-Depth: its student adapts every parameter and its self-supervised branch
+  # differentiates every kernel of its own networks
   assert seen == [eigen, None, eigen, None, eigen]

@@ -19,7 +19,7 @@ A rejected pixel's label is clamped to min_depth, so `P > 1` removes it from the
 
 Reduced to this setting (our choices where upstream's setting does not carry over):
 - S is the engine's trainable tree (`AdaptConfig.selector`; upstream adapts every parameter of
-  its depth network: `--selector all`), R is `state.source`, E is an EMA copy of the trainable
+  its depth network, the method's setting `--selector all`), R is `state.source`, E is an EMA copy of the trainable
   leaves (the frozen ones are the same in S, R and E). U starts as a copy of the whole source
   depth network plus the weights' pose network (`resources["pose"]`), with its own Adam state;
   upstream's U is a separately trained self-supervised MonoDepth2 and its S a supervised NeWCRFs.
@@ -310,6 +310,9 @@ def build(config: AdadepthConfig = AdadepthConfig()) -> Method:
                 optimizer=lambda cfg: optax.adam(config.lr),
                 requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),
                           ("steps_per_frame", 1, "updates once per frame")),
+                # upstream trains every parameter of S (`Adapt.__init__`: the encoder's and the
+                # decoder's parameters in one Adam)
+                setting=(("selector", "all"),),
                 needs=("pose", "intrinsics", "previous_frame"), report_after_update=True,
                 # U's Adam step differentiates every kernel of its depth and pose networks
                 own_conv_kernel_grads=True)
