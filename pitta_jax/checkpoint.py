@@ -90,7 +90,9 @@ def save_weights(out_dir: str | os.PathLike, architecture: str, config: dict[str
     save_tree(out / "pose", pose)
   meta = {"architecture": architecture, **config, "has_pose": pose is not None,
           "source": source or {}}
-  (out / MODEL_JSON).write_text(json.dumps(meta, indent=2) + "\n")
+  from pitta_jax.outputs import atomic_write_text
+  # last and atomic: a directory with a model.json is complete (a kill leaves none)
+  atomic_write_text(out / MODEL_JSON, json.dumps(meta, indent=2) + "\n")
   return out
 
 

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import io
 import json
 import math
 import os
@@ -58,6 +59,7 @@ from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
 from pitta_jax.configs import check, finite, option
 from pitta_jax.models.depth_decoder import disp_to_depth
 from pitta_jax.models.pose import transformation_from_parameters
+from pitta_jax.outputs import atomic_write_bytes, atomic_write_text
 from pitta_jax.models.random_init import jit_init
 from pitta_jax.nonsmooth import absolute
 
@@ -407,7 +409,8 @@ def _save(directory: Path, cfg: SourceConfig, depth: dict, pose: dict | None, re
                None if pose is None else jax.tree_util.tree_map(np.asarray, pose),
                source={"key": cfg.key(), **source})
   report = {**report, "weights_dir": str(directory)}
-  (directory / "train_report.json").write_text(json.dumps(report, indent=2) + "\n")
+  # atomic: the report marks a finished cache entry
+  atomic_write_text(directory / "train_report.json", json.dumps(report, indent=2) + "\n")
   return load_weights(directory), report
 
 
@@ -487,7 +490,9 @@ def ship_source(cfg: SourceConfig, quiet: bool = False) -> Path:
                         if rounded.pose is not None else {})}}
   path = shipped_path(cfg)
   path.parent.mkdir(parents=True, exist_ok=True)
-  np.savez_compressed(path, **{"/".join((net,) + k): v for net, tree in trees.items()
-                               for k, v in flatten_dict(tree).items()})
-  path.with_suffix(".json").write_text(json.dumps(record, indent=2) + "\n")
+  buffer = io.BytesIO()
+  np.savez_compressed(buffer, **{"/".join((net,) + k): v for net, tree in trees.items()
+                                 for k, v in flatten_dict(tree).items()})
+  atomic_write_bytes(path, buffer.getvalue())
+  atomic_write_text(path.with_suffix(".json"), json.dumps(record, indent=2) + "\n")
   return path

@@ -376,7 +376,9 @@ def save_mask2former(out_dir: str | os.PathLike, cfg, variables: dict, source: d
   out.mkdir(parents=True, exist_ok=True)
   save_tree(out / PARAMS_DIR, variables)
   meta = {"architecture": "mask2former", "config": cfg.to_dict(), "source": source or {}}
-  (out / CONFIG_JSON).write_text(json.dumps(meta, indent=2) + "\n")
+  from pitta_jax.outputs import atomic_write_text
+  # last and atomic: a directory with a config.json is complete
+  atomic_write_text(out / CONFIG_JSON, json.dumps(meta, indent=2) + "\n")
   return out
 
 

@@ -87,10 +87,12 @@ def segments_info(ids: np.ndarray, segments: Sequence[Segment]) -> list[dict[str
 
 def write_panoptic(png_path: PathLike, ids: np.ndarray, segments: Sequence[Segment]) -> Path:
   """Writes `<stem>.png` and the per-image `<stem>.json` beside it; returns the JSON path."""
+  from pitta_jax.outputs import atomic_write_text
   png_path = Path(png_path)
-  write_panoptic_png(png_path, ids)
   json_path = png_path.with_suffix(".json")
-  json_path.write_text(json.dumps({"segments_info": segments_info(ids, segments)}))
+  # both atomic, the JSON first: a kill leaves no PNG without its segments (readers pair by PNG)
+  atomic_write_text(json_path, json.dumps({"segments_info": segments_info(ids, segments)}))
+  write_panoptic_png(png_path, ids)
   return json_path
 
 
