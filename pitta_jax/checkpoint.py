@@ -131,7 +131,8 @@ def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]
       raise WeightsError(f"{path}: {key} must be a positive integer, got {v!r}")
   try:
     spec.check_size(config["height"], config["width"])
-  except ValueError as e:
+    spec.build(dict(config))  # the network's own fields (e.g. num_layers), checked here
+  except (ValueError, TypeError, KeyError) as e:
     raise WeightsError(f"{path}: {e}") from None
   return spec, config
 

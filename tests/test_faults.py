@@ -286,3 +286,18 @@ def test_method_requirements_are_checked_before_work(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and "--bn-stats running" in err and err.count("\n") == 1
     assert time.time() - t0 < 5 and not (tmp_path / method).exists()
+
+
+def test_a_binary_split_file_and_a_bad_network_field_name_their_file(tmp_path):
+  from pitta_jax.checkpoint import WeightsError, read_model_json
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.kitti import read_split
+  split = tmp_path / "test_files.txt"
+  split.write_bytes(b"\xff\xfe2011_09_26 0000000000 l\n")
+  with pytest.raises(DataError, match=f"^{split}: not a text split file"):
+    read_split(split)
+  (tmp_path / "w").mkdir()
+  (tmp_path / "w" / "model.json").write_text(json.dumps(
+      {"architecture": "monodepth2", "num_layers": "18", "height": 64, "width": 96}))
+  with pytest.raises(WeightsError, match=f"^{tmp_path / 'w' / 'model.json'}: num_layers"):
+    read_model_json(tmp_path / "w")

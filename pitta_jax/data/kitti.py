@@ -166,8 +166,12 @@ class _GtDepths:
 def read_split(path: PathLike) -> list[tuple[str, int, int]]:
   """Parses a MonoDepth2 split file into (folder, frame index, camera 2 or 3) per line."""
   path = require_file(path, "split file")
+  try:
+    text = path.read_text()
+  except UnicodeDecodeError:
+    raise DataError(path, "not a text split file (not UTF-8)") from None
   entries = []
-  for number, line in enumerate(path.read_text().splitlines(), start=1):
+  for number, line in enumerate(text.splitlines(), start=1):
     fields = line.split()
     if not fields:
       continue

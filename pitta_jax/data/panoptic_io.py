@@ -91,6 +91,7 @@ def write_panoptic(png_path: PathLike, ids: np.ndarray, segments: Sequence[Segme
   png_path = Path(png_path)
   json_path = png_path.with_suffix(".json")
   # both atomic, the JSON first: a kill leaves no PNG without its segments (readers pair by PNG)
+  json_path.parent.mkdir(parents=True, exist_ok=True)
   atomic_write_text(json_path, json.dumps({"segments_info": segments_info(ids, segments)}))
   write_panoptic_png(png_path, ids)
   return json_path
