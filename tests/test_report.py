@@ -144,3 +144,7 @@ def test_demo_methods_are_validated():
   assert set(ROWS) == {"none", "bn", "pitta", "comoda", "adadepth", "actmad", "cotta"}
   with pytest.raises(ValueError, match="methods \\['tent'\\] invalid"):
     DemoConfig(methods=("pitta", "tent"))
+  with pytest.raises(ValueError, match="methods \\['none'\\] given twice"):
+    DemoConfig(methods=("none", "pitta", "none"))
+  with pytest.raises(ValueError, match="shifts \\['fog'\\] given twice"):
+    DemoConfig(shifts=("fog", "fog"))

@@ -47,9 +47,13 @@ def run(args: argparse.Namespace) -> int:
     with open_output_dir(args.out):  # checked and locked before reading any checkpoint
       args.convert_fn(args)
   except (CheckpointError, FileNotFoundError, ValueError) as e:
+    if getattr(args, "debug", False):
+      raise
     print(f"error: {e}", file=sys.stderr)
     return 2
   except OSError as e:  # a full disk, a read-only directory, ...
+    if getattr(args, "debug", False):
+      raise
     where = f"{e.filename}: " if getattr(e, "filename", None) else ""
     print(f"error: {where}{e.strerror or e}", file=sys.stderr)
     return 2

@@ -288,6 +288,7 @@ RAW_IMAGE_DIR = ("image_02", "data")  # the left colour camera (MonoDepth2's sid
 def _drive_dirs(root: Path) -> list[Path]:
   """`<date>/<date>_drive_<nnnn>_sync` directories under `root` (or in `root` itself when it is
   a date folder), sorted."""
+  root = root.resolve()  # `.` has no name to match its drives by
   dates = [root] if any(root.glob("*_drive_*_sync")) else sorted(
       d for d in root.iterdir() if d.is_dir() and not d.name.startswith("."))
   return [drive for date in dates for drive in sorted(date.glob(f"{date.name}_drive_*_sync"))
