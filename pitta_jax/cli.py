@@ -372,6 +372,9 @@ def _run_source_stats(args) -> int:
     raise ValueError(f"--layers {cfg.layers!r}: not a regular expression ({e})") from None
   if Path(args.out).is_dir():
     raise ValueError(f"--out {args.out}: is a directory; name the .npz file to write")
+  blocking = next((p for p in Path(args.out).parents if p.exists() and not p.is_dir()), None)
+  if blocking is not None:  # found now, not after the statistics are computed
+    raise ValueError(f"--out {args.out}: {blocking} is a file, not a directory")
   _, config = read_model_json(args.weights)  # cheap checks first
   images = read_source_images(args.images, config["height"], config["width"])
   if len(images) < 2:

@@ -140,6 +140,10 @@ def test_layers_matching_only_modules_with_several_outputs_fail_in_one_line(writ
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"--layers {layers!r} matches no module" in err, err
   assert not (tmp_path / "x.npz").exists()
+  (tmp_path / "f").write_text("")
+  assert main(["source-stats", "--weights", str(root / "weights"), "--images",
+               str(root / "src" / "*" / "*.png"), "--out", str(tmp_path / "f" / "x.npz")]) == 2
+  assert f"{tmp_path / 'f'} is a file, not a directory" in capsys.readouterr().err
 
 
 def test_synthetic_statistics_are_cached(written, tmp_path, monkeypatch):
