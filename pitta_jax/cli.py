@@ -241,6 +241,28 @@ def _add_adapt(sub, name: str) -> None:
   p.set_defaults(func=_run_adapt, adapting=adapting)
 
 
+def adapt_config(args):
+  """(AdaptConfig, method, notes) of `pitta-jax adapt`'s flags: the method's published setting
+  (`Method.setting`, e.g. CoTTA and Ada-Depth adapt every parameter) where no flag says
+  otherwise, with a note saying so; what it requires (`Method.requires`) stays the user's to
+  give (ValueError naming the flag, before any work)."""
+  import dataclasses
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.config_cli import config_from_args, given_fields
+  cfg = config_from_args(AdaptConfig, args, "adapt")
+  method = _method_from_args(args, cfg)
+  given = given_fields(AdaptConfig, args, "adapt")
+  own = {k: v for k, v in method.setting if k not in given and getattr(cfg, k) != v}
+  notes = []
+  if own:
+    cfg = dataclasses.replace(cfg, **own)
+    notes.append(f"--method {method.name} runs in its own setting: "
+                 + ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in own.items())
+                 + " (give the flag to change it)")
+  method.check(cfg)
+  return cfg, method, notes
+
+
 def _run_adapt(args) -> int:
   import dataclasses
   from pitta_jax.adapt import AdaptConfig
@@ -252,10 +274,9 @@ def _run_adapt(args) -> int:
   from pitta_jax.checkpoint import read_model_json
   from pitta_jax.sources import (check_dataset_args, check_run_needs, check_stats_method,
                                  method_resources, open_frames, open_weights)
+  notes = []
   if args.adapting:
-    cfg = config_from_args(AdaptConfig, args, "adapt")
-    method = _method_from_args(args, cfg)
-    method.check(cfg)  # before any work
+    cfg, method, notes = adapt_config(args)
   else:
     cfg = AdaptConfig(method="none", bn_stats="running")
     method = build("none")
@@ -268,7 +289,6 @@ def _run_adapt(args) -> int:
   if args.weights:  # cheap checks first: the weights' description, the dataset, the method's needs
     weights_config = read_model_json(args.weights)[1]
   check_dataset_args(args.dataset, args.root, args.option, args.segmentation)
-  notes = []
   source_flags = [f for f, v in (("--source-images", args.source_images),
                                  ("--replay-root", args.replay_root),
                                  ("--source-stats", args.source_stats)) if v]

@@ -93,6 +93,12 @@ def _dest(namespace: str, name: str) -> str:
   return f"cfg__{namespace.replace('.', '__')}__{name}"
 
 
+def given_fields(cls: type, args: argparse.Namespace, namespace: str) -> set[str]:
+  """The (top-level) fields of `cls` whose flags were given on the command line."""
+  return {f.name for f, _ in _fields(cls) if getattr(args, _dest(namespace, f.name), None)
+          is not None}
+
+
 def config_from_args(cls: type[T], args: argparse.Namespace, namespace: str,
                      **fixed: Any) -> T:
   """Builds `cls` from its defaults, the flags given in `namespace`, then `fixed` values."""

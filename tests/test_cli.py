@@ -93,3 +93,22 @@ def test_user_errors_are_one_line(tmp_path, capsys):
                str(tmp_path / "o")]) == 2
   err = capsys.readouterr().err
   assert err.startswith("error: ") and err.count("\n") == 1
+
+
+def test_adapt_runs_a_method_in_its_own_setting_unless_a_flag_says_otherwise():
+  """`--method cotta` adapts every parameter as upstream (Method.setting) with a note; a given
+  flag wins; what a method requires is still the user's to give."""
+  from pitta_jax.cli import adapt_config, build_parser
+  base = ["adapt", "--dataset", "synthetic", "--bn-stats", "running"]
+  cfg, method, notes = adapt_config(build_parser().parse_args([*base, "--method", "cotta"]))
+  assert (method.name, cfg.selector, cfg.bn_stats) == ("cotta", "all", "running")
+  assert notes == ["--method cotta runs in its own setting: --selector all (give the flag to "
+                   "change it)"]
+  cfg, _, notes = adapt_config(build_parser().parse_args(
+      [*base, "--method", "adadepth", "--selector", "encoder_bn"]))
+  assert cfg.selector == "encoder_bn" and notes == []
+  cfg, _, notes = adapt_config(build_parser().parse_args([*base, "--method", "pitta"]))
+  assert cfg.selector == "encoder_bn" and notes == []
+  with pytest.raises(ValueError, match="--bn-stats running"):
+    adapt_config(build_parser().parse_args(["adapt", "--dataset", "synthetic", "--method",
+                                            "actmad"]))
