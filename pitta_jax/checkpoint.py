@@ -170,9 +170,29 @@ def _check_tree(tree: Any, module, config: dict, path: Path, channels: int) -> A
   return unflatten_dict(out)
 
 
+def _check_readable(path: Path) -> None:
+  """Reads every value of the checkpoint's OCDBT store once, synchronously (~0.1 s for 37 MB):
+  a truncated or corrupt data file is a WeightsError here. Orbax's own asynchronous restore
+  reports it too, but its reads still in flight then print tracebacks from tensorstore's
+  threads ("Event loop is closed"). A store that does not even open is left to orbax."""
+  import tensorstore as ts
+  try:
+    store = ts.KvStore.open({"driver": "ocdbt", "base": f"{path.resolve().as_uri()}/"}).result()
+    keys = store.list().result()
+  except Exception:  # not an OCDBT checkpoint: orbax reads (and judges) it
+    return
+  for key in keys:
+    try:
+      store.read(key).result()
+    except Exception as e:
+      raise WeightsError(f"{path}: cannot read the checkpoint ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0] if str(e) else ''})") from None
+
+
 def _restore(path: Path) -> Any:
   if not path.is_dir():
     raise WeightsError(f"{path}: the checkpoint is missing")
+  _check_readable(path)
   try:
     return load_tree(path)
   except Exception as e:  # orbax raises many kinds for a corrupt directory

@@ -114,6 +114,24 @@ def test_not_an_object_corrupt_or_nonfinite_weights(weights_dir, tmp_path, varia
     load_weights(corrupt)
 
 
+def test_a_truncated_data_file_is_one_line_without_tracebacks(weights_dir, tmp_path):
+  """Orbax's asynchronous restore reports a truncated value, but the reads still in flight
+  print tracebacks from tensorstore's threads; the weights are checked synchronously first."""
+  import shutil
+  import subprocess
+  import sys
+  bad = tmp_path / "truncated"
+  shutil.copytree(weights_dir, bad)
+  data = sorted(f for f in (bad / "depth").rglob("*") if f.is_file() and "/d/" in str(f))
+  for f in data:  # every data file: reads fail in several of orbax's concurrent restores
+    f.write_bytes(f.read_bytes()[:10])
+  proc = subprocess.run([sys.executable, "-c", "import sys; from pitta_jax.checkpoint import "
+                         "load_weights; load_weights(sys.argv[1])", str(bad)],
+                        capture_output=True, text=True)
+  assert proc.returncode == 1 and "WeightsError" in proc.stderr
+  assert proc.stderr.count("Traceback") == 1 and "Event loop is closed" not in proc.stderr
+
+
 JIT_INIT_SCRIPT = """
 import flax.linen as nn, jax, jax.numpy as jnp, numpy as np
 from pitta_jax.models.random_init import jit_init
