@@ -31,9 +31,15 @@ def _fmt(v: float | None) -> str:
   return "—" if v is None or not math.isfinite(v) else f"{v:.3f}"
 
 
-def ranks(entries: Sequence[Entry], metric: str, which: str = "ours") -> dict[int, int]:
+def ranks(entries: Sequence[Entry], metric: str, which: str = "ours",
+          marked: bool = True) -> dict[int, int]:
   """{entry index: 1 (best) or 2 (second)} within each group, on rounded values (ties share);
-  for the paper's numbers, the marks as the paper prints them."""
+  for the paper's numbers, the marks as the paper prints them.
+
+  Ours are ranked among the rows the paper compares (those with a paper label) when the table
+  has such rows, as the paper marks its own methods: our extra rows (BN batch stats, the
+  baselines without L_d) are shown unmarked. `marked` False: no marks on ours (a table whose
+  groups do not compare methods, e.g. Table 3's test cases of one network)."""
   out: dict[int, int] = {}
   if which == "paper":
     for i, e in enumerate(entries):
@@ -43,11 +49,15 @@ def ranks(entries: Sequence[Entry], metric: str, which: str = "ours") -> dict[in
       elif metric in marks.get("underline", ()):
         out[i] = 2
     return out
+  if not marked:
+    return out
+  compared = [e.spec is not None and bool(e.spec.paper) for e in entries]
+  compared = compared if any(compared) else [True] * len(entries)
   for group in dict.fromkeys(e.group for e in entries):
     vals = []
     for i, e in enumerate(entries):
       v = e.metrics.get(metric)
-      if e.group == group and v is not None and math.isfinite(v):
+      if e.group == group and compared[i] and v is not None and math.isfinite(v):
         vals.append((i, round(v, 3)))
     distinct = sorted({v for _, v in vals}, reverse=metric in HIGHER_IS_BETTER)
     for i, v in vals:
@@ -62,22 +72,22 @@ def _mark_md(text: str, rank: int | None) -> str:
 
 
 def markdown(entries: Sequence[Entry], layout: str, group_title: str, row_title: str,
-             metrics: Sequence[str]) -> str:
+             metrics: Sequence[str], marked: bool = True) -> str:
   """Ours, then the paper's, each as its own labelled block."""
   blocks = []
   for which, title in (("ours", "Ours"), ("paper", "Paper")):
     if which == "paper" and not any(e.paper for e in entries):
       continue
-    blocks.append(f"**{title}**\n\n" + (_md_rows(entries, which, group_title, row_title)
+    blocks.append(f"**{title}**\n\n" + (_md_rows(entries, which, group_title, row_title, marked)
                                         if layout == "rows" else
-                                        _md_columns(entries, which, row_title, metrics)))
+                                        _md_columns(entries, which, row_title, metrics, marked)))
   return "\n".join(blocks)
 
 
-def _md_rows(entries, which, group_title, row_title) -> str:
+def _md_rows(entries, which, group_title, row_title, marked=True) -> str:
   head = f"| {group_title} | {row_title} | " + " | ".join(HEADERS[m] for m in METRIC_NAMES) + " |"
   lines = [head, "|" + "---|" * (len(METRIC_NAMES) + 2)]
-  rk = {m: ranks(entries, m, which) for m in METRIC_NAMES}
+  rk = {m: ranks(entries, m, which, marked) for m in METRIC_NAMES}
   for i, e in enumerate(entries):
     values = e.metrics if which == "ours" else e.paper
     if which == "paper" and not values:
@@ -90,12 +100,12 @@ def _md_rows(entries, which, group_title, row_title) -> str:
   return "\n".join(lines) + "\n"
 
 
-def _md_columns(entries, which, row_title, metrics) -> str:
+def _md_columns(entries, which, row_title, metrics, marked=True) -> str:
   shown = [e for e in entries if which == "ours" or e.paper]
   head = f"| {row_title} | " + " | ".join(e.label for e in shown) + " |"
   lines = [head, "|" + "---|" * (len(shown) + 1)]
   for m in metrics:
-    rk = ranks(shown, m, which)
+    rk = ranks(shown, m, which, marked)
     cells = []
     for i, e in enumerate(shown):
       if which == "ours" and e.status != "ok":
@@ -110,7 +120,9 @@ def _md_columns(entries, which, row_title, metrics) -> str:
 def _tex_escape(text: str) -> str:
   return (text.replace("\\", r"\textbackslash{}").replace("&", r"\&").replace("%", r"\%")
           .replace("_", r"\_").replace("#", r"\#").replace("λ", r"$\lambda$")
-          .replace("∞", r"$\infty$"))
+          .replace("∞", r"$\infty$").replace("δ", r"$\delta$").replace("↑", r"$\uparrow$")
+          .replace("↓", r"$\downarrow$").replace("²", r"$^2$").replace("³", r"$^3$")
+          .replace("—", "---"))
 
 
 def _mark_tex(text: str, rank: int | None) -> str:
@@ -118,7 +130,7 @@ def _mark_tex(text: str, rank: int | None) -> str:
 
 
 def latex(entries: Sequence[Entry], layout: str, group_title: str, row_title: str,
-          metrics: Sequence[str], caption: str, label: str) -> str:
+          metrics: Sequence[str], caption: str, label: str, marked: bool = True) -> str:
   """Our numbers as a booktabs table in the paper's layout (needs \\usepackage{booktabs})."""
   lines = [r"\begin{table}[t]", r"\centering", rf"\caption{{{_tex_escape(caption)}}}",
            rf"\label{{{label}}}"]
@@ -126,7 +138,7 @@ def latex(entries: Sequence[Entry], layout: str, group_title: str, row_title: st
     lines += [r"\begin{tabular}{ll" + "c" * len(METRIC_NAMES) + "}", r"\toprule",
               f"{_tex_escape(group_title)} & {_tex_escape(row_title)} & "
               + " & ".join(TEX_HEADERS[m] for m in METRIC_NAMES) + r" \\", r"\midrule"]
-    rk = {m: ranks(entries, m) for m in METRIC_NAMES}
+    rk = {m: ranks(entries, m, marked=marked) for m in METRIC_NAMES}
     groups = list(dict.fromkeys(e.group for e in entries))
     for g, group in enumerate(groups):
       for i, e in enumerate(entries):
@@ -145,7 +157,7 @@ def latex(entries: Sequence[Entry], layout: str, group_title: str, row_title: st
               f"{_tex_escape(row_title)} & " + " & ".join(_tex_escape(e.label) for e in entries)
               + r" \\", r"\midrule"]
     for m in metrics:
-      rk = ranks(entries, m)
+      rk = ranks(entries, m, marked=marked)
       cells = [_mark_tex(_fmt(e.metrics.get(m)), rk.get(i)) if e.status == "ok" else "--"
                for i, e in enumerate(entries)]
       lines.append(f"{TEX_HEADERS[m]} & " + " & ".join(cells) + r" \\")
@@ -172,16 +184,18 @@ def csv_text(entries: Sequence[Entry], table: str) -> str:
 
 def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, caption: str,
                 group_title: str, row_title: str, metrics: Sequence[str] = METRIC_NAMES,
-                seconds: float, meta: dict[str, Any]) -> str:
-  """Writes NAME.md/.csv/.tex and results.json atomically; returns the markdown."""
+                seconds: float, meta: dict[str, Any], marked: bool = True) -> str:
+  """Writes NAME.md/.csv/.tex and results.json atomically; returns the markdown.
+  marked: bold / underline the best and second (`ranks`)."""
   out.mkdir(parents=True, exist_ok=True)
-  md = (f"### {name.capitalize().replace('table', 'Table ')}\n\n{caption}\n\n"
-        + markdown(entries, layout, group_title, row_title, metrics)
+  title = f"Table {name[len('table'):]}" if name.startswith("table") else name.capitalize()
+  md = (f"### {title}\n\n{caption}\n\n"
+        + markdown(entries, layout, group_title, row_title, metrics, marked)
         + f"\nWall time: {seconds:.0f} s ({meta.get('load', '')}).\n")
   atomic_write_text(out / f"{name}.md", md)
   atomic_write_text(out / f"{name}.csv", csv_text(entries, name))
   atomic_write_text(out / f"{name}.tex", latex(entries, layout, group_title, row_title, metrics,
-                                               caption, f"tab:{name}"))
+                                               caption, f"tab:{name}", marked))
   payload = {"table": name, "caption": caption, "seconds": round(seconds, 1), **meta,
              "rows": [dataclasses.asdict(e) for e in entries]}
   payload, n_bad = json_safe(json.loads(json.dumps(payload, default=str)))

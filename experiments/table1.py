@@ -1,5 +1,5 @@
 """Table 1: MonoDepth2 (ResNet-18) adapted online to DrivingStereo's weather (Foggy, Rainy, All)
-by every method of the paper's comparison; each baseline with PITTA's L_d added (paper Sec. 5).
+by every method of the paper's comparison; each baseline with PITTA's L_d added (paper Sec. 4.1).
 
     pitta-jax experiment table1 [--quick] [--dataset drivingstereo --root DIR --weights DIR ...]
     python -m experiments.table1 ...
@@ -33,7 +33,7 @@ ROWS = (
     RowSpec("PITTA", "pitta", paper="PITTA (ours)"),
 )
 TITLE = ("MonoDepth2 ResNet-18 adapted online; every baseline with PITTA's L_d "
-         "(paper Sec. 5). Bold: best, underlined: second, per test case.")
+         "(paper Sec. 4.1). Bold: best, underlined: second, per test case.")
 
 
 def run(args, runners=None) -> int:

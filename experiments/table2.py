@@ -1,5 +1,5 @@
 """Table 2: the methods of Table 1 on Waymo (one test case): MonoDepth2 ResNet-18 adapted online,
-every baseline with PITTA's L_d (paper Sec. 5).
+every baseline with PITTA's L_d (paper Sec. 4.1).
 
     pitta-jax experiment table2 [--quick] [--dataset waymo --root DIR --weights DIR ...]
     python -m experiments.table2 ...

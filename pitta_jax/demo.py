@@ -9,7 +9,7 @@
    the frame's batch statistics: separates their effect from the loss's), "PITTA" (eqs. 3-11,
    paper defaults),
    and the paper's baselines CoMoDa, Ada-Depth, ActMAD and CoTTA, each with PITTA's L_d (paper
-   Sec. 5), with ground-truth panoptic segmentation standing in for Mask2Former.
+   Sec. 4.1), with ground-truth panoptic segmentation standing in for Mask2Former.
 4. Prints a markdown table of the 7 metrics and writes results.json, results.csv, table.md and
    figures to `--out`: per shift, the last frame's depth maps (`viz`) and the per-frame AbsRel
    of every row (`plots`, matplotlib).
@@ -39,7 +39,7 @@ from pitta_jax.source_model import SourceConfig, load_or_train_source
 from pitta_jax.sources import method_resources
 
 # --demo.methods key -> (row name, method, AdaptConfig changes after the method's own setting
-# `methods.method_setting`); the baselines carry PITTA's L_d (paper Sec. 5)
+# `methods.method_setting`); the baselines carry PITTA's L_d (paper Sec. 4.1)
 ROWS = {
     "none": ("No adaptation", "none", {}),
     "bn": ("BN batch stats", "none", {"bn_stats": "batch"}),

@@ -32,7 +32,7 @@ from pitta_jax.data.frame import Frame
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
-  """The evaluation protocol (MonoDepth2's, paper Sec. 5 and its Appendix D)."""
+  """The evaluation protocol (MonoDepth2's, paper Sec. 4.1 and its Appendix D)."""
   min_depth: float = option(metrics_lib.MIN_DEPTH, "ground truth below this is invalid (metres)")
   max_depth: float = option(metrics_lib.MAX_DEPTH, "cap of ground truth and prediction (metres)")
   alignment: str = option("model", "per-frame alignment of the prediction: model (the "

@@ -23,6 +23,21 @@ def test_ranks_bold_best_and_underline_second_per_group_with_the_metric_directio
   assert r"\textbf{0.100}" in tex and r"\underline{0.200}" in tex and r"\toprule" in tex
   md = render.markdown(entries, "rows", "G", "M", ("abs_rel",))
   assert "**0.100**" in md and "<u>0.200</u>" in md
+  # as the paper: only its compared rows are marked when the table has them (here y and z)
+  from experiments.common import RowSpec
+  for e, paper in zip(entries, (None, "Y", "Z", None)):
+    e.spec = RowSpec(e.label, "pitta", paper=paper)
+  assert render.ranks(entries, "abs_rel") == {1: 1, 2: 2}
+  assert render.ranks(entries, "abs_rel", marked=False) == {}
+  assert r"$\delta$" in render.latex(entries, "columns", "G", "M", ("a1",), "δ<1.25", "t")
+
+
+def test_written_tables_are_titled_as_the_paper(tmp_path):
+  entries = [Entry("A", "x", {"abs_rel": 0.2})]
+  for name, title in (("table1", "### Table 1\n"), ("sensitivity", "### Sensitivity\n")):
+    md = render.write_table(tmp_path / name, name, entries, layout="rows", caption="c",
+                            group_title="G", row_title="M", seconds=1.0, meta={})
+    assert md.startswith(title)
 
 
 def test_cached_rows_are_computed_once(tmp_path):

@@ -25,7 +25,7 @@ class AdaptConfig:
   steps_per_frame: int = option(1, "optimiser steps per frame (online TTA: one)")
   bn_stats: str = option("batch", "BatchNorm statistics while adapting: batch (the frame's, "
                                   "running ones untouched) | running")
-  selector: str = option("encoder_bn", "adapted parameters: encoder_bn (paper Sec. 5), "
+  selector: str = option("encoder_bn", "adapted parameters: encoder_bn (paper Sec. 4.1), "
                                        "encoder_ln, all, no_bn (all but BatchNorm scale/bias), "
                                        "fraction(cnn=a,bn=b) (Table 5)")
   reset_every: int = option(0, "0 = never; K = restore the source parameters every K frames")

@@ -1,4 +1,4 @@
-"""ActMAD (Mirza et al., CVPR 2023) as a baseline of the paper, with PITTA's L_d added (Sec. 5).
+"""ActMAD (Mirza et al., CVPR 2023) as a baseline of the paper, with PITTA's L_d added (Sec. 4.1).
 
 ActMAD aligns the test-time activation statistics of chosen BatchNorm layers with the source
 statistics: for each layer l, the mean and the (unbiased) variance over the batch axis *per
@@ -57,7 +57,7 @@ class ActmadConfig:
   momentum: float = option(0.9, "SGD momentum (upstream)")
   nesterov: bool = option(True, "Nesterov momentum (upstream)")
   weight_decay: float = option(5e-4, "L2 weight decay added to the gradient, as torch SGD (upstream)")
-  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 5)")
+  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 4.1)")
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):

@@ -1,4 +1,4 @@
-"""Ada-Depth (Li et al., ICRA 2023) as a baseline of the paper, with PITTA's L_d added (Sec. 5).
+"""Ada-Depth (Li et al., ICRA 2023) as a baseline of the paper, with PITTA's L_d added (Sec. 4.1).
 
 Upstream (Malefikus/ada-depth `adaptation.py`, `Adapt.process_batch`), per frame, in this order:
 1. the self-supervised branch U (a MonoDepth2 depth network + pose network) takes one Adam step
@@ -90,7 +90,7 @@ class AdadepthConfig:
   variance_focus: float = option(0.85, "SILog's weight of (mean g)^2 (upstream compute_losses)")
   silog_factor: float = option(10.0, "SILog's factor (upstream compute_losses)")
   sfm: SfmLossConfig = SfmLossConfig()  # U's MonoDepth2 loss (upstream options.py defaults)
-  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 5)")
+  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 4.1)")
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):

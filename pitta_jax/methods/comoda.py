@@ -1,4 +1,4 @@
-"""CoMoDa (Kuznietsov et al., WACV 2021) as a baseline of the paper, with PITTA's L_d added (Sec. 5).
+"""CoMoDa (Kuznietsov et al., WACV 2021) as a baseline of the paper, with PITTA's L_d added (Sec. 4.1).
 
 CoMoDa keeps training the self-supervised network online (official code Yevkuzn/CoMoDA,
 `CoMoDA.py`): per frame one Adam step (lr 1e-4) of the depth network (encoder + decoder) and
@@ -90,7 +90,7 @@ class ComodaConfig:
   latency: int = option(0, "0: update at frame t on (t-1 -> t) (ours, causal); 1: on "
                            "(t-2, t -> t-1), one frame late as CoMoDA's frame_ids 0 -1 1")
   sfm: SfmLossConfig = SfmLossConfig()
-  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 5)")
+  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 4.1)")
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):

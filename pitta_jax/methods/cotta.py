@@ -13,7 +13,7 @@ For depth (our choices, the paper gives none):
   (classification CoTTA gates the whole batch on the anchor's mean max-probability);
 - loss: L1 (mean over pixels) between the student's disparity and the pseudo label
   (stop-gradient), in place of the soft cross-entropy, + ld_weight * L_d (eq. 8) on the
-  student's depth (paper Sec. 5);
+  student's depth (paper Sec. 4.1);
 - augmentations: upstream's photometric ones (`get_tta_transforms`, non-soft ranges): colour
   jitter (brightness, contrast, saturation, gamma in a random order per view; hue is not
   implemented), 5x5 Gaussian blur, horizontal flip with p 0.5 (the prediction is flipped back),
@@ -67,7 +67,7 @@ class CottaConfig:
   blur_sigma_max: float = option(0.5, "5x5 Gaussian blur sigma, upper end (upstream)")
   flip_p: float = option(0.5, "probability of a horizontal flip per view")
   noise_std: float = option(0.005, "Gaussian noise standard deviation")
-  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 5)")
+  ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 4.1)")
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):

@@ -1,7 +1,7 @@
 """The depth-refining term (paper eqs. 3-8) on an engine frame, and its config.
 
 PITTA's L_d; the paper adds the same term, with the same instance masks, to every baseline it
-compares with (Sec. 5: "these competing methods are adjusted to accommodate our depth-refining
+compares with (Sec. 4.1: "these competing methods are adjusted to accommodate our depth-refining
 loss with instance-aware masking strategy"), so it lives here, shared, with one config.
 """
 
