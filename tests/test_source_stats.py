@@ -115,8 +115,8 @@ def test_round_trip_and_mismatches(written):
 
 def test_adapt_with_mismatching_file_fails_in_one_line(written, tmp_path, capsys):
   root, out, _, _, _ = written
-  rc = main(["adapt", "--method", "actmad", "--bn-stats", "running", "--actmad.layers",
-             "encoder/bn1", "--dataset", "folder", "--root", str(root / "src" / "0"),
+  rc = main(["adapt", "--method", "actmad", "--bn-stats", "running", "--selector",
+             "fraction(cnn=100,bn=100)", "--actmad.layers", "encoder/bn1", "--dataset", "folder", "--root", str(root / "src" / "0"),
              "--weights", str(root / "weights"), "--source-stats", str(out), "--out",
              str(tmp_path / "o"), "--quiet"])
   err = capsys.readouterr().err
