@@ -71,7 +71,9 @@ def save_tree(path: str | os.PathLike, tree: Any) -> None:
 
 
 def load_tree(path: str | os.PathLike) -> Any:
-  """Reads an orbax checkpoint written by `save_tree` (arrays come back as NumPy)."""
+  """Reads an orbax checkpoint written by `save_tree` (arrays come back as NumPy); its values
+  are read once synchronously first (`_check_readable`)."""
+  _check_readable(Path(path))
   return _checkpointer().restore(os.path.abspath(path))
 
 
@@ -192,9 +194,10 @@ def _check_readable(path: Path) -> None:
 def _restore(path: Path) -> Any:
   if not path.is_dir():
     raise WeightsError(f"{path}: the checkpoint is missing")
-  _check_readable(path)
   try:
     return load_tree(path)
+  except WeightsError:
+    raise
   except Exception as e:  # orbax raises many kinds for a corrupt directory
     raise WeightsError(f"{path}: cannot read the checkpoint ({type(e).__name__}: "
                        f"{str(e).splitlines()[0] if str(e) else ''})") from None
