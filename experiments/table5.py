@@ -20,6 +20,7 @@ ROWS = tuple(RowSpec(f"CNN {a}% + BN {b}%", "pitta",
 
 
 def run(args, runners=None) -> int:
+  from experiments.figures import per_frame_figures
   from experiments.table2 import waymo_caption
   from experiments.tables import publish, run_grid
   ctx = common.context(args, "table5", runners)
@@ -29,6 +30,7 @@ def run(args, runners=None) -> int:
   common.attach_paper(entries, 5, lambda e: dict(zip(("cnn_percent", "bn_percent"),
                                                      fractions[e.label])))
   caption = f"Adapted parameters of PITTA (AbsRel, δ<1.25). Dataset: {waymo_caption(ctx)}."
+  per_frame_figures(ctx.out, "table5", entries)
   return publish(ctx, "table5", entries, elapsed(), layout="columns", caption=caption,
                  group_title="Dataset", row_title="fraction", metrics=("abs_rel", "a1"))
 

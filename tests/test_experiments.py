@@ -203,6 +203,7 @@ def test_table5_quick(quick_out):
   (row,) = payload["rows"]
   assert row["label"] == "CNN 0% + BN 100%" and _finite(row) and row["paper"]["abs_rel"] == 0.199
   assert row["spec"]["adapt"] == [["selector", "fraction(cnn=0,bn=100)"]]
+  assert (quick_out[0] / "table5" / "figures" / "table5_waymo_abs_rel.png").is_file()
 
 
 def test_sensitivity_quick(quick_out):
