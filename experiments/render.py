@@ -84,6 +84,11 @@ def markdown(entries: Sequence[Entry], layout: str, group_title: str, row_title:
   return "\n".join(blocks)
 
 
+def _label(e: Entry, which: str) -> str:
+  """The row's label; in the paper's block the paper's own (e.g. CoMoDA, PITTA (ours))."""
+  return e.spec.paper if which == "paper" and e.spec is not None and e.spec.paper else e.label
+
+
 def _md_rows(entries, which, group_title, row_title, marked=True) -> str:
   head = f"| {group_title} | {row_title} | " + " | ".join(HEADERS[m] for m in METRIC_NAMES) + " |"
   lines = [head, "|" + "---|" * (len(METRIC_NAMES) + 2)]
@@ -96,13 +101,13 @@ def _md_rows(entries, which, group_title, row_title, marked=True) -> str:
       cells = [e.status] + [""] * (len(METRIC_NAMES) - 1)
     else:
       cells = [_mark_md(_fmt(values.get(m)), rk[m].get(i)) for m in METRIC_NAMES]
-    lines.append(f"| {e.group} | {e.label} | " + " | ".join(cells) + " |")
+    lines.append(f"| {e.group} | {_label(e, which)} | " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
 
 
 def _md_columns(entries, which, row_title, metrics, marked=True) -> str:
   shown = [e for e in entries if which == "ours" or e.paper]
-  head = f"| {row_title} | " + " | ".join(e.label for e in shown) + " |"
+  head = f"| {row_title} | " + " | ".join(_label(e, which) for e in shown) + " |"
   lines = [head, "|" + "---|" * (len(shown) + 1)]
   for m in metrics:
     rk = ranks(shown, m, which, marked)

@@ -21,7 +21,8 @@ LAMBDAS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0, math.inf)
 
 
 def label(lam: float) -> str:
-  return "∞" if math.isinf(lam) else f"{lam:g}"
+  """The paper's column label: 0, 0.1, ..., 0.9, 1.0, ∞."""
+  return "∞" if math.isinf(lam) else "1.0" if lam == 1 else f"{lam:g}"
 
 
 def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,

@@ -185,7 +185,7 @@ def test_table4_quick_is_one_vmapped_sweep(quick_out):
   assert _quick("table4", quick_out) == 0
   payload, lines = _check_files(quick_out[0] / "table4", "table4")
   assert [r["label"] for r in payload["rows"]] == [
-      "0", "0.1", "0.2", "0.3", "0.4", "0.5", "0.6", "0.7", "0.8", "0.9", "1", "∞"]
+      "0", "0.1", "0.2", "0.3", "0.4", "0.5", "0.6", "0.7", "0.8", "0.9", "1.0", "∞"]
   assert all(_finite(r) and r["paper"] for r in payload["rows"]) and len(LAMBDAS) == 12
   assert payload["rows"][2]["paper"]["abs_rel"] == 1.999  # printed as in the paper (a typo)
   assert {"table4_lambda.png", "table4_lambda_paper.png"} <= {
