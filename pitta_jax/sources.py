@@ -372,6 +372,9 @@ def check_run_needs(method, dataset: str, root: str | None, option_items: Sequen
                          "--option num_frames=N with N >= 2")
   else:
     reader = open_reader(dataset, root, option_items, segmentation)
+    if len(reader) == 0:  # e.g. an option selecting nothing; found before the weights load
+      raise DataError(root, f"dataset {dataset} with {' '.join(option_items) or 'no options'}: "
+                            "no frames to adapt on")
     check_needs(method, reader, f"dataset {dataset}")
   if replay_root and method.prepare is not None:
     from pitta_jax.data.kitti import open_raw_sequences

@@ -532,3 +532,16 @@ def test_calib_json_sizes_must_be_integers_not_booleans(tmp_path):
   j.write_text(json.dumps({"K": np.eye(3).tolist(), "width": True, "height": 6}))
   with pytest.raises(DataError, match="width and height must be positive integers"):
     read_calib_json(j)
+
+
+def test_an_option_selecting_no_frame_fails_before_the_weights_load(tmp_path, capsys):
+  from pitta_jax.cli import main
+  make_waymo(tmp_path / "waymo", "segment-a", n=2)
+  weights = tmp_path / "w"  # a model.json only: loading the weights would fail
+  weights.mkdir()
+  (weights / "model.json").write_text(json.dumps({"architecture": "monodepth2", "num_layers": 18,
+                                                  "height": 64, "width": 96}))
+  rc = main(["adapt", "--dataset", "waymo", "--root", str(tmp_path / "waymo"), "--option",
+             "sequences=", "--weights", str(weights), "--out", str(tmp_path / "o")])
+  err = capsys.readouterr().err
+  assert rc == 2 and "no frames to adapt on" in err and err.count("\n") == 1, err
