@@ -405,6 +405,8 @@ def test_requirements_fail_before_work():
     with pytest.raises(ValueError, match=flag):
       method.check(cfg)
   method.check(AdaptConfig(bn_stats="running"))
+  with pytest.raises(ValueError, match="use --bn-stats running --steps-per-frame 1$"):
+    method.check(AdaptConfig(steps_per_frame=2))  # every unmet requirement in one line
   assert method.needs == ("pose", "intrinsics", "previous_frame") and method.report_after_update
   model = network("monodepth2", {"num_layers": 18})
   for resources, missing in [({INPUT_SIZE: (H, W)}, "resources\\['pose'\\]"),

@@ -125,10 +125,12 @@ class Method:
       raise ValueError(f"method {self.name}: unknown needs {sorted(unknown)}; use {NEEDS}")
 
   def check(self, cfg) -> None:
-    """ValueError (one line, naming the flag) when `cfg` contradicts `requires`."""
-    for field, value, reason in self.requires:
-      if getattr(cfg, field) != value:
-        raise ValueError(f"{self.name} {reason}: use --{field.replace('_', '-')} {value}")
+    """ValueError (one line, naming every flag at once) when `cfg` contradicts `requires`."""
+    unmet = [(field, value, reason) for field, value, reason in self.requires
+             if getattr(cfg, field) != value]
+    if unmet:
+      raise ValueError(f"{self.name} {' and '.join(r for _, _, r in unmet)}: use "
+                       + " ".join(f"--{f.replace('_', '-')} {v}" for f, v, _ in unmet))
 
 
 def variables_of(trainable: Tree, consts) -> Tree:
