@@ -25,6 +25,9 @@ import cv2
 import numpy as np
 
 MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0  # valid ground truth and cap, MonoDepth2's evaluation
+# MonoDepth2's `evaluate_depth.py`: a stereo-trained model's depth is metric up to the KITTI
+# baseline it was trained with (0.1 units = 54 cm), so it is multiplied by 5.4, not median-scaled
+STEREO_SCALE_FACTOR = 5.4
 class NoValidPixels(ValueError):
   """A frame whose ground truth has no pixel in the valid depth range (it cannot be scored)."""
 
@@ -94,7 +97,8 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
       scaling), "scale_shift" (per-image least squares of scale s and shift t in inverse depth,
       s / pred + t ~ 1 / gt on the valid pixels, then inverted with the inverse depth floored at
       1 / max_depth: the protocol of affine-invariant relative depth networks such as Depth
-      Anything V2), or "none".
+      Anything V2), "stereo" (times `STEREO_SCALE_FACTOR`, MonoDepth2's protocol for models
+      trained with stereo pairs), or "none".
 
   Returns:
     dict with `METRIC_NAMES` keys, Python floats.
@@ -135,8 +139,10 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
     pred_v = pred_v * (np.median(gt_v) / np.median(pred_v))
   elif alignment == "scale_shift":
     pred_v = 1.0 / np.maximum(scale_shift_inverse(1.0 / pred_v, 1.0 / gt_v), 1.0 / max_depth)
+  elif alignment == "stereo":
+    pred_v = pred_v * STEREO_SCALE_FACTOR
   elif alignment != "none":
-    raise ValueError(f"alignment must be median, scale_shift or none, got {alignment!r}")
+    raise ValueError(f"alignment must be median, scale_shift, stereo or none, got {alignment!r}")
   if clamp:
     pred_v = np.clip(pred_v, min_depth, max_depth)
   if not (np.isfinite(pred_v).all() and (pred_v > 0).all()):

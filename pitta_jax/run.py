@@ -36,8 +36,10 @@ class EvalConfig:
   min_depth: float = option(metrics_lib.MIN_DEPTH, "ground truth below this is invalid (metres)")
   max_depth: float = option(metrics_lib.MAX_DEPTH, "cap of ground truth and prediction (metres)")
   alignment: str = option("model", "per-frame alignment of the prediction: model (the "
-                                   "network's own: median for self-supervised monocular nets, "
-                                   "scale_shift for relative depth) | median | scale_shift | none")
+                                   "weights' own: median for self-supervised monocular nets, "
+                                   "stereo (x5.4) for weights trained with stereo pairs "
+                                   "(model.json use_stereo), scale_shift for relative depth) | "
+                                   "median | scale_shift | stereo | none")
   garg_crop: bool = option(False, "Garg/Eigen crop (KITTI Eigen split only)")
 
   def __post_init__(self):
@@ -45,8 +47,9 @@ class EvalConfig:
           and 0 <= self.min_depth < self.max_depth < float("inf"),
           f"need 0 <= min_depth < max_depth < inf, got min_depth={self.min_depth} "
           f"max_depth={self.max_depth}")
-    check(self.alignment in ("model", "median", "scale_shift", "none"),
-          f"alignment must be model, median, scale_shift or none, got {self.alignment!r}")
+    check(self.alignment in ("model", "median", "scale_shift", "stereo", "none"),
+          f"alignment must be model, median, scale_shift, stereo or none, got "
+          f"{self.alignment!r}")
 
 
 @dataclasses.dataclass
@@ -114,6 +117,16 @@ class Runners:
       tx = make_optimizer(cfg, method)
       self._cache[key] = (model, tx, make_method_runner(model, method, cfg, tx))
     return self._cache[key]
+
+
+def model_alignment(weights: Weights) -> str:
+  """The evaluation alignment the weights need: the network's (`ModelSpec.alignment`), except
+  that a median-scaled network trained with stereo pairs (model.json `use_stereo`, as
+  MonoDepth2's `stereo_*` and `mono+stereo_*` releases) is scaled by 5.4 as MonoDepth2's
+  `evaluate_depth.py` does (`metrics.STEREO_SCALE_FACTOR`)."""
+  if weights.spec.alignment == "median" and weights.config.get("use_stereo") is True:
+    return "stereo"
+  return weights.spec.alignment
 
 
 def check_aspect(frame: Frame, tolerance: float = 0.01) -> None:
@@ -245,7 +258,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     cfg = dataclasses.replace(cfg, chunk_size=math.gcd(cfg.chunk_size, checkpoint_every))
   h, w = weights.height, weights.width
   model, tx, runner = (runners or Runners()).get(weights, method, cfg)
-  alignment = weights.spec.alignment if eval_cfg.alignment == "model" else eval_cfg.alignment
+  alignment = model_alignment(weights) if eval_cfg.alignment == "model" else eval_cfg.alignment
   state, consts = init_state(weights.depth, method, cfg, tx, model,
                              {INPUT_SIZE: (h, w), **(resources or {})})
   directory = Path(checkpoint_dir) if checkpoint_dir else None

@@ -152,3 +152,23 @@ def test_scale_shift_alignment_recovers_an_affine_inverse_depth():
                              s * pred_inv.ravel() + t, rtol=1e-10)
   with pytest.raises(ValueError, match="alignment must be"):
     metrics.depth_metrics(1.0 / pred_inv, gt, alignment="mean")
+
+
+def test_stereo_alignment_is_monodepth2s_fixed_factor():
+  """MonoDepth2's evaluate_depth.py with --eval_stereo: pred_depth *= 5.4, no median scaling.
+  Hand values: pred 1 and 2 m become 5.4 and 10.8 m against gt 5 and 12 m."""
+  m = metrics.depth_metrics(np.array([[1.0, 2.0]]), np.array([[5.0, 12.0]]), alignment="stereo")
+  assert m["abs_rel"] == pytest.approx((0.4 / 5 + 1.2 / 12) / 2)
+  assert m["rmse"] == pytest.approx(math.sqrt((0.4 ** 2 + 1.2 ** 2) / 2))
+
+
+def test_weights_trained_with_stereo_pairs_are_evaluated_as_monodepth2_does():
+  from types import SimpleNamespace
+  from pitta_jax.run import model_alignment
+  spec = SimpleNamespace(alignment="median")
+  assert model_alignment(SimpleNamespace(spec=spec, config={"use_stereo": True})) == "stereo"
+  assert model_alignment(SimpleNamespace(spec=spec, config={"use_stereo": False})) == "median"
+  assert model_alignment(SimpleNamespace(spec=spec, config={})) == "median"
+  relative = SimpleNamespace(alignment="scale_shift")
+  assert model_alignment(SimpleNamespace(spec=relative, config={"use_stereo": True})) == \
+      "scale_shift"
