@@ -172,6 +172,12 @@ def _check_tree(tree: Any, module, config: dict, path: Path, channels: int) -> A
   return unflatten_dict(out)
 
 
+def _unreadable(path: Path, error: Exception) -> WeightsError:
+  """The one-line error of a checkpoint that cannot be read."""
+  return WeightsError(f"{path}: cannot read the checkpoint ({type(error).__name__}: "
+                      f"{str(error).splitlines()[0] if str(error) else ''})")
+
+
 def _check_readable(path: Path) -> None:
   """Reads every value of the checkpoint's OCDBT store once, synchronously (~0.1 s for 37 MB):
   a truncated or corrupt data file is a WeightsError here. Orbax's own asynchronous restore
@@ -187,8 +193,7 @@ def _check_readable(path: Path) -> None:
     try:
       store.read(key).result()
     except Exception as e:
-      raise WeightsError(f"{path}: cannot read the checkpoint ({type(e).__name__}: "
-                         f"{str(e).splitlines()[0] if str(e) else ''})") from None
+      raise _unreadable(path, e) from None
 
 
 def _restore(path: Path) -> Any:
@@ -199,8 +204,7 @@ def _restore(path: Path) -> Any:
   except WeightsError:
     raise
   except Exception as e:  # orbax raises many kinds for a corrupt directory
-    raise WeightsError(f"{path}: cannot read the checkpoint ({type(e).__name__}: "
-                       f"{str(e).splitlines()[0] if str(e) else ''})") from None
+    raise _unreadable(path, e) from None
 
 
 def load_weights(weights_dir: str | os.PathLike) -> Weights:

@@ -77,10 +77,9 @@ class DemoConfig:
     bad_rows = [m for m in self.methods if m not in ROWS]
     check(not bad_rows and bool(self.methods),
           f"methods {bad_rows or '()'} invalid: choose from {', '.join(ROWS)}")
-    twice = sorted({m for m in self.methods if self.methods.count(m) > 1})
-    check(not twice, f"methods {twice} given twice: each row once")
-    twice = sorted({s for s in self.shifts if self.shifts.count(s) > 1})
-    check(not twice, f"shifts {twice} given twice: each shift once")
+    for name, values in (("methods", self.methods), ("shifts", self.shifts)):
+      twice = sorted({v for v in values if values.count(v) > 1})
+      check(not twice, f"{name} {twice} given twice: each once")
 
 
 def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig(),

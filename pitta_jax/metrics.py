@@ -28,6 +28,8 @@ MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0  # valid ground truth and cap, MonoDepth2's ev
 # MonoDepth2's `evaluate_depth.py`: a stereo-trained model's depth is metric up to the KITTI
 # baseline it was trained with (0.1 units = 54 cm), so it is multiplied by 5.4, not median-scaled
 STEREO_SCALE_FACTOR = 5.4
+
+
 class NoValidPixels(ValueError):
   """A frame whose ground truth has no pixel in the valid depth range (it cannot be scored)."""
 

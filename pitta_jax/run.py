@@ -149,16 +149,11 @@ def run_fingerprint(weights: Weights, method: Method, cfg: AdaptConfig, eval_cfg
   parameter values), the method and its config, the run's and the evaluation's configs, and the
   frames' names in order. A checkpoint carries it, so that a resume continues only its own run."""
   import hashlib
-  import jax
-  digest = hashlib.sha256()
-  text = json.dumps({"network": weights.spec.name, "config": weights.config,
-                     "method": method.name, "method_config": repr(method.config),
-                     "adapt": repr(cfg), "eval": repr(eval_cfg), "frames": list(names)},
-                    sort_keys=True, default=str)
-  digest.update(text.encode())
-  for leaf in jax.tree_util.tree_leaves(weights.depth):
-    digest.update(np.ascontiguousarray(leaf).tobytes())
-  return digest.hexdigest()[:32]
+  from pitta_jax.source_stats import weights_identity
+  text = json.dumps({"weights": weights_identity(weights), "method": method.name,
+                     "method_config": repr(method.config), "adapt": repr(cfg),
+                     "eval": repr(eval_cfg), "frames": list(names)}, sort_keys=True, default=str)
+  return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
 def _frame_names(frames: Sequence[Frame]) -> list[str]:
@@ -262,12 +257,13 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   state, consts = init_state(weights.depth, method, cfg, tx, model,
                              {INPUT_SIZE: (h, w), **(resources or {})})
   directory = Path(checkpoint_dir) if checkpoint_dir else None
+  names = None if directory is None else _frame_names(frames)
   fingerprint = None if directory is None else run_fingerprint(weights, method, cfg, eval_cfg,
-                                                               _frame_names(frames))
+                                                               names)
   record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
             "logs": {}, "fingerprint": fingerprint}
   if directory is not None and resume:
-    found = _resume_point(directory, fingerprint, _frame_names(frames))
+    found = _resume_point(directory, fingerprint, names)
     if found is not None:
       state = load_state(found[0], like=state)
       record = {"nonfinite_indices": [], **found[1]}
