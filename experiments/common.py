@@ -286,7 +286,7 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
     res_key = (row.model, row.method, method.config)
     if res_key not in resources:
       resources[res_key] = method_resources(method, weights, ctx.dataset, ctx.source_images,
-                                            ctx.replay_root)
+                                            ctx.replay_root, quiet=ctx.quiet)
     ckpt = ctx.out / "rows" / f"{key}.ckpt"
     res = run_sequence(weights, frames, cfg, method, name=f"{case}: {row.label}",
                        quiet=ctx.quiet, runners=runners, resources=resources[res_key],

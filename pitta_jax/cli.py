@@ -314,7 +314,7 @@ def _run_adapt(args) -> int:
     frames = open_frames(args.dataset, args.root, args.option, args.segmentation,
                          weights.height, weights.width, reader=reader)
     resources = method_resources(method, weights, args.dataset, args.source_images,
-                                 args.replay_root, args.source_stats)
+                                 args.replay_root, args.source_stats, quiet=args.quiet)
     out = args.out
     res = run_sequence(weights, frames, cfg, method, eval_cfg, name=f"{args.dataset} {cfg.method}",
                        quiet=args.quiet,
@@ -373,6 +373,7 @@ def _add_source_stats(sub) -> None:
   p.add_argument("--out", required=True, metavar="FILE", help="the .npz file to write")
   p.add_argument("--layers", metavar="REGEX",
                  help=help_of(layers).replace("%", "%%"))
+  p.add_argument("--quiet", action="store_true", help="no progress bar")
   p.set_defaults(func=_run_source_stats)
 
 
@@ -404,7 +405,7 @@ def _run_source_stats(args) -> int:
   if not shapes:
     raise ValueError(f"--layers {cfg.layers!r} matches no module of the {weights.spec.name} "
                      "whose output is one feature map")
-  source = SourceData(images)
+  source = SourceData(images, progress=None if args.quiet else "source statistics")
   stats = build("actmad", cfg).prepare(weights.network(), weights.depth, source)[RESOURCE]
   save_source_stats(args.out, stats, weights, cfg.layers, len(images))
   print(f"wrote the statistics of {len(stats)} layers over {len(images)} images to {args.out}")

@@ -109,7 +109,7 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
       cfg = dataclasses.replace(adapt, method=name, **{**method_setting(name), **changes})
       method = build_method(name, configs.get(name))
       if key not in resources:  # e.g. ActMAD's source statistics, from clear training streets
-        resources[key] = method_resources(method, weights, "synthetic")
+        resources[key] = method_resources(method, weights, "synthetic", quiet=quiet)
       res = run_sequence(weights, frames, cfg, method, EvalConfig(), name=f"{domain}: {row}",
                          quiet=quiet, keep=(len(frames) - 1,), runners=runners,
                          resources=resources[key])

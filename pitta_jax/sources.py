@@ -161,8 +161,8 @@ def replay_sequences(replay_root: str, height: int, width: int) -> list:
 
 
 def method_resources(method, weights: Weights, dataset: str, source_images: str | None = None,
-                     replay_root: str | None = None, source_stats: str | None = None
-                     ) -> dict[str, Any]:
+                     replay_root: str | None = None, source_stats: str | None = None,
+                     quiet: bool = False) -> dict[str, Any]:
   """The method's host-side inputs: the weights' pose network when the method needs one, and
   `Method.prepare` on source-domain data: the files of `source_images` (a file, a directory
   or a glob), consecutive frames of `replay_root` (a KITTI raw-data root), or on the synthetic
@@ -171,6 +171,7 @@ def method_resources(method, weights: Weights, dataset: str, source_images: str 
   source_stats: an ActMAD statistics file (`pitta-jax source-stats`), used instead of
   computing them; on the synthetic benchmark without any source flag, ActMAD's statistics are
   cached (`source_stats.cached_stats`), so a second run does not recompute them.
+  quiet: no progress bar while `prepare` reads the source images.
   """
   from pitta_jax.methods.base import POSE, PoseNet, SourceData
   resources: dict[str, Any] = {}
@@ -197,7 +198,7 @@ def method_resources(method, weights: Weights, dataset: str, source_images: str 
     """The method's resources and how many source images they come from."""
     seqs = synthetic_streets(h, w) if synthetic_default else (sequences or [])
     imgs = images if images is not None else SourceImages.from_sequences(seqs)
-    source = SourceData(imgs, tuple(seqs))
+    source = SourceData(imgs, tuple(seqs), None if quiet else f"{method.name}: source data")
     return method.prepare(weights.network(), weights.depth, source), len(imgs)
 
   if synthetic_default and method.name == "actmad":

@@ -20,6 +20,7 @@ from pitta_jax.cli import main
 from pitta_jax.data.errors import DataError
 from pitta_jax.methods import actmad, build
 from pitta_jax.methods.actmad import ActmadConfig
+from pitta_jax.methods.base import SourceData
 from pitta_jax.source_stats import FORMAT, load_source_stats, read_source_stats
 from test_readers import _write_rgb
 
@@ -185,3 +186,15 @@ def test_help_renders(capsys):
     main(["source-stats", "--help"])
   out = capsys.readouterr().out
   assert e.value.code == 0 and "--layers REGEX" in out and "every encoder BN" in out
+
+
+def test_source_batches_read_lazily_with_a_progress_bar(capsys):
+  images = tuple(np.full((2, 3, 3), k, np.float32) for k in range(5))
+  batches = SourceData(images, progress="source statistics").batches(2)
+  assert capsys.readouterr().err == ""  # nothing read before the first batch is asked for
+  out = list(batches)
+  assert [b.shape for b in out] == [(2, 2, 3, 3), (2, 2, 3, 3), (1, 2, 3, 3)]
+  assert [b[:, 0, 0, 0].tolist() for b in out] == [[0, 1], [2, 3], [4]]
+  assert "source statistics" in capsys.readouterr().err
+  assert len(list(SourceData(images).batches(4))) == 2
+  assert capsys.readouterr().err == ""  # no title: no bar

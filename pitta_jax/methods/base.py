@@ -75,11 +75,16 @@ class SourceData:
   """
   images: tuple[Any, ...] = ()
   sequences: tuple[tuple[Any, ...], ...] = ()
+  progress: str | None = None  # a progress bar's title for `batches()`; None: no bar
 
   def batches(self, size: int = 4):
-    """`images` as stacked batches (B, H, W, 3) of at most `size`."""
+    """`images` as stacked batches (B, H, W, 3) of at most `size`, read one batch at a time
+    (a real source set need not fit in memory), with a progress bar titled `progress`."""
     import numpy as np
-    return [np.stack(self.images[i:i + size]) for i in range(0, len(self.images), size)]
+    from tqdm import tqdm
+    starts = range(0, len(self.images), size)
+    for i in tqdm(starts, desc=self.progress, unit="batch", disable=self.progress is None):
+      yield np.stack(self.images[i:i + size])
 
 
 class Aux(NamedTuple):
