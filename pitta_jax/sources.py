@@ -256,6 +256,10 @@ def check_dataset_args(dataset: str, root: str | None, option_items: Sequence[st
     if kind != "gt":
       raise DataError(None, "the synthetic benchmark carries exact panoptic maps: use "
                             "--segmentation gt")
+    sized = [k for k in ("height", "width") if k in raw]
+    if sized:
+      raise DataError(None, f"--option {sized[0]}: the synthetic frames are rendered at the "
+                            "weights' input size (their model.json height and width)")
     from pitta_jax.data.synthetic import SyntheticConfig
     return typed_options(raw, dataclass_annotations(SyntheticConfig), "synthetic")
   if not root:

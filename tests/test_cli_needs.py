@@ -109,6 +109,9 @@ def cli(tmp_path, monkeypatch, capsys):
     (("--method", "actmad", "--bn-stats", "running", "--dataset", "folder", "--root", "TMP/seq"),
      "--method actmad needs source-domain data: --source-images PATH, --source-stats FILE or "
      "--replay-root DIR"),
+    (("--method", "needy", "--dataset", "synthetic", "--option", "height=32"),
+     "--option height: the synthetic frames are rendered at the weights' input size (their "
+     "model.json height and width)"),
     (("--method", "posey", "--dataset", "synthetic"),
      "--method posey needs a pose network, and the weights have none (convert with "
      "--pose-encoder/--pose, or train-source)"),
