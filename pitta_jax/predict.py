@@ -41,13 +41,20 @@ def expand_images(spec: str, unique_stems: bool = True) -> list[Path]:
     paths = sorted(Path(p) for p in glob.glob(spec) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
   if not paths:
     raise DataError(spec, f"no image found (a file, a directory or a glob of {IMAGE_SUFFIXES})")
+  if unique_stems:
+    check_unique_stems(paths)
+  return paths
+
+
+def check_unique_stems(paths: Sequence[Path]) -> None:
+  """DataError naming the second of two images with one file stem: outputs named by stem
+  (OUT/<stem>.png) would overwrite each other."""
   stems: dict[str, Path] = {}
-  for p in paths if unique_stems else ():
+  for p in paths:
     if p.stem in stems:
       raise DataError(p, f"has the same file stem as {stems[p.stem]}; their outputs would "
-                         f"overwrite each other (predict one directory at a time)")
+                         f"overwrite each other (one directory at a time)")
     stems[p.stem] = p
-  return paths
 
 
 def check_images(paths: Sequence[Path], quiet: bool = False) -> None:

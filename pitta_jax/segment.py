@@ -40,7 +40,7 @@ from pitta_jax.data.image_io import read_image
 from pitta_jax.data.panoptic_io import write_panoptic
 from pitta_jax.data.sequence import FrameSequence
 from pitta_jax.models.mask2former import CONFIG_JSON, InferenceConfig, load_mask2former, segment
-from pitta_jax.predict import check_images, expand_images
+from pitta_jax.predict import check_images, check_unique_stems, expand_images
 
 
 PathLike = str | os.PathLike[str]
@@ -169,12 +169,9 @@ def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_
   """
   segmenter = Segmenter(weights_dir, input_size)
   paths = expand_images(images) if isinstance(images, str) else [Path(p) for p in images]
-  seen: dict[str, Path] = {}
+  check_unique_stems(paths)  # a list given by the caller too
   out = Path(out_dir)
-  for path in paths:  # outputs are named by stem: two `a.png` from a glob would collide
-    if path.stem in seen:
-      raise DataError(path, f"same file stem as {seen[path.stem]}: outputs are named by stem")
-    seen[path.stem] = path
+  for path in paths:
     if (out / f"{path.stem}.png").resolve() == path.resolve():
       raise DataError(path, f"--out {out} would overwrite this input with its panoptic map "
                             "(outputs are OUT/<stem>.png): choose another --out")
