@@ -34,7 +34,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from pitta_jax import metrics as metrics_lib
   from pitta_jax.adapt import streams
   from pitta_jax.adapt.inputs import chunks
-  from pitta_jax.run import EvalConfig, model_alignment
+  from pitta_jax.run import EvalConfig, frame_metrics, model_alignment
   from pitta_jax.run import Runners
   cfg = common.adapt_config("pitta", quick=quick)
   key = ("lambda_sweep", weights.spec.name, json.dumps(weights.config, sort_keys=True,
@@ -52,9 +52,8 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
     for t, frame in enumerate(originals):
       for k in range(len(lams)):
         try:
-          per_frame[k].append(metrics_lib.depth_metrics(
-              depth[t, k], frame.depth, min_depth=ev.min_depth, max_depth=ev.max_depth,
-              alignment=model_alignment(weights)))
+          per_frame[k].append(frame_metrics(depth[t, k], frame.depth, ev,
+                                            model_alignment(weights)))
         except metrics_lib.NoValidPixels:
           pass
     bar.update(len(originals))

@@ -6,15 +6,17 @@ The 7 Eigen et al. metrics as MonoDepth2's `compute_errors` computes them, for o
   rmse     = sqrt(mean((gt - pred)**2))      rmse_log = sqrt(mean((log gt - log pred)**2))
   a1, a2, a3 = mean(max(gt/pred, pred/gt) < 1.25, 1.25**2, 1.25**3)
 
-Protocol (MonoDepth2 `evaluate_depth.py`): the prediction is resized to the ground truth's size
-with `cv2.resize(..., interpolation=cv2.INTER_LINEAR)`; the valid pixels are
+Protocol (MonoDepth2 `evaluate_depth.py`): the predicted disparity is resized to the ground
+truth's size with `cv2.resize(..., interpolation=cv2.INTER_LINEAR)` and inverted; the valid pixels are
 `min_depth < gt < max_depth` (and the Garg crop when asked); per-image median scaling
 `pred *= median(gt_valid) / median(pred_valid)` (monocular models); then pred is clamped to
 [min_depth, max_depth]. Frames are averaged with `mean_metrics`.
 
-MonoDepth2 resizes the *disparity* and inverts it afterwards. We take the depth by default and
-resize the depth; pass `pred_is_disparity=True` to get MonoDepth2's order exactly (resize the
-disparity, then depth = 1 / disparity). Metrics are computed in float64.
+`depth_metrics` takes a depth (or, with `pred_is_disparity`, a disparity) and by default
+interpolates in disparity as MonoDepth2 does (`resize="disparity"`: a depth is inverted, resized
+and inverted back); `resize="depth"` interpolates the depth itself, which mixes the two
+surfaces at a depth edge differently (on KITTI-like sparse ground truth abs_rel grows by a few
+thousandths). Metrics are computed in float64.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0  # valid ground truth and cap, MonoDepth2's ev
 # MonoDepth2's `evaluate_depth.py`: a stereo-trained model's depth is metric up to the KITTI
 # baseline it was trained with (0.1 units = 54 cm), so it is multiplied by 5.4, not median-scaled
 STEREO_SCALE_FACTOR = 5.4
+RESIZE_DOMAINS = ("disparity", "depth")  # what `depth_metrics` interpolates onto the gt's size
 
 
 class NoValidPixels(ValueError):
@@ -82,19 +85,20 @@ def compute_errors(gt: np.ndarray, pred: np.ndarray) -> dict[str, float]:
 def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DEPTH,
                   max_depth: float = MAX_DEPTH, median_scaling: bool = True, garg_crop: bool = False,
                   clamp: bool = True, pred_is_disparity: bool = False,
-                  alignment: str | None = None) -> dict[str, float]:
+                  alignment: str | None = None, resize: str = "disparity") -> dict[str, float]:
   """The 7 depth metrics of one frame, MonoDepth2 protocol.
 
   Args:
     pred: (h, w) predicted depth (or disparity with `pred_is_disparity`), any size; resized to
-      gt's size with cv2 INTER_LINEAR when the sizes differ.
+      gt's size with cv2 INTER_LINEAR when the sizes differ, as `resize` says.
     gt: (H, W) ground-truth depth in metres; pixels outside (min_depth, max_depth) are ignored.
     min_depth, max_depth: valid range of gt, and the clamp range of pred.
     median_scaling: multiply pred by median(gt) / median(pred) over the valid pixels (monocular).
     garg_crop: also restrict to the Garg crop (KITTI Eigen split).
     clamp: clamp pred to [min_depth, max_depth] after scaling.
-    pred_is_disparity: pred is a disparity; resize it, then take depth = 1 / disparity
-      (MonoDepth2's order).
+    pred_is_disparity: pred is a disparity (depth = 1 / disparity).
+    resize: the map interpolated when the sizes differ: "disparity" (MonoDepth2's order: resize
+      the disparity, then depth = 1 / disparity) or "depth".
     alignment: overrides `median_scaling` when given: "median" (MonoDepth2's per-image median
       scaling), "scale_shift" (per-image least squares of scale s and shift t in inverse depth,
       s / pred + t ~ 1 / gt on the valid pixels, then inverted with the inverse depth floored at
@@ -117,9 +121,15 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
     raise ValueError(f"gt must be a 2-D (H, W) map, got shape {gt.shape}")
   if np.isnan(pred).any():
     raise ValueError("pred contains NaN")
+  if resize not in RESIZE_DOMAINS:
+    raise ValueError(f"resize must be one of {', '.join(RESIZE_DOMAINS)}, got {resize!r}")
   gt_h, gt_w = gt.shape
   pred = pred.astype(np.float32)
   if pred.shape != gt.shape:
+    if pred_is_disparity != (resize == "disparity"):  # into the domain to interpolate in
+      with np.errstate(divide="ignore"):
+        pred = np.float32(1.0) / pred
+      pred_is_disparity = not pred_is_disparity
     pred = cv2.resize(pred, (gt_w, gt_h), interpolation=cv2.INTER_LINEAR)
   if pred_is_disparity:
     with np.errstate(divide="ignore"):

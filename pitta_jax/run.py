@@ -40,7 +40,12 @@ class EvalConfig:
                                    "stereo (x5.4) for weights trained with stereo pairs "
                                    "(model.json use_stereo), scale_shift for relative depth) | "
                                    "median | scale_shift | stereo | none")
-  garg_crop: bool = option(False, "Garg/Eigen crop (KITTI Eigen split only)")
+  garg_crop: bool = option(False, "score inside the Garg/Eigen crop; a KITTI split file under "
+                                  "splits/eigen/ turns it on unless given (MonoDepth2's "
+                                  "evaluate_depth.py --eval_split eigen)")
+  resize: str = option("disparity", "the map resized onto the ground truth's size: disparity "
+                                    "(MonoDepth2's evaluate_depth.py: resize 1 / depth, then "
+                                    "invert) | depth")
 
   def __post_init__(self):
     check(isinstance(self.min_depth, (int, float)) and isinstance(self.max_depth, (int, float))
@@ -50,6 +55,8 @@ class EvalConfig:
     check(self.alignment in ("model", "median", "scale_shift", "stereo", "none"),
           f"alignment must be model, median, scale_shift, stereo or none, got "
           f"{self.alignment!r}")
+    check(self.resize in metrics_lib.RESIZE_DOMAINS,
+          f"resize must be {' or '.join(metrics_lib.RESIZE_DOMAINS)}, got {self.resize!r}")
 
 
 @dataclasses.dataclass
@@ -127,6 +134,16 @@ def model_alignment(weights: Weights) -> str:
   if weights.spec.alignment == "median" and weights.config.get("use_stereo") is True:
     return "stereo"
   return weights.spec.alignment
+
+
+def frame_metrics(depth: np.ndarray, gt: np.ndarray, eval_cfg: EvalConfig, alignment: str
+                  ) -> dict[str, float]:
+  """The 7 metrics of one frame's predicted depth (h, w) against its ground truth (H, W) under
+  `eval_cfg`, with the alignment resolved (`model_alignment` for "model"). Raises
+  `metrics.NoValidPixels` when the ground truth has no valid pixel."""
+  return metrics_lib.depth_metrics(depth, gt, min_depth=eval_cfg.min_depth,
+                                   max_depth=eval_cfg.max_depth, alignment=alignment,
+                                   garg_crop=eval_cfg.garg_crop, resize=eval_cfg.resize)
 
 
 def check_aspect(frame: Frame, tolerance: float = 0.01) -> None:
@@ -300,9 +317,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
           record["nonfinite_indices"].append(index)
         elif frame.depth is not None:
           try:
-            record["per_frame"].append({"name": frame.name, **metrics_lib.depth_metrics(
-                depth, frame.depth, min_depth=eval_cfg.min_depth, max_depth=eval_cfg.max_depth,
-                alignment=alignment, garg_crop=eval_cfg.garg_crop)})
+            record["per_frame"].append({"name": frame.name, **frame_metrics(
+                depth, frame.depth, eval_cfg, alignment)})
           except metrics_lib.NoValidPixels:
             record["excluded"].append(frame.name)
         record["names"].append(frame.name)

@@ -64,16 +64,23 @@ def test_matches_per_pixel_loop(median_scaling, clamp):
 
 
 def test_resizes_prediction_bilinear():
-  # Reference: cv2.resize(pred, (W, H), INTER_LINEAR) then the loop; and a hand value: a
-  # constant prediction 2 on any grid stays 2, against gt 4 -> abs_rel 0.5, a1 = 0.
+  # Reference: MonoDepth2's evaluate_depth.py (pred_disp = cv2.resize(pred_disp, (W, H)), then
+  # pred_depth = 1 / pred_disp) then the loop; resize="depth" resizes the depth itself; and a
+  # hand value: a constant prediction 2 on any grid stays 2, against gt 4 -> abs_rel 0.5, a1 = 0.
   rng = np.random.default_rng(7)
   gt = rng.uniform(1.0, 50.0, (12, 20)).astype(np.float32)
   pred = rng.uniform(1.0, 50.0, (6, 10)).astype(np.float32)
-  resized = cv2.resize(pred, (20, 12), interpolation=cv2.INTER_LINEAR)
-  got = metrics.depth_metrics(pred, gt)
-  want = depth_metrics_literal(resized, gt)
-  for k in metrics.METRIC_NAMES:
-    np.testing.assert_allclose(got[k], want[k], rtol=1e-10, err_msg=k)
+  pred_disp = cv2.resize(1.0 / pred, (20, 12), interpolation=cv2.INTER_LINEAR)
+  for got, resized in ((metrics.depth_metrics(pred, gt), 1.0 / pred_disp),
+                       (metrics.depth_metrics((1.0 / pred).astype(np.float32), gt,
+                                              pred_is_disparity=True), 1.0 / pred_disp),
+                       (metrics.depth_metrics(pred, gt, resize="depth"),
+                        cv2.resize(pred, (20, 12), interpolation=cv2.INTER_LINEAR))):
+    want = depth_metrics_literal(resized, gt)
+    for k in metrics.METRIC_NAMES:
+      np.testing.assert_allclose(got[k], want[k], rtol=1e-6, err_msg=k)
+  with pytest.raises(ValueError, match="resize must be"):
+    metrics.depth_metrics(pred, gt, resize="nearest")
   const = metrics.depth_metrics(np.full((3, 5), 2.0, np.float32), np.full((6, 10), 4.0),
                                 median_scaling=False)
   assert const["abs_rel"] == pytest.approx(0.5)
