@@ -263,6 +263,23 @@ def adapt_config(args):
   return cfg, method, notes
 
 
+def dataset_evaluation(eval_cfg, protocol, args):
+  """(EvalConfig, note or None): the dataset's own evaluation protocol (`FrameSequence.
+  evaluation`, e.g. the Garg crop of KITTI's Eigen split) where no --eval flag says otherwise,
+  with a note naming the flags it set."""
+  import dataclasses
+  from pitta_jax.config_cli import given_fields
+  from pitta_jax.run import EvalConfig
+  given = given_fields(EvalConfig, args, "eval")
+  own = {k: v for k, v in protocol.items() if k not in given and getattr(eval_cfg, k) != v}
+  if not own:
+    return eval_cfg, None
+  flags = ", ".join(f"--eval.{k.replace('_', '-')} {str(v).lower()}" for k, v in own.items())
+  return (dataclasses.replace(eval_cfg, **own),
+          f"dataset {args.dataset} is evaluated with its published protocol: {flags} (give the "
+          f"flag to change it)")
+
+
 def _run_adapt(args) -> int:
   import dataclasses
   from pitta_jax.adapt import AdaptConfig
@@ -306,6 +323,9 @@ def _run_adapt(args) -> int:
     reader = check_run_needs(method, args.dataset, args.root, args.option, args.segmentation,
                              args.replay_root, weights_config, bool(source_flags))
     notes += list(reader.notes if reader is not None else ())
+    if reader is not None:
+      eval_cfg, protocol_note = dataset_evaluation(eval_cfg, reader.evaluation, args)
+      notes += [protocol_note] if protocol_note else []
     for note in notes:
       print(f"note: {note}", file=sys.stderr)
     from pitta_jax.source_model import enable_compilation_cache

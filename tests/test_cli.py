@@ -112,3 +112,25 @@ def test_adapt_runs_a_method_in_its_own_setting_unless_a_flag_says_otherwise():
   with pytest.raises(ValueError, match="--bn-stats running"):
     adapt_config(build_parser().parse_args(["adapt", "--dataset", "synthetic", "--method",
                                             "actmad"]))
+
+
+def test_kitti_eigen_split_is_scored_inside_the_garg_crop_unless_a_flag_says_otherwise():
+  """A dataset's own protocol (`FrameSequence.evaluation`: the Eigen split's Garg crop, as
+  MonoDepth2's evaluate_depth.py --eval_split eigen) applies where no --eval flag is given."""
+  from pitta_jax.cli import build_parser, dataset_evaluation
+  from pitta_jax.config_cli import config_from_args
+  from pitta_jax.run import EvalConfig
+  base = ["evaluate", "--dataset", "kitti", "--root", "r", "--weights", "w"]
+  args = build_parser().parse_args(base)
+  cfg, note = dataset_evaluation(config_from_args(EvalConfig, args, "eval"),
+                                 {"garg_crop": True}, args)
+  assert cfg.garg_crop is True
+  assert note == ("dataset kitti is evaluated with its published protocol: --eval.garg-crop "
+                  "true (give the flag to change it)")
+  args = build_parser().parse_args([*base, "--eval.garg-crop", "false"])
+  cfg, note = dataset_evaluation(config_from_args(EvalConfig, args, "eval"),
+                                 {"garg_crop": True}, args)
+  assert cfg.garg_crop is False and note is None
+  args = build_parser().parse_args(base)
+  cfg, note = dataset_evaluation(config_from_args(EvalConfig, args, "eval"), {}, args)
+  assert cfg.garg_crop is False and note is None

@@ -225,6 +225,8 @@ def test_kitti_eigen_gt(tmp_path):
   _save_object_npz(split.parent / "gt_depths.npz", maps)
   frames = kitti.open_kitti(tmp_path / "data", split)  # gt_depths.npz found beside the split
   assert len(frames) == 3
+  # splits/eigen/: scored inside the Garg crop (MonoDepth2's --eval_split eigen), kept by slicing
+  assert frames.evaluation == frames[1:].evaluation == {"garg_crop": True}
   assert frames.names == ("2011_09_26/2011_09_26_drive_0002_sync/image_02/0000000069",
                           "2011_09_26/2011_09_26_drive_0002_sync/image_03/0000000005",
                           "2011_09_28/2011_09_28_drive_0001_sync/image_02/0000000003")
@@ -319,6 +321,11 @@ def test_kitti_improved_gt(tmp_path):
     _write_u16(tmp_path / "improved" / sub / drive / "proj_depth" / "groundtruth"
                / f"image_0{camera}" / f"{frame:010d}.png", depth)
     written.append(depth)
+  bench = tmp_path / "splits" / "eigen_benchmark" / "test_files.txt"  # no crop for this split
+  bench.parent.mkdir(parents=True)
+  bench.write_text(split.read_text())
+  assert kitti.open_kitti(tmp_path / "data", bench, improved_gt=tmp_path / "improved"
+                          ).evaluation == {}
   frames = kitti.open_kitti(tmp_path / "data", split, improved_gt=tmp_path / "improved")
   for frame, depth in zip(frames, written):
     np.testing.assert_array_equal(frame.depth, depth.astype(np.float32) / 256)

@@ -20,8 +20,11 @@ Ground truth, one of:
   uint16 / 256. They cover 652 of the 697 Eigen test frames: use MonoDepth2's
   `eigen_benchmark` split with them.
 
-`Frame.depth` is the ground-truth map at its own size (375x1242 or so); the Eigen evaluation
-(Garg crop, 1e-3 < gt < 80) is the metrics module's business. Frame names are
+`Frame.depth` is the ground-truth map at its own size (375x1242 or so); the metrics module
+scores it (1e-3 < gt < 80). A split file in a folder named `eigen` (MonoDepth2's
+`splits/eigen/test_files.txt`) is evaluated inside the Garg crop, as MonoDepth2's
+`evaluate_depth.py --eval_split eigen` does (`FrameSequence.evaluation`); other splits, e.g.
+`eigen_benchmark` with the improved ground truth, without it. Frame names are
 `<folder>/image_0{2,3}/{frame:010d}`; panoptic maps (optional) are looked up under the image's
 relative path without suffix, `<folder>/image_0{2,3}/data/{frame:010d}`, in `panoptic_dir`.
 Frames carry K from `<date>/calib_cam_to_cam.txt` when it exists; a split is temporal when its
@@ -262,7 +265,15 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
   return FrameSequence(files, temporal=split_is_temporal(entries), remedies={
       "intrinsics": INTRINSICS_REMEDY,
       "previous_frame": "a split file whose lines are consecutive frames of each drive (the "
-                        "Eigen test split is not)"})
+                        "Eigen test split is not)"},
+      evaluation=split_evaluation(split_file))
+
+
+def split_evaluation(split_file: Path) -> dict[str, bool]:
+  """The evaluation protocol of a MonoDepth2 split (`run.EvalConfig` values): the Garg crop for
+  the `eigen` split (`splits/eigen/...`), as MonoDepth2's `evaluate_depth.py` applies it for
+  `--eval_split eigen` only."""
+  return {"garg_crop": True} if split_file.resolve().parent.name == "eigen" else {}
 
 
 def split_is_temporal(entries: list[tuple[str, int, int]]) -> bool:

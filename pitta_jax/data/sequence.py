@@ -8,7 +8,9 @@ Besides the frames, a `FrameSequence` says what a method may rely on before any 
 whether its order is capture order (`temporal`: consecutive frames of one or more recordings,
 what methods reprojecting the previous frame need), which frames carry a camera matrix
 (`FrameFiles.intrinsics`), how to supply what is missing (`remedies`, for one-line errors), and
-what the reader chose on its own (`notes`, e.g. the only image size present).
+what the reader chose on its own (`notes`, e.g. the only image size present), and the
+dataset's own evaluation protocol where it has one (`evaluation`, e.g. the Garg crop of KITTI's
+Eigen split).
 """
 
 from __future__ import annotations
@@ -96,21 +98,26 @@ class FrameSequence(Sequence[Frame]):
     remedies: for what the frames lack ("intrinsics", "previous_frame"), how the user supplies
       it (a flag or a file), one phrase each, used in error messages.
     notes: choices the reader made on its own that the user should see (one line each).
+    evaluation: the dataset's evaluation protocol as `run.EvalConfig` values (field -> value)
+      that its published results use, e.g. {"garg_crop": True} for KITTI's Eigen split; the CLI
+      applies them where the user gives no flag.
   """
 
   def __init__(self, files: Sequence[FrameFiles],
                transform: Callable[[Frame], Frame] | None = None, *, temporal: bool = False,
-               remedies: Mapping[str, str] | None = None, notes: Sequence[str] = ()):
+               remedies: Mapping[str, str] | None = None, notes: Sequence[str] = (),
+               evaluation: Mapping[str, object] | None = None):
     self.files = tuple(files)
     self.transform = transform
     self.temporal = temporal
     self.remedies = dict(remedies or {})
     self.notes = tuple(notes)
+    self.evaluation = dict(evaluation or {})
 
   def _with(self, files: Sequence[FrameFiles], transform: Callable[[Frame], Frame] | None,
             temporal: bool = True) -> FrameSequence:
     return FrameSequence(files, transform, temporal=self.temporal and temporal,
-                         remedies=self.remedies, notes=self.notes)
+                         remedies=self.remedies, notes=self.notes, evaluation=self.evaluation)
 
   def __len__(self) -> int:
     return len(self.files)
@@ -147,10 +154,14 @@ class FrameSequence(Sequence[Frame]):
   def __add__(self, other: FrameSequence) -> FrameSequence:
     if not isinstance(other, FrameSequence) or other.transform is not self.transform:
       return NotImplemented
+    if other.evaluation != self.evaluation:
+      raise ValueError(f"cannot join frames evaluated differently: {self.evaluation} and "
+                       f"{other.evaluation}")
     return FrameSequence(self.files + other.files, self.transform,
                          temporal=self.temporal and other.temporal,
                          remedies={**other.remedies, **self.remedies},
-                         notes=self.notes + tuple(n for n in other.notes if n not in self.notes))
+                         notes=self.notes + tuple(n for n in other.notes if n not in self.notes),
+                         evaluation=self.evaluation)
 
   def __repr__(self) -> str:
     first = f", first={self.files[0].name!r}" if self.files else ""
