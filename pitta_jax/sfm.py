@@ -15,11 +15,14 @@ to source-camera points (upstream's `outputs[("cam_T_cam", 0, frame_id)]`;
 axis-angle and translation).
 
 `warp` is `F.grid_sample(image, coords, mode="bilinear", padding_mode="border",
-align_corners=True)`. MonoDepth2 calls `F.grid_sample(..., padding_mode="border")` without
-`align_corners`; its training code predates PyTorch 1.3, where the default was changed from
-align_corners=True to False, so the released weights were trained with align_corners=True, and
-`Project3D`'s normalisation by (W - 1), (H - 1) is the align_corners=True convention. The
-gradients follow torch's grid sampler: bilinear weights from floor(x) (so on a pixel centre the
+align_corners=...)`. MonoDepth2, CoMoDa and Ada-Depth all call `F.grid_sample(...,
+padding_mode="border")` without `align_corners`, so which convention they sample with depends
+on the PyTorch they ran on: MonoDepth2's training code predates PyTorch 1.3, whose default was
+align_corners=True (the convention of `Project3D`'s normalisation by W - 1, H - 1); CoMoDa
+(PyTorch 1.3.0) and Ada-Depth (1.7.1) ran after the default became False, which samples x * W /
+(W - 1) - 0.5 for `Project3D`'s pixel x (half a pixel off at the borders, not the identity for a
+static camera). `SfmLossConfig.align_corners` is False, what the two baselines' adaptation code
+computed; True gives MonoDepth2's training convention. The gradients follow torch's grid sampler: bilinear weights from floor(x) (so on a pixel centre the
 coordinate derivative is the forward difference), and border clipping passes the coordinate
 gradient only strictly inside (0, size - 1) (torch treats the borders as out of bounds).
 The derivatives of |x| and clamp are PyTorch's (`pitta_jax.nonsmooth`); the per-pixel minimum
@@ -61,6 +64,9 @@ class SfmLossConfig:
   scales: tuple[int, ...] = option((0, 1, 2, 3), "decoder scales in the loss (MonoDepth2 --scales)")
   smoothness: float = option(1e-3, "edge-aware smoothness weight (--disparity_smoothness)")
   automask: bool = option(True, "identity-reprojection auto-masking (not --disable_automasking)")
+  align_corners: bool = option(False, "the warp's grid_sample convention: False = what CoMoDa's "
+                                      "and Ada-Depth's code compute (PyTorch >= 1.3 default), "
+                                      "True = MonoDepth2's training (PyTorch < 1.3)")
 
   def __post_init__(self):
     finite(self.min_depth, "min_depth", 0.0)
@@ -74,6 +80,8 @@ class SfmLossConfig:
           f"scales must be a non-empty tuple of distinct ints >= 0, got {self.scales!r}")
     finite(self.smoothness, "smoothness", 0.0)
     check(isinstance(self.automask, bool), f"automask must be a bool, got {self.automask!r}")
+    check(isinstance(self.align_corners, bool),
+          f"align_corners must be a bool, got {self.align_corners!r}")
 
 
 # ----------------------------------------------------------------------------- photometric
@@ -168,17 +176,25 @@ def _border_clip(x: Array, size: int) -> Array:
   return jnp.where(inside, x, jax.lax.stop_gradient(jnp.clip(x, 0, size - 1)))
 
 
-def warp(image: Array, coords: Array) -> Array:
-  """Bilinear sampling, `F.grid_sample(image, coords, padding_mode="border", align_corners=True)`.
+def _unnormalize(x: Array, size: int, align_corners: bool) -> Array:
+  """grid_sample's [-1, 1] -> pixel index, written as torch's CPU sampler computes it."""
+  if align_corners:  # -1 and 1 are the centres of the first and last pixels
+    return (x + 1) * ((size - 1) / 2)
+  return x * (size / 2) + (size / 2 - 0.5)  # -1 and 1 are the outer edges of those pixels
 
-  image: (B, H, W, C); coords: (B, Ho, Wo, 2) in [-1, 1] (x = column first, -1 and 1 are the
-  centres of the first and last pixels; beyond them the border value). Returns (B, Ho, Wo, C).
+
+def warp(image: Array, coords: Array, align_corners: bool = True) -> Array:
+  """Bilinear sampling, `F.grid_sample(image, coords, padding_mode="border", align_corners=...)`.
+
+  image: (B, H, W, C); coords: (B, Ho, Wo, 2), x = column first, in [-1, 1] (align_corners:
+  -1 and 1 are the centres of the first and last pixels, else their outer edges); beyond the
+  first and last pixel centres the border value. Returns (B, Ho, Wo, C).
   Written with gathers so that both gradients (image: scatter-add of the bilinear weights;
   coords: through the weights, floor held constant) are torch's.
   """
   b, h, w, c = image.shape
-  ix = _border_clip((coords[..., 0] + 1) / 2 * (w - 1), w)
-  iy = _border_clip((coords[..., 1] + 1) / 2 * (h - 1), h)
+  ix = _border_clip(_unnormalize(coords[..., 0], w, align_corners), w)
+  iy = _border_clip(_unnormalize(coords[..., 1], h, align_corners), h)
   x0 = jax.lax.stop_gradient(jnp.floor(ix))
   y0 = jax.lax.stop_gradient(jnp.floor(iy))
   x1, y1 = x0 + 1, y0 + 1
@@ -265,7 +281,7 @@ def monodepth2_loss(target: Array, sources: Array, disps: Sequence[Array], K: Ar
                               jnp.tile(poses[:, i], (n_scales, 1, 1)), h, w)
                       for i in range(n)], axis=1)                     # (S*B, N, H, W, 2)
   src = jnp.tile(sources, (n_scales, 1, 1, 1, 1))                     # (S*B, N, H, W, 3)
-  warped = warp(src.reshape(-1, h, w, 3), coords.reshape(-1, h, w, 2))
+  warped = warp(src.reshape(-1, h, w, 3), coords.reshape(-1, h, w, 2), cfg.align_corners)
   preds = jnp.concatenate([sources.reshape(-1, h, w, 3), warped]) if cfg.automask else warped
   reps = reprojection_loss(preds, jnp.repeat(jnp.tile(target, (preds.shape[0] // (b * n), 1, 1, 1)),
                                              n, axis=0))

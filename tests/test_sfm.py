@@ -1,8 +1,8 @@
 """MonoDepth2's loss kit (`pitta_jax.sfm`) against an independent PyTorch MonoDepth2 loss.
 
 Reference: tests/torch_sfm.py, written from MonoDepth2's layers.py / trainer.py with native
-torch ops (nn.ReflectionPad2d + nn.AvgPool2d, F.grid_sample(padding_mode="border",
-align_corners=True), F.interpolate, torch.min(dim=1), torch.abs, torch.clamp). Each function's
+torch ops (nn.ReflectionPad2d + nn.AvgPool2d, F.grid_sample(padding_mode="border"; both
+align_corners), F.interpolate, torch.min(dim=1), torch.abs, torch.clamp). Each function's
 value and its gradient (of a random linear functional of the output, so every output element
 counts) are compared in float32 and float64; the measured differences are printed (-s).
 """
@@ -166,42 +166,49 @@ def test_backproject_project(dtype):
 # ---------------------------------------------------------------------- warp
 
 
-def _warp_case(kind):
-  """Image 9x17 (H-1, W-1 powers of two: pixel-centre coordinates are exact in float32)."""
+def _warp_case(kind, align_corners):
+  """Image 9x17 (H - 1, W - 1 powers of two: align_corners' pixel-centre coordinates are exact
+  in float32), 8x16 without align_corners (H, W powers of two, for the same reason)."""
   r = np.random.default_rng(8)
-  image = r.random((B, 9, 17, 3))
+  h, w = (9, 17) if align_corners else (8, 16)
+  image = r.random((B, h, w, 3))
   if kind == "random":       # well beyond [-1, 1] on every side: border padding
     coords = r.uniform(-1.4, 1.4, (B, 12, 20, 2))
   else:                      # exactly on pixel centres, the first/last included, and outside
-    xs = np.arange(-2, 19) / 8 - 1      # pixel index -2..18 -> beyond both borders
-    ys = np.arange(-1, 10) / 4 - 1      # row index -1..9
+    cols, rows = np.arange(-2, w + 2), np.arange(-1, h + 1)   # beyond both borders
+    if align_corners:
+      xs, ys = cols / ((w - 1) / 2) - 1, rows / ((h - 1) / 2) - 1
+    else:
+      xs, ys = (2 * cols + 1) / w - 1, (2 * rows + 1) / h - 1
     gx, gy = np.meshgrid(xs, ys, indexing="xy")
     coords = np.repeat(np.stack([gx, gy], -1)[None], B, 0)
   return image, coords
 
 
+@pytest.mark.parametrize("align_corners", [True, False])
 @pytest.mark.parametrize("kind", ["random", "centres"])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_warp(kind, dtype):
-  """warp vs F.grid_sample(border, align_corners=True): value, d/dimage, d/dcoords."""
-  image, coords = _warp_case(kind)
+def test_warp(kind, dtype, align_corners):
+  """warp vs F.grid_sample(border, align_corners): value, d/dimage, d/dcoords."""
+  image, coords = _warp_case(kind, align_corners)
   c = np.random.default_rng(9).standard_normal(coords.shape[:3] + (3,))
   with _x64(dtype):
     def f(i, g):
-      out = sfm.warp(i, g)
+      out = sfm.warp(i, g, align_corners)
       return jnp.sum(out * c.astype(dtype)), out
     (gi, gc), out = jax.jit(jax.grad(f, argnums=(0, 1), has_aux=True))(
         jnp.asarray(image, dtype), jnp.asarray(coords, dtype))
   it, ct = _t(image, dtype, True), _t(coords, dtype, True)
   want = F.grid_sample(_nchw(it), ct, mode="bilinear", padding_mode="border",
-                       align_corners=True).permute(0, 2, 3, 1)
+                       align_corners=align_corners).permute(0, 2, 3, 1)
   (want * _t(c, dtype)).sum().backward()
   rtol, atol = _tol(dtype)
   _close(f"warp {kind} value", out, want.detach(), rtol, atol)
   _close(f"warp {kind} d/dimage", gi, it.grad, rtol, atol * 10)
   _close(f"warp {kind} d/dcoords", gc, ct.grad, rtol, atol * 10)
   if kind == "centres":      # on a centre the sample is the pixel itself
-    np.testing.assert_array_equal(np.asarray(out)[:, 1:10, 2:19], image.astype(dtype))
+    h, w = image.shape[1:3]
+    np.testing.assert_array_equal(np.asarray(out)[:, 1:h + 1, 2:w + 2], image.astype(dtype))
 
 
 # ---------------------------------------------------------------------- the full loss

@@ -3,8 +3,10 @@
 Written from MonoDepth2's `layers.py` (`SSIM`, `BackprojectDepth`, `Project3D`,
 `get_smooth_loss`, `transformation_from_parameters`) and `trainer.py` (`generate_images_pred`,
 `compute_reprojection_loss`, `compute_losses`) the way upstream writes them: NCHW tensors,
-`nn.ReflectionPad2d` + `nn.AvgPool2d`, `F.interpolate`, `F.grid_sample(padding_mode="border",
-align_corners=True)` (the pre-1.3 default MonoDepth2 ran with), `torch.min(dim=1)`. Upstream's
+`nn.ReflectionPad2d` + `nn.AvgPool2d`, `F.interpolate`, `F.grid_sample(padding_mode="border")`
+(upstream passes no align_corners: PyTorch's default since 1.3, False, is what CoMoDa's and
+Ada-Depth's adaptation code ran with; `align_corners=True` gives MonoDepth2's pre-1.3 training),
+`torch.min(dim=1)`. Upstream's
 defaults: not v1_multiscale, not avg_reprojection, auto-masking on, SSIM on. The only change:
 the tie-break noise (torch.randn upstream) is passed in so both sides use the same draw, and the
 scale-s colour image (a data-loader resize upstream) is `F.avg_pool2d(target, 2**s)`.
@@ -14,6 +16,8 @@ loss (a floor or border of the sampler, the sign of an L1 residual), the float64
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import torch
@@ -145,9 +149,12 @@ class Monodepth2Loss:
 
   def __init__(self, batch_size, height, width, scales=(0, 1, 2, 3), min_depth=0.1,
                max_depth=100.0, disparity_smoothness=1e-3, disable_automasking=False,
-               dtype=torch.float32):
+               dtype=torch.float32, align_corners=None):
     self.scales, self.height, self.width = scales, height, width
     self.disable_automasking = disable_automasking
+    # None: upstream's call, no align_corners argument (PyTorch's default)
+    self.grid_kwargs = {} if align_corners is None else {"align_corners": align_corners}
+    self.align_corners = bool(align_corners)
     self.min_depth, self.max_depth = min_depth, max_depth
     self.disparity_smoothness = disparity_smoothness
     self.ssim = SSIM()
@@ -180,10 +187,13 @@ class Monodepth2Loss:
       for i, source in enumerate(sources):
         cam_points = self.backproject_depth(depth, inv_K)
         pix_coords = self.project_3d(cam_points, K, poses[i])
-        preds.append(F.grid_sample(source, pix_coords, padding_mode="border",
-                                   align_corners=True))
-        coords.append((pix_coords.detach() + 1) / 2 * pix_coords.new_tensor(
-            [self.width - 1, self.height - 1]))
+        with warnings.catch_warnings():  # PyTorch's notice that the default is False
+          warnings.filterwarnings("ignore", "Default grid_sample", UserWarning)
+          preds.append(F.grid_sample(source, pix_coords, padding_mode="border",
+                                     **self.grid_kwargs))
+        size = pix_coords.new_tensor([self.width, self.height])
+        coords.append((pix_coords.detach() + 1) / 2 * (size - 1) if self.align_corners else
+                      ((pix_coords.detach() + 1) * size - 1) / 2)
         residuals.append((target - preds[-1]).detach())
       loss = 0
       reprojection_losses = torch.cat(

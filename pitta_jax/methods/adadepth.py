@@ -44,6 +44,10 @@ Reduced to this setting (our choices where upstream's setting does not carry ove
   gradient (upstream's is NaN: sqrt at 0).
 - `AdaptConfig.reset_every` resets S and its optimiser; E and U are not reset.
 - One update per frame (`AdaptConfig.steps_per_frame == 1`): U's frame ring moves per update.
+- U's warp samples with PyTorch's align_corners=False, what upstream's `F.grid_sample` call
+  computed on its PyTorch 1.7.1 (`SfmLossConfig.align_corners`); the smoothness term's colour
+  images at scales 1-3 are block means of the frame (upstream: its loader's PIL antialiasing
+  resize).
 
 The paper's comparison adds L_d (eq. 8) on S's depth with weight `ld_weight` (0 = the original).
 """

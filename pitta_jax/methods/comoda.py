@@ -46,8 +46,16 @@ method state. `loss` computes both networks' gradients in one backward pass and 
 a value with the depth gradient attached (`_attach_gradient`); the pose gradient reaches
 `update` in `Aux.carry`. `update` steps both networks under one non-finite guard (engine
 `optax_update`'s semantics) on raveled parameter vectors (`pitta_jax.flat_optim`). A new
-sequence starts from the source weights (the engine's `init_state`); `AdaptConfig.reset_every`
-resets the depth network and its optimiser only.
+sequence starts from the source weights (the engine's `init_state`) with fresh Adam states
+(upstream's `adapt()` reloads the weights per sequence but keeps one optimiser, and the replay
+iterator, over all sequences); `AdaptConfig.reset_every` resets the depth network and its
+optimiser only.
+
+The warp samples with PyTorch's align_corners=False, what upstream's `F.grid_sample` call
+computed on the PyTorch 1.3.0 it pins (`SfmLossConfig.align_corners`). The smoothness term's
+colour images at scales 1-3 are block means of the frame (upstream's data loader resizes with
+PIL's antialiasing filter): the edge weights exp(-|grad I|) differ slightly, the photometric
+term not at all.
 """
 
 from __future__ import annotations
