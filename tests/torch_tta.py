@@ -9,7 +9,7 @@ Written the way their official code does it, with native ops, not shaped after o
   sample the variance is taken as 0.
 - CoTTA (qinenergy/cotta, cifar/cotta.py + my_transforms.py): `deepcopy` teacher and anchor,
   N augmented views with torchvision's tensor formulas (brightness/contrast/saturation blends,
-  gamma with the 1e-8 clamp, a 5x5 Gaussian blur with reflect padding, flip, noise, clip) from
+  gamma with the 1e-8 clamp, edge padding, a 5x5 Gaussian blur, centre crop, flip, noise, clip) from
   explicitly given draws, `torch.optim.Adam`, `ema = a * ema + (1 - a) * p` over
   `parameters()`, restore `p = src * mask + p * (1 - mask)` with given masks.
 - PITTA's L_d (eq. 8) on the adapted depth, with the median filter of test_pitta_torch.
@@ -160,7 +160,12 @@ def t_augment(img: torch.Tensor, order, factors, sigma, flip, noise) -> torch.Te
   k1 = torch.exp(-0.5 * (t / float(sigma)) ** 2)
   k1 = k1 / k1.sum()
   kernel = (k1[:, None] * k1[None, :]).expand(3, 1, 5, 5)
+  # upstream: transforms.Pad(n / 2, padding_mode="edge"), (RandomAffine: not for depth),
+  # GaussianBlur(5) (torchvision: reflect padding, conv), CenterCrop(n)
+  pad = 4
+  x = F.pad(x, (pad, pad, pad, pad), mode="replicate")
   x = F.conv2d(F.pad(x, (2, 2, 2, 2), mode="reflect"), kernel, groups=3)
+  x = x[..., pad:-pad, pad:-pad]
   if flip:
     x = x.flip(-1)
   if not isinstance(noise, torch.Tensor):

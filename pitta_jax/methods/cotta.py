@@ -16,7 +16,8 @@ For depth (our choices, the paper gives none):
   student's depth (paper Sec. 4.1);
 - augmentations: upstream's photometric ones (`get_tta_transforms`, non-soft ranges): colour
   jitter (brightness, contrast, saturation, gamma in a random order per view; hue is not
-  implemented), 5x5 Gaussian blur, horizontal flip with p 0.5 (the prediction is flipped back),
+  implemented), 5x5 Gaussian blur (on the edge-padded image, as upstream's pad-blur-crop),
+  horizontal flip with p 0.5 (the prediction is flipped back),
   Gaussian noise, clipping to [0, 1]; no affine warp (a warped disparity map would need warping
   back and its border filled). The plain image and the N views go through the teacher as one
   batch;
@@ -24,10 +25,14 @@ For depth (our choices, the paper gives none):
 
 BatchNorm is in eval mode (running statistics) for all three networks, so a view's prediction
 does not depend on the other views: the method requires `AdaptConfig.bn_stats == "running"`.
+(Upstream's classification CoTTA sets `track_running_stats=False` before copying the teacher
+and the anchor, so all three normalise with the statistics of the test batch, each augmented
+view with its own; with one frame per step, batch statistics would be those of one image.)
 The anchor and the restore target are the engine's `state.source` (the trainable leaves at the
 start); the teacher is in the method state. Which leaves adapt is `AdaptConfig.selector`
 (upstream adapts every weight and bias: `--selector all`). With `reset_every`, the engine resets
-the student and its optimiser; the teacher is not reset.
+the student and its optimiser; the teacher is not reset (upstream's `reset()` also copies the
+teacher and the anchor from the source again; upstream never resets in the paper's setting).
 """
 
 from __future__ import annotations
@@ -131,11 +136,14 @@ def _jitter(x: jax.Array, which: jax.Array, factors: jax.Array) -> jax.Array:
 
 
 def _blur(x: jax.Array, sigma: jax.Array) -> jax.Array:
-  """torchvision's gaussian_blur, kernel 5: separable, reflect padding. x (H, W, 3)."""
+  """torchvision's gaussian_blur, kernel 5, separable, on the edge-padded image: upstream pads
+  by half the image size (`transforms.Pad(padding_mode="edge")`) before its affine warp and
+  blur and centre-crops after them, so without the warp the blur's border sees replicated
+  edge pixels. x (H, W, 3)."""
   taps = jnp.arange(-2.0, 3.0, dtype=x.dtype)
   k = jnp.exp(-0.5 * (taps / sigma) ** 2)
   k = k / jnp.sum(k)
-  p = jnp.pad(x, ((2, 2), (2, 2), (0, 0)), mode="reflect")
+  p = jnp.pad(x, ((2, 2), (2, 2), (0, 0)), mode="edge")
   h, w = x.shape[:2]
   rows = sum(k[i] * p[i:i + h] for i in range(5))            # (H, W + 4, 3)
   return sum(k[i] * rows[:, i:i + w] for i in range(5))
