@@ -227,6 +227,10 @@ def test_kitti_eigen_gt(tmp_path):
   assert len(frames) == 3
   # splits/eigen/: scored inside the Garg crop (MonoDepth2's --eval_split eigen), kept by slicing
   assert frames.evaluation == frames[1:].evaluation == {"garg_crop": True}
+  # the `r` line's image is camera 3's, MonoDepth2's exported ground truth camera 2's
+  assert frames.notes == ("test_files.txt: 1 line(s) take the right camera's image (image_03), "
+                          "but gt_depths.npz holds the left camera's ground truth for every line "
+                          "(MonoDepth2's export_gt_depth.py); use improved_gt for both cameras",)
   assert frames.names == ("2011_09_26/2011_09_26_drive_0002_sync/image_02/0000000069",
                           "2011_09_26/2011_09_26_drive_0002_sync/image_03/0000000005",
                           "2011_09_28/2011_09_28_drive_0001_sync/image_02/0000000003")
@@ -327,6 +331,7 @@ def test_kitti_improved_gt(tmp_path):
   assert kitti.open_kitti(tmp_path / "data", bench, improved_gt=tmp_path / "improved"
                           ).evaluation == {}
   frames = kitti.open_kitti(tmp_path / "data", split, improved_gt=tmp_path / "improved")
+  assert frames.notes == ()  # the improved ground truth has both cameras
   for frame, depth in zip(frames, written):
     np.testing.assert_array_equal(frame.depth, depth.astype(np.float32) / 256)
 
@@ -552,3 +557,24 @@ def test_an_option_selecting_no_frame_fails_before_the_weights_load(tmp_path, ca
              "sequences=", "--weights", str(weights), "--out", str(tmp_path / "o")])
   err = capsys.readouterr().err
   assert rc == 2 and "no frames to adapt on" in err and err.count("\n") == 1, err
+
+
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+  import struct
+  import zlib
+  return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def test_gray_alpha_png_is_refused_like_grayscale(tmp_path):
+  """A grayscale + alpha PNG (colour type 4), written byte by byte from the PNG spec: OpenCV
+  decodes it as 4 BGRA channels, yet it holds no colour."""
+  import struct
+  import zlib
+  h, w = 4, 6
+  rows = b"".join(b"\x00" + bytes([90, 255] * w) for _ in range(h))  # filter 0, (gray, alpha)
+  png = (b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 4, 0, 0, 0))
+         + _png_chunk(b"IDAT", zlib.compress(rows)) + _png_chunk(b"IEND", b""))
+  (tmp_path / "la.png").write_bytes(png)
+  assert cv2.imread(str(tmp_path / "la.png"), cv2.IMREAD_UNCHANGED).shape == (h, w, 4)
+  with pytest.raises(DataError, match=r"la\.png: grayscale image"):
+    read_image(tmp_path / "la.png")

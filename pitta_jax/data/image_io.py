@@ -78,6 +78,18 @@ def _imread(path: PathLike, what: str) -> np.ndarray:
   return decode_file(require_file(path, what), what)
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_GRAY_ALPHA = 4  # IHDR colour type of a grayscale + alpha PNG
+
+
+def _png_gray_alpha(path: PathLike) -> bool:
+  """Whether `path` is a grayscale + alpha PNG, which OpenCV decodes as 4 equal-looking BGRA
+  channels: its IHDR colour type (byte 25 of the file)."""
+  with open(path, "rb") as f:
+    head = f.read(26)
+  return len(head) == 26 and head[:8] == PNG_SIGNATURE and head[25] == PNG_GRAY_ALPHA
+
+
 def read_image(path: PathLike) -> np.ndarray:
   """Reads a colour image.
 
@@ -88,7 +100,7 @@ def read_image(path: PathLike) -> np.ndarray:
     (H, W, 3) float32 RGB in [0, 1] (alpha, if any, dropped).
   """
   array = _imread(path, "image")
-  if array.ndim == 2 or array.shape[2] == 1:
+  if array.ndim == 2 or array.shape[2] == 1 or _png_gray_alpha(path):
     raise DataError(path, f"grayscale image of shape {array.shape}, expected 3 colour channels")
   if array.shape[2] not in (3, 4):
     raise DataError(path, f"image has {array.shape[2]} channels, expected 3 (or 4 with alpha)")

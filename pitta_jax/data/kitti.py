@@ -262,7 +262,11 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
                             depth=depth_loader,
                             panoptic=None if panoptic is None else panoptic.ref(key),
                             **calibs.frame_fields(data, folder, camera)))
-  return FrameSequence(files, temporal=split_is_temporal(entries), remedies={
+  right = sum(camera == 3 for _, _, camera in entries)
+  notes = [f"{split_file.name}: {right} line(s) take the right camera's image (image_03), but "
+           f"gt_depths.npz holds the left camera's ground truth for every line (MonoDepth2's "
+           f"export_gt_depth.py); use improved_gt for both cameras"] if right and gt else []
+  return FrameSequence(files, temporal=split_is_temporal(entries), notes=notes, remedies={
       "intrinsics": INTRINSICS_REMEDY,
       "previous_frame": "a split file whose lines are consecutive frames of each drive (the "
                         "Eigen test split is not)"},
