@@ -29,16 +29,20 @@ For each segment `<seq>` (the tfrecord's name) and each frame k = 0, 1, ... in i
    `intrinsic = [f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3]`, `extrinsic.transform` = 4x4
    row-major camera -> vehicle, `width`, `height`. Write `calib.json` once per sequence with
    `K = [[f_u, 0, c_u], [0, f_v, c_v], [0, 0, 1]]`, `width`, `height`.
-4. LiDAR points in the vehicle frame: `range_images, camera_projections, _, top_pose =
+4. LiDAR points in the vehicle frame and where each lands in the cameras:
+   `range_images, camera_projections, _, top_pose =
    frame_utils.parse_range_image_and_camera_projection(frame)`, then
-   `points, _ = frame_utils.convert_range_image_to_point_cloud(frame, range_images,
-   camera_projections, top_pose)` (first returns, ri_index=0) and concatenate the five
-   LiDARs: P (N, 3) metres, vehicle frame.
-5. Camera frame: `[x, y, z, 1]^T = inverse(extrinsic) @ [P, 1]^T`. Waymo's camera axes are
-   x forward, y left, z up; the pinhole (OpenCV) axes are X = -y, Y = -z, Z = x.
-6. Pinhole projection: `u = f_u X / Z + c_u`, `v = f_v Y / Z + c_v`; keep Z > 0 and
-   0 <= u < width, 0 <= v < height (lens distortion and rolling shutter are ignored; they
-   move points by a pixel or two at most).
+   `points, cp_points = frame_utils.convert_range_image_to_point_cloud(frame, range_images,
+   camera_projections, top_pose)` (first returns, ri_index=0); concatenate the five LiDARs:
+   P (N, 3) metres, vehicle frame, and cp (N, 6).
+5. Pixel positions from the dataset's own camera projection (it applies the lens distortion
+   k1..k3, p1, p2 and the rolling shutter, which a pinhole projection of P with K ignores):
+   keep the points with `cp[:, 0] == CameraName.FRONT`, their
+   (u, v) = `cp[:, 1], cp[:, 2]`; a point that projects into the FRONT camera only as its
+   second projection has `cp[:, 3] == FRONT` and (u, v) = `cp[:, 4], cp[:, 5]`.
+6. Depth Z of each kept point: camera frame `[x, y, z, 1]^T = inverse(extrinsic) @ [P, 1]^T`
+   (Waymo's camera axes: x forward, y left, z up), Z = x; keep Z > 0 and 0 <= u < width,
+   0 <= v < height.
 7. Save `np.stack([u, v, Z], axis=1).astype(np.float32)` to `<seq>/depth/{k:06d}.npy`
    (or rasterise as above and save `round(256 Z)` as uint16 `<seq>/depth/{k:06d}.png`).
 
