@@ -401,6 +401,23 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   if args.root and not Path(args.root).is_dir():
     raise DataError(args.root, "--root: not a directory")
   parse_segmentation(args.segmentation)
+  if args.dataset == "synthetic":  # flags for real data only: refused, not silently ignored
+    given = [f for f, v in (("--source-images", args.source_images),
+                            ("--replay-root", args.replay_root)) if v]
+    if given:
+      raise DataError(None, f"{', '.join(given)}: for real datasets only (the synthetic "
+                            "benchmark brings its own source data)")
+    from pitta_jax.sources import check_dataset_args
+    check_dataset_args("synthetic", None, list(args.option), args.segmentation)
+  else:
+    from pitta_jax.predict import expand_images
+    if args.source_images:
+      try:
+        expand_images(args.source_images, unique_stems=False)
+      except DataError as e:
+        raise DataError(None, f"--source-images {e}") from None
+    if args.replay_root and not Path(args.replay_root).is_dir():
+      raise DataError(args.replay_root, "--replay-root: not a directory")
   weights: dict[str, str] = {}
   for item in args.weights:
     model, sep, directory = item.rpartition("=") if "=" in item else ("", "", item)
@@ -410,6 +427,12 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
                             f"(use {', '.join(MODELS)})")
     if not (Path(directory) / "model.json").is_file():
       raise DataError(directory, "--weights: no model.json (convert with `pitta-jax convert`)")
+    from pitta_jax.checkpoint import read_model_json
+    held = read_model_json(directory)[0].name
+    if held != model:
+      raise DataError(None, f"--weights {item}: the directory holds a {held}, not a "
+                                 f"{model}" + ("" if "=" in item else
+                                               f" (write --weights {held}=DIR)"))
     weights[model] = directory
   if args.frames is not None and args.frames < 1:
     raise DataError(None, f"--frames must be >= 1, got {args.frames}")
@@ -418,6 +441,9 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   out = Path(args.out or Path("experiments_out") / name)
   if out.exists() and not out.is_dir():
     raise DataError(out, "--out: exists and is not a directory")
+  from pitta_jax.outputs import open_output_dir
+  # created, proved writable and locked before any row runs; `main_wrapper` releases it
+  vars(args).setdefault("open_outputs", []).append(open_output_dir(out, "--out"))
   return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
                  args.quick, frames, args.quiet, args.source_images, args.replay_root,
                  runners, tuple(r.strip() for r in getattr(args, "rows", "").split(",")
@@ -434,9 +460,12 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
   from pitta_jax.outputs import OutputError
   from pitta_jax.source_model import enable_compilation_cache
   args = p.parse_args(argv)
+  failed = True
   try:
     enable_compilation_cache()  # the command's choice: a later run skips the step compiles
-    return run(args, runners)
+    status = run(args, runners)
+    failed = False
+    return status
   except (DataError, OutputError, FileNotFoundError, ValueError, TypeError, OSError) as e:
     if args.debug:
       raise
@@ -446,6 +475,9 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
     print("interrupted: finished rows are cached; run the same command again to resume",
           file=sys.stderr)
     return 130
+  finally:  # the --out lock (`context`); a failed command leaves no directory it created
+    for output in vars(args).pop("open_outputs", []):
+      output.__exit__(RuntimeError if failed else None, None, None)
 
 
 def timer() -> Callable[[], float]:

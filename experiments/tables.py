@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 from typing import Sequence
 
 from tqdm import tqdm
@@ -49,4 +51,5 @@ def publish(ctx: Context, name: str, entries: Sequence[Entry], elapsed: float,
   md = write_table(ctx.out, name, entries, seconds=elapsed, meta=meta(ctx), **layout)
   if not ctx.quiet:
     print(md)
+  print(f"wrote {ctx.out / name}.md, .csv, .tex and results.json", file=sys.stderr)
   return 0

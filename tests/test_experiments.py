@@ -66,6 +66,26 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   (tmp_path / "file").write_text("")
   assert table1.main(["--quick", "--out", str(tmp_path / "file")]) == 2
   assert f"{tmp_path / 'file'}: --out: exists and is not a directory" in capsys.readouterr().err
+  # flags the synthetic benchmark cannot use are refused, not ignored
+  for flags, message in ((["--source-images", "x"], "--source-images: for real datasets only"),
+                         (["--option", "foo=1"], "synthetic has no option foo"),
+                         (["--segmentation", "mask2former:x"], "use --segmentation gt")):
+    assert table1.main(["--quick", *flags, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and not (tmp_path / "o").exists(), err
+  # weights named for one network but holding another
+  (tmp_path / "w").mkdir()
+  (tmp_path / "w" / "model.json").write_text(json.dumps(
+      {"architecture": "monodepth2", "height": 64, "width": 96, "num_layers": 18,
+       "has_pose": False}))
+  assert table1.main(["--weights", f"depth_anything_v2={tmp_path / 'w'}", "--out",
+                      str(tmp_path / "o")]) == 2
+  assert "the directory holds a monodepth2, not a depth_anything_v2" in capsys.readouterr().err
+  # a second command on the same --out is refused while the first holds it
+  from pitta_jax.outputs import open_output_dir
+  with open_output_dir(tmp_path / "busy"):
+    assert table1.main(["--quick", "--out", str(tmp_path / "busy")]) == 2
+    assert "another pitta-jax run is writing there" in capsys.readouterr().err
 
 
 def test_a_real_datasets_cases_are_opened_before_the_first_row(tmp_path, capsys):
