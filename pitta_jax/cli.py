@@ -7,6 +7,7 @@ status 2, without a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 
@@ -323,6 +324,13 @@ def _run_adapt(args) -> int:
     reader = check_run_needs(method, args.dataset, args.root, args.option, args.segmentation,
                              args.replay_root, weights_config, bool(source_flags))
     notes += list(reader.notes if reader is not None else ())
+    if reader is not None and all(f.depth is None for f in reader.files):
+      remedy = " (--option depth_dir=DIR)" if args.dataset == "folder" else ""
+      if not args.adapting:  # nothing to do: evaluation without ground truth
+        raise DataError(None, f"dataset {args.dataset} has no ground-truth depth to evaluate "
+                              f"against{remedy}")
+      notes.append(f"dataset {args.dataset} has no ground-truth depth: the run adapts and logs, "
+                   f"nothing is scored{remedy}")
     if reader is not None:
       eval_cfg, protocol_note = dataset_evaluation(eval_cfg, reader.evaluation, args)
       notes += [protocol_note] if protocol_note else []
@@ -345,7 +353,7 @@ def _run_adapt(args) -> int:
                                                      "frames": len(res.frame_names),
                                                      "n_skipped": res.n_skipped,
                                                      "n_excluded": len(res.excluded)},
-              status="ok" if res.status == "ok" else f"{res.status}; means over the frames before")
+              status=res.status + ("; means over the frames before" if res.nonfinite else ""))
     meta = {"command": args.command, "dataset": args.dataset, "root": args.root,
             "options": args.option, "segmentation": args.segmentation, "notes": notes,
             "source": {"images": args.source_images, "replay_root": args.replay_root,
@@ -370,7 +378,11 @@ def _run_adapt(args) -> int:
     if res.nonfinite:
       print(f"warning: {res.status}; the means cover the frames before "
             f"({res.nonfinite[0]} on)", file=sys.stderr)
-    print(f"{len(res.frame_names)} frames at {res.fps:.2f} frames/s; results in {out}/")
+    if not res.per_frame and not res.nonfinite:
+      print(f"warning: {res.status}", file=sys.stderr)
+    ran = len(res.frame_names) - res.resumed_at
+    speed = f" ({ran} run now at {res.fps:.2f} frames/s)" if ran > 0 else ""
+    print(f"{len(res.frame_names)} frames{speed}; results in {out}/")
   return 0
 
 
@@ -398,7 +410,6 @@ def _add_source_stats(sub) -> None:
 
 
 def _run_source_stats(args) -> int:
-  import re
   from pathlib import Path
   from pitta_jax.checkpoint import load_weights, read_model_json
   from pitta_jax.methods import build
@@ -406,16 +417,22 @@ def _run_source_stats(args) -> int:
   from pitta_jax.methods.base import SourceData
   from pitta_jax.source_stats import layer_shapes, save_source_stats
   from pitta_jax.sources import read_source_images
-  cfg = ActmadConfig() if args.layers is None else ActmadConfig(layers=args.layers)
   try:
-    re.compile(cfg.layers)
-  except re.error as e:
-    raise ValueError(f"--layers {cfg.layers!r}: not a regular expression ({e})") from None
+    cfg = ActmadConfig() if args.layers is None else ActmadConfig(layers=args.layers)
+  except ValueError as e:
+    raise ValueError(f"--{e}") from None
   if Path(args.out).is_dir():
     raise ValueError(f"--out {args.out}: is a directory; name the .npz file to write")
   blocking = next((p for p in Path(args.out).parents if p.exists() and not p.is_dir()), None)
   if blocking is not None:  # found now, not after the statistics are computed
     raise ValueError(f"--out {args.out}: {blocking} is a file, not a directory")
+  if Path(args.out).exists():  # replace only an earlier statistics file, never another file
+    from pitta_jax.source_stats import read_source_stats
+    try:
+      read_source_stats(args.out)
+    except DataError:
+      raise ValueError(f"--out {args.out}: exists and is not a statistics file; it is not "
+                       "overwritten (name a new .npz file)") from None
   _, config = read_model_json(args.weights)  # cheap checks first
   images = read_source_images(args.images, config["height"], config["width"])
   if len(images) < 2:
@@ -462,14 +479,41 @@ def build_parser() -> argparse.ArgumentParser:
   return parser
 
 
+class Terminated(KeyboardInterrupt):
+  """SIGTERM (a job scheduler's stop, `kill`), raised where the command runs so that it stops
+  as on Ctrl-C: the last completed chunk checkpointed, the output directory unlocked."""
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt():
+  """While the command runs, SIGTERM raises `Terminated` (the previous handler is restored
+  after; only the CLI's own process does this, never library code)."""
+  import signal
+  import threading
+  if threading.current_thread() is not threading.main_thread():
+    yield
+    return
+
+  def stop(signum, frame):
+    raise Terminated()
+
+  previous = signal.signal(signal.SIGTERM, stop)
+  try:
+    yield
+  finally:
+    signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: list[str] | None = None) -> int:
   argv = list(sys.argv[1:] if argv is None else argv)
   if argv[:1] == ["experiment"]:  # its own parsers (flags such as --help belong to the table)
     import experiments
-    return experiments.main(argv[1:])
+    with terminate_as_interrupt():
+      return experiments.main(argv[1:])
   args = build_parser().parse_args(argv)
   try:
-    return args.func(args)
+    with terminate_as_interrupt():
+      return args.func(args)
   except (DataError, FileNotFoundError, ValueError, TypeError) as e:
     if args.debug:
       raise
@@ -481,9 +525,11 @@ def main(argv: list[str] | None = None) -> int:
     where = f"{e.filename}: " if getattr(e, "filename", None) else ""
     print(f"error: {where}{e.strerror or e}", file=sys.stderr)
     return 2
-  except KeyboardInterrupt:
-    print("interrupted", file=sys.stderr)
-    return 130
+  except KeyboardInterrupt as e:
+    resumable = getattr(args, "checkpoint_every", 0) and getattr(args, "adapting", False)
+    print("interrupted" + ("; the last completed chunk is checkpointed: run the same command "
+                           "with --resume to continue" if resumable else ""), file=sys.stderr)
+    return 143 if isinstance(e, Terminated) else 130
 
 
 if __name__ == "__main__":

@@ -145,6 +145,13 @@ def test_layers_matching_only_modules_with_several_outputs_fail_in_one_line(writ
   assert main(["source-stats", "--weights", str(root / "weights"), "--images",
                str(root / "src" / "*" / "*.png"), "--out", str(tmp_path / "f" / "x.npz")]) == 2
   assert f"{tmp_path / 'f'} is a file, not a directory" in capsys.readouterr().err
+  # an existing file that is not a statistics file (the weights' model.json) is not replaced
+  before = (root / "weights" / "model.json").read_bytes()
+  assert main(["source-stats", "--weights", str(root / "weights"), "--images",
+               str(root / "src" / "*" / "*.png"), "--out",
+               str(root / "weights" / "model.json")]) == 2
+  assert "exists and is not a statistics file" in capsys.readouterr().err
+  assert (root / "weights" / "model.json").read_bytes() == before
 
 
 def test_synthetic_statistics_are_cached(written, tmp_path, monkeypatch):

@@ -29,6 +29,7 @@ paper's addition). Source statistics come in `resources["actmad_source_stats"]`
 from __future__ import annotations
 
 import dataclasses
+import re
 from typing import Any, Iterable
 
 import jax
@@ -61,6 +62,10 @@ class ActmadConfig:
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):
+    try:
+      re.compile(self.layers)
+    except re.error as e:
+      raise ValueError(f"layers {self.layers!r}: not a regular expression ({e})") from None
     check(self.ring_size >= 1, f"ring_size must be >= 1, got {self.ring_size}")
     finite(self.lr, "lr", 0.0)
     finite(self.momentum, "momentum", 0.0)
@@ -91,6 +96,8 @@ def source_statistics(model, variables, images: Iterable[Any], layers: str = ENC
   count, means, m2s = 0, {}, {}
   for batch in images:
     acts = {k: np.asarray(a, np.float64) for k, a in capture(variables, jnp.asarray(batch)).items()}
+    check(len(acts) > 0, f"layers {layers!r} matches no module of the network whose output is "
+                         "one feature map")
     b = next(iter(acts.values())).shape[0]
     for k, a in acts.items():
       mean_b, m2_b = a.mean(0), ((a - a.mean(0)) ** 2).sum(0)
