@@ -29,6 +29,9 @@ from pitta_jax.report import HEADERS
 INF_LABEL = "∞"
 
 
+MAX_FIGURE_PIXELS = 1e8  # ~400 MB of RGBA canvas, far above any paper figure
+
+
 @dataclasses.dataclass(frozen=True)
 class PlotConfig:
   """Size and formats of the written figures."""
@@ -44,6 +47,11 @@ class PlotConfig:
             f"{name} must be a finite number > 0, got {value!r}")
     check(isinstance(self.dpi, int) and self.dpi >= 10, f"dpi must be an integer >= 10, got "
                                                        f"{self.dpi!r}")
+    # found before the run, not as a failed allocation once it is done
+    pixels = self.fig_width * self.dpi * self.fig_height * self.dpi
+    check(pixels <= MAX_FIGURE_PIXELS,
+          f"a {self.fig_width:g} x {self.fig_height:g} inch figure at dpi {self.dpi} has "
+          f"{pixels:.3g} pixels; at most {MAX_FIGURE_PIXELS:.0e} (lower dpi or the size)")
 
 
 def _new_figure(cfg: PlotConfig, nrows: int, sharex: bool) -> tuple[Figure, np.ndarray]:

@@ -88,15 +88,20 @@ class RunResult:
 
   @property
   def status(self) -> str:
-    """"ok", or where the method diverged: what a results table shows instead of its means."""
-    if not self.nonfinite_indices:
-      return "ok"
-    return (f"diverged: non-finite depth from frame {self.diverged_at} of "
-            f"{len(self.frame_names)} ({len(self.nonfinite_indices)} frames not scored)")
+    """"ok", where the method diverged, or that no frame could be scored: what a results
+    table shows instead of its means."""
+    if self.nonfinite_indices:
+      return (f"diverged: non-finite depth from frame {self.diverged_at} of "
+              f"{len(self.frame_names)} ({len(self.nonfinite_indices)} frames not scored)")
+    if not self.per_frame:
+      return "not scored: no frame has valid ground truth"
+    return "ok"
 
   @property
   def fps(self) -> float:
-    return len(self.frame_names) / self.seconds if self.seconds > 0 else float("nan")
+    """Frames per second of the frames this call ran (not those taken from a checkpoint)."""
+    ran = len(self.frame_names) - self.resumed_at
+    return ran / self.seconds if ran > 0 and self.seconds > 0 else float("nan")
 
 
 class Runners:

@@ -84,6 +84,14 @@ class SfmLossConfig:
           f"align_corners must be a bool, got {self.align_corners!r}")
 
 
+def check_scales(scales: Sequence[int], n_outputs: int) -> None:
+  """ValueError (one line) unless the network's `n_outputs` disparity maps (scales 0 ..
+  n_outputs - 1) include every scale of the loss (`SfmLossConfig.scales`); checked when the
+  step is traced, before any frame."""
+  check(max(scales) < n_outputs, f"sfm.scales {tuple(scales)}: the network gives scales 0.."
+                                 f"{n_outputs - 1} only")
+
+
 # ----------------------------------------------------------------------------- photometric
 
 
@@ -304,6 +312,6 @@ def monodepth2_loss(target: Array, sources: Array, disps: Sequence[Array], K: Ar
   return jnp.mean(per_scale), aux
 
 
-__all__ = ["SfmLossConfig", "SfmAux", "ssim_loss", "reprojection_loss", "smooth_loss",
+__all__ = ["SfmLossConfig", "SfmAux", "check_scales", "ssim_loss", "reprojection_loss", "smooth_loss",
            "backproject", "project", "warp", "monodepth2_loss", "transformation_from_parameters",
            "disp_to_depth"]

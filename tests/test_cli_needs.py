@@ -144,3 +144,14 @@ def test_met_needs_and_notes(cli, tmp_path, capsys):
       "note: --method pitta uses no source-domain data: --replay-root ignored",
       "note: DrivingStereo size=full: the only left-image-*-size/ directory (foggy)"]
   assert len(lines) == 3 and lines[2].startswith("error: ") and "weights" in lines[2]
+
+
+def test_evaluation_without_ground_truth_is_refused_before_work(cli, tmp_path, capsys):
+  """`evaluate` on frames none of which has ground truth has nothing to do: one line, exit 2,
+  before the weights load (here only a model.json); `adapt` runs with a note instead."""
+  out = tmp_path / "ev"
+  assert main(["evaluate", "--weights", str(tmp_path / "weights"), "--dataset", "folder",
+               "--root", str(tmp_path / "seq"), "--out", str(out), "--quiet"]) == 2
+  assert capsys.readouterr().err == ("error: dataset folder has no ground-truth depth to "
+                                     "evaluate against (--option depth_dir=DIR)\n")
+  assert not out.exists()

@@ -175,6 +175,27 @@ def test_kill_then_resume_equals_an_uninterrupted_run(tiny_weights, tmp_path):
   assert resumed["per_frame"] == full["per_frame"] and len(full["per_frame"]) == N
   assert resumed["logs"] == full["logs"]
   assert resumed["rows"][0]["metrics"] == full["rows"][0]["metrics"]
+  assert resumed["rows"][0]["extra"]["fps"] > 0  # the frames run after the resume
+
+
+def test_sigterm_stops_like_ctrl_c(tiny_weights, tmp_path):
+  """SIGTERM (a scheduler's stop): the run stops as on Ctrl-C, with the last completed chunk
+  checkpointed, the output directory unlocked, exit 143 and a line saying how to resume."""
+  out = tmp_path / "term"
+  proc = subprocess.Popen([sys.executable, "-m", "pitta_jax.cli",
+                           *_adapt_args(tiny_weights, out, "--option", "num_frames=400")],
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+  sidecar = out / "checkpoints" / f"state_{K:06d}.json"
+  deadline = time.time() + 300
+  while not sidecar.exists() and proc.poll() is None and time.time() < deadline:
+    time.sleep(0.05)
+  assert sidecar.exists(), proc.stderr.read().decode()[-2000:] if proc.poll() else "timeout"
+  proc.send_signal(signal.SIGTERM)
+  assert proc.wait(timeout=120) == 143
+  err = proc.stderr.read().decode()
+  assert "interrupted; the last completed chunk is checkpointed" in err and "--resume" in err
+  assert not (out / ".pitta-jax.lock").exists() and not (out / "results.json").exists()
+  assert sorted(out.glob("checkpoints/state_??????.json"))
 
 
 def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, capsys):
@@ -194,7 +215,9 @@ def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, caps
   assert sorted(p.name for p in ckpt.glob("state_*")) == [
       f"state_{k:06d}{ext}" for k in range(K, N - K + 1, K) for ext in ("", ".json")]
   assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
-  assert json.loads((out / "results.json").read_text())["resumed_at_frame"] == N - K
+  done = json.loads((out / "results.json").read_text())
+  assert done["resumed_at_frame"] == N - K
+  assert done["rows"][0]["extra"]["fps"] is None  # nothing ran: no speed (it was frames / ~0 s)
 
 
 def test_garbage_in_readers_is_refused(tmp_path):
@@ -251,6 +274,12 @@ def test_frames_without_valid_ground_truth_are_excluded_not_fatal(tiny_weights):
   assert res.excluded == [frames[1].name] and len(res.per_frame) == 2
   want = [metrics.depth_metrics(res.kept_depths[i], frames[i].depth)["abs_rel"] for i in (0, 2)]
   np.testing.assert_allclose(res.mean["abs_rel"], np.mean(want), rtol=1e-12)
+  assert res.status == "ok"
+  # no frame with valid ground truth: reported as not scored, not as an "ok" row without means
+  none_valid = [dataclasses.replace(f, depth=np.zeros_like(f.depth)) for f in frames]
+  res = run_sequence(load_weights(tiny_weights), none_valid, AdaptConfig(
+      method="none", bn_stats="running"), quiet=True)
+  assert res.mean == {} and res.status == "not scored: no frame has valid ground truth"
 
 
 def test_a_diverged_method_finishes_and_is_reported_not_scored(tiny_weights):

@@ -77,6 +77,8 @@ def test_pdf_beside_png_and_bad_names(tmp_path):
     PlotConfig(dpi=0)
   with pytest.raises(ValueError, match="fig_width must be"):
     PlotConfig(fig_width=math.nan)
+  with pytest.raises(ValueError, match="has 2.59e[+]11 pixels; at most 1e[+]08"):
+    PlotConfig(dpi=100000)  # 720,000 x 360,000 pixels
   with pytest.raises(ValueError, match="no series"):
     per_frame_figure({}, "abs_rel", "t", cfg)
 

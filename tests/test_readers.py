@@ -413,6 +413,7 @@ def test_waymo_layout(tmp_path):
     ("missing_depth", r"segment-a/depth/000001\.png: depth map not found \(nor \.npy\)"),
     ("bad_calib", r"calib\.json: expected JSON with K \(3x3\), width and height"),
     ("no_sequences", r"no frames found \(looked for <seq>/image/ directories\)"),
+    ("empty_npy", r"segment-a/depth/000001\.npy: cannot read \.npy depth \(No data left"),
 ])
 def test_waymo_errors(tmp_path, case, pattern):
   make_waymo(tmp_path, "segment-a", n=2)
@@ -426,8 +427,11 @@ def test_waymo_errors(tmp_path, case, pattern):
     calib.write_text(json.dumps({"K": [1, 2], "width": W, "height": H}))
   elif case == "no_sequences":
     root = tmp_path / "segment-a" / "depth"
+  elif case == "empty_npy":  # a zero-byte file (an interrupted export)
+    (tmp_path / "segment-a" / "depth" / "000001.npy").write_bytes(b"")
   with pytest.raises(DataError, match=pattern):
-    waymo.open_waymo(root)[0]
+    frames = waymo.open_waymo(root)
+    frames[0], frames[1]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -294,3 +294,16 @@ def test_export_drivingstereo_layout_round_trip(domains, tmp_path):
       assert s["area"] == len(ys) and s["iscrowd"] == 0
       assert s["bbox"] == [xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1]
       assert s["isthing"] == int(s["id"] >= THING_ID_BASE)
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("fps", 0.0, "fps must be finite and > 0"), ("fps", float("nan"), "fps must be finite"),
+    ("speed", float("nan"), "speed must be finite and >= 0"),
+    ("camera_height", -1.0, "camera_height must be finite and > 0"),
+    ("n_cars", -3.0, "n_cars must be finite and >= 0"),
+    ("n_cars", float("inf"), "n_cars must be finite"),
+    ("truck_fraction", 5.0, "truck_fraction must be in [0, 1]"),
+    ("seed", -1, "seed must be >= 0")])
+def test_config_refuses_values_that_would_fail_later_or_render_nonsense(field, value, message):
+  with pytest.raises(ValueError, match=re.escape(message)):
+    SyntheticConfig(**{field: value})

@@ -160,8 +160,8 @@ def load_npy(path: PathLike, what: str) -> np.ndarray:
   """np.load without pickle (a .npy cannot run code); DataError naming the file otherwise."""
   try:
     return np.load(path, allow_pickle=False)
-  except (ValueError, OSError) as e:
-    raise DataError(path, f"cannot read .npy {what} ({e})") from None
+  except (ValueError, OSError, EOFError) as e:  # EOFError: an empty file
+    raise DataError(path, f"cannot read .npy {what} ({e or type(e).__name__})") from None
 
 
 def read_depth_npy(path: PathLike) -> np.ndarray:

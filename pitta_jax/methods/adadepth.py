@@ -68,7 +68,7 @@ from pitta_jax.methods.base import (INPUT_SIZE, POSE, Aux, Method, ring_init, ri
                                     variables_of)
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
 from pitta_jax.models.pose import transformation_from_parameters
-from pitta_jax.sfm import SfmLossConfig, monodepth2_loss
+from pitta_jax.sfm import SfmLossConfig, check_scales, monodepth2_loss
 
 Tree = Any
 
@@ -201,6 +201,7 @@ def branch_loss(params: Tree, branch: Branch, batch_stats: Tree, image: jax.Arra
   id); disparities of every `config.scales` from U's depth network.
   """
   outs = model.outputs({"params": params["depth"], "batch_stats": batch_stats}, image[None], False)
+  check_scales(config.scales, len(outs))
   disps = [outs[s][..., 0] for s in config.scales]                  # (1, H / 2**s, W / 2**s)
   pair = jnp.concatenate([previous, image], axis=-1)[None]           # (1, H, W, 6)
   axisangle, translation = branch.pose_module.apply(

@@ -78,7 +78,7 @@ from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, rin
 from pitta_jax.methods.depth_refining import (DepthRefiningConfig, depth_refining_term,
                                               frame_instances)
 from pitta_jax.models.pose import transformation_from_parameters
-from pitta_jax.sfm import SfmLossConfig, monodepth2_loss
+from pitta_jax.sfm import SfmLossConfig, check_scales, monodepth2_loss
 
 Tree = Any
 REPLAY_IMAGES = "comoda_replay_images"  # resources: (R, F, H, W, 3) windows of source frames
@@ -307,6 +307,7 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: ComodaConfig
     images = batch.target if mcfg.latency == 0 else jnp.concatenate(
         [batch.target, frame.image[None].astype(dtype)])
     outs = model.outputs(variables_of(depth_trainable, consts), images, False)
+    check_scales(scales, len(outs))
     disps = [outs[s][:b, ..., 0] for s in scales]
     poses = camera_motions(pose, pose_trainable, batch.target, batch.sources, mcfg.offsets)
     K4, inv_K4 = _intrinsics4(batch.K)

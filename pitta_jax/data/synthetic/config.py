@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 DOMAINS = ("clear", "fog", "rain", "night", "snow")  # "clear" is the source domain
 
@@ -61,6 +62,18 @@ class SyntheticConfig:
       raise ValueError("sizes must be >= 8 and frame counts >= 0")
     if not 0 <= self.n_lead_cars <= 2:
       raise ValueError("n_lead_cars must be 0, 1 or 2")
+    if self.seed < 0:
+      raise ValueError(f"seed must be >= 0, got {self.seed}")
+    for name, low, strict in (("fps", 0.0, True), ("speed", 0.0, False),
+                              ("camera_height", 0.0, True), ("max_depth", 0.0, True),
+                              ("n_cars", 0.0, False), ("n_pedestrians", 0.0, False),
+                              ("n_cyclists", 0.0, False)):
+      value = getattr(self, name)
+      if not (math.isfinite(value) and (value > low if strict else value >= low)):
+        raise ValueError(f"{name} must be finite and {'>' if strict else '>='} {low:g}, got "
+                         f"{value}")
+    if not 0.0 <= self.truck_fraction <= 1.0:
+      raise ValueError(f"truck_fraction must be in [0, 1], got {self.truck_fraction}")
 
 
 def intrinsics(height: int, width: int) -> tuple[float, float, float, float]:
