@@ -155,3 +155,9 @@ def test_evaluation_without_ground_truth_is_refused_before_work(cli, tmp_path, c
   assert capsys.readouterr().err == ("error: dataset folder has no ground-truth depth to "
                                      "evaluate against (--option depth_dir=DIR)\n")
   assert not out.exists()
+
+
+def test_dynamic_classes_must_be_coco_ids(cli):
+  rc, err = cli("--dataset", "synthetic", "--dynamic-classes", "9999,-5")
+  assert rc == 2 and err == ("error: dynamic_classes: not COCO panoptic category ids: 9999, -5 "
+                             "(ids 1-200, 133 of them; names such as car work too)\n")

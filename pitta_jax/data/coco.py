@@ -174,6 +174,7 @@ NUM_THINGS = sum(c.isthing for c in CATEGORIES)  # 80
 DYNAMIC_NAMES: tuple[str, ...] = ("person", "bicycle", "car", "motorcycle", "bus", "train", "truck")
 
 _BY_ID: dict[int, Category] = {c.id: c for c in CATEGORIES}
+CATEGORY_IDS = frozenset(_BY_ID)  # the 133 ids of COCO panoptic
 _BY_NAME: dict[str, Category] = {c.name: c for c in CATEGORIES}
 
 

@@ -38,6 +38,11 @@ class DepthRefiningConfig:
           f"loss_impl must be one of {', '.join(losses.IMPLS)}, got {self.loss_impl!r}")
     check(self.max_instances >= 1, f"max_instances must be >= 1, got {self.max_instances}")
     check(len(self.dynamic_classes) > 0, "dynamic_classes must name at least one class")
+    from pitta_jax.data import coco
+    unknown = [c for c in self.dynamic_classes if int(c) not in coco.CATEGORY_IDS]
+    check(not unknown, f"dynamic_classes: not COCO panoptic category ids: "
+                       f"{', '.join(map(str, unknown))} (ids 1-200, 133 of them; names such as "
+                       f"car work too)")
 
 
 def frame_instances(frame, cfg: DepthRefiningConfig) -> tuple[jax.Array, jax.Array, jax.Array]:
