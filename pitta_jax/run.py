@@ -163,6 +163,8 @@ def check_aspect(frame: Frame, tolerance: float = 0.01) -> None:
 
 
 CHECKPOINT_PATTERN = "state_[0-9][0-9][0-9][0-9][0-9][0-9]"
+UNFINISHED_PATTERN = CHECKPOINT_PATTERN + ".orbax-checkpoint-tmp*"  # a save cut short by a kill
+KEEP_CHECKPOINTS = 2  # a run keeps its newest two (the older one if the newest is cut short)
 
 
 def run_fingerprint(weights: Weights, method: Method, cfg: AdaptConfig, eval_cfg: EvalConfig,
@@ -216,15 +218,20 @@ def _resume_point(directory: Path, fingerprint: str, names: Sequence[str]
   return None
 
 
+def _remove_checkpoint(path: Path) -> None:
+  """Removes one checkpoint: its sidecar first (a sidecar without its state is never left)."""
+  import shutil
+  (path.parent / f"{path.name}.json").unlink(missing_ok=True)
+  shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
 def _clear_checkpoints(directory: Path) -> None:
   """Removes the checkpoints a previous run left under `directory` (a fresh run's first step:
-  they would otherwise mix with its own)."""
-  import shutil
+  they would otherwise mix with its own), and any save a kill interrupted."""
   if not directory.is_dir():
     return
-  for path in directory.glob(CHECKPOINT_PATTERN):
-    (path.parent / f"{path.name}.json").unlink(missing_ok=True)  # sidecar first: never a
-    shutil.rmtree(path) if path.is_dir() else path.unlink()      # sidecar without its state
+  for path in (*directory.glob(CHECKPOINT_PATTERN), *directory.glob(UNFINISHED_PATTERN)):
+    _remove_checkpoint(path)
 
 
 def _save_checkpoint(directory: Path, state, record: dict) -> None:
@@ -235,6 +242,11 @@ def _save_checkpoint(directory: Path, state, record: dict) -> None:
   path = directory / f"state_{int(state.step):06d}"
   save_state(path, state)
   atomic_write_text(directory / f"{path.name}.json", json.dumps(json_safe(record)[0]))
+  # the newest KEEP_CHECKPOINTS stay (a full carry each: hundreds of MB for a whole network),
+  # and saves a kill interrupted go
+  for old in (*sorted(directory.glob(CHECKPOINT_PATTERN))[:-KEEP_CHECKPOINTS],
+              *directory.glob(UNFINISHED_PATTERN)):
+    _remove_checkpoint(old)
 
 
 def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
