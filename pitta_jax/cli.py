@@ -164,7 +164,7 @@ def _add_train_source(sub) -> None:
   p.add_argument("--ship", action="store_true",
                  help="maintainers: also write the model (float16) and its clear-domain metrics "
                       "into the package (pitta_jax/assets/), where this config finds it")
-  p.add_argument("--quiet", action="store_true")
+  p.add_argument("--quiet", action="store_true", help="no progress bar")
   p.set_defaults(func=_run_train_source)
 
 
@@ -202,7 +202,9 @@ def _add_adapt(sub, name: str) -> None:
                    "Evaluate the network as it is (running BN statistics, no update).")
                   + " Compiled steps are kept under $PITTA_JAX_CACHE/xla (default "
                     "~/.cache/pitta-jax/xla), so a rerun or a --resume skips the compiles.")
-  p.add_argument("--dataset", choices=DATASETS, required=True)
+  p.add_argument("--dataset", choices=DATASETS, required=True,
+                 help="synthetic (the embedded benchmark, no --root) or a real dataset at "
+                      "--root (layouts: docs/datasets.md)")
   p.add_argument("--root", help="dataset root (not needed for synthetic)")
   p.add_argument("--weights", help="weights directory; default for synthetic: the cached "
                  "source model of --model (trained on first use)")
@@ -283,6 +285,7 @@ def dataset_evaluation(eval_cfg, protocol, args):
 
 def _run_adapt(args) -> int:
   import dataclasses
+  from pathlib import Path
   from pitta_jax.adapt import AdaptConfig
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.methods import build
@@ -316,6 +319,9 @@ def _run_adapt(args) -> int:
                    f"ignored")
     args.source_images = args.replay_root = args.source_stats = None
   with open_output_dir(args.out):  # checked and locked first; removed again if a check fails
+    checkpoints = Path(args.out) / "checkpoints"
+    if args.checkpoint_every and checkpoints.exists() and not checkpoints.is_dir():
+      raise DataError(checkpoints, "is a file; --checkpoint-every writes a directory there")
     if args.source_stats:
       from pitta_jax.source_stats import read_source_stats
       check_stats_method(method, args.source_stats)
@@ -456,7 +462,8 @@ def _add_experiment(sub) -> None:
                   "`pitta-jax experiment table1 --help` lists its flags.", add_help=False)
   p.add_argument("args", nargs=argparse.REMAINDER,
                  help="NAME [flags]: table1 table2 table3 table4 table5 sensitivity")
-  p.set_defaults(func=lambda args: __import__("experiments").main(args.args))
+  p.set_defaults(func=lambda args: __import__("experiments").main(
+      args.args + (["--debug"] if args.debug and "--debug" not in args.args else [])))
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -134,8 +134,8 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
     print(f"\nSource model: {train_report.get('weights_dir')} "
           f"(trained in {train_report.get('train_seconds', '?')} s)")
     print(table)
-    print(f"demo finished in {seconds:.0f} s; results in {out}/ (results.json, results.csv, "
-          f"table.md, figures/)")
+  print(f"demo finished in {seconds:.0f} s; results in {out}/ (results.json, results.csv, "
+        f"table.md, figures/)")
   return {**meta, "rows": rows, "table": table}
 
 

@@ -91,6 +91,9 @@ def read_source_stats(path: str | Path) -> tuple[dict[str, Any], Stats]:
   """(metadata, stats) of a file written by `save_source_stats`, unvalidated against a network;
   DataError naming the file when it is not one."""
   path = Path(path)
+  if path.is_dir():
+    raise DataError(path, "is a directory; --source-stats names the .npz file that `pitta-jax "
+                          "source-stats` wrote")
   if not path.is_file():
     raise DataError(path, "source statistics file not found (write one with `pitta-jax "
                           "source-stats`)")

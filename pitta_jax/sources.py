@@ -253,6 +253,9 @@ def check_dataset_args(dataset: str, root: str | None, option_items: Sequence[st
   raw = split_options(option_items)
   kind, _ = parse_segmentation(segmentation)
   if dataset == "synthetic":
+    if root:
+      raise DataError(None, f"--root {root}: for real datasets (the synthetic benchmark is "
+                            "generated); drop it or name the dataset with --dataset")
     if kind != "gt":
       raise DataError(None, "the synthetic benchmark carries exact panoptic maps: use "
                             "--segmentation gt")
@@ -372,6 +375,8 @@ def check_run_needs(method, dataset: str, root: str | None, option_items: Sequen
   if dataset == "synthetic":
     options = check_dataset_args(dataset, root, option_items, segmentation)
     n = synthetic_config(options, 8, 8).num_frames
+    if n == 0:
+      raise DataError(None, "--option num_frames=0: the synthetic sequence has no frames")
     if "previous_frame" in method.needs and n < 2:
       raise _needs_error(method, "previous_frame", f"the synthetic sequence has {n} frame(s)",
                          "--option num_frames=N with N >= 2")
