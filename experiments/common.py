@@ -351,7 +351,8 @@ def parser(name: str, description: str,
            datasets: Sequence[str] = ("synthetic", "drivingstereo"),
            rows: bool = True) -> argparse.ArgumentParser:
   """The table command's parser; `rows`: whether it takes --rows (a table of rows)."""
-  p = argparse.ArgumentParser(prog=f"pitta-jax experiment {name}", description=description)
+  from pitta_jax.config_cli import ArgumentParser
+  p = ArgumentParser(prog=f"pitta-jax experiment {name}", description=description)
   add_arguments(p, datasets, rows)
   return p
 

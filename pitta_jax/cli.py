@@ -467,7 +467,8 @@ def _add_experiment(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-  parser = argparse.ArgumentParser(
+  from pitta_jax.config_cli import ArgumentParser
+  parser = ArgumentParser(
       prog="pitta-jax",
       description="PITTA: pose-agnostic, instance-aware test-time adaptation of monocular depth "
                   "networks, in JAX.")

@@ -21,6 +21,15 @@ from pitta_jax.configs import help_of
 T = TypeVar("T")
 
 
+class ArgumentParser(argparse.ArgumentParser):
+  """argparse's parser with a one-line error, `error: MESSAGE (see PROG --help)`, exit 2:
+  argparse prints the usage first, dozens of lines for a command with every config field as a
+  flag, which bury the one line that matters. Subcommand parsers inherit it."""
+
+  def error(self, message: str):
+    self.exit(2, f"error: {message} (see {self.prog} --help)\n")
+
+
 def parse_bool(text: str) -> bool:
   low = text.strip().lower()
   if low in ("1", "true", "yes", "on"):
