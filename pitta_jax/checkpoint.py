@@ -182,13 +182,16 @@ def _check_readable(path: Path) -> None:
   """Reads every value of the checkpoint's OCDBT store once, synchronously (~0.1 s for 37 MB):
   a truncated or corrupt data file is a WeightsError here. Orbax's own asynchronous restore
   reports it too, but its reads still in flight then print tracebacks from tensorstore's
-  threads ("Event loop is closed"). A store that does not even open is left to orbax."""
+  threads ("Event loop is closed"). A directory without OCDBT's manifest is left to orbax; one
+  with it whose index does not even list is corrupt too."""
   import tensorstore as ts
   try:
     store = ts.KvStore.open({"driver": "ocdbt", "base": f"{path.resolve().as_uri()}/"}).result()
     keys = store.list().result()
-  except Exception:  # not an OCDBT checkpoint: orbax reads (and judges) it
-    return
+  except Exception as e:
+    if (path / "manifest.ocdbt").is_file():  # an OCDBT checkpoint whose index is damaged
+      raise _unreadable(path, e) from None
+    return  # not an OCDBT checkpoint: orbax reads (and judges) it
   for key in keys:
     try:
       store.read(key).result()

@@ -11,9 +11,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -186,15 +187,15 @@ def _frame_names(frames: Sequence[Frame]) -> list[str]:
   return list(names) if names is not None else [frame.name for frame in frames]
 
 
-def _resume_point(directory: Path, fingerprint: str, names: Sequence[str]
-                  ) -> tuple[Path, dict] | None:
-  """The newest `state_NNNNNN` under `directory` whose results sidecar is readable and says it
-  belongs to this run (`run_fingerprint`, and its frames are the first of `names`), with that
-  sidecar; None when there is no checkpoint. DataError when there are checkpoints but none of
-  this run (another run's: other frames, weights or settings)."""
+def _resume_points(directory: Path, fingerprint: str, names: Sequence[str]
+                   ) -> list[tuple[Path, dict]]:
+  """This run's checkpoints under `directory`, newest first: the `state_NNNNNN` whose results
+  sidecar is readable and says it belongs to this run (`run_fingerprint`, and its frames are the
+  first of `names`), each with that sidecar; [] when there is no checkpoint. DataError when there
+  are checkpoints but none of this run (another run's: other frames, weights or settings)."""
   if not directory.is_dir():
-    return None
-  others = 0
+    return []
+  found, others = [], 0
   for path in sorted(directory.glob(CHECKPOINT_PATTERN), reverse=True):
     sidecar = path.parent / f"{path.name}.json"
     if not sidecar.is_file():
@@ -209,12 +210,32 @@ def _resume_point(directory: Path, fingerprint: str, names: Sequence[str]
         not isinstance(done, list) or done != list(names[:len(done)]):
       others += 1
       continue
-    return path, record
-  if others:
+    found.append((path, record))
+  if others and not found:
     raise DataError(directory, f"{others} checkpoint(s) here, none of this run (another run's "
                                "frames, weights or settings, or unreadable): resume with the "
                                "interrupted run's command, or run without --resume to start "
                                "afresh")
+  return found
+
+
+def _load_newest(points: list[tuple[Path, dict]], like) -> tuple[Any, dict] | None:
+  """(state, sidecar) of the newest of `points` whose state reads back (a kill during a save
+  can leave the newest one damaged: the one before it is used, with a warning); None for no
+  points; DataError naming them when none reads."""
+  errors = []
+  for path, record in points:
+    try:
+      state = load_state(path, like=like)
+    except ValueError as e:  # WeightsError, DataError: unreadable or not this state's shape
+      errors.append(str(e))
+      continue
+    if errors:
+      print(f"warning: {errors[0]}; resuming from {path.name} instead", file=sys.stderr)
+    return state, record
+  if errors:
+    raise DataError(points[0][0].parent, f"no checkpoint of this run reads back ({errors[0]}); "
+                                         "run without --resume to start afresh")
   return None
 
 
@@ -297,10 +318,10 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
             "logs": {}, "fingerprint": fingerprint}
   if directory is not None and resume:
-    found = _resume_point(directory, fingerprint, names)
+    found = _load_newest(_resume_points(directory, fingerprint, names), state)
     if found is not None:
-      state = load_state(found[0], like=state)
-      record = {"nonfinite_indices": [], **found[1]}
+      state, sidecar = found
+      record = {"nonfinite_indices": [], **sidecar}
       frames = frames[int(state.step):]
   elif directory is not None:
     _clear_checkpoints(directory)

@@ -220,6 +220,14 @@ def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, caps
   assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
   done = json.loads((out / "results.json").read_text())
   assert done["resumed_at_frame"] == N - K
+  # the newest state damaged (a kill during its save): the one before it is taken, with a warning
+  for f in (ckpt / f"state_{N - K:06d}").rglob("*"):
+    if f.is_file() and f.parent.name == "d":  # the OCDBT data files
+      f.write_bytes(b"garbage")
+  capsys.readouterr()
+  assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
+  assert f"resuming from state_{N - 2 * K:06d} instead" in capsys.readouterr().err
+  assert json.loads((out / "results.json").read_text())["per_frame"] == done["per_frame"]
   assert done["rows"][0]["extra"]["fps"] is None  # nothing ran: no speed (it was frames / ~0 s)
 
 
