@@ -264,7 +264,9 @@ def check_dataset_args(dataset: str, root: str | None, option_items: Sequence[st
       raise DataError(None, f"--option {sized[0]}: the synthetic frames are rendered at the "
                             "weights' input size (their model.json height and width)")
     from pitta_jax.data.synthetic import SyntheticConfig
-    return typed_options(raw, dataclass_annotations(SyntheticConfig), "synthetic")
+    fields = {k: v for k, v in dataclass_annotations(SyntheticConfig).items()
+              if k not in ("height", "width")}
+    return typed_options(raw, fields, "synthetic")
   if not root:
     raise DataError(None, f"--root is required for dataset {dataset}")
   from pitta_jax.data.readers import READERS
