@@ -87,9 +87,15 @@ def save_weights(out_dir: str | os.PathLike, architecture: str, config: dict[str
   """
   out = Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
+  # replacing earlier weights: model.json goes first, so that a kill midway leaves a directory
+  # without one (incomplete), never the old description beside new arrays
+  (out / MODEL_JSON).unlink(missing_ok=True)
   save_tree(out / "depth", depth)
   if pose is not None:
     save_tree(out / "pose", pose)
+  elif (out / "pose").is_dir():  # an earlier conversion's pose network is not these weights'
+    import shutil
+    shutil.rmtree(out / "pose")
   meta = {"architecture": architecture, **config, "has_pose": pose is not None,
           "source": source or {}}
   from pitta_jax.outputs import atomic_write_text

@@ -292,3 +292,57 @@ def test_unexpected_missing_and_misshapen_keys_are_named(r18, tmp_path):
   torch.save(wrong, tmp_path / "wrong.pth")
   with pytest.raises(CheckpointError, match=r"decoder.0.conv.conv.weight has shape \(256, 512, 1, 1\)"):
     convert_monodepth2(r18["root"] / "zip" / "encoder.pth", tmp_path / "wrong.pth")
+
+
+def test_wrapped_and_data_parallel_saves_convert_like_plain_ones(r18, tmp_path):
+  """A training script's {"state_dict": sd, "epoch": n} / {"model": sd} and DataParallel's
+  `module.` names (torch.save of nn.DataParallel(encoder).state_dict()) are the same weights."""
+  root = r18["root"] / "zip"
+  state = torch.load(root / "encoder.pth")
+  tensors = {k: v for k, v in state.items() if isinstance(v, torch.Tensor)}
+  meta = {k: v for k, v in state.items() if not isinstance(v, torch.Tensor)}
+  torch.save({"state_dict": state, "epoch": 19}, tmp_path / "wrapped.pth")
+  torch.save({"model": state}, tmp_path / "model.pth")
+  torch.save({**{f"module.{k}": v for k, v in tensors.items()}, **meta}, tmp_path / "dp.pth")
+  _, want, _ = convert_monodepth2(root / "encoder.pth", root / "depth.pth")
+  for name in ("wrapped.pth", "model.pth", "dp.pth"):
+    _, got, _ = convert_monodepth2(tmp_path / name, root / "depth.pth")
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+      np.testing.assert_array_equal(a, b)
+
+
+def test_swapped_files_and_an_unusable_size_are_named(r18, tmp_path):
+  root = r18["root"] / "zip"
+  with pytest.raises(CheckpointError, match=r"depth\.pth: holds no ResNet encoder .*'decoder\..*"
+                                            r"swapped"):
+    convert_monodepth2(root / "depth.pth", root / "encoder.pth")
+  state = torch.load(root / "encoder.pth")
+  torch.save(dict(state, height=191), tmp_path / "h191.pth")
+  with pytest.raises(CheckpointError, match=r"h191\.pth: its 'height' and 'width' entries: input "
+                                            r"size 640x191 .* multiples of 32"):
+    convert_monodepth2(tmp_path / "h191.pth", root / "depth.pth")
+
+
+def test_convert_never_writes_over_its_inputs_and_replaces_old_weights_whole(r18, tmp_path,
+                                                                             capsys):
+  """Inputs at the paths a converter writes (OUT/model.json, OUT/depth) are refused before any
+  work; converting into an earlier weights directory leaves none of the old files behind (an
+  earlier pose network with a conversion that has none)."""
+  import shutil
+  from pitta_jax.cli import main
+  enc, depth, penc, pose = _paths(r18["root"] / "zip")
+  out = tmp_path / "w"
+  out.mkdir()
+  shutil.copy(enc, out / "model.json")
+  assert main(["convert", "monodepth2", "--encoder", str(out / "model.json"), "--depth",
+               str(depth), "--out", str(out)]) == 2
+  err = capsys.readouterr().err
+  assert f"--out {out} would overwrite the input --encoder {out / 'model.json'}" in err
+  assert (out / "model.json").read_bytes() == open(enc, "rb").read()
+  (out / "model.json").unlink()
+  assert main(["convert", "monodepth2", "--encoder", str(enc), "--depth", str(depth),
+               "--pose-encoder", str(penc), "--pose", str(pose), "--out", str(out)]) == 0
+  assert (out / "pose").is_dir()
+  assert main(["convert", "monodepth2", "--encoder", str(enc), "--depth", str(depth), "--out",
+               str(out)]) == 0
+  assert not (out / "pose").exists() and not load_weights(out).config["has_pose"]

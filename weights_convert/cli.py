@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from pitta_jax.checkpoint import MODEL_JSON
+from pitta_jax.models.mask2former.load import CONFIG_JSON, PARAMS_DIR
 from weights_convert import (depth_anything_v2, hrdepth, litemono, mask2former, monodepth2,
                              monovit, sgdepth)
 from weights_convert.pth import CheckpointError
@@ -41,9 +43,31 @@ def add_subcommands(parser: argparse.ArgumentParser) -> None:
     p.set_defaults(convert_fn=run)
 
 
+# what a converter writes under --out (a depth network's weights directory, or Mask2Former's)
+WRITTEN = (MODEL_JSON, "depth", "pose", CONFIG_JSON, PARAMS_DIR)
+
+
+def check_inputs_outside_output(args: argparse.Namespace) -> None:
+  """ValueError when an input file or directory given on the command line lies where the
+  converter writes (--out/model.json, --out/depth, ...): it would be replaced."""
+  from pathlib import Path
+  out = Path(args.out).resolve()
+  targets = [out / name for name in WRITTEN]
+  for flag, value in vars(args).items():
+    if flag == "out" or not isinstance(value, str) or not value or not Path(value).exists():
+      continue
+    path = Path(value).resolve()
+    hit = next((t for t in targets if path == t or t in path.parents), None)
+    if hit is not None:
+      raise ValueError(f"--out {args.out} would overwrite the input --{flag.replace('_', '-')} "
+                       f"{value} (converters write {', '.join(WRITTEN)} there): choose another "
+                       f"--out")
+
+
 def run(args: argparse.Namespace) -> int:
   from pitta_jax.outputs import open_output_dir
   try:
+    check_inputs_outside_output(args)
     with open_output_dir(args.out):  # checked and locked before reading any checkpoint
       args.convert_fn(args)
   except (CheckpointError, FileNotFoundError, ValueError) as e:

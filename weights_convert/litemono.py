@@ -30,9 +30,8 @@ from pathlib import Path
 
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, int_entry, load_state_dict
+from weights_convert.pth import METADATA_KEYS, CheckpointError, int_entry, load_state_dict
 
-METADATA_KEYS = ("height", "width", "use_stereo")
 # upstream's decoder ModuleList order: (upconv, 2, 0), (upconv, 2, 1), ..., (upconv, 0, 1),
 # then dispconv 0..2
 DECODER_ORDER = tuple(f"upconv_{i}_{j}" for i in range(2, -1, -1) for j in (0, 1)) + tuple(

@@ -374,6 +374,7 @@ def save_mask2former(out_dir: str | os.PathLike, cfg, variables: dict, source: d
   from pitta_jax.checkpoint import save_tree
   out = Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
+  (out / CONFIG_JSON).unlink(missing_ok=True)  # replacing: a kill midway leaves no config.json
   save_tree(out / PARAMS_DIR, variables)
   meta = {"architecture": "mask2former", "config": cfg.to_dict(), "source": source or {}}
   from pitta_jax.outputs import atomic_write_text

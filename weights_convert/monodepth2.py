@@ -19,9 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, int_entry, load_state_dict
+from weights_convert.pth import METADATA_KEYS, CheckpointError, int_entry, load_state_dict
 
-METADATA_KEYS = ("height", "width", "use_stereo")
 RESNET_BLOCKS = {18: ("basic", (2, 2, 2, 2)), 34: ("basic", (3, 4, 6, 3)),
                  50: ("bottleneck", (3, 4, 6, 3))}
 # upstream's decoder ModuleList order: (upconv, 4, 0), (upconv, 4, 1), ..., (upconv, 0, 1), dispconv 0..3
@@ -78,6 +77,11 @@ def infer_num_layers(state: dict, path: str) -> int:
   """ResNet depth from the encoder's keys: Bottleneck blocks have conv3; 18 vs 34 by block count."""
   if "encoder.layer1.0.conv3.weight" in state:
     return 50
+  if not any(isinstance(k, str) and k.startswith("encoder.") for k in state):
+    found = next((k for k in state if k not in METADATA_KEYS), None)
+    raise CheckpointError(f"{path}: holds no ResNet encoder (no `encoder.*` key"
+                          + (f"; found e.g. {found!r}" if found else "") + "): is it a decoder? "
+                          "check that the encoder and decoder files are not swapped")
   n_layer3 = len({k.split(".")[2] for k in state if k.startswith("encoder.layer3.")})
   if n_layer3 == 2:
     return 18
@@ -109,6 +113,7 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
   from pitta_jax.models.depth_decoder import DepthNet
   from pitta_jax.models.monodepth2 import DEFAULT_SIZE
   from pitta_jax.models.pose import PoseNet
+  from pitta_jax.models.registry import get_spec
 
   if (pose_encoder is None) != (pose is None):
     raise CheckpointError("--pose-encoder and --pose go together: give both or neither")
@@ -129,6 +134,10 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
             "height": int_entry(enc_state, "height", encoder, DEFAULT_SIZE[0]),
             "width": int_entry(enc_state, "width", encoder, DEFAULT_SIZE[1]),
             "use_stereo": _flag(enc_state, "use_stereo")}
+  try:  # the size the weights were trained at must be one the network takes
+    get_spec("monodepth2").check_size(config["height"], config["width"])
+  except ValueError as e:
+    raise CheckpointError(f"{encoder}: its 'height' and 'width' entries: {e}") from None
   depth_vars = unflatten_dict(flat)
 
   pose_vars = None

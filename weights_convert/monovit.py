@@ -42,11 +42,9 @@ from typing import Callable
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, int_entry, load_state_dict
+from weights_convert.pth import METADATA_KEYS, CheckpointError, int_entry, load_state_dict
 from weights_convert.strict import check_keys
 
-METADATA_KEYS = ("height", "width", "use_stereo")
-DATA_PARALLEL_PREFIX = "module."
 NUM_STAGES = 4  # the decoder takes the stem and four stage outputs
 DECODER_UNUSED = ("X_00_Conv_0", "X_01_Conv_0", "X_02_Conv_0", "X_03_Conv_0")
 DISP_CONVS = tuple(f"dispconv{i}" for i in range(4))
@@ -251,25 +249,6 @@ def fold_aliases(state: dict, aliases: dict[str, tuple[str, ...]], path: str) ->
   return out
 
 
-def strip_data_parallel(state: dict, path: str) -> dict:
-  """Removes `module.` when every non-metadata key carries it (a DataParallel save)."""
-  keys = [k for k in state if k not in METADATA_KEYS]
-  prefixed = [k for k in keys if k.startswith(DATA_PARALLEL_PREFIX)]
-  if not prefixed:
-    return state
-  if len(prefixed) != len(keys):
-    plain = sorted(set(keys) - set(prefixed))
-    raise CheckpointError(f"{path}: {len(prefixed)} keys start with {DATA_PARALLEL_PREFIX!r} and "
-                          f"{len(plain)} do not (e.g. {plain[0]}); expected all or none")
-  n = len(DATA_PARALLEL_PREFIX)
-  return {(k[n:] if k.startswith(DATA_PARALLEL_PREFIX) else k): v for k, v in state.items()}
-
-
-def _read_state(path: str | os.PathLike) -> dict:
-  """The state dict of a .pth file, without a DataParallel `module.` prefix."""
-  return strip_data_parallel(load_state_dict(path), str(path))
-
-
 def _size(state: dict, key: str, given: int | None, path: str) -> int:
   """The training size entry `key` of the file and/or the command line (they must agree)."""
   value = int_entry(state, key, path, None)
@@ -301,14 +280,14 @@ def convert_monovit(encoder: str | os.PathLike | None, depth: str | os.PathLike,
   from pitta_jax.models.monovit import MonoViT
 
   if encoder is None:  # one DeepNet file
-    state = _read_state(depth)
+    state = load_state_dict(depth)
     layout = infer_layout(state, str(depth), "encoder.")
     enc_rules, dec_rules = encoder_rules(layout, "encoder."), decoder_rules("decoder.")
     aliases = {**encoder_aliases(layout, "encoder."), **decoder_aliases(dec_rules, "decoder.")}
     parts = [(str(depth), state, enc_rules + dec_rules, aliases, _ignorable("decoder."))]
     meta_state, meta_path = state, str(depth)
   else:
-    enc_state, dec_state = _read_state(encoder), _read_state(depth)
+    enc_state, dec_state = load_state_dict(encoder), load_state_dict(depth)
     if any(k.startswith("encoder.") for k in dec_state):
       raise CheckpointError(f"{depth}: holds a whole DeepNet (`encoder.*` keys); convert it "
                             f"without --encoder")

@@ -639,12 +639,39 @@ def load_pth(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
     raise _reraise(path, error) from error
 
 
+# the training-size entries a MonoDepth2-family encoder file carries beside its tensors
+METADATA_KEYS = ("height", "width", "use_stereo")
+DATA_PARALLEL_PREFIX = "module."  # `nn.DataParallel(model).state_dict()` names
+WRAPPER_KEYS = ("state_dict", "model")  # training scripts' {"state_dict": sd, "epoch": ...}
+
+
 def load_state_dict(path: str | os.PathLike) -> dict:
-  """`load_pth` of a file that must hold a state dict (name -> tensor, plus metadata entries)."""
+  """`load_pth` of a file that must hold a state dict (name -> tensor, plus metadata entries).
+
+  Two common ways of saving one are undone: a state dict stored under "state_dict" or "model"
+  of a dict that holds no tensor itself (a training script's checkpoint), and the `module.`
+  prefix of a DataParallel model (`strip_data_parallel`)."""
   state = load_pth(path)
   if not isinstance(state, dict):
     raise CheckpointError(f"{path}: expected a state dict, found a {type(state).__name__}")
-  return state
+  wrapped = [k for k in WRAPPER_KEYS if isinstance(state.get(k), dict)]
+  if wrapped and not any(isinstance(v, np.ndarray) for v in state.values()):
+    state = state[wrapped[0]]
+  return strip_data_parallel(state, str(path))
+
+
+def strip_data_parallel(state: dict, path: str) -> dict:
+  """Removes `module.` when every non-metadata key carries it (a DataParallel save)."""
+  keys = [k for k in state if k not in METADATA_KEYS]
+  prefixed = [k for k in keys if isinstance(k, str) and k.startswith(DATA_PARALLEL_PREFIX)]
+  if not prefixed:
+    return state
+  if len(prefixed) != len(keys):
+    plain = sorted(map(str, set(keys) - set(prefixed)))
+    raise CheckpointError(f"{path}: {len(prefixed)} keys start with {DATA_PARALLEL_PREFIX!r} and "
+                          f"{len(plain)} do not (e.g. {plain[0]}); expected all or none")
+  n = len(DATA_PARALLEL_PREFIX)
+  return {(k[n:] if k.startswith(DATA_PARALLEL_PREFIX) else k): v for k, v in state.items()}
 
 
 _REQUIRED = object()
