@@ -26,6 +26,9 @@ from pitta_jax.data.image_io import IMAGE_SUFFIXES, list_images, read_image, wri
 from pitta_jax.data.resize import resize_image
 
 
+DISP_PNG, DISP_NPY = "_disp.png", "_disp.npy"  # predict's outputs per image (+ _depth.npy)
+
+
 def expand_images(spec: str, unique_stems: bool = True) -> list[Path]:
   """A file, a directory (its images), or a glob pattern -> sorted image paths.
 
@@ -64,11 +67,31 @@ def check_images(paths: Sequence[Path], quiet: bool = False) -> None:
     read_image(path)
 
 
-def without_own_outputs(paths: Sequence[Path], out_dir: Path, suffix: str) -> list[Path]:
+def is_own_output(path: Path, companion_suffix: str, suffix: str) -> bool:
+  """Whether `path` (named ...`suffix`) was written by this command: the file it always writes
+  beside it (`companion_suffix` in place of `suffix`) is there too."""
+  return path.name.endswith(suffix) and (
+      path.with_name(path.name[:-len(suffix)] + companion_suffix).is_file())
+
+
+def without_own_outputs(paths: Sequence[Path], out_dir: Path, suffix: str,
+                        companion_suffix: str) -> list[Path]:
   """`paths` less the files a previous run of the command wrote into `out_dir` (names ending in
-  `suffix`), so that a rerun with --out in the image directory does not take them as input."""
+  `suffix`, with their companion file beside them), so that a rerun with --out in the image
+  directory does not take them as input; a user's own image of such a name stays an input."""
   out = out_dir.resolve()
-  return [p for p in paths if not (p.name.endswith(suffix) and p.resolve().parent == out)]
+  return [p for p in paths
+          if not (p.resolve().parent == out and is_own_output(p, companion_suffix, suffix))]
+
+
+def check_outputs_free(targets: Sequence[Path], suffix: str, companion_suffix: str) -> None:
+  """DataError naming the first of `targets` (the files the command is about to write) that
+  exists without being one of its earlier outputs: a user's file would be replaced."""
+  for target in targets:
+    if target.exists() and not is_own_output(target, companion_suffix, suffix):
+      raise DataError(target, f"exists and is not an earlier output of this command (no "
+                              f"{target.name[:-len(suffix)] + companion_suffix} beside it); it "
+                              "is not overwritten: choose another --out")
 
 
 def make_predictor(network):
@@ -93,9 +116,10 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   weights.spec.check_size(h, w)  # ValueError naming the network's rule
   out = Path(out_dir)
   images = expand_images(images) if isinstance(images, str) else list(images)
-  images = without_own_outputs(images, out, "_disp.png")
+  images = without_own_outputs(images, out, DISP_PNG, DISP_NPY)
   if not images:
     raise DataError(out, "no image to predict besides this command's own outputs")
+  check_outputs_free([out / f"{p.stem}{DISP_PNG}" for p in images], DISP_PNG, DISP_NPY)
   check_images(images, quiet)
   predict = make_predictor(weights.network())
   out.mkdir(parents=True, exist_ok=True)
@@ -105,9 +129,9 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
     disp, depth = (np.asarray(a)[0] for a in predict(weights.depth, jnp.asarray(image[None])))
     if not np.all(np.isfinite(disp)):
       raise ValueError(f"{path}: the network produced non-finite outputs on this image")
-    save_npy(out / f"{path.stem}_disp.npy", disp.astype(np.float32))
-    save_npy(out / f"{path.stem}_depth.npy", depth.astype(np.float32))
-    png = out / f"{path.stem}_disp.png"
+    save_npy(out / f"{path.stem}{DISP_NPY}", disp.astype(np.float32))  # first: it marks the
+    save_npy(out / f"{path.stem}_depth.npy", depth.astype(np.float32))  # PNG as an output
+    png = out / f"{path.stem}{DISP_PNG}"
     write_image(png, viz.colorize(disp))
     written.append(png)
   return written

@@ -40,7 +40,8 @@ from pitta_jax.data.image_io import read_image
 from pitta_jax.data.panoptic_io import write_panoptic
 from pitta_jax.data.sequence import FrameSequence
 from pitta_jax.models.mask2former import CONFIG_JSON, InferenceConfig, load_mask2former, segment
-from pitta_jax.predict import check_images, check_unique_stems, expand_images
+from pitta_jax.predict import (check_images, check_outputs_free, check_unique_stems,
+                               expand_images)
 
 
 PathLike = str | os.PathLike[str]
@@ -160,7 +161,8 @@ def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_
     weights_dir: a Mask2Former weights directory.
     images: paths, or a file / directory / glob for `predict.expand_images` (expanded after the
       weights load, so a bad weights directory is reported first).
-    out_dir: output directory (created); existing files of the same stems are overwritten.
+    out_dir: output directory (created); earlier outputs of the same stems (a PNG with its
+      JSON) are overwritten, any other file of those names is refused (DataError).
     input_size: (H, W) network input; None = each image's own size (padded to a multiple of 32).
     quiet: no progress bar.
 
@@ -175,6 +177,7 @@ def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_
     if (out / f"{path.stem}.png").resolve() == path.resolve():
       raise DataError(path, f"--out {out} would overwrite this input with its panoptic map "
                             "(outputs are OUT/<stem>.png): choose another --out")
+  check_outputs_free([out / f"{p.stem}.png" for p in paths], ".png", ".json")
   check_images(paths, quiet)
   out.mkdir(parents=True, exist_ok=True)
   written = []

@@ -89,6 +89,18 @@ def test_predict_checks_every_image_first_and_skips_its_own_outputs(converted, t
   assert main([*args, str(d)]) == 0 and main([*args, str(d)]) == 0
   assert sorted(p.name for p in d.glob("*.png")) == [
       f"{n}{s}.png" for n in ("000", "001", "002") for s in ("", "_disp")]
+  # a user's own image named like an output (no _disp.npy beside it) is neither skipped as an
+  # output nor replaced by one: refused before anything is written
+  user = tmp_path / "user"
+  user.mkdir()
+  cv2.imwrite(str(user / "a.png"), rng.integers(0, 256, (64, 96, 3), dtype=np.uint8))
+  cv2.imwrite(str(user / "a_disp.png"), rng.integers(0, 256, (64, 96, 3), dtype=np.uint8))
+  before = (user / "a_disp.png").read_bytes()
+  assert main(["predict", "--weights", str(weights), "--images", str(user), "--quiet", "--out",
+               str(user)]) == 2
+  err = capsys.readouterr().err
+  assert f"{user / 'a_disp.png'}: exists and is not an earlier output of this command" in err
+  assert (user / "a_disp.png").read_bytes() == before and not list(user.glob("*.npy"))
 
 
 def test_convert_errors_exit_2(converted, tmp_path, capsys):

@@ -211,3 +211,10 @@ def test_cli_argument_errors(weights, image_dir, tmp_path, capsys):
   with pytest.raises(DataError, match="would overwrite this input"):
     segment_images(weights[0], str(tmp_path / "x"), tmp_path / "x")
   assert (tmp_path / "x" / "a.png").read_bytes() == before
+  # a user's file at an output's name (no panoptic JSON beside it) is not replaced either
+  write_image(tmp_path / "x" / "b.jpg", np.zeros((H, W, 3), np.uint8))
+  write_image(tmp_path / "x" / "b.png", np.full((H, W, 3), 9, np.uint8))
+  before = (tmp_path / "x" / "b.png").read_bytes()
+  with pytest.raises(DataError, match=r"b\.png: exists and is not an earlier output"):
+    segment_images(weights[0], [tmp_path / "x" / "b.jpg"], tmp_path / "x")
+  assert (tmp_path / "x" / "b.png").read_bytes() == before
