@@ -101,7 +101,9 @@ class SourceConfig:
               self.pose_max_gap) >= 1,
           "sequences, frames_per_sequence, steps, batch_size and pose_max_gap must be >= 1")
     finite(self.lr, "lr", 0.0)
+    check(self.lr > 0, f"lr must be > 0 (training needs steps), got {self.lr}")
     finite(self.pose_fraction, "pose_fraction", 0.0)
+    check(self.pose_fraction <= 1.0, f"pose_fraction must be in [0, 1], got {self.pose_fraction}")
     check(self.pose_steps == 0 or self.frames_per_sequence > self.pose_max_gap,
           f"frames_per_sequence ({self.frames_per_sequence}) must exceed pose_max_gap "
           f"({self.pose_max_gap}) to make pose-net training pairs (or set pose_fraction 0)")
