@@ -157,16 +157,22 @@ def _adapt_args(weights, out, *extra):
           "--quiet", "--out", str(out), *extra]
 
 
-def test_kill_then_resume_equals_an_uninterrupted_run(tiny_weights, tmp_path):
-  killed = tmp_path / "killed"
+def _run_until_first_checkpoint(weights, out, *extra) -> subprocess.Popen:
+  """`pitta-jax adapt` in a subprocess, returned once its first checkpoint is complete."""
   proc = subprocess.Popen([sys.executable, "-m", "pitta_jax.cli",
-                           *_adapt_args(tiny_weights, killed)],
+                           *_adapt_args(weights, out, *extra)],
                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-  sidecar = killed / "checkpoints" / f"state_{K:06d}.json"
+  sidecar = out / "checkpoints" / f"state_{K:06d}.json"
   deadline = time.time() + 300
   while not sidecar.exists() and proc.poll() is None and time.time() < deadline:
     time.sleep(0.05)
   assert sidecar.exists(), proc.stderr.read().decode()[-2000:] if proc.poll() else "timeout"
+  return proc
+
+
+def test_kill_then_resume_equals_an_uninterrupted_run(tiny_weights, tmp_path):
+  killed = tmp_path / "killed"
+  proc = _run_until_first_checkpoint(tiny_weights, killed)
   proc.send_signal(signal.SIGKILL)
   proc.wait()
   assert not (killed / "results.json").exists()  # killed before the end
@@ -185,14 +191,7 @@ def test_sigterm_stops_like_ctrl_c(tiny_weights, tmp_path):
   """SIGTERM (a scheduler's stop): the run stops as on Ctrl-C, with the last completed chunk
   checkpointed, the output directory unlocked, exit 143 and a line saying how to resume."""
   out = tmp_path / "term"
-  proc = subprocess.Popen([sys.executable, "-m", "pitta_jax.cli",
-                           *_adapt_args(tiny_weights, out, "--option", "num_frames=400")],
-                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-  sidecar = out / "checkpoints" / f"state_{K:06d}.json"
-  deadline = time.time() + 300
-  while not sidecar.exists() and proc.poll() is None and time.time() < deadline:
-    time.sleep(0.05)
-  assert sidecar.exists(), proc.stderr.read().decode()[-2000:] if proc.poll() else "timeout"
+  proc = _run_until_first_checkpoint(tiny_weights, out, "--option", "num_frames=400")
   proc.send_signal(signal.SIGTERM)
   assert proc.wait(timeout=120) == 143
   err = proc.stderr.read().decode()
