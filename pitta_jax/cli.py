@@ -18,7 +18,9 @@ def _add_predict(sub) -> None:
   p = sub.add_parser(
       "predict", help="run a converted depth network on images, write .npy and colour PNGs",
       description="Run a weights directory (from `pitta-jax convert NETWORK` or "
-                  "`train-source`) on images: each is resized to the network's input size; "
+                  "`train-source`) on images: each is resized to the size the weights were "
+                  "trained at (Depth Anything V2: its aspect ratio kept, each side at least the "
+                  "trained one, multiples of 14, as upstream's infer_image); "
                   "writes <stem>_disp.npy (the network's own output: sigmoid disparity in "
                   "[0, 1] for the MonoDepth2 family, where MonoDepth2's test_simple.py saves "
                   "the scaled disparity in [0.01, 10]; relative inverse depth for Depth Anything "

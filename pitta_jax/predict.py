@@ -109,11 +109,14 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
 
   images: paths, or a spec for `expand_images` (expanded after the weights load, so a bad
   weights directory is reported first).
-  size: (H, W) network input size (default: the size the weights were trained at).
+  size: (H, W) network input size (default: the size the weights were trained at, or for a
+    network that keeps the aspect ratio, e.g. Depth Anything V2, `ModelSpec.inference_size`
+    of each image).
   """
   weights = load_weights(weights_dir)
-  h, w = size if size is not None else (weights.height, weights.width)
-  weights.spec.check_size(h, w)  # ValueError naming the network's rule
+  if size is not None:
+    weights.spec.check_size(*size)  # ValueError naming the network's rule
+  trained = (weights.height, weights.width)
   out = Path(out_dir)
   images = expand_images(images) if isinstance(images, str) else list(images)
   images = without_own_outputs(images, out, DISP_PNG, DISP_NPY)
@@ -125,7 +128,9 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   out.mkdir(parents=True, exist_ok=True)
   written = []
   for path in tqdm(images, desc="predict", unit="img", disable=quiet):
-    image = resize_image(read_image(path), h, w)
+    image = read_image(path)
+    h, w = size or weights.spec.inference_size(image.shape[:2], trained)
+    image = resize_image(image, h, w)
     disp, depth = (np.asarray(a)[0] for a in predict(weights.depth, jnp.asarray(image[None])))
     if not np.all(np.isfinite(disp)):
       raise ValueError(f"{path}: the network produced non-finite outputs on this image")

@@ -400,3 +400,16 @@ def test_spec_and_input_sizes(small):
   with pytest.raises(ValueError, match="multiples of 14"):
     build(cfg).apply(variables, np.zeros((1, 192, 640, 3), np.float32))
   assert "encoder" in variables["params"] and "depth_head" in variables["params"]
+
+
+def test_predict_keeps_the_aspect_ratio_as_infer_image():
+  """Upstream's infer_image: Resize(518, 518, keep_aspect_ratio=True, ensure_multiple_of=14,
+  resize_method="lower_bound"). Hand values: KITTI's 375x1242 -> scale 518/375 -> 518 x
+  1715.6 -> 1722 (123 patches); 480x640 -> 518 x 690.7 -> 686 (49 patches); a square image
+  -> 518x518; MonoDepth2 resizes to its trained size whatever the image (test_simple.py)."""
+  from pitta_jax.models.monodepth2 import SPEC as MONODEPTH2
+  assert SPEC.inference_size((375, 1242), (518, 518)) == (518, 1722)
+  assert SPEC.inference_size((480, 640), (518, 518)) == (518, 686)
+  assert SPEC.inference_size((300, 300), (518, 518)) == (518, 518)
+  assert SPEC.inference_size((1242, 375), (518, 518)) == (1722, 518)
+  assert MONODEPTH2.inference_size((375, 1242), (192, 640)) == (192, 640)  # test_simple.py

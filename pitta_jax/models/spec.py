@@ -25,10 +25,12 @@ checkpoint loader and the CLI see a network only through its spec:
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, Callable, Mapping
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from pitta_jax.models.depth_decoder import MAX_DEPTH, MIN_DEPTH, disp_to_depth
 
@@ -53,6 +55,9 @@ class ModelSpec:
   # model.json fields of the network trained from scratch at (H, W) (`train-source`);
   # None = {"height": H, "width": W}
   source_config: Callable[[int, int], dict[str, Any]] | None = None
+  # `predict` on an image: False = resized to the trained (H, W) (MonoDepth2's test_simple.py);
+  # True = its aspect ratio kept, each side at least the trained one (`inference_size`)
+  keep_aspect: bool = False
 
   def __post_init__(self):
     if self.output not in OUTPUTS:
@@ -67,6 +72,24 @@ class ModelSpec:
       raise ValueError(f"input size {width}x{height} (WxH) is not supported by {self.name}: "
                        f"width and height must be positive multiples of {m} "
                        f"(default {self.default_size[1]}x{self.default_size[0]})")
+
+  def inference_size(self, image_size: tuple[int, int], trained: tuple[int, int]
+                     ) -> tuple[int, int]:
+    """The (H, W) an image of `image_size` (H, W) is resized to for a prediction: `trained`, or
+    with `keep_aspect` Depth Anything V2's `infer_image` rule (its `Resize` with
+    keep_aspect_ratio, resize_method "lower_bound", ensure_multiple_of 14): one scale for both
+    sides, the larger of trained / image per side, each side then rounded to a multiple of
+    `size_multiple` (np.round), rounded up where that falls below the trained side."""
+    if not self.keep_aspect:
+      return tuple(trained)
+    scale = max(t / s for t, s in zip(trained, image_size))
+    m = self.size_multiple
+
+    def fit(x: float, least: int) -> int:
+      y = int(np.round(x / m) * m)
+      return y if y >= least else int(math.ceil(x / m) * m)
+
+    return fit(scale * image_size[0], trained[0]), fit(scale * image_size[1], trained[1])
 
   def to_depth(self, out: jax.Array) -> jax.Array:
     """The network's scale-0 output -> the depth the losses see (same shape)."""

@@ -49,6 +49,7 @@ SPEC = ModelSpec(
     encoder="encoder",
     description="Depth Anything V2 (DINOv2 ViT-S/14 + DPT head): relative inverse depth, "
                 "inputs multiples of 14 (trained at 518x518)",
+    keep_aspect=True,  # upstream's infer_image keeps the image's aspect ratio
 )
 
 __all__ = ["DepthAnythingV2", "DinoVisionTransformer", "DPTHead", "SPEC", "build",
