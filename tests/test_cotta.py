@@ -17,6 +17,7 @@ ld_weight 0 the loss and the student equal plain CoTTA's.
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -167,3 +168,35 @@ def test_ld_weight_zero_is_plain_cotta(case, jax_run):
   rs = _worst_rel(student0, t_student, torch_tta.encoder_params(case[0], bn_only=True))
   print(f"student after one ld_weight-0 step: worst max diff / max change {rs:.1e}")
   assert rs < 1e-6
+
+
+def test_reset_copies_the_teacher_from_the_source_as_upstream(case):
+  """`reset_every` (upstream's `reset()`): the student, its optimiser and the teacher start
+  again from the source. A step that resets first, then takes its update (no restore: p = 0),
+  leaves teacher = EMA * source + (1 - EMA) * student; without the reset the teacher's own
+  (perturbed) values stay in that average."""
+  _, _, variables, frames, threshold, teacher = case
+  mcfg = CottaConfig(n_augment=N_AUG, threshold=threshold, ema_decay=EMA, restore_p=0.0, lr=LR,
+                     ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
+  cfg = dataclasses.replace(CFG, reset_every=1)
+  with jax.enable_x64(True):
+    v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
+    model, method = network("monodepth2", {"num_layers": 18}), build("cotta", mcfg)
+    tx = make_optimizer(cfg, method)
+    step = jax.jit(make_step(model, method, cfg, tx), compiler_options=QUICK_COMPILE)
+    init, consts = init_state(v64, method, cfg, tx, model)
+    perturbed = {"encoder": unflatten_dict({k: jnp.asarray(v) for k, v in teacher.items()},
+                                           sep="/")}
+    init = init.replace(step=jnp.asarray(1, init.step.dtype),  # step 1: reset_every 1 resets
+                        method_state={**init.method_state, "teacher": perturbed})
+    frame = StepInput(*(jnp.asarray(v[0], jnp.float64 if v.dtype == np.float32 else None)
+                        for v in frames))
+    state, _ = step(init, frame, consts)
+  flat = lambda t: flatten_dict(jax.tree_util.tree_map(np.asarray, t)["encoder"], sep="/")
+  source, student, got = flat(init.source), flat(state.trainable), flat(
+      state.method_state["teacher"])
+  kept = flat(perturbed)
+  assert any(not np.allclose(kept[k], source[k]) for k in source)  # the reset has work to do
+  for k in source:
+    np.testing.assert_allclose(got[k], EMA * source[k] + (1 - EMA) * student[k], rtol=1e-12,
+                               atol=1e-15, err_msg=k)

@@ -217,6 +217,9 @@ def adapt_step(state: AdaptState, frame: StepInput, consts: Consts, *, model: An
     restored = select(reset, (state.source, tx.init(state.source)),
                       (state.trainable, state.opt_state))
     state = state.replace(trainable=restored[0], opt_state=restored[1])
+    if method.reset is not None:
+      state = state.replace(method_state=select(
+          reset, method.reset(state.method_state, state.source), state.method_state))
 
   def update(state, grads, loss, aux, key):
     if method.update is None:

@@ -17,6 +17,11 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
       Replaces the default single optimiser step (`engine.optax_update`), e.g. to also move an
       EMA teacher or restore weights stochastically; it must keep the non-finite guard.
       `aux.carry` brings it what the loss computed for it (e.g. activations for a frame ring).
+  reset(method_state, source) -> method_state   [optional]
+      What `AdaptConfig.reset_every` does to the method state when the engine puts the adapted
+      parameters and the optimiser back to the source (`source`: the trainable leaves at the
+      start), e.g. CoTTA's teacher copied from the source again; without it the method state
+      carries on.
   optimizer(cfg) -> optax.GradientTransformation   [optional]
       The method's own optimiser (e.g. ActMAD's SGD with Nesterov momentum and weight decay),
       used by `engine.make_optimizer` instead of AdaptConfig's optimizer/lr/momentum.
@@ -102,6 +107,7 @@ class Method:
   init: Callable[..., Tree]
   loss: Callable[..., tuple[jax.Array, Aux]]
   update: Callable[..., Any] | None = None
+  reset: Callable[..., Tree] | None = None
   adapts: bool = True
   optimizer: Callable[..., Any] | None = None
   # (model, variables, SourceData) -> resources for `init`; None for methods that need no

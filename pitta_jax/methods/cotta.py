@@ -31,8 +31,8 @@ view with its own; with one frame per step, batch statistics would be those of o
 The anchor and the restore target are the engine's `state.source` (the trainable leaves at the
 start); the teacher is in the method state. Which leaves adapt is `AdaptConfig.selector`
 (upstream adapts every weight and bias: `--selector all`). With `reset_every`, the engine resets
-the student and its optimiser; the teacher is not reset (upstream's `reset()` also copies the
-teacher and the anchor from the source again; upstream never resets in the paper's setting).
+the student and its optimiser and the teacher is copied from the source again, as upstream's
+`reset()` does (the anchor is the source throughout).
 """
 
 from __future__ import annotations
@@ -254,7 +254,11 @@ def build(config: CottaConfig = CottaConfig()) -> Method:
                           method_state={**state.method_state, "teacher": teacher})
     return state, skipped, unorm
 
-  return Method("cotta", config, init=init, loss=loss, update=update,
+  def reset(method_state, source):
+    """Upstream's `reset()`: the teacher starts again from the (restored) source weights."""
+    return {**method_state, "teacher": source}
+
+  return Method("cotta", config, init=init, loss=loss, update=update, reset=reset,
                 optimizer=lambda cfg: optax.adam(config.lr),
                 requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),),
                 setting=(("selector", "all"),),
