@@ -282,7 +282,8 @@ def dataset_evaluation(eval_cfg, protocol, args):
   own = {k: v for k, v in protocol.items() if k not in given and getattr(eval_cfg, k) != v}
   if not own:
     return eval_cfg, None
-  flags = ", ".join(f"--eval.{k.replace('_', '-')} {str(v).lower()}" for k, v in own.items())
+  flags = ", ".join(f"--eval.{k.replace('_', '-')} {str(v).lower() if isinstance(v, bool) else v}"
+                    for k, v in own.items())
   return (dataclasses.replace(eval_cfg, **own),
           f"dataset {args.dataset} is evaluated with its published protocol: {flags} (give the "
           f"flag to change it)")

@@ -31,6 +31,9 @@ MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0  # valid ground truth and cap, MonoDepth2's ev
 # baseline it was trained with (0.1 units = 54 cm), so it is multiplied by 5.4, not median-scaled
 STEREO_SCALE_FACTOR = 5.4
 RESIZE_DOMAINS = ("disparity", "depth")  # what `depth_metrics` interpolates onto the gt's size
+# which ground-truth pixels are scored: "range" min_depth < gt < max_depth (MonoDepth2's eigen
+# split), "positive" gt > 0 (its eigen_benchmark split, improved ground truth beyond 80 m kept)
+VALID_GT = ("range", "positive")
 
 
 class NoValidPixels(ValueError):
@@ -85,7 +88,8 @@ def compute_errors(gt: np.ndarray, pred: np.ndarray) -> dict[str, float]:
 def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DEPTH,
                   max_depth: float = MAX_DEPTH, median_scaling: bool = True, garg_crop: bool = False,
                   clamp: bool = True, pred_is_disparity: bool = False,
-                  alignment: str | None = None, resize: str = "disparity") -> dict[str, float]:
+                  alignment: str | None = None, resize: str = "disparity",
+                  valid_gt: str = "range") -> dict[str, float]:
   """The 7 depth metrics of one frame, MonoDepth2 protocol.
 
   Args:
@@ -99,6 +103,9 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
     pred_is_disparity: pred is a disparity (depth = 1 / disparity).
     resize: the map interpolated when the sizes differ: "disparity" (MonoDepth2's order: resize
       the disparity, then depth = 1 / disparity) or "depth".
+    valid_gt: the scored pixels, "range" (min_depth < gt < max_depth) or "positive" (gt > 0,
+      MonoDepth2's eigen_benchmark protocol); pred is clamped to [min_depth, max_depth] either
+      way.
     alignment: overrides `median_scaling` when given: "median" (MonoDepth2's per-image median
       scaling), "scale_shift" (per-image least squares of scale s and shift t in inverse depth,
       s / pred + t ~ 1 / gt on the valid pixels, then inverted with the inverse depth floored at
@@ -123,6 +130,8 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
     raise ValueError("pred contains NaN")
   if resize not in RESIZE_DOMAINS:
     raise ValueError(f"resize must be one of {', '.join(RESIZE_DOMAINS)}, got {resize!r}")
+  if valid_gt not in VALID_GT:
+    raise ValueError(f"valid_gt must be one of {', '.join(VALID_GT)}, got {valid_gt!r}")
   gt_h, gt_w = gt.shape
   pred = pred.astype(np.float32)
   if pred.shape != gt.shape:
@@ -137,12 +146,13 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
   gt = gt.astype(np.float64)
   pred = pred.astype(np.float64)
 
-  with np.errstate(invalid="ignore"):
-    valid = (gt > min_depth) & (gt < max_depth)  # (H, W); NaN gt is invalid
+  with np.errstate(invalid="ignore"):  # (H, W); NaN gt is invalid
+    valid = gt > 0 if valid_gt == "positive" else (gt > min_depth) & (gt < max_depth)
   if garg_crop:
     valid &= garg_crop_mask(gt_h, gt_w)
   if not valid.any():
-    raise NoValidPixels(f"no valid ground-truth pixel in ({min_depth}, {max_depth})"
+    raise NoValidPixels("no valid ground-truth pixel " + ("(> 0)" if valid_gt == "positive"
+                                                          else f"in ({min_depth}, {max_depth})")
                         + (" inside the Garg crop" if garg_crop else ""))
   gt_v, pred_v = gt[valid], pred[valid]  # (P,)
   if alignment is None:

@@ -47,6 +47,10 @@ class EvalConfig:
   resize: str = option("disparity", "the map resized onto the ground truth's size: disparity "
                                     "(MonoDepth2's evaluate_depth.py: resize 1 / depth, then "
                                     "invert) | depth")
+  valid_gt: str = option("range", "ground-truth pixels scored: range (min_depth < gt < "
+                                  "max_depth) | positive (gt > 0; a KITTI split under "
+                                  "splits/eigen_benchmark/ turns it on unless given, as "
+                                  "MonoDepth2's evaluate_depth.py)")
 
   def __post_init__(self):
     check(isinstance(self.min_depth, (int, float)) and isinstance(self.max_depth, (int, float))
@@ -58,6 +62,8 @@ class EvalConfig:
           f"{self.alignment!r}")
     check(self.resize in metrics_lib.RESIZE_DOMAINS,
           f"resize must be {' or '.join(metrics_lib.RESIZE_DOMAINS)}, got {self.resize!r}")
+    check(self.valid_gt in metrics_lib.VALID_GT,
+          f"valid_gt must be {' or '.join(metrics_lib.VALID_GT)}, got {self.valid_gt!r}")
 
 
 @dataclasses.dataclass
@@ -149,7 +155,8 @@ def frame_metrics(depth: np.ndarray, gt: np.ndarray, eval_cfg: EvalConfig, align
   `metrics.NoValidPixels` when the ground truth has no valid pixel."""
   return metrics_lib.depth_metrics(depth, gt, min_depth=eval_cfg.min_depth,
                                    max_depth=eval_cfg.max_depth, alignment=alignment,
-                                   garg_crop=eval_cfg.garg_crop, resize=eval_cfg.resize)
+                                   garg_crop=eval_cfg.garg_crop, resize=eval_cfg.resize,
+                                   valid_gt=eval_cfg.valid_gt)
 
 
 def check_aspect(frame: Frame, tolerance: float = 0.01) -> None:

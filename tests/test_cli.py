@@ -134,3 +134,6 @@ def test_kitti_eigen_split_is_scored_inside_the_garg_crop_unless_a_flag_says_oth
   args = build_parser().parse_args(base)
   cfg, note = dataset_evaluation(config_from_args(EvalConfig, args, "eval"), {}, args)
   assert cfg.garg_crop is False and note is None
+  cfg, note = dataset_evaluation(config_from_args(EvalConfig, args, "eval"),  # eigen_benchmark
+                                 {"valid_gt": "positive"}, args)
+  assert cfg.valid_gt == "positive" and "--eval.valid-gt positive (give the flag" in note

@@ -99,6 +99,19 @@ def test_disparity_input_matches_depth_input():
     np.testing.assert_allclose(a[k], b[k], rtol=1e-6, err_msg=k)
 
 
+def test_positive_ground_truth_scores_beyond_the_cap():
+  """MonoDepth2's eigen_benchmark protocol (mask = gt > 0; pred still clamped to [1e-3, 80]):
+  a pixel with gt 90 m counts, hand value |90 - 80| / 90 averaged with an exact pixel."""
+  gt = np.array([[10.0, 90.0]])
+  pred = np.array([[10.0, 95.0]])
+  capped = metrics.depth_metrics(pred, gt, median_scaling=False)
+  positive = metrics.depth_metrics(pred, gt, median_scaling=False, valid_gt="positive")
+  assert capped["abs_rel"] == 0.0
+  assert positive["abs_rel"] == pytest.approx((10.0 / 90.0) / 2)
+  with pytest.raises(ValueError, match="valid_gt must be"):
+    metrics.depth_metrics(pred, gt, valid_gt="all")
+
+
 def test_garg_crop():
   # Hand values for KITTI's 375x1242: rows int(0.40810811*375) = 153 .. int(0.99189189*375) =
   # 371, cols int(0.03594771*1242) = 44 .. int(0.96405229*1242) = 1197.

@@ -329,7 +329,7 @@ def test_kitti_improved_gt(tmp_path):
   bench.parent.mkdir(parents=True)
   bench.write_text(split.read_text())
   assert kitti.open_kitti(tmp_path / "data", bench, improved_gt=tmp_path / "improved"
-                          ).evaluation == {}
+                          ).evaluation == {"valid_gt": "positive"}  # its gt beyond 80 m counts
   frames = kitti.open_kitti(tmp_path / "data", split, improved_gt=tmp_path / "improved")
   assert frames.notes == ()  # the improved ground truth has both cameras
   for frame, depth in zip(frames, written):

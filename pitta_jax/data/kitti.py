@@ -23,8 +23,9 @@ Ground truth, one of:
 `Frame.depth` is the ground-truth map at its own size (375x1242 or so); the metrics module
 scores it (1e-3 < gt < 80). A split file in a folder named `eigen` (MonoDepth2's
 `splits/eigen/test_files.txt`) is evaluated inside the Garg crop, as MonoDepth2's
-`evaluate_depth.py --eval_split eigen` does (`FrameSequence.evaluation`); other splits, e.g.
-`eigen_benchmark` with the improved ground truth, without it. Frame names are
+`evaluate_depth.py --eval_split eigen` does (`FrameSequence.evaluation`); one under
+`eigen_benchmark/` (the improved ground truth) on every pixel with ground truth > 0, without
+the crop, as `--eval_split eigen_benchmark`; other splits on 1e-3 < gt < 80 without the crop. Frame names are
 `<folder>/image_0{2,3}/{frame:010d}`; panoptic maps (optional) are looked up under the image's
 relative path without suffix, `<folder>/image_0{2,3}/data/{frame:010d}`, in `panoptic_dir`.
 Frames carry K from `<date>/calib_cam_to_cam.txt` when it exists; a split is temporal when its
@@ -273,11 +274,12 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
       evaluation=split_evaluation(split_file))
 
 
-def split_evaluation(split_file: Path) -> dict[str, bool]:
-  """The evaluation protocol of a MonoDepth2 split (`run.EvalConfig` values): the Garg crop for
-  the `eigen` split (`splits/eigen/...`), as MonoDepth2's `evaluate_depth.py` applies it for
-  `--eval_split eigen` only."""
-  return {"garg_crop": True} if split_file.resolve().parent.name == "eigen" else {}
+def split_evaluation(split_file: Path) -> dict[str, object]:
+  """The evaluation protocol of a MonoDepth2 split (`run.EvalConfig` values), as MonoDepth2's
+  `evaluate_depth.py` applies it: the Garg crop for `--eval_split eigen` (`splits/eigen/...`),
+  every ground-truth pixel > 0 (no 80 m cap) for `eigen_benchmark`, neither for other splits."""
+  return {"eigen": {"garg_crop": True},
+          "eigen_benchmark": {"valid_gt": "positive"}}.get(split_file.resolve().parent.name, {})
 
 
 def split_is_temporal(entries: list[tuple[str, int, int]]) -> bool:
