@@ -254,16 +254,13 @@ def adapt_config(args):
   (`Method.setting`, e.g. CoTTA and Ada-Depth adapt every parameter) where no flag says
   otherwise, with a note saying so; what it requires (`Method.requires`) stays the user's to
   give (ValueError naming the flag, before any work)."""
-  import dataclasses
   from pitta_jax.adapt import AdaptConfig
-  from pitta_jax.config_cli import config_from_args, given_fields
+  from pitta_jax.config_cli import apply_unless_given, config_from_args
   cfg = config_from_args(AdaptConfig, args, "adapt")
   method = _method_from_args(args, cfg)
-  given = given_fields(AdaptConfig, args, "adapt")
-  own = {k: v for k, v in method.setting if k not in given and getattr(cfg, k) != v}
+  cfg, own = apply_unless_given(cfg, method.setting, args, "adapt")
   notes = []
   if own:
-    cfg = dataclasses.replace(cfg, **own)
     notes.append(f"--method {method.name} runs in its own setting: "
                  + ", ".join(f"--{k.replace('_', '-')} {v}" for k, v in own.items())
                  + " (give the flag to change it)")
@@ -275,18 +272,14 @@ def dataset_evaluation(eval_cfg, protocol, args):
   """(EvalConfig, note or None): the dataset's own evaluation protocol (`FrameSequence.
   evaluation`, e.g. the Garg crop of KITTI's Eigen split) where no --eval flag says otherwise,
   with a note naming the flags it set."""
-  import dataclasses
-  from pitta_jax.config_cli import given_fields
-  from pitta_jax.run import EvalConfig
-  given = given_fields(EvalConfig, args, "eval")
-  own = {k: v for k, v in protocol.items() if k not in given and getattr(eval_cfg, k) != v}
+  from pitta_jax.config_cli import apply_unless_given
+  eval_cfg, own = apply_unless_given(eval_cfg, protocol, args, "eval")
   if not own:
     return eval_cfg, None
   flags = ", ".join(f"--eval.{k.replace('_', '-')} {str(v).lower() if isinstance(v, bool) else v}"
                     for k, v in own.items())
-  return (dataclasses.replace(eval_cfg, **own),
-          f"dataset {args.dataset} is evaluated with its published protocol: {flags} (give the "
-          f"flag to change it)")
+  return eval_cfg, (f"dataset {args.dataset} is evaluated with its published protocol: {flags} "
+                    f"(give the flag to change it)")
 
 
 def _run_adapt(args) -> int:

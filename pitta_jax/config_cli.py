@@ -108,6 +108,15 @@ def given_fields(cls: type, args: argparse.Namespace, namespace: str) -> set[str
           is not None}
 
 
+def apply_unless_given(cfg: T, values: Any, args: argparse.Namespace, namespace: str
+                       ) -> tuple[T, dict[str, Any]]:
+  """`cfg` (a config dataclass built from `namespace`'s flags) with `values` ((field, value)
+  pairs or a mapping) applied where no flag gave the field, and the values that changed it."""
+  given = given_fields(type(cfg), args, namespace)
+  own = {k: v for k, v in dict(values).items() if k not in given and getattr(cfg, k) != v}
+  return (dataclasses.replace(cfg, **own) if own else cfg), own
+
+
 def config_from_args(cls: type[T], args: argparse.Namespace, namespace: str,
                      **fixed: Any) -> T:
   """Builds `cls` from its defaults, the flags given in `namespace`, then `fixed` values."""
