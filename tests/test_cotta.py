@@ -200,3 +200,44 @@ def test_reset_copies_the_teacher_from_the_source_as_upstream(case):
   for k in source:
     np.testing.assert_allclose(got[k], EMA * source[k] + (1 - EMA) * student[k], rtol=1e-12,
                                atol=1e-15, err_msg=k)
+
+
+def test_nonfinite_step_keeps_the_student_but_not_the_teacher_or_the_restore(case):
+  """The non-finite guard (engine.optax_update's semantics, here on the raveled vector): a
+  frame with a NaN pixel makes the loss NaN, so the student and Adam's state keep their values
+  and n_skipped counts the frame; the teacher's EMA and the stochastic restore still run, as
+  upstream's order has them after the optimiser step. Checked against the arithmetic of both
+  (teacher = EMA t0 + (1 - EMA) s0; student = source where the step's mask restores, else s0)
+  with the mask from `restore_masks` and the step's key, a student away from the source."""
+  _, _, variables, frames, threshold, teacher = case
+  mcfg = CottaConfig(n_augment=N_AUG, threshold=threshold, ema_decay=EMA, restore_p=RESTORE_P,
+                     lr=LR, ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
+  with jax.enable_x64(True):
+    v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
+    model, method = network("monodepth2", {"num_layers": 18}), build("cotta", mcfg)
+    tx = make_optimizer(CFG, method)
+    step = jax.jit(make_step(model, method, CFG, tx), compiler_options=QUICK_COMPILE)
+    init, consts = init_state(v64, method, CFG, tx, model)
+    perturbed = {"encoder": unflatten_dict({k: jnp.asarray(v) for k, v in teacher.items()},
+                                           sep="/")}
+    init = init.replace(trainable=perturbed)  # student != source; teacher = source
+    image = np.array(frames.image[0], np.float64)
+    image[3, 5, 1] = np.nan
+    frame = StepInput(*(jnp.asarray(v[0], jnp.float64 if v.dtype == np.float32 else None)
+                        for v in frames))._replace(image=jnp.asarray(image))
+    masks = restore_masks(jax.random.fold_in(jax.random.fold_in(init.rng, init.step), 0),
+                          init.trainable, RESTORE_P)
+    state, out = step(init, frame, consts)
+  flat = lambda t: flatten_dict(jax.tree_util.tree_map(np.asarray, t)["encoder"], sep="/")
+  assert bool(out.skipped) and int(state.n_skipped) == 1 and float(out.update_norm) == 0.0
+  source, s0, t0 = flat(init.source), flat(perturbed), flat(init.method_state["teacher"])
+  student, got_teacher, mask = flat(state.trainable), flat(state.method_state["teacher"]), flat(
+      masks)
+  assert 0 < sum(int(m.sum()) for m in mask.values()) < sum(m.size for m in mask.values())
+  for k in source:
+    np.testing.assert_array_equal(student[k], np.where(mask[k], source[k], s0[k]), err_msg=k)
+    np.testing.assert_allclose(got_teacher[k], EMA * t0[k] + (1 - EMA) * s0[k], rtol=1e-12,
+                               atol=1e-15, err_msg=k)
+  for a, b in zip(jax.tree_util.tree_leaves(state.opt_state),
+                  jax.tree_util.tree_leaves(init.opt_state)):
+    np.testing.assert_array_equal(a, b)

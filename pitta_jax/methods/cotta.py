@@ -242,7 +242,12 @@ def build(config: CottaConfig = CottaConfig()) -> Method:
     return {"teacher": teacher, "ld_weight": jnp.asarray(config.ld_weight, dtype)}
 
   def update(state, grads, loss_value, aux, rng, tx, cfg):
-    """Adam step (with the non-finite guard), teacher EMA, stochastic restore (upstream order)."""
+    """Adam step (with the non-finite guard), teacher EMA, stochastic restore (upstream order).
+
+    Leaf by leaf. The same update on the raveled vector (`pitta_jax.flat_optim`, as CoMoDa's)
+    compiled in fewer kernels (640x192, 2 vCPU Intel, 2026-12-05: 2004 -> 1453, XLA's compile
+    26.0-26.1 -> 22.2-22.8 s) but its concatenations and splits of the student, teacher, source
+    and gradient made the step 4% slower (4051 vs 3896 ms/frame, medians of 4 interleaved)."""
     del aux
     state, skipped, unorm = optax_update(state, grads, loss_value, tx, cfg)
     a = config.ema_decay
