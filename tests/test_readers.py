@@ -336,6 +336,86 @@ def test_kitti_improved_gt(tmp_path):
     np.testing.assert_array_equal(frame.depth, depth.astype(np.float32) / 256)
 
 
+# KITTI ground truth from the Velodyne scans (MonoDepth2's kitti_utils.generate_depth_map, as
+# export_gt_depth.py calls it). Hand-made calibration: Velodyne (x forward, y left, z up) ->
+# camera (-y, -z, x + 0.5); P_rect_02 = [[2, 0, 4, 0], [0, 2, 2, 0], [0, 0, 1, 0]], so a point
+# lands at u = 2 (-y) / (x + 0.5) + 4, v = 2 (-z) / (x + 0.5) + 2, pixel (round(v) - 1,
+# round(u) - 1) of a 6 x 8 map (S_rect_02 = 8 6, the fixture images' size); P_rect_03 has
+# cx = 3 and S_rect_03 another size.
+VELO_CALIB = ("calib_time: 15-Mar-2012 11:37:16\n"
+              "R: 0 -1 0 0 0 -1 1 0 0\nT: 0 0 0.5\n"
+              "delta_f: 0 0\ndelta_c: 0 0\n")
+VELO_CAM_CALIB = ("calib_time: 09-Jan-2012 13:57:47\n"
+                  "R_rect_00: 1 0 0 0 1 0 0 0 1\n"
+                  "S_rect_02: 8 6\nP_rect_02: 2 0 4 0 0 2 2 0 0 0 1 0\n"
+                  "S_rect_03: 16 12\nP_rect_03: 2 0 3 0 0 2 2 0 0 0 1 0\n")
+VELO_POINTS = [(3.5, 0.0, 0.0),     # u 4, v 2: pixel (1, 3) at 3.5 m ...
+               (1.5, 0.0, 0.0),     # ... and at 1.5 m: the nearest is kept
+               (-1.0, 0.0, 0.0),    # behind the sensor (x < 0): dropped (else (1, 3) at -1 -> 0)
+               (1.5, -10.0, 0.0),   # u 14: outside the image
+               (5.5, -12.0, 3.0),   # u 8, v 1: pixel (0, 7) at 5.5 m ...
+               (2.5, 4.5, 0.0),     # ... u 1, v 2: pixel (1, 0) at 2.5 m, the same linear index
+               (1.5, 1.5, -2.0)]    # u 2.5 (rounds to even: 2), v 4: pixel (3, 1)
+
+
+def _write_velodyne(path: Path, points=VELO_POINTS) -> None:
+  path.parent.mkdir(parents=True, exist_ok=True)
+  scan = np.array([(x, y, z, 0.25) for x, y, z in points], "<f4")  # reflectance 0.25, not 1
+  scan.tofile(path)
+
+
+def _velodyne_calibration(date: Path) -> None:
+  date.mkdir(parents=True, exist_ok=True)
+  (date / "calib_velo_to_cam.txt").write_text(VELO_CALIB)
+  (date / "calib_cam_to_cam.txt").write_text(VELO_CAM_CALIB)
+
+
+def test_velodyne_depth_hand_computed(tmp_path):
+  """The map of `VELO_POINTS` worked out by hand from the projection above, with upstream's
+  conventions: depth = the Velodyne x (vel_depth), round(.) - 1, nearest point per pixel, and
+  the index quirk: pixels (0, 7) and (1, 0) share row * (W - 1) + col - 1 = 6, so the smaller
+  depth of the two (2.5) is written at the first point's pixel (0, 7) too."""
+  from pitta_jax.data.velodyne import velodyne_depth
+  _velodyne_calibration(tmp_path / "date")
+  _write_velodyne(tmp_path / "scan.bin")
+  want = np.zeros((6, 8), np.float32)
+  want[1, 3], want[0, 7], want[1, 0], want[3, 1] = 1.5, 2.5, 2.5, 1.5
+  got = velodyne_depth(tmp_path / "date", tmp_path / "scan.bin")
+  assert got.dtype == np.float32
+  np.testing.assert_array_equal(got, want)
+  # camera 3 (cx 3: one column left), the camera's z (x + 0.5) as depth; the size stays S_rect_02
+  want3 = np.zeros((6, 8), np.float32)
+  want3[1, 2], want3[0, 6], want3[3, 1] = 2.0, 6.0, 2.0   # (1, 0) -> column -1: outside
+  got3 = velodyne_depth(tmp_path / "date", tmp_path / "scan.bin", camera=3, vel_depth=False)
+  np.testing.assert_array_equal(got3, want3)
+
+
+def test_kitti_ground_truth_from_velodyne(tmp_path):
+  """No gt_depths.npz: each line's map is projected from its drive's scan, camera 2's for the
+  right-camera line too (export_gt_depth.py); a missing scan is named before any frame loads."""
+  split, _, _ = make_kitti(tmp_path)
+  for k, (folder, frame, _) in enumerate(KITTI_LINES):
+    _velodyne_calibration(tmp_path / "data" / folder.split("/")[0])
+    _write_velodyne(tmp_path / "data" / folder / "velodyne_points" / "data" / f"{frame:010d}.bin",
+                    VELO_POINTS[:1 + k])   # (1, 3) at 3.5 m; from the second line on also 1.5 m
+  frames = kitti.open_kitti(tmp_path / "data", split)
+  assert frames.notes[-1] == ("test_files.txt: ground truth projected from the Velodyne scans "
+                              "(velodyne_points/), as MonoDepth2's export_gt_depth.py writes "
+                              "gt_depths.npz")
+  assert "the Velodyne ground truth is the left camera's" in frames.notes[0]
+  for k, want in enumerate([3.5, 1.5, 1.5]):
+    expected = np.zeros((6, 8), np.float32)
+    expected[1, 3] = want
+    np.testing.assert_array_equal(frames[k].depth, expected)
+  (tmp_path / "data" / KITTI_LINES[2][0] / "velodyne_points" / "data" / "0000000003.bin").unlink()
+  with pytest.raises(DataError, match=r"velodyne_points/data/0000000003\.bin: Velodyne scan not "
+                                      r"found"):
+    kitti.open_kitti(tmp_path / "data", split)
+  (tmp_path / "data" / "2011_09_26" / "calib_velo_to_cam.txt").write_text("R: 1 0 0\n")
+  with pytest.raises(DataError, match=r"calib_velo_to_cam\.txt: no valid R \(9 numbers\)"):
+    kitti.open_kitti(tmp_path / "data", split)
+
+
 # ---------------------------------------------------------------------------------------------
 # Waymo
 

@@ -6,7 +6,7 @@ Split file (MonoDepth2 `splits/<split>/test_files.txt`): one frame per line,
 `<data>/<folder>/image_0{2,3}/data/{frame:010d}.{jpg,png}` (MonoDepth2 converts the PNGs to JPEG;
 both are accepted, `ext` forces one).
 
-Ground truth, one of:
+Ground truth: `improved_gt` if given, else `gt_depths`, else the Velodyne scans:
 - `gt_depths`: MonoDepth2's `gt_depths.npz` (written by `export_gt_depth.py`), key `data`, one
   float32 (H, W) map per split line, in the split's order. The maps differ in size, so the
   array was saved as an *object* array, i.e. a pickle. Unpickling runs code named in the file,
@@ -19,6 +19,10 @@ Ground truth, one of:
   `<improved_gt>/[train/|val/]<drive>/proj_depth/groundtruth/image_0{2,3}/{frame:010d}.png`,
   uint16 / 256. They cover 652 of the 697 Eigen test frames: use MonoDepth2's
   `eigen_benchmark` split with them.
+- the drives' Velodyne scans, `<data>/<folder>/velodyne_points/data/{frame:010d}.bin`, when
+  neither is given and there is no `gt_depths.npz` beside the split file: each map is computed
+  as `export_gt_depth.py` computes it (`pitta_jax.data.velodyne`), with the date folder's
+  `calib_velo_to_cam.txt` and `calib_cam_to_cam.txt`.
 
 `Frame.depth` is the ground-truth map at its own size (375x1242 or so); the metrics module
 scores it (1e-3 < gt < 80). A split file in a folder named `eigen` (MonoDepth2's
@@ -51,6 +55,7 @@ from pitta_jax.data.image_io import (PathLike, list_images, read_depth_png, requ
                                      require_file)
 from pitta_jax.data.panoptic_io import panoptic_source
 from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
+from pitta_jax.data.velodyne import velodyne_depth, velodyne_path, velodyne_projection
 
 SIDE_TO_CAMERA = {"l": 2, "r": 3, "2": 2, "3": 3}
 CALIB_FILE = "calib_cam_to_cam.txt"  # per date folder, from KITTI raw's calibration download
@@ -234,7 +239,7 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
   require_frames(entries, split_file, "lines '<folder> <frame> <side>'")
   if gt_depths is not None and improved_gt is not None:
     raise DataError(split_file, "give either gt_depths or improved_gt, not both")
-  gt = None
+  gt = velodyne = None
   if depth and improved_gt is None:
     gt_path = Path(gt_depths) if gt_depths is not None else split_file.parent / "gt_depths.npz"
     if gt_depths is not None or gt_path.is_file():
@@ -243,9 +248,12 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
         raise DataError(gt_path, f"holds {count} depth maps but {split_file.name} lists "
                                  f"{len(entries)} frames")
       gt = _GtDepths(gt_path)
+    elif velodyne_path(data, entries[0][0], entries[0][1]).is_file():
+      velodyne = _velodyne_loaders(data, entries)
     else:
       raise DataError(gt_path, "ground truth not found; export it with MonoDepth2's "
-                               "export_gt_depth.py, pass gt_depths/improved_gt, or depth=False")
+                               "export_gt_depth.py, pass gt_depths/improved_gt, keep the drives' "
+                               "velodyne_points/ in the data directory, or depth=False")
   improved_root = None if improved_gt is None else require_dir(improved_gt, "improved GT root")
   panoptic = panoptic_source(panoptic_dir, panoptic_json)
   calibs = _Calibrations()
@@ -258,20 +266,47 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
           read_depth_png, _find_improved_gt(improved_root, folder, frame, camera))
     elif gt is not None:
       depth_loader = functools.partial(gt, index)
+    elif velodyne is not None:
+      depth_loader = velodyne[index]
     key = f"{folder}/image_0{camera}/data/{frame:010d}"
     files.append(FrameFiles(name=f"{folder}/image_0{camera}/{frame:010d}", image=image,
                             depth=depth_loader,
                             panoptic=None if panoptic is None else panoptic.ref(key),
                             **calibs.frame_fields(data, folder, camera)))
   right = sum(camera == 3 for _, _, camera in entries)
+  source = "gt_depths.npz holds" if gt is not None else "the Velodyne ground truth is"
   notes = [f"{split_file.name}: {right} line(s) take the right camera's image (image_03), but "
-           f"gt_depths.npz holds the left camera's ground truth for every line (MonoDepth2's "
-           f"export_gt_depth.py); use improved_gt for both cameras"] if right and gt else []
+           f"{source} the left camera's ground truth for every line (MonoDepth2's "
+           f"export_gt_depth.py); use improved_gt for both cameras"
+           ] if right and (gt is not None or velodyne is not None) else []
+  if velodyne is not None:
+    notes.append(f"{split_file.name}: ground truth projected from the Velodyne scans "
+                 f"(velodyne_points/), as MonoDepth2's export_gt_depth.py writes gt_depths.npz")
   return FrameSequence(files, temporal=split_is_temporal(entries), notes=notes, remedies={
       "intrinsics": INTRINSICS_REMEDY,
       "previous_frame": "a split file whose lines are consecutive frames of each drive (the "
                         "Eigen test split is not)"},
       evaluation=split_evaluation(split_file))
+
+
+def _velodyne_loaders(data: Path, entries: list[tuple[str, int, int]]) -> list:
+  """One loader per split line of its ground truth from the Velodyne scan
+  (`velodyne.velodyne_depth` with camera 2 and the forward distance, what `export_gt_depth.py`
+  writes for every line); DataError naming the first missing scan or bad calibration file
+  before any frame is read."""
+  dates = {}
+  loaders = []
+  for folder, frame, _ in entries:
+    date = data / folder.split("/")[0]
+    if date not in dates:
+      velodyne_projection(date, 2)  # both calibration files present and well-formed
+      dates[date] = True
+    scan = velodyne_path(data, folder, frame)
+    if not scan.is_file():
+      raise DataError(scan, "Velodyne scan not found (the split's other frames have theirs; "
+                            "pass gt_depths or depth=False)")
+    loaders.append(functools.partial(velodyne_depth, date, scan, 2, True))
+  return loaders
 
 
 def split_evaluation(split_file: Path) -> dict[str, object]:
