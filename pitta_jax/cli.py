@@ -327,7 +327,7 @@ def _run_adapt(args) -> int:
       read_source_stats(args.source_stats)  # the file's format; its layers once weights load
     # the data against the method's needs, from file lists and model.json only
     reader = check_run_needs(method, args.dataset, args.root, args.option, args.segmentation,
-                             args.replay_root, weights_config, bool(source_flags))
+                             args.replay_root, weights_config, bool(source_flags), notes)
     notes += list(reader.notes if reader is not None else ())
     if reader is not None and all(f.depth is None for f in reader.files):
       remedy = " (--option depth_dir=DIR)" if args.dataset == "folder" else ""

@@ -363,12 +363,14 @@ def no_pose_error(method) -> DataError:
 def check_run_needs(method, dataset: str, root: str | None, option_items: Sequence[str],
                     segmentation: str, replay_root: str | None = None,
                     weights_config: Mapping[str, Any] | None = None,
-                    source_given: bool = False) -> FrameSequence | None:
+                    source_given: bool = False, notes: list[str] | None = None
+                    ) -> FrameSequence | None:
   """The CLI's before-work check of a method's data needs: opens the reader (files listed,
   nothing read) or, on the synthetic benchmark, reads the options (every synthetic frame has K
   and the order is temporal), and the replay root; with `weights_config` (a model.json) also
   the pose network; a method with `prepare` on a real dataset needs a source flag
-  (`source_given`). Returns the reader for `open_frames`."""
+  (`source_given`). Returns the reader for `open_frames`; the replay root's notes (e.g. a drive
+  split at missing frames) are appended to `notes` when given."""
   if "pose" in method.needs and weights_config is not None and not weights_config.get("has_pose"):
     raise no_pose_error(method)
   if method.prepare is not None and dataset != "synthetic" and not source_given:
@@ -392,4 +394,7 @@ def check_run_needs(method, dataset: str, root: str | None, option_items: Sequen
     from pitta_jax.data.kitti import open_raw_sequences
     for seq in open_raw_sequences(replay_root):
       check_needs(method, seq, f"--replay-root {replay_root}")
+      if notes is not None:
+        notes += [f"--replay-root: {n}" for n in seq.notes
+                  if f"--replay-root: {n}" not in notes]  # once per drive, not per run
   return reader

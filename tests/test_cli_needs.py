@@ -135,6 +135,15 @@ def test_met_needs_and_notes(cli, tmp_path, capsys):
                            str(tmp_path / "raw" / "2011_09_26"), source_given=True)
   assert reader.temporal and len(reader) == 3
   np.testing.assert_array_equal(reader[0].intrinsics, [[8, 0, 4], [0, 8, 3], [0, 0, 1]])
+  # a replay drive with missing frames is read in runs; its note reaches the run's notes once
+  drive = tmp_path / "raw" / "2011_09_26" / "2011_09_26_drive_0001_sync" / "image_02" / "data"
+  first = sorted(drive.iterdir())[0]
+  first.rename(drive / f"0000000007{first.suffix}")
+  notes = []
+  check_run_needs(needy, "folder", str(tmp_path / "seq"), ["temporal=true"], "gt",
+                  str(tmp_path / "raw" / "2011_09_26"), source_given=True, notes=notes)
+  assert len(notes) == 1 and notes[0].startswith(
+      "--replay-root: 2011_09_26/2011_09_26_drive_0001_sync: frame numbers jump after ")
   # DrivingStereo with full size only: the reader says so, the unused replay root is named; the
   # run then stops at the weights (only a model.json here), as any checked run would
   rc, err = cli("--dataset", "drivingstereo", "--root", "TMP/ds", "--option", "weather=foggy",

@@ -83,6 +83,23 @@ def test_open_raw_sequences(tmp_path):
   assert [len(s) for s in one] == [3]
 
 
+def test_open_raw_sequences_split_at_missing_frames(tmp_path):
+  """Frames 0-2, 5-6 and 9 of a drive: two sequences of consecutive frames (frames 2 and 5 are
+  no pair), the lone frame 9 left out, and a note naming where the numbers jump."""
+  drive = "2011_09_26/2011_09_26_drive_0001_sync"
+  for i in (0, 1, 2, 5, 6, 9):
+    _write_rgb(tmp_path / drive / "image_02" / "data" / f"{i:010d}.png", _rgb(i))
+  seqs = kitti.open_raw_sequences(tmp_path)
+  assert [s.names for s in seqs] == [
+      tuple(f"{drive}/image_02/{i:010d}" for i in (0, 1, 2)),
+      tuple(f"{drive}/image_02/{i:010d}" for i in (5, 6))]
+  assert all(s.temporal for s in seqs)
+  assert seqs[0].notes == seqs[1].notes == (
+      f"{drive}: frame numbers jump after 0000000002, 0000000006; read as 3 sequences of "
+      f"consecutive frames",)
+  np.testing.assert_array_equal(seqs[1][0].image, _rgb(5).astype(np.float32) / np.float32(255))
+
+
 @pytest.mark.parametrize("case, pattern", [
     ("missing", r"nowhere: KITTI raw root \(--replay-root\) not found"),
     ("no_pairs", r"raw: no KITTI raw drive with at least 2 frames \(looked for <date>/"),

@@ -347,14 +347,29 @@ def _drive_dirs(root: Path) -> list[Path]:
           if drive.is_dir()]
 
 
+def consecutive_runs(stems: list[str]) -> list[list[str]]:
+  """Sorted numeric stems cut where the number does not go up by exactly 1: runs of consecutive
+  frames (a drive with missing frames must not pair the frames around the gap)."""
+  runs: list[list[str]] = []
+  for stem in stems:
+    if runs and int(stem) == int(runs[-1][-1]) + 1:
+      runs[-1].append(stem)
+    else:
+      runs.append([stem])
+  return runs
+
+
 def open_raw_sequences(root: PathLike) -> list[FrameSequence]:
   """KITTI raw drives as downloaded: one temporal sequence per drive, no ground truth.
 
   Layout: `<root>/<date>/<date>_drive_<nnnn>_sync/image_02/data/<10 digits>.{png,jpg}` (the
   left colour camera, frames in index order) and `<root>/<date>/calib_cam_to_cam.txt` (K from
   P_rect_02, scaled to the image size by S_rect_02; no calibration file = no intrinsics).
-  `root` may also be one date folder. Drives with fewer than 2 frames are left out (they give
-  no frame pair). Frame names are `<date>/<drive>/image_02/<frame>`.
+  `root` may also be one date folder. A drive whose frame numbers have gaps is read as one
+  sequence per run of consecutive numbers (with a note): frames around a gap are not
+  neighbours (upstream's loaders find a frame's neighbours by number). Runs and drives with
+  fewer than 2 frames are left out (they give no frame pair). Frame names are
+  `<date>/<drive>/image_02/<frame>`.
 
   Returns:
     the drives' sequences, sorted by date and drive; DataError naming `root` when none has 2
@@ -369,14 +384,18 @@ def open_raw_sequences(root: PathLike) -> list[FrameSequence]:
       continue
     images = list_images(image_dir, (".jpg", ".png"))
     stems = sorted(s for s in images if len(s) == 10 and s.isdigit())
-    if len(stems) < 2:
-      continue
     folder = f"{drive.parent.name}/{drive.name}"
+    runs = consecutive_runs(stems)
+    notes = [f"{folder}: frame numbers jump after {', '.join(run[-1] for run in runs[:-1])}; "
+             f"read as {len(runs)} sequences of consecutive frames"] if len(runs) > 1 else []
     fields = calibs.frame_fields(drive.parent.parent, folder, 2)
-    files = [FrameFiles(name=f"{folder}/{RAW_IMAGE_DIR[0]}/{stem}", image=images[stem], **fields)
-             for stem in stems]
-    sequences.append(FrameSequence(files, temporal=True,
-                                   remedies={"intrinsics": INTRINSICS_REMEDY}))
+    for run in runs:
+      if len(run) < 2:
+        continue
+      files = [FrameFiles(name=f"{folder}/{RAW_IMAGE_DIR[0]}/{stem}", image=images[stem],
+                          **fields) for stem in run]
+      sequences.append(FrameSequence(files, temporal=True, notes=notes,
+                                     remedies={"intrinsics": INTRINSICS_REMEDY}))
   if not sequences:
     raise DataError(root, "no KITTI raw drive with at least 2 frames (looked for <date>/"
                           "<date>_drive_<nnnn>_sync/image_02/data/<10 digits>.png|jpg)")

@@ -1,7 +1,7 @@
 """The dataset registry: `open_dataset(name, root, **options)` -> lazily loaded frames.
 
   drivingstereo  `drivingstereo.open_drivingstereo`  weather subsets: left images + depth maps
-  kitti          `kitti.open_kitti`                  KITTI raw + MonoDepth2 split + gt_depths.npz
+  kitti          `kitti.open_kitti`                  KITTI raw + MonoDepth2 split + gt_depths.npz, improved GT or Velodyne scans
   waymo          `waymo.open_waymo`                  our FRONT-camera layout (see waymo.py)
   folder         `folder.open_folder`                images (+ depth, + panoptic) by stem
 
