@@ -277,6 +277,19 @@ def test_folder_temporal_and_calib(tmp_path):
   assert not frames[::2].temporal and frames[1:].temporal and (frames + frames[:1]).temporal
 
 
+def test_folder_temporal_orders_unpadded_numbers_as_numbers(tmp_path):
+  """frame_1, frame_2, frame_10, frame_11 (a video exported without zero padding): in capture
+  order with temporal=true, with a note; without it the plain sort stays (no order promised)."""
+  for k in (1, 2, 10, 11):
+    _write_rgb(tmp_path / f"frame_{k}.png", _rgb(k))
+  frames = folder.open_folder(tmp_path, temporal=True)
+  assert frames.names == ("frame_1", "frame_2", "frame_10", "frame_11")
+  np.testing.assert_array_equal(frames[1].image, _rgb(2).astype(np.float32) / np.float32(255))
+  assert frames.notes == ("temporal=true: the stems' numbers ordered as numbers (frame_1, "
+                          "frame_2, frame_10, ...), not as text",)
+  assert folder.open_folder(tmp_path).names == ("frame_1", "frame_10", "frame_11", "frame_2")
+
+
 def test_waymo_sequence_directory_as_root(tmp_path):
   expected = make_waymo(tmp_path, "segment-a", n=2)
   frames = waymo.open_waymo(tmp_path / "segment-a")

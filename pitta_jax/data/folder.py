@@ -12,7 +12,9 @@ are the stems.
 
 A folder says nothing about its order, so it is *not* temporal unless the user says
 `temporal=True` (the stems sort in capture order, e.g. `000000.png, 000001.png, ...` from a
-video): methods that use the previous frame refuse it otherwise. The camera matrix comes from
+video): methods that use the previous frame refuse it otherwise. With `temporal=True`, numbers
+in the stems are compared as numbers (`frame_2` before `frame_10`, which a plain sort puts
+after `frame_1`), with a note when that order differs from the plain one. The camera matrix comes from
 `calib` (a `calib.json` file; default `<root>/calib.json` when it exists), scaled to each image
 when its size differs from the file's width x height.
 """
@@ -20,6 +22,7 @@ when its size differs from the file's width x height.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 from pitta_jax.data.calib import read_calib_json
@@ -55,7 +58,7 @@ def open_folder(root: PathLike, depth_dir: PathLike | None = None,
     calib: a calib.json giving every image's K; None = `<root>/calib.json` if present.
 
   Returns:
-    the frames sorted by stem, loaded on access.
+    the frames sorted by stem (numbers as numbers when temporal), loaded on access.
   """
   if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
     raise DataError(None, f"--option depth_scale={depth_scale!r}: must be a positive number "
@@ -66,8 +69,14 @@ def open_folder(root: PathLike, depth_dir: PathLike | None = None,
   camera = read_calib_json(calib_path) if calib is not None or calib_path.is_file() else None
   depth_root = None if depth_dir is None else require_dir(depth_dir, "depth directory")
   panoptic = panoptic_source(panoptic_dir, panoptic_json)
+  order = sorted(images)
+  notes = list(panoptic.notes) if panoptic else []
+  if temporal and sorted(order, key=natural_key) != order:
+    order = sorted(order, key=natural_key)
+    notes.append(f"temporal=true: the stems' numbers ordered as numbers ({order[0]}, "
+                 f"{', '.join(order[1:3])}{', ...' if len(order) > 3 else ''}), not as text")
   files = []
-  for stem in sorted(images):
+  for stem in order:
     depth = None if depth_root is None else depth_loader(
         depth_root, stem, png_scale=depth_scale,
         missing=f"depth map for image {images[stem].name} not found (nor .npy)")
@@ -76,5 +85,11 @@ def open_folder(root: PathLike, depth_dir: PathLike | None = None,
     files.append(FrameFiles(name=stem, image=images[stem], depth=depth,
                             panoptic=None if panoptic is None else panoptic.ref(stem),
                             **intrinsics))
-  return FrameSequence(files, temporal=temporal, remedies=REMEDIES,
-                       notes=panoptic.notes if panoptic else ())
+  return FrameSequence(files, temporal=temporal, remedies=REMEDIES, notes=notes)
+
+
+def natural_key(stem: str) -> tuple:
+  """Sort key comparing the digit runs of `stem` as numbers (`frame_2` < `frame_10`), the
+  other characters as text; ties (`frame_02`, `frame_2`) fall back to the plain text."""
+  parts = re.split(r"(\d+)", stem)
+  return tuple((0, int(p), "") if p.isdigit() else (1, 0, p) for p in parts), stem
