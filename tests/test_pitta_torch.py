@@ -155,6 +155,35 @@ def test_depth_gradient_matches_torch_autograd_at_ties(depth_case):
 # ---------------------------------------------------------------------- converted MonoDepth2
 
 
+def test_edge_loss_gradient_matches_torch_at_zero_edges_and_equal_edges():
+  """dL_e/dD (eq. 9) where both of its |.| are at 0: a flat, saturated depth block and ramps
+  (depth Laplacian exactly 0) and rows where the image equals the depth (dI = dD exactly).
+  PyTorch's `Tensor.abs()` has derivative 0 there; a |.| with another convention at 0 (e.g.
+  +1, as `jnp.abs`'s) changes most components. float64 on both sides."""
+  h, w = 12, 16
+  depth = np.full((h, w), 20.0)
+  depth[:, :4] = 100.0                                      # saturated far region: flat
+  depth[6:, 8:] += np.arange(w - 8)[None, :] * 0.5          # a ramp: Laplacian 0 inside it
+  image = np.full((h, w, 3), 0.5)
+  image[:, 12:] = 0.75                                      # flat regions and one edge
+  image[:3] = depth[:3, :, None]                            # rows 0-2: dI = dD exactly
+  d = torch.from_numpy(depth).requires_grad_(True)
+  l_e = (t_laplacian_edges(torch.from_numpy(image).mean(-1)) - t_laplacian_edges(d)).abs().sum()
+  l_e.backward()
+  with torch.no_grad():
+    d_depth = t_laplacian_edges(d)
+    d_image = t_laplacian_edges(torch.from_numpy(image).mean(-1))
+  zero_lap, equal = float((d_depth == 0).double().mean()), float((d_depth == d_image).double().mean())
+  assert zero_lap > 0.5 and equal > 0.2, (zero_lap, equal)
+  with jax.enable_x64(True):
+    value, grad = jax.value_and_grad(
+        lambda x: losses.edge_guided_loss(jnp.asarray(image), x))(jnp.asarray(depth))
+  print(f"Laplacian 0 at {zero_lap:.0%} of pixels, dI = dD at {equal:.0%}; L_e jax "
+        f"{float(value):.6f} torch {float(l_e.detach()):.6f}")
+  np.testing.assert_allclose(float(value), float(l_e.detach()), rtol=1e-12)
+  np.testing.assert_allclose(np.asarray(grad), d.grad.numpy(), rtol=0, atol=1e-12)
+
+
 @pytest.fixture(scope="module")
 def network_case(tmp_path_factory):
   h, w = 192, 640
