@@ -200,7 +200,9 @@ def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: in
     depth: (H, W) float depth D.
     panoptic: (H, W) int segment id map (0 = void).
     dynamic_ids: (N_max,) int segment ids of the dynamic instances, padded with 0 or -1
-      (entries <= 0 unused, anywhere); instance j is the j-th used entry (g_j = j).
+      (entries <= 0 unused, anywhere); instance j is the j-th used entry (g_j = j). The used
+      ids must be distinct, as a panoptic map's segment ids are (`fast` counts a repeated
+      id's pixels once, `literal` once per entry).
     s: odd median window (static), default `WINDOW`.
     mode: "binary" (g_j = 1, default), "segment_id" (g_j = the segment id i, eq. 3 as
       written) or "instance_id" (g_j = j); static.

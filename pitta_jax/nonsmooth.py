@@ -12,7 +12,9 @@ flows:
   clamp(x, lo, hi) at a bound   d/dx = 1         (torch.clamp passes lo <= x <= hi;
                                                   jnp.clip gives 1/2 there)
   relu(x) at 0                  d/dx = 0         (jax.nn.relu already agrees)
-  maximum(a, b) / max at ties   split evenly     (jnp.maximum, jnp.max already agree)
+  maximum(a, b) / max at ties   split evenly     (jnp.maximum, jnp.max agree with torch.maximum,
+                                                  amax and max(); torch.max(x, dim) sends it
+                                                  all to the returned index)
   elu(x) at 0                   d/dx = 1         (jax.nn.elu already agrees)
   the stem's 3x3/2 max pool     first maximum    (`models.layers.max_pool_3x3_s2`)
 

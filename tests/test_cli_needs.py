@@ -170,3 +170,20 @@ def test_dynamic_classes_must_be_coco_ids(cli):
   rc, err = cli("--dataset", "synthetic", "--dynamic-classes", "9999,-5")
   assert rc == 2 and err == ("error: dynamic_classes: not COCO panoptic category ids: 9999, -5 "
                              "(ids 1-200, 133 of them; names such as car work too)\n")
+
+
+def test_depth_refining_config_takes_coco_names_and_refuses_non_integers():
+  """The API as the CLI: COCO names become their ids (car = 3, person = 1); a float class id
+  (3.7 would have become car in the instance table), a float window or table size are refused
+  at construction, not when the step is traced."""
+  from pitta_jax.methods.depth_refining import DepthRefiningConfig
+  assert DepthRefiningConfig(dynamic_classes=("car", 1, np.int64(2))).dynamic_classes == (3, 1, 2)
+  for kwargs, message in [
+      ({"dynamic_classes": (3.7,)}, r"dynamic_classes: 3\.7 is neither a COCO id \(int\) nor a "
+                                    r"COCO name"),
+      ({"dynamic_classes": ("carr",)}, r"no COCO panoptic category named 'carr' \(did you mean "
+                                       r"car, carrot\?\)"),
+      ({"window": 3.0}, r"window must be an odd int >= 1, got 3\.0"),
+      ({"max_instances": 2.0}, r"max_instances must be an int >= 1, got 2\.0")]:
+    with pytest.raises(ValueError, match=message):
+      DepthRefiningConfig(**kwargs)
