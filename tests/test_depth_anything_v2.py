@@ -333,6 +333,38 @@ def test_hf_config_json_is_read_and_metric_models_refused(small, tmp_path):
     conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf")
 
 
+def test_training_checkpoints_unwrap_and_metric_models_are_refused(small, tmp_path):
+  """A state dict saved under "model" with DataParallel's `module.` names (a training script's
+  checkpoint) converts to the plain file's parameters. Upstream's metric models have the
+  relative models' keys but a sigmoid x max_depth head: the released files (named
+  `..._metric_...`), a checkpoint of upstream's metric_depth/train.py (it stores
+  "previous_best") and a Hub snapshot of a Metric repo without its config.json are refused."""
+  arch = {"num_heads": SMALL["heads"], "layer_idx": [i - 1 for i in SMALL["out_indices"]]}
+  plain = torch.load(small["root"] / "official" / "depth_anything_v2.pth")
+  ddp = {"module." + k: v for k, v in plain.items()}
+  torch.save({"model": ddp, "optimizer": {}, "epoch": 3}, tmp_path / "latest.pth")
+  _, variables = conv.convert_depth_anything_v2(tmp_path / "latest.pth", "official", arch)
+  want = small["converted"]["official"][1]
+  got_leaves, want_leaves = jax.tree_util.tree_leaves(variables), jax.tree_util.tree_leaves(want)
+  assert len(got_leaves) == len(want_leaves)
+  for a, b in zip(got_leaves, want_leaves):
+    np.testing.assert_array_equal(a, b)
+  torch.save(plain, tmp_path / "depth_anything_v2_metric_vkitti_vits.pth")
+  torch.save({"model": ddp, "optimizer": {}, "epoch": 3, "previous_best": {"d1": 0.9}},
+             tmp_path / "trained.pth")
+  snapshot = tmp_path / "models--depth-anything--Depth-Anything-V2-Metric-Outdoor-Small-hf"
+  (snapshot / "snapshots" / "abc123").mkdir(parents=True)
+  (snapshot / "snapshots" / "abc123" / "model.safetensors").write_bytes(
+      (small["root"] / "hf" / "model.safetensors").read_bytes())
+  for path, fmt in [(tmp_path / "depth_anything_v2_metric_vkitti_vits.pth", "official"),
+                    (tmp_path / "trained.pth", "official"),
+                    (snapshot / "snapshots" / "abc123" / "model.safetensors", "hf")]:
+    with pytest.raises(CheckpointError, match=r"a metric Depth Anything V2 model: its keys are "
+                                              r"the relative model's but its head ends in "
+                                              r"sigmoid x max_depth"):
+      conv.convert_depth_anything_v2(path, fmt, arch)
+
+
 def test_unknown_vit_size_needs_heads_and_layers(small):
   with pytest.raises(CheckpointError, match=r"\['num_heads', 'layer_idx'\]"):
     conv.convert_depth_anything_v2(small["root"] / "official" / "depth_anything_v2.pth")

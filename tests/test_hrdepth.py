@@ -184,6 +184,12 @@ def test_unexpected_missing_and_misshapen_keys_are_named(released, tmp_path):
   torch.save(enc_state, tmp_path / "encoder.pth")
   with pytest.raises(CheckpointError, match=r"encoder.pth: no 'width' entry"):
     conv.convert_hrdepth(tmp_path / "encoder.pth", released["root"] / "depth.pth")
+  # Lite-HR-Depth's encoder (upstream mobilenetV3_encoder: `encoder.features.<i>.*`) is named
+  torch.save({"encoder.features.0.0.weight": torch.zeros(16, 3, 3, 3), "height": 384,
+              "width": 1280}, tmp_path / "lite_encoder.pth")
+  with pytest.raises(CheckpointError, match=r"lite_encoder.pth: a MobileNetV3 encoder "
+                                            r"\(Lite-HR-Depth\); only HR-Depth with a ResNet-18/34 encoder"):
+    conv.convert_hrdepth(tmp_path / "lite_encoder.pth", released["root"] / "depth.pth")
 
 
 def test_twins_must_agree(released, tmp_path):

@@ -32,7 +32,7 @@ checkpoints have the same keys but read the last four blocks: give `--layer-idx`
 The position-embedding resize rule differs between the two implementations (see
 `models/depth_anything_v2/dinov2.py`) and is recorded as config["pos_offset"]: 0.1 upstream, 0 HF.
 
-    python -m weights_convert depth_anything_v2 --from {official,hf} CKPT --out DIR
+    python -m weights_convert depth-anything-v2 --from {official,hf} CKPT --out DIR
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ from typing import Any, Mapping, NamedTuple
 
 from weights_convert import rules as R
 from weights_convert.mask2former import read_safetensors
-from weights_convert.pth import CheckpointError, load_pth
+from weights_convert.pth import CheckpointError, load_pth, unwrap_state_dict
 from weights_convert.strict import check_keys
 
 FORMATS = ("official", "hf")
@@ -155,9 +155,17 @@ def read_state(path: str | os.PathLike, source: str) -> dict:
   path = str(path)
   if source not in FORMATS:
     raise ValueError(f"unknown source {source!r}; expected one of {FORMATS}")
-  obj = read_safetensors(path) if path.endswith(".safetensors") else load_pth(path)
-  if not isinstance(obj, dict):
-    raise CheckpointError(f"{path}: expected a state dict, found a {type(obj).__name__}")
+  if path.endswith(".safetensors"):
+    obj = read_safetensors(path)
+    if not isinstance(obj, dict):
+      raise CheckpointError(f"{path}: expected a state dict, found a {type(obj).__name__}")
+  else:
+    obj = load_pth(path)
+    if isinstance(obj, dict) and "previous_best" in obj:  # metric_depth/train.py's checkpoint
+      raise CheckpointError(f"{path}: {METRIC_REFUSAL} (a checkpoint of upstream's "
+                            f"metric_depth/train.py)")
+    obj = unwrap_state_dict(obj, path)  # {"model"|"state_dict": ...}, DataParallel's module.
+  check_not_metric(path, source)
   if source == "official":
     return obj
   state = {}
@@ -170,6 +178,29 @@ def read_state(path: str | os.PathLike, source: str) -> dict:
                             f"under its transformers 5 and 4 names)")
     state[new] = value
   return state
+
+
+METRIC_REFUSAL = ("a metric Depth Anything V2 model: its keys are the relative model's but its "
+                  "head ends in sigmoid x max_depth (metric depth, not relative inverse depth), "
+                  "which is not implemented; convert a relative model (depth_anything_v2_vit"
+                  "{s,b,l}.pth, or an HF snapshot whose config.json says depth_estimation_type "
+                  "relative)")
+
+
+def check_not_metric(path: str, source: str) -> None:
+  """CheckpointError for a file that names itself metric: upstream's metric releases
+  (`depth_anything_v2_metric_{hypersim,vkitti}_vit*.pth`, the Hub's
+  `Depth-Anything-V2-Metric-*-hf`) have the relative models' keys and shapes, so only the name
+  (or an HF snapshot's config.json, `_hf_config_beside`) tells them apart."""
+  p = Path(path)
+  if source == "official":
+    parts = [p.name]
+  elif p.with_name("config.json").is_file():
+    return  # the config's depth_estimation_type decides
+  else:  # the file, its folder, and a Hub cache's snapshots/<hash>/ under the repo folder
+    parts = [p.name] + [q.name for q in list(p.parents)[:3]]
+  if any("metric" in part.lower() for part in parts):
+    raise CheckpointError(f"{path}: {METRIC_REFUSAL}")
 
 
 class _ShapeKeys(NamedTuple):

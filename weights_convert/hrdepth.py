@@ -129,6 +129,9 @@ def convert_hrdepth(encoder: str | os.PathLike, depth: str | os.PathLike) -> tup
   from pitta_jax.models.hrdepth.network import NUM_LAYERS
 
   enc_state, dec_state = load_state_dict(encoder), load_state_dict(depth)
+  if any(isinstance(k, str) and k.startswith("encoder.features.") for k in enc_state):
+    raise CheckpointError(f"{encoder}: a MobileNetV3 encoder (Lite-HR-Depth); only HR-Depth "
+                          f"with a ResNet-{'/'.join(map(str, NUM_LAYERS))} encoder is implemented")
   num_layers = infer_num_layers(enc_state, str(encoder))
   if num_layers not in NUM_LAYERS:
     raise CheckpointError(f"{encoder}: a ResNet-{num_layers} encoder; HR-Depth's decoder fits "

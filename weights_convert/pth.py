@@ -651,7 +651,11 @@ def load_state_dict(path: str | os.PathLike) -> dict:
   Two common ways of saving one are undone: a state dict stored under "state_dict" or "model"
   of a dict that holds no tensor itself (a training script's checkpoint), and the `module.`
   prefix of a DataParallel model (`strip_data_parallel`)."""
-  state = load_pth(path)
+  return unwrap_state_dict(load_pth(path), path)
+
+
+def unwrap_state_dict(state: Any, path: str | os.PathLike) -> dict:
+  """`load_state_dict`'s unwrapping of an object `load_pth` read from `path`."""
   if not isinstance(state, dict):
     raise CheckpointError(f"{path}: expected a state dict, found a {type(state).__name__}")
   wrapped = [k for k in WRAPPER_KEYS if isinstance(state.get(k), dict)]
