@@ -24,9 +24,10 @@ def _add_predict(sub) -> None:
                   "writes <stem>_disp.npy (the network's own output: sigmoid disparity in "
                   "[0, 1] for the MonoDepth2 family, where MonoDepth2's test_simple.py saves "
                   "the scaled disparity in [0.01, 10]; relative inverse depth for Depth Anything "
-                  "V2), <stem>_depth.npy (network resolution; MonoDepth2 family: 1 / scaled "
-                  "disparity in [0.1, 100]; Depth Anything V2: 1 / max(disparity, 1e-6), so "
-                  "up to 1e6 where it predicts 0, e.g. sky) and <stem>_disp.png.")
+                  "V2; metres for its metric models), <stem>_depth.npy (network resolution; "
+                  "MonoDepth2 family: 1 / scaled disparity in [0.1, 100]; Depth Anything V2: "
+                  "1 / max(disparity, 1e-6), so up to 1e6 where it predicts 0, e.g. sky; its "
+                  "metric models: the depth itself) and <stem>_disp.png (near = bright).")
   p.add_argument("--weights", required=True, help="weights directory (holds model.json)")
   p.add_argument("--images", required=True, help="an image file, a directory, or a glob (quote it)")
   p.add_argument("--out", required=True, help="output directory")

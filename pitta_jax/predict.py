@@ -137,6 +137,7 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
     save_npy(out / f"{path.stem}{DISP_NPY}", disp.astype(np.float32))  # first: it marks the
     save_npy(out / f"{path.stem}_depth.npy", depth.astype(np.float32))  # PNG as an output
     png = out / f"{path.stem}{DISP_PNG}"
-    write_image(png, viz.colorize(disp))
+    # near = bright: the disparity as it is, or the inverse of a metric network's depth
+    write_image(png, viz.colorize(1.0 / depth if weights.spec.output == "metric_depth" else disp))
     written.append(png)
   return written

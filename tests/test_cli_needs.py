@@ -183,7 +183,7 @@ def test_depth_refining_config_takes_coco_names_and_refuses_non_integers():
                                     r"COCO name"),
       ({"dynamic_classes": ("carr",)}, r"no COCO panoptic category named 'carr' \(did you mean "
                                        r"car, carrot\?\)"),
-      ({"window": 3.0}, r"window must be an odd int >= 1, got 3\.0"),
+      ({"window": 3.0}, r"window must be odd and >= 1 \(an int\), got 3\.0"),
       ({"max_instances": 2.0}, r"max_instances must be an int >= 1, got 2\.0")]:
     with pytest.raises(ValueError, match=message):
       DepthRefiningConfig(**kwargs)

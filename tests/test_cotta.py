@@ -170,23 +170,32 @@ def test_ld_weight_zero_is_plain_cotta(case, jax_run):
   assert rs < 1e-6
 
 
+def _float64_step(case, cfg: AdaptConfig, restore_p: float):
+  """(a jitted float64 engine step of CoTTA under `cfg` with the case's threshold and
+  `restore_p`, its initial state, its constants, the case's perturbed BN tree as a trainable
+  tree); call it under `jax.enable_x64(True)`."""
+  _, _, variables, _, threshold, teacher = case
+  mcfg = CottaConfig(n_augment=N_AUG, threshold=threshold, ema_decay=EMA, restore_p=restore_p,
+                     lr=LR, ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
+  v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
+  model, method = network("monodepth2", {"num_layers": 18}), build("cotta", mcfg)
+  tx = make_optimizer(cfg, method)
+  step = jax.jit(make_step(model, method, cfg, tx), compiler_options=QUICK_COMPILE)
+  init, consts = init_state(v64, method, cfg, tx, model)
+  perturbed = {"encoder": unflatten_dict({k: jnp.asarray(v) for k, v in teacher.items()},
+                                         sep="/")}
+  return step, init, consts, perturbed
+
+
 def test_reset_copies_the_teacher_from_the_source_as_upstream(case):
   """`reset_every` (upstream's `reset()`): the student, its optimiser and the teacher start
   again from the source. A step that resets first, then takes its update (no restore: p = 0),
   leaves teacher = EMA * source + (1 - EMA) * student; without the reset the teacher's own
   (perturbed) values stay in that average."""
-  _, _, variables, frames, threshold, teacher = case
-  mcfg = CottaConfig(n_augment=N_AUG, threshold=threshold, ema_decay=EMA, restore_p=0.0, lr=LR,
-                     ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
-  cfg = dataclasses.replace(CFG, reset_every=1)
+  frames = case[3]
   with jax.enable_x64(True):
-    v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
-    model, method = network("monodepth2", {"num_layers": 18}), build("cotta", mcfg)
-    tx = make_optimizer(cfg, method)
-    step = jax.jit(make_step(model, method, cfg, tx), compiler_options=QUICK_COMPILE)
-    init, consts = init_state(v64, method, cfg, tx, model)
-    perturbed = {"encoder": unflatten_dict({k: jnp.asarray(v) for k, v in teacher.items()},
-                                           sep="/")}
+    step, init, consts, perturbed = _float64_step(case, dataclasses.replace(CFG, reset_every=1),
+                                                  restore_p=0.0)
     init = init.replace(step=jnp.asarray(1, init.step.dtype),  # step 1: reset_every 1 resets
                         method_state={**init.method_state, "teacher": perturbed})
     frame = StepInput(*(jnp.asarray(v[0], jnp.float64 if v.dtype == np.float32 else None)
@@ -209,17 +218,9 @@ def test_nonfinite_step_keeps_the_student_but_not_the_teacher_or_the_restore(cas
   upstream's order has them after the optimiser step. Checked against the arithmetic of both
   (teacher = EMA t0 + (1 - EMA) s0; student = source where the step's mask restores, else s0)
   with the mask from `restore_masks` and the step's key, a student away from the source."""
-  _, _, variables, frames, threshold, teacher = case
-  mcfg = CottaConfig(n_augment=N_AUG, threshold=threshold, ema_decay=EMA, restore_p=RESTORE_P,
-                     lr=LR, ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
+  frames = case[3]
   with jax.enable_x64(True):
-    v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
-    model, method = network("monodepth2", {"num_layers": 18}), build("cotta", mcfg)
-    tx = make_optimizer(CFG, method)
-    step = jax.jit(make_step(model, method, CFG, tx), compiler_options=QUICK_COMPILE)
-    init, consts = init_state(v64, method, CFG, tx, model)
-    perturbed = {"encoder": unflatten_dict({k: jnp.asarray(v) for k, v in teacher.items()},
-                                           sep="/")}
+    step, init, consts, perturbed = _float64_step(case, CFG, restore_p=RESTORE_P)
     init = init.replace(trainable=perturbed)  # student != source; teacher = source
     image = np.array(frames.image[0], np.float64)
     image[3, 5, 1] = np.nan

@@ -61,8 +61,9 @@ HUB_NAMES = ((".attention.q_proj.", ".attention.attention.query."),
              (".attention.o_proj.", ".attention.output.dense."))
 
 
-def _hf_model(arch: dict, state: dict):
-  """transformers' Depth Anything (V2 layout) holding `state` (transformers 5 names), eval mode."""
+def _hf_model(arch: dict, state: dict, **head):
+  """transformers' Depth Anything (V2 layout) holding `state` (transformers 5 names), eval mode;
+  `head`: DepthAnythingConfig's depth_estimation_type / max_depth."""
   from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config
   backbone = Dinov2Config(image_size=518, patch_size=14, hidden_size=arch["hidden"],
                           num_hidden_layers=arch["depth"], num_attention_heads=arch["heads"],
@@ -71,7 +72,7 @@ def _hf_model(arch: dict, state: dict):
   config = DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=arch["hidden"],
                                patch_size=14, neck_hidden_sizes=arch["neck"],
                                fusion_hidden_size=arch["features"],
-                               head_hidden_size=arch["head_hidden"])
+                               head_hidden_size=arch["head_hidden"], **head)
   model = DepthAnythingForDepthEstimation(config).eval()
   model.load_state_dict(state, strict=True)
   return model
@@ -322,47 +323,124 @@ def test_transformers5_names_convert_like_hub_names(small, tmp_path):
     np.testing.assert_array_equal(a, b)
 
 
-def test_hf_config_json_is_read_and_metric_models_refused(small, tmp_path):
+def test_hf_config_json_is_read(small, tmp_path):
+  """Heads and layers from config.json; its depth_estimation_type and max_depth say relative
+  (max_depth 1) or metric (max_depth > 0 metres); anything else is refused."""
   cfg = small["converted"]["hf"][0]
   assert cfg["num_heads"] == 3 and cfg["layer_idx"] == [0, 1, 2, 3]  # from config.json
+  assert "max_depth" not in cfg
   meta = json.loads((small["root"] / "hf" / "config.json").read_text())
   (tmp_path / "model.safetensors").write_bytes(
       (small["root"] / "hf" / "model.safetensors").read_bytes())
-  (tmp_path / "config.json").write_text(json.dumps(dict(meta, depth_estimation_type="metric")))
-  with pytest.raises(CheckpointError, match="metric"):
-    conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf")
+  for change, message in [({"depth_estimation_type": "metric", "max_depth": 20}, None),
+                          ({"depth_estimation_type": "metric", "max_depth": 0},
+                           r"a metric model needs max_depth > 0, got 0"),
+                          ({"depth_estimation_type": "ordinal"},
+                           r"depth_estimation_type 'ordinal'; expected relative or metric"),
+                          ({"max_depth": 5}, r"max_depth 5 scales the relative model's output")]:
+    (tmp_path / "config.json").write_text(json.dumps(dict(meta, **change)))
+    if message is None:
+      config, _ = conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf")
+      assert config["max_depth"] == 20.0
+      continue
+    with pytest.raises(CheckpointError, match=message):
+      conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf")
 
 
-def test_training_checkpoints_unwrap_and_metric_models_are_refused(small, tmp_path):
+def test_training_checkpoints_unwrap_as_the_plain_file(small, tmp_path):
   """A state dict saved under "model" with DataParallel's `module.` names (a training script's
-  checkpoint) converts to the plain file's parameters. Upstream's metric models have the
-  relative models' keys but a sigmoid x max_depth head: the released files (named
-  `..._metric_...`), a checkpoint of upstream's metric_depth/train.py (it stores
-  "previous_best") and a Hub snapshot of a Metric repo without its config.json are refused."""
+  checkpoint) converts to the plain file's parameters."""
   arch = {"num_heads": SMALL["heads"], "layer_idx": [i - 1 for i in SMALL["out_indices"]]}
   plain = torch.load(small["root"] / "official" / "depth_anything_v2.pth")
   ddp = {"module." + k: v for k, v in plain.items()}
   torch.save({"model": ddp, "optimizer": {}, "epoch": 3}, tmp_path / "latest.pth")
-  _, variables = conv.convert_depth_anything_v2(tmp_path / "latest.pth", "official", arch)
+  config, variables = conv.convert_depth_anything_v2(tmp_path / "latest.pth", "official", arch)
+  assert config == small["converted"]["official"][0]
   want = small["converted"]["official"][1]
   got_leaves, want_leaves = jax.tree_util.tree_leaves(variables), jax.tree_util.tree_leaves(want)
   assert len(got_leaves) == len(want_leaves)
   for a, b in zip(got_leaves, want_leaves):
     np.testing.assert_array_equal(a, b)
-  torch.save(plain, tmp_path / "depth_anything_v2_metric_vkitti_vits.pth")
+
+
+@pytest.fixture(scope="module")
+def metric(tmp_path_factory):
+  """A small upstream metric model (metric_depth/dpt.py: sigmoid x max_depth head) saved under
+  its release name, and transformers' metric model with the same weights (Hub names and a
+  config.json, as a Hub snapshot)."""
+  root = tmp_path_factory.mktemp("dav2_metric")
+  off = tda.randomize_(tda.DepthAnythingV2(
+      SMALL["hidden"], SMALL["depth"], SMALL["heads"], [i - 1 for i in SMALL["out_indices"]],
+      SMALL["features"], SMALL["neck"], SMALL["head_hidden"], max_depth=80.0), seed=3)
+  torch.save(off.state_dict(), root / "depth_anything_v2_metric_vkitti_vits.pth")
+  state = tda.hf_state_from_official(off.state_dict(), SMALL["depth"])
+  hf = _hf_model(SMALL, state, depth_estimation_type="metric", max_depth=80)
+  (root / "hf").mkdir()
+  save_file({k: v.contiguous() for k, v in hf.state_dict().items()},
+            str(root / "hf" / "model.safetensors"))
+  hf.config.to_json_file(str(root / "hf" / "config.json"))
+  return root, off, hf
+
+
+@pytest.mark.parametrize("fmt", ["official", "hf"])
+def test_metric_models_match_upstream(metric, fmt):
+  """Upstream's metric model (official: --max-depth 80 for the file named metric; hf: from its
+  config.json) -> architecture depth_anything_v2_metric, whose output is depth in metres: the
+  torch model's output, and the spec's depth is that output."""
+  from pitta_jax.models.registry import get_spec
+  root, off, hf = metric
+  arch = {"num_heads": SMALL["heads"], "layer_idx": [i - 1 for i in SMALL["out_indices"]]}
+  if fmt == "official":
+    path = root / "depth_anything_v2_metric_vkitti_vits.pth"
+    config, variables = conv.convert_depth_anything_v2(path, "official",
+                                                       {**arch, "max_depth": 80.0})
+  else:
+    config, variables = conv.convert_depth_anything_v2(root / "hf" / "model.safetensors", "hf")
+  assert config["max_depth"] == 80.0
+  spec = get_spec("depth_anything_v2_metric")
+  x = _image(196, 644, seed=7)
+  out = np.asarray(jax.jit(lambda v, x: spec.build(config).apply(v, x)[0])(variables, x))
+  ref = _torch_depth(off if fmt == "official" else hf, fmt, x)
+  diff = float(np.max(np.abs(out - ref)))
+  print(f"{fmt} metric: output {ref.min():.2f}..{ref.max():.2f} m, max abs diff {diff:.2e}")
+  assert 0 < ref.min() and ref.max() < 80 and ref.max() - ref.min() > 1.0
+  assert diff < 1e-4 * 80
+  np.testing.assert_allclose(np.asarray(spec.to_depth(jnp.asarray(out))), out)
+  with pytest.raises(ValueError, match="the relative architecture needs max_depth 0"):
+    get_spec("depth_anything_v2").build(config)
+
+
+def test_metric_files_need_their_max_depth(metric, small, tmp_path):
+  """The metric releases have the relative models' keys: a file named metric, a checkpoint of
+  upstream's metric_depth/train.py (it stores "previous_best") and a Hub snapshot of a Metric
+  repository without its config.json are refused without --max-depth; a relative HF
+  config.json contradicts --max-depth."""
+  root, off, _ = metric
+  arch = {"num_heads": SMALL["heads"], "layer_idx": [i - 1 for i in SMALL["out_indices"]]}
+  ddp = {"module." + k: v for k, v in off.state_dict().items()}
   torch.save({"model": ddp, "optimizer": {}, "epoch": 3, "previous_best": {"d1": 0.9}},
-             tmp_path / "trained.pth")
+             tmp_path / "latest.pth")
   snapshot = tmp_path / "models--depth-anything--Depth-Anything-V2-Metric-Outdoor-Small-hf"
   (snapshot / "snapshots" / "abc123").mkdir(parents=True)
   (snapshot / "snapshots" / "abc123" / "model.safetensors").write_bytes(
-      (small["root"] / "hf" / "model.safetensors").read_bytes())
-  for path, fmt in [(tmp_path / "depth_anything_v2_metric_vkitti_vits.pth", "official"),
-                    (tmp_path / "trained.pth", "official"),
-                    (snapshot / "snapshots" / "abc123" / "model.safetensors", "hf")]:
-    with pytest.raises(CheckpointError, match=r"a metric Depth Anything V2 model: its keys are "
-                                              r"the relative model's but its head ends in "
-                                              r"sigmoid x max_depth"):
+      (root / "hf" / "model.safetensors").read_bytes())
+  for path, fmt, why in [
+      (root / "depth_anything_v2_metric_vkitti_vits.pth", "official",
+       "named 'depth_anything_v2_metric_vkitti_vits.pth'"),
+      (tmp_path / "latest.pth", "official", "a checkpoint of upstream's metric_depth/train.py"),
+      (snapshot / "snapshots" / "abc123" / "model.safetensors", "hf",
+       "named 'models--depth-anything--Depth-Anything-V2-Metric-Outdoor-Small-hf'")]:
+    with pytest.raises(CheckpointError, match=re.escape(f"{why}, i.e. a metric model (sigmoid x "
+                                                        f"max_depth head, the relative model's "
+                                                        f"keys): give its max_depth")):
       conv.convert_depth_anything_v2(path, fmt, arch)
+  config, _ = conv.convert_depth_anything_v2(tmp_path / "latest.pth", "official",
+                                             {**arch, "max_depth": 20.0})
+  assert config["max_depth"] == 20.0
+  with pytest.raises(CheckpointError, match=r"--max-depth 80 but the config\.json beside it says "
+                                            r"depth_estimation_type relative"):
+    conv.convert_depth_anything_v2(small["root"] / "hf" / "model.safetensors", "hf",
+                                   {"max_depth": 80.0})
 
 
 def test_unknown_vit_size_needs_heads_and_layers(small):

@@ -45,7 +45,9 @@ def _frames(h: int, w: int):
 
 
 def test_every_network_is_registered():
-  assert set(CASES) | {"monodepth2"} == set(MODELS)
+  # depth_anything_v2_metric is depth_anything_v2's module with a sigmoid x max_depth head
+  # (tests/test_depth_anything_v2.py): the same layers, selectors and engine path
+  assert set(CASES) | {"monodepth2", "depth_anything_v2_metric"} == set(MODELS)
 
 
 def _abstract(name):

@@ -163,7 +163,7 @@ class FeatureFusionBlock(nn.Module):
 
 
 class DPTHead(nn.Module):
-  def __init__(self, in_channels, features, out_channels, head_features=32):
+  def __init__(self, in_channels, features, out_channels, head_features=32, metric=False):
     super().__init__()
     self.projects = nn.ModuleList([nn.Conv2d(in_channels, c, 1, 1, 0) for c in out_channels])
     self.resize_layers = nn.ModuleList([
@@ -178,9 +178,10 @@ class DPTHead(nn.Module):
     for i in range(1, 5):
       setattr(self.scratch, f"refinenet{i}", FeatureFusionBlock(features))
     self.scratch.output_conv1 = nn.Conv2d(features, features // 2, 3, 1, 1)
+    last = [nn.Sigmoid()] if metric else [nn.ReLU(True), nn.Identity()]  # metric_depth/dpt.py
     self.scratch.output_conv2 = nn.Sequential(
         nn.Conv2d(features // 2, head_features, 3, 1, 1), nn.ReLU(True),
-        nn.Conv2d(head_features, 1, 1, 1, 0), nn.ReLU(True), nn.Identity())
+        nn.Conv2d(head_features, 1, 1, 1, 0), *last)
 
   def forward(self, out_features, patch_h, patch_w):
     out = []
@@ -201,19 +202,25 @@ class DPTHead(nn.Module):
 
 
 class DepthAnythingV2(nn.Module):
-  """Upstream `DepthAnythingV2(encoder, features, out_channels)` with the ViT size as arguments."""
+  """Upstream `DepthAnythingV2(encoder, features, out_channels)` with the ViT size as arguments;
+  with `max_depth`, upstream's metric model (`metric_depth/depth_anything_v2/dpt.py`)."""
 
   def __init__(self, embed_dim=384, depth=12, num_heads=6, layer_idx=(2, 5, 8, 11), features=64,
-               out_channels=(48, 96, 192, 384), head_features=32, img_size=518):
+               out_channels=(48, 96, 192, 384), head_features=32, img_size=518, max_depth=None):
     super().__init__()
     self.layer_idx = list(layer_idx)
+    self.max_depth = max_depth
     self.pretrained = DinoVisionTransformer(img_size, 14, embed_dim, depth, num_heads)
-    self.depth_head = DPTHead(embed_dim, features, list(out_channels), head_features)
+    self.depth_head = DPTHead(embed_dim, features, list(out_channels), head_features,
+                              metric=max_depth is not None)
 
   def forward(self, x):
-    """x: (B, 3, H, W) ImageNet-normalised -> (B, H, W) relative inverse depth."""
+    """x: (B, 3, H, W) ImageNet-normalised -> (B, H, W) relative inverse depth (metric: depth
+    in metres)."""
     patch_h, patch_w = x.shape[-2] // 14, x.shape[-1] // 14
     features = self.pretrained.get_intermediate_layers(x, self.layer_idx)
+    if self.max_depth is not None:
+      return (self.depth_head(features, patch_h, patch_w) * self.max_depth).squeeze(1)
     return F.relu(self.depth_head(features, patch_h, patch_w)).squeeze(1)
 
 

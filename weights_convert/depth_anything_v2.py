@@ -32,7 +32,14 @@ checkpoints have the same keys but read the last four blocks: give `--layer-idx`
 The position-embedding resize rule differs between the two implementations (see
 `models/depth_anything_v2/dinov2.py`) and is recorded as config["pos_offset"]: 0.1 upstream, 0 HF.
 
-    python -m weights_convert depth-anything-v2 --from {official,hf} CKPT --out DIR
+Metric models (upstream `metric_depth/`, the Hub's `Depth-Anything-V2-Metric-*`) have the same
+keys and shapes, with a sigmoid x max_depth head: nothing in the weights says so, so the
+converter takes `max_depth` from `--max-depth` (or an HF config.json with
+depth_estimation_type "metric") and writes the architecture `depth_anything_v2_metric`; a file
+named metric or a checkpoint of upstream's metric_depth/train.py (its "previous_best" entry)
+is refused without it (`metric_evidence`), rather than converted as a relative model.
+
+    python -m weights_convert depth-anything-v2 --from {official,hf} CKPT [--max-depth M] --out DIR
 """
 
 from __future__ import annotations
@@ -150,22 +157,28 @@ def hf_rules(cfg: Mapping[str, Any]) -> R.Rules:
 # ------------------------------------------------------------------------------ reading
 
 
-def read_state(path: str | os.PathLike, source: str) -> dict:
-  """A flat name -> array dict; HF names of transformers >= 5 renamed to the Hub names."""
+def read_state(path: str | os.PathLike, source: str, max_depth: float | None = None) -> dict:
+  """A flat name -> array dict; HF names of transformers >= 5 renamed to the Hub names.
+
+  A file that is a metric model by its name or origin (`metric_evidence`) needs `max_depth`."""
   path = str(path)
   if source not in FORMATS:
     raise ValueError(f"unknown source {source!r}; expected one of {FORMATS}")
+  train_checkpoint = False
   if path.endswith(".safetensors"):
     obj = read_safetensors(path)
     if not isinstance(obj, dict):
       raise CheckpointError(f"{path}: expected a state dict, found a {type(obj).__name__}")
   else:
     obj = load_pth(path)
-    if isinstance(obj, dict) and "previous_best" in obj:  # metric_depth/train.py's checkpoint
-      raise CheckpointError(f"{path}: {METRIC_REFUSAL} (a checkpoint of upstream's "
-                            f"metric_depth/train.py)")
+    train_checkpoint = isinstance(obj, dict) and "previous_best" in obj
     obj = unwrap_state_dict(obj, path)  # {"model"|"state_dict": ...}, DataParallel's module.
-  check_not_metric(path, source)
+  evidence = ("a checkpoint of upstream's metric_depth/train.py" if train_checkpoint
+              else metric_evidence(path, source))
+  if evidence and max_depth is None:
+    raise CheckpointError(f"{path}: {evidence}, i.e. a metric model (sigmoid x max_depth head, "
+                          f"the relative model's keys): give its max_depth (--max-depth; "
+                          f"upstream: 20 for the Hypersim models, 80 for the Virtual KITTI ones)")
   if source == "official":
     return obj
   state = {}
@@ -180,15 +193,8 @@ def read_state(path: str | os.PathLike, source: str) -> dict:
   return state
 
 
-METRIC_REFUSAL = ("a metric Depth Anything V2 model: its keys are the relative model's but its "
-                  "head ends in sigmoid x max_depth (metric depth, not relative inverse depth), "
-                  "which is not implemented; convert a relative model (depth_anything_v2_vit"
-                  "{s,b,l}.pth, or an HF snapshot whose config.json says depth_estimation_type "
-                  "relative)")
-
-
-def check_not_metric(path: str, source: str) -> None:
-  """CheckpointError for a file that names itself metric: upstream's metric releases
+def metric_evidence(path: str, source: str) -> str | None:
+  """Why `path` is a metric model, or None. Upstream's metric releases
   (`depth_anything_v2_metric_{hypersim,vkitti}_vit*.pth`, the Hub's
   `Depth-Anything-V2-Metric-*-hf`) have the relative models' keys and shapes, so only the name
   (or an HF snapshot's config.json, `_hf_config_beside`) tells them apart."""
@@ -196,11 +202,11 @@ def check_not_metric(path: str, source: str) -> None:
   if source == "official":
     parts = [p.name]
   elif p.with_name("config.json").is_file():
-    return  # the config's depth_estimation_type decides
+    return None  # the config's depth_estimation_type decides
   else:  # the file, its folder, and a Hub cache's snapshots/<hash>/ under the repo folder
     parts = [p.name] + [q.name for q in list(p.parents)[:3]]
-  if any("metric" in part.lower() for part in parts):
-    raise CheckpointError(f"{path}: {METRIC_REFUSAL}")
+  named = next((part for part in parts if "metric" in part.lower()), None)
+  return None if named is None else f"named {named!r}"
 
 
 class _ShapeKeys(NamedTuple):
@@ -248,14 +254,21 @@ def _hf_config_beside(path: str) -> dict | None:
     cfg = json.loads(cfg_path.read_text())
   except (OSError, json.JSONDecodeError) as e:
     raise CheckpointError(f"{cfg_path}: unreadable ({e})") from None
-  if cfg.get("depth_estimation_type", "relative") != "relative":
-    raise CheckpointError(f"{cfg_path}: depth_estimation_type {cfg['depth_estimation_type']!r}; "
-                          f"only the relative-depth model (ReLU output) is supported")
-  if cfg.get("max_depth") not in (None, 1):  # transformers multiplies even the ReLU output by it
-    raise CheckpointError(f"{cfg_path}: max_depth {cfg['max_depth']!r} scales the output; only "
-                          f"1 (upstream's relative model) is supported")
-  backbone = cfg.get("backbone_config") or {}
+  kind = cfg.get("depth_estimation_type", "relative")
+  max_depth = cfg.get("max_depth")
   arch = {}
+  if kind == "metric":  # transformers' head: sigmoid x max_depth
+    if not (isinstance(max_depth, (int, float)) and not isinstance(max_depth, bool)
+            and math.isfinite(max_depth) and max_depth > 0):
+      raise CheckpointError(f"{cfg_path}: a metric model needs max_depth > 0, got {max_depth!r}")
+    arch["max_depth"] = float(max_depth)
+  elif kind != "relative":
+    raise CheckpointError(f"{cfg_path}: depth_estimation_type {kind!r}; expected relative or "
+                          f"metric")
+  elif max_depth not in (None, 1):  # transformers multiplies even the ReLU output by it
+    raise CheckpointError(f"{cfg_path}: max_depth {max_depth!r} scales the relative model's "
+                          f"output; only 1 (upstream's relative model) is supported")
+  backbone = cfg.get("backbone_config") or {}
   if "num_attention_heads" in backbone:
     arch["num_heads"] = int(backbone["num_attention_heads"])
   # hidden-state indices (stage names "stageK"): 0 is the embeddings, K the output of block K - 1
@@ -287,9 +300,17 @@ def infer_config(state: dict, source: str, path: str, arch: Mapping[str, Any] | 
                layer_idx=list(VIT_VARIANTS[variant].layer_idx)) if variant else {}
   if source == "hf":
     known.update(_hf_config_beside(path) or {})
-  unknown = sorted(set(arch or {}) - {"num_heads", "layer_idx"})
+  unknown = sorted(set(arch or {}) - {"num_heads", "layer_idx", "max_depth"})
   if unknown:
-    raise ValueError(f"arch overrides {unknown} are not num_heads / layer_idx")
+    raise ValueError(f"arch overrides {unknown} are not num_heads / layer_idx / max_depth")
+  given = (arch or {}).get("max_depth")
+  if given is not None and known.get("max_depth", given) != given:
+    raise CheckpointError(f"{path}: --max-depth {given:g} but the config.json beside it says "
+                          f"max_depth {known['max_depth']:g}")
+  if given is not None and source == "hf" and "max_depth" not in known and Path(
+      path).with_name("config.json").is_file():
+    raise CheckpointError(f"{path}: --max-depth {given:g} but the config.json beside it says "
+                          f"depth_estimation_type relative")
   known.update(arch or {})
   missing = [k for k in ("num_heads", "layer_idx") if k not in known]
   if missing:
@@ -309,6 +330,7 @@ def infer_config(state: dict, source: str, path: str, arch: Mapping[str, Any] | 
                        for i in range(4)],
       "head_features": int(_shape(state, keys.output_conv2_0, path, source)[0]),
       "height": grid * dinov2.PATCH_SIZE, "width": grid * dinov2.PATCH_SIZE,
+      **({"max_depth": float(known["max_depth"])} if known.get("max_depth") else {}),
   }
 
 
@@ -319,7 +341,10 @@ def convert_depth_anything_v2(path: str | os.PathLike, source: str = "official",
   Args:
     path: upstream `.pth`, or HF `.safetensors` / `pytorch_model.bin`.
     source: "official" (upstream) or "hf".
-    arch: overrides of the fields the weights cannot tell, {"num_heads": ..., "layer_idx": [...]}.
+    arch: overrides of the fields the weights cannot tell, {"num_heads": ..., "layer_idx": [...],
+      "max_depth": ...}; max_depth > 0 (metres) makes it a metric model (upstream's
+      metric_depth/, a sigmoid x max_depth head on the same weights; an HF snapshot's
+      config.json says so itself). A file named as a metric model needs it.
 
   Returns:
     (config dict for model.json / `SPEC.build`, variables {"params": ...} of float32 NumPy
@@ -327,7 +352,10 @@ def convert_depth_anything_v2(path: str | os.PathLike, source: str = "official",
   """
   from flax.traverse_util import unflatten_dict
   from pitta_jax.models.depth_anything_v2 import build
-  state = read_state(path, source)
+  max_depth = (arch or {}).get("max_depth")
+  if max_depth is not None and not (math.isfinite(max_depth) and max_depth > 0):
+    raise ValueError(f"max_depth must be > 0 (metres), got {max_depth}")
+  state = read_state(path, source, max_depth)
   config = infer_config(state, source, str(path), arch)
   rules = official_rules(config) if source == "official" else hf_rules(config)
   ignorable = lambda k: bool(_IGNORED[source].match(k))
@@ -354,20 +382,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--layer-idx", type=lambda s: [int(i) for i in s.split(",")],
                       help="comma-separated 0-based blocks the DPT head reads (default: upstream's "
                            "2,5,8,11 for ViT-S/B, 4,11,17,23 for ViT-L)")
+  parser.add_argument("--max-depth", type=float,
+                      help="convert a metric model (upstream's metric_depth/ releases: its head "
+                           "ends in sigmoid x max_depth, depth in metres) with this max_depth: "
+                           "20 for the Hypersim models, 80 for the Virtual KITTI ones; an HF "
+                           "snapshot's config.json gives it itself")
   parser.add_argument("--out", required=True, help="output weights directory")
 
 
 def run(args: argparse.Namespace) -> Path:
   import jax
   from pitta_jax.checkpoint import save_weights
-  from pitta_jax.models.depth_anything_v2 import SPEC
-  arch = {k: v for k, v in (("num_heads", args.num_heads), ("layer_idx", args.layer_idx))
-          if v is not None}
+  from pitta_jax.models.depth_anything_v2 import METRIC_SPEC, SPEC
+  arch = {k: v for k, v in (("num_heads", args.num_heads), ("layer_idx", args.layer_idx),
+                            ("max_depth", args.max_depth)) if v is not None}
   config, variables = convert_depth_anything_v2(args.checkpoint, args.source, arch or None)
-  out = save_weights(args.out, SPEC.name, config, variables,
+  metric = bool(config.get("max_depth"))
+  out = save_weights(args.out, (METRIC_SPEC if metric else SPEC).name, config, variables,
                      source={"file": str(args.checkpoint), "format": args.source})
   n = sum(a.size for a in jax.tree_util.tree_leaves(variables))
-  print(f"converted Depth Anything V2 ({config['encoder']}: width {config['embed_dim']}, "
+  kind = f"metric, max_depth {config['max_depth']:g} m, " if metric else ""
+  print(f"converted Depth Anything V2 ({kind}{config['encoder']}: width {config['embed_dim']}, "
         f"{config['depth']} blocks, {n:,} values, trained at {config['width']}x{config['height']}) "
         f"-> {out}")
   return out

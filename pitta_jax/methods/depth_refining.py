@@ -32,7 +32,7 @@ class DepthRefiningConfig:
 
   def __post_init__(self):
     check(_is_int(self.window) and self.window >= 1 and self.window % 2 == 1,
-          f"window must be an odd int >= 1, got {self.window!r}")
+          f"window must be odd and >= 1 (an int), got {self.window!r}")
     check(self.mask_mode in masks.MASK_MODES,
           f"mask_mode must be one of {', '.join(masks.MASK_MODES)}, got {self.mask_mode!r}")
     check(self.loss_impl in losses.IMPLS,

@@ -25,6 +25,7 @@ MODELS: dict[str, ModelSpec] = {
     "litemono": litemono.SPEC,
     "monovit": monovit.SPEC,
     "depth_anything_v2": depth_anything_v2.SPEC,
+    "depth_anything_v2_metric": depth_anything_v2.METRIC_SPEC,
 }
 
 

@@ -12,7 +12,8 @@ checkpoint loader and the CLI see a network only through its spec:
 * `output`: what those maps are, and so how they become depth (`to_depth`):
   "sigmoid_disparity" (the MonoDepth2 family: depth = 1 / (1/max + (1/min - 1/max) disp)) or
   "relative_inverse_depth" (affine-invariant, e.g. Depth Anything V2: the engine's depth is
-  1 / max(out, eps), meaningful only up to scale and shift).
+  1 / max(out, eps), meaningful only up to scale and shift) or "metric_depth" (depth in metres,
+  e.g. Depth Anything V2's metric models: the engine's depth is max(out, eps)).
 * Input rules: H and W multiples of `size_multiple`; `default_size` is the size the released
   weights were trained at.
 * `alignment`: the evaluation protocol the network's outputs need ("median" scaling for
@@ -34,7 +35,7 @@ import numpy as np
 
 from pitta_jax.models.depth_decoder import MAX_DEPTH, MIN_DEPTH, disp_to_depth
 
-OUTPUTS = ("sigmoid_disparity", "relative_inverse_depth")
+OUTPUTS = ("sigmoid_disparity", "relative_inverse_depth", "metric_depth")
 ALIGNMENTS = ("median", "scale_shift", "none")
 RELATIVE_EPS = 1e-6  # floor of a relative inverse depth before inverting it
 
@@ -95,6 +96,8 @@ class ModelSpec:
     """The network's scale-0 output -> the depth the losses see (same shape)."""
     if self.output == "sigmoid_disparity":
       return disp_to_depth(out, *self.depth_range)
+    if self.output == "metric_depth":
+      return jnp.maximum(out, RELATIVE_EPS)
     return 1.0 / jnp.maximum(out, RELATIVE_EPS)
 
 

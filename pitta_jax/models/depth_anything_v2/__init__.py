@@ -3,7 +3,8 @@
 `build(config)` takes the `config` dict `weights_convert.depth_anything_v2` writes into
 model.json: the architecture fields of `DepthAnythingV2` (`ARCH_FIELDS`), plus "height"/"width"
 (518, the size the released weights were trained at: 518x518 crops, `img_size=518`) and
-"encoder" ("vits", "vitb", "vitl" or "custom"), which `build` does not need.
+"encoder" ("vits", "vitb", "vitl" or "custom"), which `build` does not need. "max_depth" > 0
+makes it upstream's metric model (architecture `depth_anything_v2_metric`, `METRIC_SPEC`).
 
 Input sizes: multiples of 14. Upstream's `infer_image` resizes the shorter side to 518 (keeping
 the aspect ratio, sides rounded to multiples of 14, bicubic) and resizes the prediction back;
@@ -30,7 +31,7 @@ _META_FIELDS = ("height", "width", "encoder", "architecture", "has_pose", "sourc
 
 def build(config: Mapping[str, Any]) -> DepthAnythingV2:
   """model.json config (or the whole model.json) -> `DepthAnythingV2`; JSON lists become tuples
-  (hashable attributes); a missing field takes the module's (ViT-S) default."""
+  (hashable attributes); a missing field takes the module's (ViT-S, relative) default."""
   unknown = sorted(set(config) - set(ARCH_FIELDS) - set(_META_FIELDS))
   if unknown:
     raise ValueError(f"unknown Depth Anything V2 config fields {unknown}; known: {ARCH_FIELDS}")
@@ -39,9 +40,22 @@ def build(config: Mapping[str, Any]) -> DepthAnythingV2:
   return DepthAnythingV2(**kwargs)
 
 
+def _build_checked(metric: bool):
+  """`build` for the relative (max_depth 0) or the metric (max_depth > 0) architecture name:
+  a model.json whose max_depth contradicts its architecture is refused."""
+  def build_one(config: Mapping[str, Any]) -> DepthAnythingV2:
+    max_depth = config.get("max_depth", 0)
+    if (max_depth > 0) != metric:
+      raise ValueError(f"Depth Anything V2 max_depth {max_depth}: the "
+                       f"{'metric' if metric else 'relative'} architecture needs "
+                       f"{'max_depth > 0' if metric else 'max_depth 0 (or none)'}")
+    return build(config)
+  return build_one
+
+
 SPEC = ModelSpec(
     name="depth_anything_v2",
-    build=build,
+    build=_build_checked(metric=False),
     output="relative_inverse_depth",
     size_multiple=PATCH_SIZE,
     default_size=(POS_GRID * PATCH_SIZE, POS_GRID * PATCH_SIZE),
@@ -52,6 +66,13 @@ SPEC = ModelSpec(
     keep_aspect=True,  # upstream's infer_image keeps the image's aspect ratio
 )
 
-__all__ = ["DepthAnythingV2", "DinoVisionTransformer", "DPTHead", "SPEC", "build",
-           "check_input_size", "ARCH_FIELDS", "VIT_VARIANTS", "OFFICIAL_POS_OFFSET",
+# upstream's metric models (metric_depth/): the same network with a sigmoid x max_depth head
+METRIC_SPEC = dataclasses.replace(
+    SPEC, name="depth_anything_v2_metric", build=_build_checked(metric=True),
+    output="metric_depth", alignment="none",
+    description="Depth Anything V2 metric (DINOv2 ViT + DPT head, sigmoid x max_depth): depth "
+                "in metres, inputs multiples of 14 (trained at 518x518)")
+
+__all__ = ["DepthAnythingV2", "DinoVisionTransformer", "DPTHead", "SPEC", "METRIC_SPEC",
+           "build", "check_input_size", "ARCH_FIELDS", "VIT_VARIANTS", "OFFICIAL_POS_OFFSET",
            "HF_POS_OFFSET"]

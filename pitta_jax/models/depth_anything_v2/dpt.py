@@ -14,6 +14,10 @@ align_corners=True to (14 gh, 14 gw) = the input size, `output_conv2_0` (3x3, 32
 `output_conv2_2` (1x1, 1) + ReLU. Upstream applies another ReLU in `DepthAnythingV2.forward`;
 ReLU twice is ReLU once (values and gradients), so it is not repeated here.
 
+The metric models (upstream `metric_depth/depth_anything_v2/dpt.py`, `max_depth` > 0 here) have
+the same layers and parameter names; their head ends in a sigmoid instead of the last ReLU, and
+the output is that sigmoid times `max_depth`: depth in metres, not relative inverse depth.
+
 Upstream's `refinenet4.resConfUnit1` exists in the checkpoints but is never called (refinenet4
 gets one input): it is not created here, and the converter declares those keys ignorable.
 
@@ -101,10 +105,12 @@ class DPTHead(nn.Module):
   features: int = VIT_VARIANTS[DEFAULT_VARIANT].features
   out_channels: tuple[int, ...] = VIT_VARIANTS[DEFAULT_VARIANT].out_channels
   head_features: int = HEAD_FEATURES
+  metric: bool = False  # the metric models' head: sigmoid in place of the last ReLU
 
   @nn.compact
   def __call__(self, tokens: Sequence[jax.Array]) -> jax.Array:
-    """tokens: 4 maps (B, gh, gw, C) -> relative inverse depth (B, 14 gh, 14 gw, 1), >= 0."""
+    """tokens: 4 maps (B, gh, gw, C) -> relative inverse depth (B, 14 gh, 14 gw, 1), >= 0 (with
+    `metric`, a sigmoid in (0, 1))."""
     if len(tokens) != 4 or len(self.out_channels) != 4:
       raise ValueError(f"the DPT head takes 4 feature maps and 4 out_channels, got "
                        f"{len(tokens)} and {len(self.out_channels)}")
@@ -127,7 +133,8 @@ class DPTHead(nn.Module):
     out = conv(self.features // 2, 3, 1, 1, use_bias=True, name="output_conv1")(path)
     out = resize_bilinear(out, (gh * PATCH_SIZE, gw * PATCH_SIZE), align_corners=True)
     out = nn.relu(conv(self.head_features, 3, 1, 1, use_bias=True, name="output_conv2_0")(out))
-    return nn.relu(conv(1, 1, 1, 0, use_bias=True, name="output_conv2_2")(out))
+    out = conv(1, 1, 1, 0, use_bias=True, name="output_conv2_2")(out)
+    return jax.nn.sigmoid(out) if self.metric else nn.relu(out)
 
 
 def check_input_size(height: int, width: int) -> None:
@@ -154,11 +161,13 @@ class DepthAnythingV2(nn.Module):
   features: int = VIT_VARIANTS[DEFAULT_VARIANT].features
   out_channels: tuple[int, ...] = VIT_VARIANTS[DEFAULT_VARIANT].out_channels
   head_features: int = HEAD_FEATURES
+  max_depth: float = 0.0  # 0: the relative model; > 0: a metric model's depth range (metres)
 
   @nn.compact
   def __call__(self, images: jax.Array, train: bool = False) -> tuple[jax.Array]:
     """images: (B, H, W, 3) RGB in [0, 1], H and W multiples of 14 -> a 1-tuple with the
-    relative inverse depth (B, H, W, 1) (affine-invariant, >= 0).
+    relative inverse depth (B, H, W, 1) (affine-invariant, >= 0), or with `max_depth` > 0 the
+    metric depth in (0, max_depth) metres (upstream's metric models).
 
     train: accepted for the engine's common call; the network has no BatchNorm or dropout, so
     it changes nothing.
@@ -173,6 +182,9 @@ class DepthAnythingV2(nn.Module):
     tokens = DinoVisionTransformer(self.embed_dim, self.depth, self.num_heads, self.mlp_ratio,
                                    tuple(self.layer_idx), self.pos_grid, self.pos_offset,
                                    name="encoder")(x)
-    depth = DPTHead(self.features, tuple(self.out_channels), self.head_features,
+    if not (np.isfinite(self.max_depth) and self.max_depth >= 0):
+      raise ValueError(f"max_depth must be >= 0 (0 = the relative model), got {self.max_depth}")
+    metric = self.max_depth > 0
+    depth = DPTHead(self.features, tuple(self.out_channels), self.head_features, metric,
                     name="depth_head")(tokens)
-    return (depth,)
+    return (depth * self.max_depth if metric else depth,)
