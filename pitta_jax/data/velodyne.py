@@ -93,7 +93,8 @@ def velodyne_depth(calib_dir: PathLike, scan: PathLike, camera: int = 2,
   points = read_velodyne_points(scan)
   points = points[points[:, 0] >= 0]
   image = (P @ points.T).T                                              # (N, 3) float64
-  image[:, :2] = image[:, :2] / image[:, 2:3]
+  with np.errstate(divide="ignore", invalid="ignore"):  # z = 0: off the image, as upstream
+    image[:, :2] = image[:, :2] / image[:, 2:3]
   if vel_depth:
     image[:, 2] = points[:, 0]
   cols, rows = np.round(image[:, 0]) - 1, np.round(image[:, 1]) - 1
