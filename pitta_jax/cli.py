@@ -63,7 +63,8 @@ def _add_segment(sub) -> None:
                   "and OUT/<stem>.json ({\"segments_info\": [...]}, COCO category ids), at the "
                   "image's own size: the input of `--segmentation png:OUT` (or the folder "
                   "reader's panoptic_dir option). By default each image enters the network at "
-                  "its own size, zero-padded to a multiple of 32 (no upscaling to 800 pixels).",
+                  "its own size, zero-padded to a multiple of 32 (no upscaling to 800 pixels; "
+                  "--detectron2-resize for upstream's test-time scale).",
       epilog="example: pitta-jax segment --weights weights/m2f_swin_t --images 'seq/*.png' "
              "--out seq_panoptic; then pitta-jax adapt --dataset folder --root seq "
              "--segmentation png:seq_panoptic ...")
@@ -75,15 +76,24 @@ def _add_segment(sub) -> None:
   p.add_argument("--height", type=int, metavar="H", help="resize images to H x W for the network "
                                                          "(with --width; default: own size)")
   p.add_argument("--width", type=int, metavar="W", help="network input width (with --height)")
+  p.add_argument("--detectron2-resize", action="store_true",
+                 help="resize each image as upstream's test time (detectron2 ResizeShortestEdge: "
+                      "shortest edge 800, longest at most 1333, aspect kept): upstream's maps, "
+                      "~17x the pixels of a 192x640 frame")
   p.add_argument("--quiet", action="store_true", help="no progress bar")
   p.set_defaults(func=_run_segment)
 
 
 def _run_segment(args) -> int:
   from pitta_jax.outputs import open_output_dir
-  from pitta_jax.segment import segment_images
+  from pitta_jax.segment import DETECTRON2_RESIZE, segment_images
+  size = _size(args)
+  if args.detectron2_resize and size is not None:
+    raise ValueError("--detectron2-resize and --height/--width both choose the input size: "
+                     "give one")
   with open_output_dir(args.out):
-    written = segment_images(args.weights, args.images, args.out, _size(args), args.quiet)
+    written = segment_images(args.weights, args.images, args.out,
+                             DETECTRON2_RESIZE if args.detectron2_resize else size, args.quiet)
   print(f"wrote {len(written)} panoptic maps to {args.out}")
   return 0
 

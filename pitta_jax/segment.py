@@ -14,9 +14,11 @@ Input size: by default each image enters the network at its own size, zero-padde
 multiple of 32 (detectron2's size divisibility), i.e. a 192x640 frame is a 192x640 input and
 a 375x1242 KITTI frame a 384x1248 one; we do not upscale the shortest edge to 800 as
 detectron2's test-time `ResizeShortestEdge` does (about 4x the pixels and the time on
-PITTA-sized frames). `input_size=(H, W)` resizes every image to H x W first (e.g. (800, 1333)
-for detectron2's scale). Either way the id map comes back at the image's own size (the masks
-are resized back, `mask2former.mask_logits_to_image`), as `Frame.panoptic` requires.
+PITTA-sized frames). `input_size=(H, W)` resizes every image to H x W first;
+`input_size=DETECTRON2_RESIZE` resizes each image as detectron2's test time does (shortest edge
+800, longest at most 1333, aspect kept): upstream's own maps. Either way the id map comes back
+at the image's own size (the masks are resized back, `mask2former.mask_logits_to_image`), as
+`Frame.panoptic` requires.
 
 The network is jitted and compiled once per input shape (`mask2former.network` caches on the
 module and the shape; a sequence's frames share one). Its outputs leave JAX as NumPy id maps
@@ -34,6 +36,7 @@ from typing import overload
 import numpy as np
 from tqdm import tqdm
 
+from pitta_jax.data import coco
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame, Segment
 from pitta_jax.data.image_io import read_image
@@ -45,6 +48,7 @@ from pitta_jax.predict import (check_images, check_outputs_free, check_unique_st
 
 
 PathLike = str | os.PathLike[str]
+DETECTRON2_RESIZE = "detectron2"  # input_size: ResizeShortestEdge(800, max 1333) per image
 CONVERT_HINT = ("make one with `pitta-jax convert mask2former --from {detectron2,hf} CKPT "
                 "--out DIR`")
 
@@ -54,8 +58,8 @@ class Segmenter:
 
   Args:
     weights_dir: a directory written by `pitta-jax convert mask2former` (config.json + params).
-    input_size: (H, W) network input before padding; None = each image's own size (see the
-      module docstring).
+    input_size: (H, W) network input before padding; None = each image's own size;
+      DETECTRON2_RESIZE = detectron2's test-time resize of each image (module docstring).
   """
 
   def __init__(self, weights_dir: PathLike, input_size: tuple[int, int] | None = None):
@@ -68,16 +72,24 @@ class Segmenter:
     if not (root / CONFIG_JSON).is_file():
       raise DataError(root / CONFIG_JSON, f"not found: not a Mask2Former weights directory "
                                           f"({CONVERT_HINT})")
-    if input_size is not None:
+    if input_size is not None and input_size != DETECTRON2_RESIZE:
       input_size = tuple(int(s) for s in input_size)
       if len(input_size) != 2 or min(input_size) < 1:
         raise ValueError(f"input_size must be (height, width) > 0, got {input_size}")
     self.weights_dir = root
     self.input_size = input_size
     self.module, self.variables = load_mask2former(root)
+    n = self.module.config.num_classes
+    if n != coco.NUM_CLASSES:  # before any image: the segments' classes must be COCO's
+      raise DataError(root / CONFIG_JSON, f"a Mask2Former with {n} classes; the segmenter "
+                                          f"writes COCO panoptic categories (the dynamic "
+                                          f"classes are COCO ids): convert a COCO panoptic "
+                                          f"model ({coco.NUM_CLASSES} classes)")
 
   def inference_config(self, height: int, width: int) -> InferenceConfig:
     """The `InferenceConfig` for an (height, width) image."""
+    if self.input_size == DETECTRON2_RESIZE:
+      return InferenceConfig()  # input_size None: ResizeShortestEdge(min_size, max_size)
     return InferenceConfig(input_size=self.input_size or (height, width))
 
   def __call__(self, image: np.ndarray) -> tuple[np.ndarray, tuple[Segment, ...]]:
@@ -163,7 +175,8 @@ def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_
       weights load, so a bad weights directory is reported first).
     out_dir: output directory (created); earlier outputs of the same stems (a PNG with its
       JSON) are overwritten, any other file of those names is refused (DataError).
-    input_size: (H, W) network input; None = each image's own size (padded to a multiple of 32).
+    input_size: (H, W) network input; None = each image's own size (padded to a multiple of 32);
+      DETECTRON2_RESIZE = detectron2's test-time resize (shortest edge 800, max 1333).
     quiet: no progress bar.
 
   Returns:

@@ -331,6 +331,23 @@ def test_detectron2_pkl_through_the_cli(tmp_path, converted, capsys):
   assert "missing.pkl" in capsys.readouterr().err
 
 
+def test_detectron2_reader_tells_pickles_from_torch_files_by_content(tmp_path, converted):
+  """The same checkpoint as a plain pickle named .pth, a torch.save zip named .pt and a legacy
+  torch.save named .ckpt: each is read by what it is, not by its suffix."""
+  cfg, variables = converted
+  state = R.to_state_dict(variables, wc.detectron2_rules(cfg))
+  with open(tmp_path / "plain.pth", "wb") as f:
+    pickle.dump({"model": state, "__author__": "test"}, f)
+  tensors = {"model": {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in state.items()}}
+  torch.save(tensors, tmp_path / "zip.pt")
+  torch.save(tensors, tmp_path / "legacy.ckpt", _use_new_zipfile_serialization=False)
+  for name in ("plain.pth", "zip.pt", "legacy.ckpt"):
+    got = wc.read_checkpoint(tmp_path / name, "detectron2")
+    assert set(got) == set(state), name
+    for key, value in state.items():
+      np.testing.assert_array_equal(got[key], value, err_msg=f"{name}: {key}")
+
+
 def _legacy_hf_names(state: dict) -> dict:
   """transformers 4.x hub layout: `encoder.model.*`, BERT-style Swin names, numbered norms."""
   out = {}

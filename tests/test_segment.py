@@ -12,6 +12,8 @@ thresholds (the fixture asserts segments exist). Images are 60x90: the network i
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -144,6 +146,29 @@ def test_cli_input_size_resizes(weights, image_dir, tmp_path, capsys):
   assert panoptic_io.read_segments_json(out / "b.json") == tuple(ref_segments)
 
 
+def test_cli_detectron2_resize(weights, image_dir, tmp_path, capsys):
+  """--detectron2-resize: upstream's test-time ResizeShortestEdge(800, max 1333); the 60x90
+  image enters at 800 x 1200 (scale 800 / 60, the long side 1200 <= 1333), the map stays 60x90;
+  with --height/--width as well it is refused."""
+  from pitta_jax.models.mask2former.model import resized_shape
+  assert resized_shape(H, W, InferenceConfig()) == (800, 1200)
+  out = tmp_path / "d2"
+  assert cli.main(["segment", "--weights", str(weights[0]), "--images", str(image_dir / "a.png"),
+                   "--out", str(out), "--detectron2-resize", "--quiet"]) == 0
+  ref_ids, ref_segments = _direct(weights, image_dir / "a.png", None)
+  ids = panoptic_io.read_panoptic_png(out / "a.png")
+  assert ids.shape == (H, W)
+  np.testing.assert_array_equal(ids, ref_ids)
+  assert panoptic_io.read_segments_json(out / "a.json") == tuple(ref_segments)
+  capsys.readouterr()
+  assert cli.main(["segment", "--weights", str(weights[0]), "--images", str(image_dir / "a.png"),
+                   "--out", str(tmp_path / "d3"), "--detectron2-resize", "--height", "64",
+                   "--width", "96"]) == 2
+  assert capsys.readouterr().err == ("error: --detectron2-resize and --height/--width both "
+                                     "choose the input size: give one\n")
+  assert not (tmp_path / "d3").exists()
+
+
 def test_segmented_frames_over_a_frame_sequence(weights, image_dir):
   frames = segmented_frames(open_folder(image_dir), weights[0])
   assert len(frames) == 2 and frames.names == ("a", "b")  # still a lazy FrameSequence
@@ -193,6 +218,17 @@ def test_missing_weights_is_a_user_error(image_dir, tmp_path, capsys):
   assert not (tmp_path / "o").exists()  # nothing written before the weights load
   with pytest.raises(DataError, match="weights directory"):
     segmented_frames(open_folder(image_dir), "")  # --segmentation mask2former: (no DIR)
+  # a model of another label set (e.g. Cityscapes' 19 classes) is refused before any image
+  config = dataclasses.replace(TINY, num_classes=19)
+  other = save_mask2former(tmp_path / "m2f19", config, _random_variables(config),
+                           {"format": "random"})
+  assert cli.main(["segment", "--weights", str(other), "--images", str(image_dir),
+                   "--out", str(tmp_path / "o")]) == 2
+  assert capsys.readouterr().err == (
+      f"error: {other / 'config.json'}: a Mask2Former with 19 classes; the segmenter writes COCO "
+      f"panoptic categories (the dynamic classes are COCO ids): convert a COCO panoptic model "
+      f"(133 classes)\n")
+  assert not (tmp_path / "o").exists()
 
 
 def test_cli_argument_errors(weights, image_dir, tmp_path, capsys):

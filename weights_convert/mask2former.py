@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, load_pickle, load_pth
+from weights_convert.pth import CheckpointError, load_pth, load_pth_or_pickle
 
 from pitta_jax.models.mask2former.load import CONFIG_JSON, PARAMS_DIR
 
@@ -330,7 +330,7 @@ def read_checkpoint(path: str | os.PathLike, source: str) -> dict[str, np.ndarra
   """A flat name -> array dict from a detectron2 `.pkl` / `.pth` or an HF checkpoint."""
   path = str(path)
   if source == "detectron2":
-    obj = load_pth(path) if path.endswith(".pth") else load_pickle(path)
+    obj = load_pth_or_pickle(path)  # .pkl pickles and torch files, whatever their suffix
     if isinstance(obj, dict) and isinstance(obj.get("model"), dict):
       obj = obj["model"]
   elif source == "hf":

@@ -47,6 +47,7 @@ __all__ = ["CheckpointError", "ForbiddenGlobalError", "load_pickle", "load_pth"]
 _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 _LEGACY_PROTOCOL = 1001
 _ZIP_MAGIC = b"PK\x03\x04"  # A zip's first local file header.
+_LEGACY_NOT_PICKLE = "a legacy torch checkpoint, not a plain pickle (use load_pth)"
 
 # torch dtype name (as `torch.<name>` pickles it) -> NumPy dtype of the returned array.
 _DTYPES: dict[str, np.dtype] = {
@@ -639,6 +640,23 @@ def load_pth(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
     raise _reraise(path, error) from error
 
 
+def load_pth_or_pickle(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
+  """`load_pth` of a torch.save file (zip or legacy), else `load_pickle` of a plain pickle: told
+  apart by the file's content, not its suffix (detectron2 writes `.pkl` pickles, a training
+  script `.pth` / `.pt` / `.ckpt` torch files)."""
+  path = _checked_path(path)
+  with open(path, "rb") as f:
+    head = f.read(4)
+  if head == _ZIP_MAGIC:
+    return load_pth(path, allow_numpy=allow_numpy)
+  try:
+    return load_pickle(path, allow_numpy=allow_numpy)
+  except CheckpointError as error:
+    if not str(error).endswith(_LEGACY_NOT_PICKLE):
+      raise
+  return load_pth(path, allow_numpy=allow_numpy)
+
+
 # the training-size entries a MonoDepth2-family encoder file carries beside its tensors
 METADATA_KEYS = ("height", "width", "use_stereo")
 DATA_PARALLEL_PREFIX = "module."  # `nn.DataParallel(model).state_dict()` names
@@ -735,7 +753,7 @@ def load_pickle(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
       f.seek(0)
       obj = _unpickle(f, path, _allowed(torch=False, numpy=allow_numpy))
     if _is_int(obj) and obj == _LEGACY_MAGIC:
-      raise _FormatError("a legacy torch checkpoint, not a plain pickle (use load_pth)")
+      raise _FormatError(_LEGACY_NOT_PICKLE)
     return obj
   except CheckpointError:
     raise
