@@ -197,10 +197,17 @@ def _random_weights(directory: Path, model: str):
 
 
 def weights_identity(ctx: Context, model: str, weights) -> dict:
-  """What identifies the weights in a row's cache key."""
+  """What identifies the weights in a row's cache key: where they are, their model.json and
+  their values (depth and pose networks), so that weights re-converted or retrained into the
+  same directory are not served the old rows."""
+  from pitta_jax.source_stats import update_with_tree, weights_identity as depth_identity
   text = json.dumps(weights.config, sort_keys=True, default=str)
   where = str(Path(ctx.weights[model]).resolve()) if model in ctx.weights else "synthetic-source"
-  return {"model": model, "where": where, "config": hashlib.sha256(text.encode()).hexdigest()[:16]}
+  pose = hashlib.sha256()
+  if weights.pose is not None:
+    update_with_tree(pose, weights.pose)
+  return {"model": model, "where": where, "config": hashlib.sha256(text.encode()).hexdigest()[:16],
+          "values": depth_identity(weights)[:16], "pose": pose.hexdigest()[:16]}
 
 
 # ----------------------------------------------------------------------------- frames
@@ -263,9 +270,11 @@ def cached(ctx: Context, key: str, compute: Callable[[], dict]) -> dict:
   path = ctx.out / "rows" / f"{key}.json"
   if path.is_file():
     try:
-      return json.loads(path.read_text())
-    except json.JSONDecodeError:
-      pass  # a torn file cannot exist (atomic writes); a hand-edited one is recomputed
+      stored = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+      stored = None  # a torn file cannot exist (atomic writes); a hand-edited one is recomputed
+    if isinstance(stored, dict) and isinstance(stored.get("metrics"), dict):
+      return stored
   result = compute()
   path.parent.mkdir(parents=True, exist_ok=True)
   atomic_write_text(path, json.dumps(json_safe(result)[0], indent=1) + "\n")
@@ -274,7 +283,7 @@ def cached(ctx: Context, key: str, compute: Callable[[], dict]) -> dict:
 
 def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: dict) -> Entry:
   """One row on one test case (cached): the method adapting online over the case's frames."""
-  from pitta_jax.run import run_sequence
+  from pitta_jax.run import RESUME_OWN, run_sequence
   from pitta_jax.sources import method_resources
   weights = weights_for(ctx, row.model)
   if weights is None:
@@ -294,7 +303,8 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
     res = run_sequence(weights, frames, cfg, method, name=f"{case}: {row.label}",
                        quiet=ctx.quiet, runners=runners, resources=resources[res_key],
                        checkpoint_dir=None if ctx.quick else ckpt,
-                       checkpoint_every=0 if ctx.quick else CHECKPOINT_EVERY, resume=True)
+                       checkpoint_every=0 if ctx.quick else CHECKPOINT_EVERY,
+                       resume=RESUME_OWN)
     return {"metrics": res.mean if res.status == "ok" else {}, "status": res.status,
             "metrics_before_divergence": res.mean if res.status != "ok" else None,
             "frames": len(frames), "seconds": round(res.seconds, 2),

@@ -173,6 +173,7 @@ def check_aspect(frame: Frame, tolerance: float = 0.01) -> None:
 CHECKPOINT_PATTERN = "state_[0-9][0-9][0-9][0-9][0-9][0-9]"
 UNFINISHED_PATTERN = CHECKPOINT_PATTERN + ".orbax-checkpoint-tmp*"  # a save cut short by a kill
 KEEP_CHECKPOINTS = 2  # a run keeps its newest two (the older one if the newest is cut short)
+RESUME_OWN = "own"  # run_sequence(resume=...): resume this run's checkpoint, else start afresh
 
 
 def run_fingerprint(weights: Weights, method: Method, cfg: AdaptConfig, eval_cfg: EvalConfig,
@@ -281,7 +282,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                  method: Method | None = None, eval_cfg: EvalConfig = EvalConfig(),
                  name: str = "", quiet: bool = False, keep: Sequence[int] = (),
                  checkpoint_dir: str | Path | None = None, checkpoint_every: int = 0,
-                 runners: Runners | None = None, resume: bool = False,
+                 runners: Runners | None = None, resume: bool | str = False,
                  resources: dict | None = None) -> RunResult:
   """Runs a method online over `frames` (predict-then-adapt) and evaluates each prediction
   against the frame's ground truth (when it has one).
@@ -302,7 +303,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       frames (exactly: the chunk size becomes a divisor of K), and on Ctrl-C.
     runners: a shared cache of compiled runners (default: a fresh one, compiled for this call).
     resume: continue from the newest checkpoint under `checkpoint_dir` (its frames are not run
-      again); the result equals an uninterrupted run's.
+      again); the result equals an uninterrupted run's. True: checkpoints of another run (or
+      none that reads back) are an error; RESUME_OWN: they are removed, with a warning, and the
+      run starts afresh (a cache's checkpoints, e.g. an experiment row's).
     resources: host-side inputs of the method (e.g. ActMAD's source statistics); the input
       size (H, W) is added as `resources["input_size"]`.
   """
@@ -325,7 +328,15 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
             "logs": {}, "fingerprint": fingerprint}
   if directory is not None and resume:
-    found = _load_newest(_resume_points(directory, fingerprint, names), state)
+    try:
+      found = _load_newest(_resume_points(directory, fingerprint, names), state)
+    except DataError:
+      if resume != RESUME_OWN:
+        raise
+      print(f"warning: {directory}: its checkpoints are not this run's (other weights, "
+            f"settings or frames, or unreadable); starting afresh", file=sys.stderr)
+      _clear_checkpoints(directory)
+      found = None
     if found is not None:
       state, sidecar = found
       record = {"nonfinite_indices": [], **sidecar}

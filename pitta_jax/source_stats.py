@@ -39,15 +39,21 @@ Stats = dict[str, tuple[np.ndarray, np.ndarray]]
 def weights_identity(weights: Weights) -> str:
   """sha256 of the architecture, model.json and every depth-network variable (path, dtype,
   shape, bytes): equal exactly for the same network with the same values."""
-  from flax.traverse_util import flatten_dict
   digest = hashlib.sha256()
   digest.update(json.dumps([weights.spec.name, weights.config], sort_keys=True,
                            default=str).encode())
-  for path, leaf in sorted(flatten_dict(weights.depth, sep="/").items()):
+  update_with_tree(digest, weights.depth)
+  return digest.hexdigest()
+
+
+def update_with_tree(digest, tree) -> None:
+  """Feeds every leaf of a variables tree (path, dtype, shape, bytes; sorted by path) to a
+  hashlib `digest`."""
+  from flax.traverse_util import flatten_dict
+  for path, leaf in sorted(flatten_dict(tree, sep="/").items()):
     array = np.ascontiguousarray(np.asarray(leaf))
     digest.update(f"{path}|{array.dtype.str}|{array.shape}".encode())
     digest.update(array.tobytes())
-  return digest.hexdigest()
 
 
 def layer_shapes(weights: Weights, layers: str) -> dict[str, tuple[int, ...]]:

@@ -49,6 +49,27 @@ def test_cached_rows_are_computed_once(tmp_path):
     return {"metrics": {"abs_rel": 0.5}}
   assert common.cached(ctx, "k", compute) == common.cached(ctx, "k", compute)
   assert len(calls) == 1 and (tmp_path / "rows" / "k.json").is_file()
+  # a row file that is JSON but not a row (hand-edited, another tool's) is computed again
+  for text in ("{}", "[1]", '{"metrics": 3}', "\xff"):
+    (tmp_path / "rows" / "k.json").write_text(text)
+    assert common.cached(ctx, "k", compute) == {"metrics": {"abs_rel": 0.5}}
+  assert len(calls) == 5
+
+
+def test_row_keys_see_the_weights_values():
+  """Weights re-converted or retrained into the same directory (same path, same model.json)
+  are other weights: the row key's weights identity changes with any depth or pose value."""
+  import numpy as np
+  from pitta_jax.checkpoint import Weights
+  from pitta_jax.models.registry import get_spec
+  ctx = common.Context("synthetic", None, [], "gt", {}, None, True, 2, True)
+  make = lambda d, p: Weights(get_spec("monodepth2"), {"height": 64, "width": 96},
+                              {"params": {"w": np.asarray(d, np.float32)}},
+                              None if p is None else {"params": {"w": np.asarray(p, np.float32)}})
+  base = common.weights_identity(ctx, "monodepth2", make([1.0, 2.0], [3.0]))
+  assert base == common.weights_identity(ctx, "monodepth2", make([1.0, 2.0], [3.0]))
+  for other in (make([1.0, 2.5], [3.0]), make([1.0, 2.0], [3.5]), make([1.0, 2.0], None)):
+    assert common.weights_identity(ctx, "monodepth2", other) != base
 
 
 def test_table_arguments_are_checked_before_work(tmp_path, capsys):

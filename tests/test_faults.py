@@ -200,6 +200,26 @@ def test_sigterm_stops_like_ctrl_c(tiny_weights, tmp_path):
   assert sorted(out.glob("checkpoints/state_??????.json"))
 
 
+def test_a_cache_resume_starts_afresh_over_another_runs_checkpoints(tiny_weights, tmp_path,
+                                                                    capsys):
+  """resume=RESUME_OWN (an experiment row's checkpoints, a cache): another run's checkpoints
+  are removed with a warning and the run starts from its first frame, where resume=True
+  refuses them (the test below)."""
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.checkpoint import load_weights
+  from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  from pitta_jax.run import RESUME_OWN, run_sequence
+  out = tmp_path / "out"
+  assert main(_adapt_args(tiny_weights, out)) == 0  # an N-frame run's checkpoints
+  capsys.readouterr()
+  frames = generate_sequence(SyntheticConfig(height=H, width=W, num_frames=N - K, domain="fog"))
+  result = run_sequence(load_weights(tiny_weights), frames, AdaptConfig(), quiet=True,
+                        checkpoint_dir=out / "checkpoints", checkpoint_every=K, resume=RESUME_OWN)
+  err = capsys.readouterr().err
+  assert f"warning: {out / 'checkpoints'}: its checkpoints are not this run's" in err
+  assert result.resumed_at == 0 and result.status == "ok" and len(result.per_frame) == N - K
+
+
 def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, capsys):
   """A checkpoint carries its run's fingerprint (frames, weights, settings): --resume refuses
   another run's with one line (exit 2), and a fresh run clears the checkpoints it finds."""
