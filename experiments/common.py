@@ -373,6 +373,7 @@ def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthe
   p.add_argument("--dataset", default="synthetic", choices=list(datasets),
                  help="synthetic (default: the embedded benchmark, see the caption) or the real "
                       "dataset at --root")
+  p.set_defaults(dataset_choices=tuple(datasets))
   p.add_argument("--root", help="dataset root (real datasets)")
   p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                  help="reader option, passed to every part of every test case (repeatable)")
@@ -399,6 +400,11 @@ def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthe
   p.add_argument("--debug", action="store_true", help="full tracebacks")
 
 
+def _dataset_choices(args: argparse.Namespace) -> tuple[str, ...]:
+  """The --dataset values this command's parser offers (`add_arguments`)."""
+  return tuple(getattr(args, "dataset_choices", ("synthetic", "drivingstereo")))
+
+
 def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context:
   """Validates the arguments before any work; DataError / ValueError name the flag.
   runners: a compile cache to share with other tables run in the same process."""
@@ -408,7 +414,10 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   if args.dataset != "synthetic" and not args.root:
     raise DataError(None, f"--dataset {args.dataset} needs --root DIR")
   if args.dataset == "synthetic" and args.root:
-    raise DataError(None, "--root is for real datasets: add --dataset drivingstereo|waymo")
+    real = [c for c in _dataset_choices(args) if c != "synthetic"]
+    raise DataError(None, "--root is for real datasets: " + (
+        f"add --dataset {'|'.join(real)}" if real else f"{name} runs on the synthetic benchmark "
+                                                       f"only"))
   if args.root and not Path(args.root).is_dir():
     raise DataError(args.root, "--root: not a directory")
   parse_segmentation(args.segmentation)
@@ -453,12 +462,15 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   if out.exists() and not out.is_dir():
     raise DataError(out, "--out: exists and is not a directory")
   from pitta_jax.outputs import open_output_dir
+  text = getattr(args, "rows", "")
+  rows = tuple(r.strip() for r in text.split(",") if r.strip())
+  if text.strip() and not rows:
+    raise DataError(None, f"--rows {text!r}: no row name in it (comma-separated labels)")
   # created, proved writable and locked before any row runs; `main_wrapper` releases it
   vars(args).setdefault("open_outputs", []).append(open_output_dir(out, "--out"))
   return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
                  args.quick, frames, args.quiet, args.source_images, args.replay_root,
-                 runners, tuple(r.strip() for r in getattr(args, "rows", "").split(",")
-                                if r.strip()))
+                 runners, rows)
 
 
 def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
@@ -467,6 +479,7 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
   --debug). Compiled steps persist under the cache root (`$PITTA_JAX_CACHE`, as `pitta-jax
   demo`), so another table or row at the same shapes loads them instead of compiling again.
   runners: an in-process compile cache shared with other tables of the same process."""
+  from pitta_jax.cli import Terminated, terminate_as_interrupt
   from pitta_jax.data.errors import DataError
   from pitta_jax.outputs import OutputError
   from pitta_jax.source_model import enable_compilation_cache
@@ -474,7 +487,8 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
   failed = True
   try:
     enable_compilation_cache()  # the command's choice: a later run skips the step compiles
-    status = run(args, runners)
+    with terminate_as_interrupt():  # SIGTERM stops as Ctrl-C (also under python -m)
+      status = run(args, runners)
     failed = False
     return status
   except (DataError, OutputError, FileNotFoundError, ValueError, TypeError, OSError) as e:
@@ -482,10 +496,10 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
       raise
     print(f"error: {e}", file=sys.stderr)
     return 2
-  except KeyboardInterrupt:
+  except KeyboardInterrupt as e:
     print("interrupted: finished rows are cached; run the same command again to resume",
           file=sys.stderr)
-    return 130
+    return 143 if isinstance(e, Terminated) else 130  # as the pitta-jax commands
   finally:  # the --out lock (`context`); a failed command leaves no directory it created
     for output in vars(args).pop("open_outputs", []):
       output.__exit__(RuntimeError if failed else None, None, None)

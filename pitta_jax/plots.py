@@ -17,6 +17,7 @@ import textwrap
 from pathlib import Path
 from typing import Mapping, Sequence
 
+import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -74,9 +75,14 @@ def per_frame_figure(series: Mapping[str, Sequence[float]], metric: str, title: 
   """
   check(len(series) > 0, "per_frame_figure: no series to plot")
   fig, (ax,) = _new_figure(cfg, 1, False)
-  for name, values in series.items():
+  # distinct colours past matplotlib's 10-colour cycle (Table 1 has 11 rows): tab20 beyond it
+  colors = [f"C{i}" for i in range(10)] if len(series) <= 10 else [
+      matplotlib.colormaps["tab20"](i) for i in range(20)]
+  styles = ("-", "--", ":", "-.")
+  for k, (name, values) in enumerate(series.items()):
     y = _finite_or_nan(values)  # (N,)
-    ax.plot(np.arange(y.size), y, label=name, linewidth=1.5)
+    ax.plot(np.arange(y.size), y, label=name, linewidth=1.5, color=colors[k % len(colors)],
+            linestyle=styles[(k // len(colors)) % len(styles)])
   ax.set_xlabel("frame")
   ax.set_ylabel(HEADERS.get(metric, metric))
   ax.set_title(title)

@@ -87,6 +87,16 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   (tmp_path / "file").write_text("")
   assert table1.main(["--quick", "--out", str(tmp_path / "file")]) == 2
   assert f"{tmp_path / 'file'}: --out: exists and is not a directory" in capsys.readouterr().err
+  # --rows with separators only (it would have run every row), --root on a synthetic-only table
+  assert table1.main(["--quick", "--rows", " , ", "--out", str(tmp_path / "o")]) == 2
+  assert capsys.readouterr().err == "error: --rows ' , ': no row name in it (comma-separated labels)\n"
+  from experiments import sensitivity
+  assert sensitivity.main(["--quick", "--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+  assert capsys.readouterr().err == ("error: --root is for real datasets: sensitivity runs on "
+                                     "the synthetic benchmark only\n")
+  assert table1.main(["--quick", "--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+  assert "add --dataset drivingstereo\n" in capsys.readouterr().err
+  assert not (tmp_path / "o").exists()
   # flags the synthetic benchmark cannot use are refused, not ignored
   for flags, message in ((["--source-images", "x"], "--source-images: for real datasets only"),
                          (["--option", "foo=1"], "synthetic has no option foo"),
@@ -262,3 +272,21 @@ def test_experiment_subcommand_dispatches_and_names_a_bad_experiment(capsys):
   with pytest.raises(SystemExit) as e:
     main(["experiment", "table4", "--help"])
   assert e.value.code == 0 and "--quick" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("signal_name, code", [("SIGTERM", 143), ("SIGINT", 130)])
+def test_a_signal_stops_a_table_like_the_pitta_jax_commands(tmp_path, capsys, signal_name, code):
+  """`python -m experiments.NAME` too: SIGTERM stops as Ctrl-C does (rows cached, --out
+  unlocked) and exits 143 as `pitta-jax adapt`; Ctrl-C 130."""
+  import signal
+  p = common.parser("table1", "t")
+  before = signal.getsignal(signal.SIGTERM)
+
+  def run(args, runners):
+    common.context(args, "table1")  # locks --out
+    signal.raise_signal(getattr(signal, signal_name))
+    return 0
+  assert common.main_wrapper(run, p, ["--quick", "--out", str(tmp_path / "o")]) == code
+  assert "interrupted: finished rows are cached" in capsys.readouterr().err
+  assert not (tmp_path / "o" / ".pitta-jax.lock").exists()
+  assert signal.getsignal(signal.SIGTERM) is before  # the handler is the command's only

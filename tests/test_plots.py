@@ -34,6 +34,16 @@ def _equal_nan(got, want) -> None:
   np.testing.assert_array_equal(np.asarray(got, float), np.asarray(want, float))  # NaN == NaN
 
 
+def test_eleven_methods_get_eleven_colours():
+  """Table 1's per-frame figure has 11 rows: beyond matplotlib's 10-colour cycle the 11th
+  method must not take the first one's colour."""
+  from matplotlib.colors import to_rgba
+  fig = per_frame_figure({f"method {k}": [0.1 * k, 0.2] for k in range(11)}, "abs_rel", "t",
+                         SMALL)
+  colours = [to_rgba(line.get_color()) for line in fig.axes[0].get_lines()]
+  assert len(set(colours)) == 11
+
+
 def test_per_frame_curves_hold_the_data_and_write_a_png(tmp_path):
   series = {"No adaptation": [0.2, 0.25, NAN, 0.3], "PITTA": [0.1, INF, 0.15],
             "skipped everywhere": [NAN, NAN], "empty": []}
