@@ -42,6 +42,12 @@ def rows() -> list[tuple[str, str, RowSpec]]:
   return out
 
 
+def selected(ctx) -> list[tuple[str, str, RowSpec]]:
+  """The rows --rows selects, by network (label or name), row label (No adaptation, Sunny,
+  All) or method."""
+  return [(g, c, r) for g, c, r in rows() if ctx.wants(g, r.model, r.label, r.method)]
+
+
 def run(args, runners=None) -> int:
   from tqdm import tqdm
   from experiments.figures import per_frame_figures
@@ -50,8 +56,8 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   cases = dict(ctx.cases(("Sunny", "All")))
   shared, resources, entries = common.runners(ctx), {}, []
-  todo = [(g, c, r) for g, c, r in rows() if ctx.wants(g, r.model)]
-  common.check_selection(ctx, todo, [g for g, _, _ in rows()])
+  todo = selected(ctx)
+  common.check_selection(ctx, todo, [x for g, _, r in rows() for x in (g, r.label)])
   common.check_cases(ctx, [(c, cases[c]) for c in dict.fromkeys(c for _, c, _ in todo)])
   for group, case, row in tqdm(todo, desc="rows", unit="row", disable=ctx.quiet):
     entry = common.run_row(ctx, row, case, cases[case], shared, resources)

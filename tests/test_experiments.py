@@ -87,6 +87,17 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   (tmp_path / "file").write_text("")
   assert table1.main(["--quick", "--out", str(tmp_path / "file")]) == 2
   assert f"{tmp_path / 'file'}: --out: exists and is not a directory" in capsys.readouterr().err
+  # table3's rows are known by network, row label and method too (the help's example)
+  from experiments import table3
+  assert table3.main(["--quick", "--rows", "zzz", "--out", str(tmp_path / "o")]) == 2
+  assert ("matches none of this table's rows (SGDepth, No adaptation, Sunny, All, HR-Depth, "
+          in capsys.readouterr().err)
+  pick = lambda *rows: [(g, r.label) for g, _, r in table3.selected(common.Context(
+      "synthetic", None, [], "gt", {}, None, True, 2, True, rows=rows))]
+  assert pick("No adaptation") == [(label, "No adaptation") for label, _ in
+                                   table3.NETWORKS.values()]
+  assert pick("hrdepth") == [("HR-Depth", "No adaptation"), ("HR-Depth", "Sunny"),
+                             ("HR-Depth", "All")]
   # --rows with separators only (it would have run every row), --root on a synthetic-only table
   assert table1.main(["--quick", "--rows", " , ", "--out", str(tmp_path / "o")]) == 2
   assert capsys.readouterr().err == "error: --rows ' , ': no row name in it (comma-separated labels)\n"
