@@ -517,6 +517,21 @@ def load_average() -> str:
     return "n/a"
 
 
+def caption_notes(ctx: Context) -> str:
+  """What a table's caption must add about this run: --quick's random networks (not results),
+  the user's weights, a --rows subset (the other rows are not in these files)."""
+  notes = []
+  if ctx.quick:
+    notes.append(f"--quick: seeded random {QUICK_SIZE[1]}x{QUICK_SIZE[0]} networks, "
+                 f"{QUICK_FRAMES} frames per part: a test of the pipeline, not results.")
+  if ctx.weights:
+    notes.append("Weights: " + ", ".join(f"{m}={d}" for m, d in sorted(ctx.weights.items()))
+                 + ".")
+  if ctx.rows:
+    notes.append(f"Only the rows selected by --rows {','.join(ctx.rows)}.")
+  return " ".join(notes)
+
+
 def meta(ctx: Context) -> dict:
   """What results.json records about the command besides the rows."""
   import platform

@@ -104,7 +104,8 @@ def run(args, runners=None) -> int:
                             f"{ref.metrics['abs_rel']:.4f}; the BN-mode row is PITTA with "
                             "running statistics minus No adaptation (running statistics, no "
                             f"update: AbsRel {running_ref.metrics['abs_rel']:.4f}); the traffic "
-                            "row is against BN batch stats on the dense street."),
+                            "row is against BN batch stats on the dense street. "
+                            + common.caption_notes(ctx)).strip(),
                    group_title="Study", row_title="Setting", seconds=elapsed(),
                    meta={**common.meta(ctx), "reference": ref.metrics,
                          "dense_reference": dense_ref.metrics,

@@ -46,8 +46,11 @@ def publish(ctx: Context, name: str, entries: Sequence[Entry], elapsed: float,
             **layout) -> int:
   """Writes the table's files (`render.write_table`, `layout` its keyword arguments) with the
   run's metadata, prints the markdown unless --quiet; the command's exit status (0)."""
-  from experiments.common import meta
+  from experiments.common import caption_notes, meta
   from experiments.render import write_table
+  notes = caption_notes(ctx)
+  if notes:
+    layout = {**layout, "caption": f"{layout.get('caption', '')} {notes}".strip()}
   md = write_table(ctx.out, name, entries, seconds=elapsed, meta=meta(ctx), **layout)
   if not ctx.quiet:
     print(md)

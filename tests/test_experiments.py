@@ -56,6 +56,16 @@ def test_cached_rows_are_computed_once(tmp_path):
   assert len(calls) == 5
 
 
+def test_captions_say_quick_weights_and_row_subsets():
+  ctx = common.Context("synthetic", None, [], "gt", {"monodepth2": "w/md2"}, None, True, 2, True,
+                       rows=("PITTA",))
+  assert common.caption_notes(ctx) == (
+      "--quick: seeded random 96x64 networks, 2 frames per part: a test of the pipeline, not "
+      "results. Weights: monodepth2=w/md2. Only the rows selected by --rows PITTA.")
+  assert common.caption_notes(common.Context("synthetic", None, [], "gt", {}, None, False, 50,
+                                             True)) == ""
+
+
 def test_row_keys_see_the_weights_values():
   """Weights re-converted or retrained into the same directory (same path, same model.json)
   are other weights: the row key's weights identity changes with any depth or pose value."""
