@@ -244,6 +244,22 @@ def check_cases(ctx: Context, cases: Sequence[tuple[str, Sequence[dict]]]) -> No
         raise DataError(ctx.root, f"test case {case} ({', '.join(options)}): no frames")
 
 
+def check_flags_used(ctx: Context, rows: Sequence[RowSpec]) -> None:
+  """Flags the table's rows cannot use are refused, not ignored: --weights of a network none
+  of `rows` runs, and the source-domain flags when no row's method takes source data."""
+  from pitta_jax.data.errors import DataError
+  models = list(dict.fromkeys(row.model for row in rows))
+  for model, directory in ctx.weights.items():
+    if model not in models:
+      raise DataError(None, f"--weights {model}={directory}: this table has no {model} row "
+                            f"(its networks: {', '.join(models)})")
+  given = [flag for flag, value in (("--source-images", ctx.source_images),
+                                    ("--replay-root", ctx.replay_root)) if value]
+  if given and not any(method_of(row).prepare is not None for row in rows):
+    raise DataError(None, f"{' and '.join(given)}: no row of this table uses source-domain data "
+                          f"(only CoMoDa's and ActMAD's rows do)")
+
+
 def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str]) -> None:
   """--rows that selects nothing is an error (an empty table is not a result)."""
   from pitta_jax.data.errors import DataError

@@ -56,6 +56,7 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   cases = dict(ctx.cases(("Sunny", "All")))
   shared, resources, entries = common.runners(ctx), {}, []
+  common.check_flags_used(ctx, [r for _, _, r in rows()])
   todo = selected(ctx)
   common.check_selection(ctx, todo, [x for g, _, r in rows() for x in (g, r.label)])
   common.check_cases(ctx, [(c, cases[c]) for c in dict.fromkeys(c for _, c, _ in todo)])

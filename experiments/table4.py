@@ -78,6 +78,7 @@ def run(args, runners=None) -> int:
   from experiments.table2 import waymo_caption
   from experiments.tables import publish
   ctx = common.context(args, "table4", runners)
+  common.check_flags_used(ctx, [RowSpec("PITTA", "pitta")])  # the sweep: PITTA on MonoDepth2
   elapsed = common.timer()
   (case, parts), = ctx.cases(("Waymo",))
   weights = common.weights_for(ctx, "monodepth2")

@@ -133,6 +133,24 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   assert table1.main(["--weights", f"depth_anything_v2={tmp_path / 'w'}", "--out",
                       str(tmp_path / "o")]) == 2
   assert "the directory holds a monodepth2, not a depth_anything_v2" in capsys.readouterr().err
+  # flags a table cannot use: weights of a network it does not run, source data without rows
+  # that take it (the weights' directory is checked first, the table's rows next)
+  (tmp_path / "sg").mkdir()
+  (tmp_path / "sg" / "model.json").write_text(json.dumps(
+      {"architecture": "sgdepth", "height": 64, "width": 96, "num_layers": 18,
+       "has_pose": False}))
+  from experiments import table5
+  assert table5.main(["--weights", f"sgdepth={tmp_path / 'sg'}", "--out",
+                      str(tmp_path / "o")]) == 2
+  assert capsys.readouterr().err == (f"error: --weights sgdepth={tmp_path / 'sg'}: this table "
+                                     f"has no sgdepth row (its networks: monodepth2)\n")
+  assert not (tmp_path / "o").exists()
+  ctx = common.Context("drivingstereo", str(tmp_path), [], "gt", {}, None, True, 2, True,
+                       source_images="x")
+  with pytest.raises(Exception, match=r"--source-images: no row of this table uses "
+                                      r"source-domain data"):
+    common.check_flags_used(ctx, table5.ROWS)
+  common.check_flags_used(ctx, table1.ROWS)  # CoMoDa's and ActMAD's rows take it
   # a second command on the same --out is refused while the first holds it
   from pitta_jax.outputs import open_output_dir
   with open_output_dir(tmp_path / "busy"):
