@@ -331,8 +331,9 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
   result = cached(ctx, key, compute)
   _remove_checkpoints(ctx.out / "rows" / f"{key}.ckpt")
   return Entry(case, row.label, result["metrics"], spec=row, status=result.get("status", "ok"),
-               extra={k: result.get(k) for k in ("frames", "seconds", "fps", "n_skipped",
-                                                 "abs_rel_per_frame", "metrics_before_divergence")})
+               extra={**{k: result.get(k) for k in (
+                   "frames", "seconds", "fps", "n_skipped", "abs_rel_per_frame",
+                   "metrics_before_divergence", "adapt", "method_config")}, "row_key": key})
 
 
 def _remove_checkpoints(directory: Path) -> None:

@@ -236,6 +236,10 @@ def test_method_tables_quick(name, quick_out, monkeypatch):
       assert r["metrics"] == {}
     else:
       assert r["status"] == "ok" and len(r["metrics"]) == 7 and _finite(r)
+      # the resolved configuration the row ran with, beside its changes in "spec"
+      assert r["extra"]["adapt"]["lr"] > 0 and r["extra"]["adapt"]["bn_stats"] in (
+          "batch", "running") and isinstance(r["extra"]["method_config"], dict)
+      assert len(r["extra"]["row_key"]) == 20
   assert len([x for x in lines if x["source"] == "ours"]) == len(payload["rows"])
 
   papers = [r for r in payload["rows"] if r["paper"]]
