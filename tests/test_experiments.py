@@ -126,19 +126,13 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1 and not (tmp_path / "o").exists(), err
   # weights named for one network but holding another
-  (tmp_path / "w").mkdir()
-  (tmp_path / "w" / "model.json").write_text(json.dumps(
-      {"architecture": "monodepth2", "height": 64, "width": 96, "num_layers": 18,
-       "has_pose": False}))
+  _model_json(tmp_path / "w", "monodepth2")
   assert table1.main(["--weights", f"depth_anything_v2={tmp_path / 'w'}", "--out",
                       str(tmp_path / "o")]) == 2
   assert "the directory holds a monodepth2, not a depth_anything_v2" in capsys.readouterr().err
   # flags a table cannot use: weights of a network it does not run, source data without rows
   # that take it (the weights' directory is checked first, the table's rows next)
-  (tmp_path / "sg").mkdir()
-  (tmp_path / "sg" / "model.json").write_text(json.dumps(
-      {"architecture": "sgdepth", "height": 64, "width": 96, "num_layers": 18,
-       "has_pose": False}))
+  _model_json(tmp_path / "sg", "sgdepth")
   from experiments import table5
   assert table5.main(["--weights", f"sgdepth={tmp_path / 'sg'}", "--out",
                       str(tmp_path / "o")]) == 2
@@ -156,6 +150,14 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   with open_output_dir(tmp_path / "busy"):
     assert table1.main(["--quick", "--out", str(tmp_path / "busy")]) == 2
     assert "another pitta-jax run is writing there" in capsys.readouterr().err
+
+
+def _model_json(directory, architecture: str) -> None:
+  """A weights directory with only a model.json (enough for the checks before any work)."""
+  directory.mkdir()
+  (directory / "model.json").write_text(json.dumps(
+      {"architecture": architecture, "height": 64, "width": 96, "num_layers": 18,
+       "has_pose": False}))
 
 
 def test_a_real_datasets_cases_are_opened_before_the_first_row(tmp_path, capsys):
