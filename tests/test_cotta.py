@@ -78,22 +78,22 @@ def case(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def jax_run(case):
+def step64(case):
+  """`_float64_step(case, CFG, RESTORE_P)`: one jitted step (compiled once, on first use) for
+  the parity run and the guard test."""
+  with jax.enable_x64(True):
+    return _float64_step(case, CFG, RESTORE_P)
+
+
+@pytest.fixture(scope="module")
+def jax_run(case, step64):
   """One engine step with ld_weight 1 and one with 0 (one compile), and the step's draws."""
-  _, _, variables, frames, threshold, teacher = case
+  frames, threshold = case[3], case[4]
   mcfg = CottaConfig(n_augment=N_AUG, threshold=threshold, ema_decay=EMA, restore_p=RESTORE_P,
                      lr=LR, ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
   with jax.enable_x64(True):
-    v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
-    model = network("monodepth2", {"num_layers": 18})
-    method = build("cotta", mcfg)
-    tx = make_optimizer(CFG, method)
-    step = jax.jit(make_step(model, method, CFG, tx), compiler_options=QUICK_COMPILE)
-    init, consts = init_state(v64, method, CFG, tx, model)
-    init = init.replace(method_state={
-        **init.method_state,
-        "teacher": {"encoder": unflatten_dict({k: jnp.asarray(v) for k, v in teacher.items()},
-                                              sep="/")}})
+    step, init, consts, perturbed = step64
+    init = init.replace(method_state={**init.method_state, "teacher": perturbed})
     frame = StepInput(*(jnp.asarray(v[0], jnp.float64 if v.dtype == np.float32 else None)
                         for v in frames))
     rng = jax.random.fold_in(init.rng, init.step)           # the engine's per-frame key
@@ -211,7 +211,7 @@ def test_reset_copies_the_teacher_from_the_source_as_upstream(case):
                                atol=1e-15, err_msg=k)
 
 
-def test_nonfinite_step_keeps_the_student_but_not_the_teacher_or_the_restore(case):
+def test_nonfinite_step_keeps_the_student_but_not_the_teacher_or_the_restore(case, step64):
   """The non-finite guard (engine.optax_update's semantics, here on the raveled vector): a
   frame with a NaN pixel makes the loss NaN, so the student and Adam's state keep their values
   and n_skipped counts the frame; the teacher's EMA and the stochastic restore still run, as
@@ -220,7 +220,7 @@ def test_nonfinite_step_keeps_the_student_but_not_the_teacher_or_the_restore(cas
   with the mask from `restore_masks` and the step's key, a student away from the source."""
   frames = case[3]
   with jax.enable_x64(True):
-    step, init, consts, perturbed = _float64_step(case, CFG, restore_p=RESTORE_P)
+    step, init, consts, perturbed = step64
     init = init.replace(trainable=perturbed)  # student != source; teacher = source
     image = np.array(frames.image[0], np.float64)
     image[3, 5, 1] = np.nan
