@@ -331,7 +331,12 @@ def test_a_signal_stops_a_table_like_the_pitta_jax_commands(tmp_path, capsys, si
     common.context(args, "table1")  # locks --out
     signal.raise_signal(getattr(signal, signal_name))
     return 0
-  assert common.main_wrapper(run, p, ["--quick", "--out", str(tmp_path / "o")]) == code
+  # a background job (nohup, CI) may start with SIGINT ignored: Python's own handler here
+  previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+  try:
+    assert common.main_wrapper(run, p, ["--quick", "--out", str(tmp_path / "o")]) == code
+  finally:
+    signal.signal(signal.SIGINT, previous_int)
   assert "interrupted: finished rows are cached" in capsys.readouterr().err
   assert not (tmp_path / "o" / ".pitta-jax.lock").exists()
   assert signal.getsignal(signal.SIGTERM) is before  # the handler is the command's only
