@@ -20,6 +20,10 @@ import numpy as np
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import PathLike, require_file
 
+# KITTI raw's calibration files, one pair per date folder (the date's calibration download)
+KITTI_CAM_TO_CAM = "calib_cam_to_cam.txt"
+KITTI_VELO_TO_CAM = "calib_velo_to_cam.txt"
+
 
 @dataclasses.dataclass(frozen=True)
 class Calib:

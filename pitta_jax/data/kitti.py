@@ -49,18 +49,17 @@ import numpy as np
 
 from weights_convert.pth import CheckpointError, ForbiddenGlobalError, unpickle_arrays
 
-from pitta_jax.data.calib import Calib, rectified_calib
+from pitta_jax.data.calib import KITTI_CAM_TO_CAM, Calib, rectified_calib
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import (PathLike, list_images, read_depth_png, require_dir,
                                      require_file)
 from pitta_jax.data.panoptic_io import panoptic_source
 from pitta_jax.data.sequence import FrameFiles, FrameSequence, require_frames
-from pitta_jax.data.velodyne import velodyne_depth, velodyne_path, velodyne_projection
+from pitta_jax.data.velodyne import project_scan, velodyne_path, velodyne_projection
 
 SIDE_TO_CAMERA = {"l": 2, "r": 3, "2": 2, "3": 3}
-CALIB_FILE = "calib_cam_to_cam.txt"  # per date folder, from KITTI raw's calibration download
-INTRINSICS_REMEDY = (f"KITTI raw's <date>/{CALIB_FILE} (the date's calibration download) in "
-                     f"--root")
+INTRINSICS_REMEDY = (f"KITTI raw's <date>/{KITTI_CAM_TO_CAM} (the date's calibration "
+                     f"download) in --root")
 
 def _open_npy_member(path: Path, archive: zipfile.ZipFile, key: str):
   member = f"{key}.npy"
@@ -107,7 +106,7 @@ class _Calibrations:
     self._cache: dict[tuple[Path, int], Calib | None] = {}
 
   def path(self, data: Path, folder: str) -> Path:
-    return data / folder.split("/")[0] / CALIB_FILE
+    return data / folder.split("/")[0] / KITTI_CAM_TO_CAM
 
   def get(self, data: Path, folder: str, camera: int) -> Calib | None:
     path = self.path(data, folder)
@@ -293,19 +292,18 @@ def _velodyne_loaders(data: Path, entries: list[tuple[str, int, int]]) -> list:
   """One loader per split line of its ground truth from the Velodyne scan
   (`velodyne.velodyne_depth` with camera 2 and the forward distance, what `export_gt_depth.py`
   writes for every line); DataError naming the first missing scan or bad calibration file
-  before any frame is read."""
-  dates = {}
+  before any frame is read. Each date's calibration is read once, here."""
+  projections = {}
   loaders = []
   for folder, frame, _ in entries:
     date = data / folder.split("/")[0]
-    if date not in dates:
-      velodyne_projection(date, 2)  # both calibration files present and well-formed
-      dates[date] = True
+    if date not in projections:
+      projections[date] = velodyne_projection(date, 2)
     scan = velodyne_path(data, folder, frame)
     if not scan.is_file():
       raise DataError(scan, "Velodyne scan not found (the split's other frames have theirs; "
                             "pass gt_depths or depth=False)")
-    loaders.append(functools.partial(velodyne_depth, date, scan, 2, True))
+    loaders.append(functools.partial(project_scan, *projections[date], scan, True))
   return loaders
 
 

@@ -28,12 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from pitta_jax.data.calib import read_calib_txt
+from pitta_jax.data.calib import (KITTI_CAM_TO_CAM, KITTI_VELO_TO_CAM, read_calib_txt,
+                                  rectified_calib)
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import PathLike, require_file
-
-VELO_FILE = "calib_velo_to_cam.txt"  # per date folder, beside calib_cam_to_cam.txt
-CAM_FILE = "calib_cam_to_cam.txt"
 
 
 def velodyne_path(data: Path, folder: str, frame: int) -> Path:
@@ -65,7 +63,7 @@ def velodyne_projection(calib_dir: PathLike, camera: int) -> tuple[np.ndarray, t
   """(P (3, 4) float64 from Velodyne points to camera `camera`'s rectified image, the map's
   (H, W) from S_rect_02) for KITTI raw's date folder `calib_dir`."""
   calib_dir = Path(calib_dir)
-  velo_path, cam_path = calib_dir / VELO_FILE, calib_dir / CAM_FILE
+  velo_path, cam_path = calib_dir / KITTI_VELO_TO_CAM, calib_dir / KITTI_CAM_TO_CAM
   velo = read_calib_txt(velo_path)
   cam = read_calib_txt(cam_path)
   velo_to_cam = np.eye(4)
@@ -74,11 +72,10 @@ def velodyne_projection(calib_dir: PathLike, camera: int) -> tuple[np.ndarray, t
   rect = np.eye(4)
   rect[:3, :3] = _entry(cam, cam_path, "R_rect_00", 9).reshape(3, 3)
   P_rect = _entry(cam, cam_path, f"P_rect_0{camera}", 12).reshape(3, 4)
-  size = _entry(cam, cam_path, "S_rect_02", 2)
-  if not np.all(size > 0) or not np.all(size == np.round(size)):
-    raise DataError(cam_path, f"S_rect_02 must be 2 positive integers (width height), got "
-                              f"{size.tolist()}")
-  return P_rect @ rect @ velo_to_cam, (int(size[1]), int(size[0]))
+  size = rectified_calib(cam_path, "02").size  # S_rect_02, checked there
+  if size is None:
+    raise DataError(cam_path, "no S_rect_02 (width height): the ground truth's size")
+  return P_rect @ rect @ velo_to_cam, size
 
 
 def velodyne_depth(calib_dir: PathLike, scan: PathLike, camera: int = 2,
@@ -89,7 +86,14 @@ def velodyne_depth(calib_dir: PathLike, scan: PathLike, camera: int = 2,
   frame's `.bin`; camera: 2 or 3 (`export_gt_depth.py` always uses 2); vel_depth: depth = the
   Velodyne x (True, the export's) or the camera's z (False).
   """
-  P, (h, w) = velodyne_projection(calib_dir, camera)
+  return project_scan(*velodyne_projection(calib_dir, camera), scan, vel_depth)
+
+
+def project_scan(P: np.ndarray, size: tuple[int, int], scan: PathLike,
+                 vel_depth: bool = True) -> np.ndarray:
+  """`velodyne_depth` with the date's projection P (3, 4) and map size (H, W) already read
+  (`velodyne_projection`): what a split's frames of one date share."""
+  h, w = size
   points = read_velodyne_points(scan)
   points = points[points[:, 0] >= 0]
   image = (P @ points.T).T                                              # (N, 3) float64
@@ -113,5 +117,5 @@ def velodyne_depth(calib_dir: PathLike, scan: PathLike, camera: int = 2,
   return depth.astype(np.float32)
 
 
-__all__ = ["VELO_FILE", "velodyne_path", "read_velodyne_points", "velodyne_projection",
-           "velodyne_depth"]
+__all__ = ["velodyne_path", "read_velodyne_points", "velodyne_projection", "velodyne_depth",
+           "project_scan"]
