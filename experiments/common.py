@@ -120,6 +120,8 @@ class Context:
   # the weights of each model, read once per command (`weights_for`): reading and checking a
   # directory traces the network's init, ~3 s a row at 64x96 on 2 cores, for every row
   loaded: dict[str, Any] = dataclasses.field(default_factory=dict)
+  # each model's weights identity (`weights_identity`), hashed once per command, not per row
+  identities: dict[str, dict] = dataclasses.field(default_factory=dict)
 
   def wants(self, *labels: str) -> bool:
     """Whether --rows selects a row known by any of `labels` (no --rows: every row)."""
@@ -197,17 +199,21 @@ def _random_weights(directory: Path, model: str):
 
 
 def weights_identity(ctx: Context, model: str, weights) -> dict:
-  """What identifies the weights in a row's cache key: where they are, their model.json and
-  their values (depth and pose networks), so that weights re-converted or retrained into the
-  same directory are not served the old rows."""
-  from pitta_jax.source_stats import update_with_tree, weights_identity as depth_identity
-  text = json.dumps(weights.config, sort_keys=True, default=str)
-  where = str(Path(ctx.weights[model]).resolve()) if model in ctx.weights else "synthetic-source"
-  pose = hashlib.sha256()
-  if weights.pose is not None:
-    update_with_tree(pose, weights.pose)
-  return {"model": model, "where": where, "config": hashlib.sha256(text.encode()).hexdigest()[:16],
-          "values": depth_identity(weights)[:16], "pose": pose.hexdigest()[:16]}
+  """What identifies the weights in a row's cache key: where they are, and their model.json
+  and values (`source_stats.weights_identity`: the depth network; and the pose network), so
+  that weights re-converted or retrained into the same directory are not served the old rows.
+  `weights` is `weights_for(ctx, model)`; hashed once per command (`Context.identities`)."""
+  if model not in ctx.identities:
+    from pitta_jax.source_stats import update_with_tree, weights_identity as depth_identity
+    where = (str(Path(ctx.weights[model]).resolve()) if model in ctx.weights
+             else "synthetic-source")
+    pose = hashlib.sha256()
+    if weights.pose is not None:
+      update_with_tree(pose, weights.pose)
+    ctx.identities[model] = {"model": model, "where": where,
+                             "values": depth_identity(weights)[:16],
+                             "pose": pose.hexdigest()[:16]}
+  return ctx.identities[model]
 
 
 # ----------------------------------------------------------------------------- frames

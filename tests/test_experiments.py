@@ -68,18 +68,23 @@ def test_captions_say_quick_weights_and_row_subsets():
 
 def test_row_keys_see_the_weights_values():
   """Weights re-converted or retrained into the same directory (same path, same model.json)
-  are other weights: the row key's weights identity changes with any depth or pose value."""
+  are other weights: the row key's weights identity changes with any depth or pose value
+  (each command, a fresh Context, hashes its weights once)."""
   import numpy as np
   from pitta_jax.checkpoint import Weights
   from pitta_jax.models.registry import get_spec
-  ctx = common.Context("synthetic", None, [], "gt", {}, None, True, 2, True)
+  command = lambda: common.Context("synthetic", None, [], "gt", {}, None, True, 2, True)
   make = lambda d, p: Weights(get_spec("monodepth2"), {"height": 64, "width": 96},
                               {"params": {"w": np.asarray(d, np.float32)}},
                               None if p is None else {"params": {"w": np.asarray(p, np.float32)}})
-  base = common.weights_identity(ctx, "monodepth2", make([1.0, 2.0], [3.0]))
-  assert base == common.weights_identity(ctx, "monodepth2", make([1.0, 2.0], [3.0]))
+  identity = lambda weights: common.weights_identity(command(), "monodepth2", weights)
+  base = identity(make([1.0, 2.0], [3.0]))
+  assert base == identity(make([1.0, 2.0], [3.0]))
   for other in (make([1.0, 2.5], [3.0]), make([1.0, 2.0], [3.5]), make([1.0, 2.0], None)):
-    assert common.weights_identity(ctx, "monodepth2", other) != base
+    assert identity(other) != base
+  ctx = command()  # the rows of one command share one hash
+  assert common.weights_identity(ctx, "monodepth2", make([1.0, 2.0], [3.0])) is \
+      common.weights_identity(ctx, "monodepth2", make([1.0, 2.0], [3.0]))
 
 
 def test_table_arguments_are_checked_before_work(tmp_path, capsys):
