@@ -304,13 +304,13 @@ def infer_config(state: dict, source: str, path: str, arch: Mapping[str, Any] | 
   if unknown:
     raise ValueError(f"arch overrides {unknown} are not num_heads / layer_idx / max_depth")
   given = (arch or {}).get("max_depth")
-  if given is not None and known.get("max_depth", given) != given:
+  config_says = known.get("max_depth")  # an HF config.json's metric max_depth; None: relative
+  if (given is not None and given != config_says and source == "hf"
+      and Path(path).with_name("config.json").is_file()):
+    says = (f"max_depth {config_says:g}" if config_says is not None
+            else "depth_estimation_type relative")
     raise CheckpointError(f"{path}: --max-depth {given:g} but the config.json beside it says "
-                          f"max_depth {known['max_depth']:g}")
-  if given is not None and source == "hf" and "max_depth" not in known and Path(
-      path).with_name("config.json").is_file():
-    raise CheckpointError(f"{path}: --max-depth {given:g} but the config.json beside it says "
-                          f"depth_estimation_type relative")
+                          f"{says}")
   known.update(arch or {})
   missing = [k for k in ("num_heads", "layer_idx") if k not in known]
   if missing:
