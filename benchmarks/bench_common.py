@@ -101,7 +101,7 @@ def step_inputs(frames: list[BenchFrame], max_segments: int, valid: int | None =
   k = np.broadcast_to(intrinsics_matrix(h, w), (n, 3, 3)) if intrinsics else np.zeros((n, 3, 3))
   return StepInput(np.stack([f.image for f in frames]), np.stack([f.panoptic for f in frames]),
                    ids, cls, ok, valid_mask, np.asarray(k, np.float32),
-                   np.full((n,), intrinsics, bool))
+                   np.full((n,), intrinsics, bool), np.zeros((n,), bool))
 
 
 SOURCE_FRAMES = 8  # generated source-domain frames a method's `prepare` gets

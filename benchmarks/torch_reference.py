@@ -205,7 +205,8 @@ def encoder_bns(encoder: nn.Module) -> list[tuple[str, nn.Module]]:
 
 
 class TorchActmad:
-  """ActMAD + L_d: hooks on the encoder BNs, SGD on every encoder parameter (fc excluded).
+  """ActMAD + L_d: hooks on the encoder BNs, SGD on every encoder parameter (fc excluded); the
+  reported depth is the frame's after the step (as upstream evaluates).
 
   source_stats: {bn module name: (mean, var)}, each (C, h, w) float32; config: the JAX method's
   `ActmadConfig` (the same knobs on both sides).
@@ -243,7 +244,9 @@ class TorchActmad:
     loss.backward()
     self.optimizer.step()
     self.ring.append({n: a.detach() for n, a in self.saved.items()})
-    return depth.detach(), loss.item()
+    with torch.no_grad():  # upstream tests after optimizer.step(): the reported depth
+      after = disp_to_depth(self.decoder(self.encoder(image))[("disp", 0)])[0, 0]
+    return after, loss.item()
 
 
 class TorchCotta:

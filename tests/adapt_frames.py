@@ -31,4 +31,4 @@ def make_frames(n: int, seed: int = 0) -> StepInput:
   seg_valid[:, :4] = True
   return StepInput(np.stack(images).astype(np.float32), np.stack(pans), seg_ids, seg_cls,
                    seg_valid, np.ones((n,), bool), np.zeros((n, 3, 3), np.float32),
-                   np.zeros((n,), bool))
+                   np.zeros((n,), bool), np.zeros((n,), bool))

@@ -89,9 +89,12 @@ def _torch_run(case, stats, trainable, ld_weight, n_frames):
   enc, dec, _, frames, _ = case
   enc, dec = copy.deepcopy(enc), copy.deepcopy(dec)
   ref = torch_tta.ActMAD(enc, dec, stats, LR, RING, ld_weight, WINDOW, set(trainable))
-  losses = [ref.step(frames.image[t], frames.panoptic[t], IDS) for t in range(n_frames)]
+  losses, depths = [], []
+  for t in range(n_frames):
+    losses.append(ref.step(frames.image[t], frames.panoptic[t], IDS))
+    depths.append(ref.depth(frames.image[t]))     # evaluated after the step, as upstream
   params = torch_tta.encoder_params(enc)
-  return losses, {k: params[k] for k in trainable}
+  return losses, {k: params[k] for k in trainable}, depths
 
 
 def _worst_rel(a: dict, b: dict, ref: dict) -> float:
@@ -117,7 +120,7 @@ def test_source_statistics_match_torch(jax_run, torch_stats):
 
 def test_online_steps_match_torch(case, jax_run, torch_stats):
   _, outs, params, _, _ = jax_run
-  t_losses, t_params = _torch_run(case, torch_stats, params, 1.0, N_FRAMES)
+  t_losses, t_params, t_depths = _torch_run(case, torch_stats, params, 1.0, N_FRAMES)
   assert len(params) == 40 + 2  # 20 BN (scale, bias) + the last 2 conv kernels
   src = torch_tta.encoder_params(case[0])
   for t, (out, (total, own, l_d)) in enumerate(zip(outs, t_losses)):
@@ -128,6 +131,7 @@ def test_online_steps_match_torch(case, jax_run, torch_stats):
     np.testing.assert_allclose(float(out.logs["loss_d"]), l_d, rtol=1e-9)
     np.testing.assert_allclose(float(out.loss), total, rtol=1e-9)
     np.testing.assert_allclose(float(out.loss), own + l_d, rtol=1e-12)  # total = own + 1 * L_d
+    np.testing.assert_allclose(out.depth, t_depths[t], rtol=1e-7)  # after the frame's step
     assert not bool(out.skipped)
   rel = _worst_rel(params, t_params, src)
   print(f"adapted parameters after {N_FRAMES} steps ({len(t_params)} leaves): worst max diff / max update "
@@ -137,7 +141,7 @@ def test_online_steps_match_torch(case, jax_run, torch_stats):
 
 def test_ld_weight_zero_is_plain_actmad(case, jax_run, torch_stats):
   _, outs, _, out0, params0 = jax_run
-  t_losses, t_params = _torch_run(case, torch_stats, params0, 0.0, 1)
+  t_losses, t_params, _ = _torch_run(case, torch_stats, params0, 0.0, 1)
   total, own, _ = t_losses[0]
   print(f"ld_weight 0: jax {float(out0.loss):.10f} torch ActMAD {total:.10f}; with ld_weight 1 "
         f"the difference is L_d {float(outs[0].loss) - float(out0.loss):.6f} "

@@ -396,6 +396,28 @@ def test_run_is_finite_and_reproducible(jax_run):
     np.testing.assert_array_equal(a, b)
 
 
+def test_recording_start_has_no_previous_frame(jax_run):
+  """A frame that starts a new recording is a first frame for U (upstream starts each video at
+  its second frame): U keeps its weights there, and the next frame pairs with it."""
+  frames = [step_input(f, H, W, adapt_frames.S) for f in generate_sequence(
+      SyntheticConfig(height=H, width=W, num_frames=3, seed=2))]
+  frames[1] = frames[1]._replace(starts_recording=np.array(True))
+  step, consts = jax_run["step"], jax_run["consts"]
+  with jax.enable_x64(True):
+    state, updated, u_params = jax_run["fresh"], [], []
+    for f in frames:
+      f = StepInput(*(jnp.asarray(v, jnp.float64 if v.dtype.kind == "f" else None) for v in f))
+      state, out = step(state, f, consts)
+      updated.append(float(out.logs["u_updated"]))
+      u_params.append(_flat(state.method_state["u"].params))
+  assert updated == [0.0, 0.0, 1.0]
+  for k, v in u_params[0].items():          # frame 1 left U as frame 0 did (no step at either)
+    np.testing.assert_array_equal(u_params[1][k], v)
+  ring = state.method_state["frames"]
+  assert int(ring["count"]) == 1
+  np.testing.assert_array_equal(np.asarray(ring["items"][0]), frames[2].image)
+
+
 def test_requirements_fail_before_work():
   """BN eval mode and one step per frame are required (one-line errors naming the flag), and a
   missing pose network or input size is named at init."""

@@ -284,3 +284,36 @@ def test_running_a_fresh_state_does_not_consume_the_callers_variables(variables,
   state, consts = init_state(v, method, CFG, tx)
   runner(state, _frames(2, seed=9), consts)  # direct call: `state` is donated here
   assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(v))
+
+
+def test_each_inner_step_draws_its_own_randomness():
+  """With steps_per_frame k, every inner step's loss gets its own key (CoTTA draws new views at
+  each of upstream's `steps`): a toy loss <w, N(key)> under SGD(1) moves w by -(g_1 + g_2), two
+  different draws, where a shared key would move it by -2 g_1. The first step keeps the frame's
+  key, so one step per frame is unchanged."""
+  from pitta_jax.adapt.engine import AdaptState, Consts, adapt_step
+  from pitta_jax.methods.base import Aux, Method
+
+  def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg):
+    del state, consts, frame, model, cfg, mcfg
+    draw = jax.random.normal(rng, (3,))
+    return jnp.sum(trainable["w"] * draw), Aux(jnp.zeros((2, 2)), {"draw": draw})
+
+  method = Method("toy", None, init=lambda *a: {}, loss=loss)
+  tx = optax.sgd(1.0)
+  w0 = {"w": jnp.zeros((3,))}
+  state = AdaptState(trainable=w0, opt_state=tx.init(w0), method_state={}, source=w0,
+                     step=jnp.zeros((), jnp.int32), rng=jax.random.PRNGKey(0),
+                     n_skipped=jnp.zeros((), jnp.int32))
+  frame = StepInput(*(np.asarray(v[0]) for v in adapt_frames.make_frames(1)))
+  moved = {}
+  for k in (1, 2):
+    new, out = adapt_step(state, frame, Consts({}, {}), model=None, method=method,
+                          cfg=AdaptConfig(steps_per_frame=k), tx=tx)
+    moved[k] = np.asarray(new.trainable["w"])
+    first = np.asarray(out.logs["draw"])     # the reported (first) step's draw
+  frame_key = jax.random.fold_in(state.rng, state.step)
+  np.testing.assert_array_equal(first, np.asarray(jax.random.normal(frame_key, (3,))))
+  np.testing.assert_array_equal(moved[1], -first)
+  second = -moved[2] - first                 # the second inner step's draw
+  assert np.all(np.abs(second - first) > 1e-3)

@@ -17,7 +17,8 @@ frame the loss, CoMoDa's own term, L_d and the evaluated depth, and the depth AN
 parameters after 2 updates (ld_weight 1) and after 1 update (ld_weight 0, against the reference
 without L_d); at the first update loss(ld 1) - loss(ld 0) = L_d. On tiny networks (a second,
 cheap compile): latency 1 (no update on frames 0, 1; frame t-1 adapted from (t-2, t), its loss
-rebuilt with the library's loss kit; the evaluated depth is frame t's), two runs bitwise equal,
+rebuilt with the library's loss kit; the evaluated depth is frame t's after the update, as
+upstream's), two runs bitwise equal,
 and the non-finite guard over both networks.
 """
 
@@ -344,7 +345,8 @@ def _random_variables(module, channels: int, seed: int):
 @pytest.fixture(scope="module")
 def tiny_case():
   """4 frames with latency 1 through the engine's compiled chunk (x64): twice; frames 0-2 only
-  (the parameters before step 3); from a pose network holding a NaN."""
+  (the parameters before step 3); from a pose network holding a NaN; with frame 1 starting a
+  new recording."""
   frames = generate_sequence(SyntheticConfig(height=TINY_H, width=TINY_W, num_frames=4, seed=5,
                                              domain="rain"))
   clear = generate_sequence(SyntheticConfig(height=TINY_H, width=TINY_W, num_frames=5, seed=0))
@@ -369,14 +371,15 @@ def tiny_case():
     bad = jax.tree_util.tree_map(lambda x: x.at[(0,) * x.ndim].set(jnp.nan), pose.trainable)
     nan_init = init.replace(method_state={**init.method_state, "pose": pose.replace(trainable=bad)})
     nan_run = host(run(copy_of(nan_init), chunk, consts))
-    return frames, inputs, replay, [host(init), before_3], runs, (host(nan_init), nan_run)
+    cut = host(run(copy_of(init), chunk._replace(starts_recording=np.arange(4) == 1), consts))
+    return (frames, inputs, replay, [host(init), before_3], runs, (host(nan_init), nan_run),
+            cut)
 
 
 @jax.jit
-def _latency1_terms(depth_params, pose_params, centre_frame, target, before, after, K, mask, noise,
-                    next_image):
+def _latency1_terms(depth_params, pose_params, centre_frame, target, before, after, K, mask, noise):
   """MonoDepth2's loss of the targets from (before, after) + L_d of the first target's depth,
-  written out with the library's loss kit, and the next image's depth."""
+  written out with the library's loss kit."""
   pose_vars = {"params": pose_params, "batch_stats": {}}
   a, tr = TinyPose().apply(pose_vars, jnp.concatenate([before, target], -1))
   T_before = transformation_from_parameters(a[:, 0], tr[:, 0], invert=True)
@@ -388,16 +391,23 @@ def _latency1_terms(depth_params, pose_params, centre_frame, target, before, aft
                            jnp.stack([T_before, T_after], 1), cfg=LATENCY1.sfm, noise=noise,
                            pixel_weights=mask)
   l_d, _ = depth_refining_term(disp_to_depth(disps[0][0], 0.1, 100.0), centre_frame, LATENCY1.ld)
-  evaluated = disp_to_depth(TinyDepth().apply(variables, next_image[None])[0][0, ..., 0], 0.1, 100.0)
-  return own, l_d, evaluated
+  return own, l_d
 
 
-def _expected_latency1_loss(case, t):
+@jax.jit
+def _tiny_depth(depth_params, image):
+  """The tiny network's depth (H, W) of one image, as MonoDepth2's disp_to_depth(0.1, 100)."""
+  disp = TinyDepth().apply({"params": depth_params, "batch_stats": {}}, image[None])[0]
+  return disp_to_depth(disp[0, ..., 0], 0.1, 100.0)
+
+
+def _expected_latency1_loss(case, t, state=None):
   """Step t's terms built by hand: MonoDepth2's loss of frame t-1 from (t-2, t) and the replay
-  triplets, K of frame t-1, frame t-1's moving objects masked, + L_d of frame t-1's depth; the
-  evaluated depth is frame t's, with the parameters before step t."""
-  frames, inputs, replay, states, _, _ = case
-  state = states[t - 2]                  # the parameters before step t (none moved before 2)
+  triplets, K of frame t-1, frame t-1's moving objects masked, + L_d of frame t-1's depth, with
+  the parameters before step t (`state`, by default the uninterrupted run's)."""
+  frames, inputs, replay, states, _, _, _ = case
+  if state is None:
+    state = states[t - 2]                # the parameters before step t (none moved before 2)
   idx, noise = step_draws(jax.random.fold_in(jax.random.PRNGKey(CFG.seed), t),
                           replay[REPLAY_IMAGES].shape[0], LATENCY1, TINY_H, TINY_W, jnp.float64)
   idx = np.asarray(idx)
@@ -411,32 +421,55 @@ def _expected_latency1_loss(case, t):
       state.trainable, state.method_state["pose"].trainable, inputs[t - 1],
       np.concatenate([inputs[t - 1].image[None], images[idx, 1]]),
       np.concatenate([inputs[t - 2].image[None], images[idx, 0]]),
-      np.concatenate([inputs[t].image[None], images[idx, 2]]), K, mask, noise, inputs[t].image)
+      np.concatenate([inputs[t].image[None], images[idx, 2]]), K, mask, noise)
   return tuple(np.asarray(x) for x in terms)
 
 
 def test_latency_1_adapts_the_previous_frame_one_frame_late(tiny_case):
-  _, _, _, states, runs, _ = tiny_case
+  """Frame t's depth is evaluated after step t (the parameters before step t + 1: the initial
+  ones for frames 0-1, after step 2 for frame 2, the final ones for frame 3), as upstream."""
+  _, inputs, _, states, runs, _, _ = tiny_case
   state, out = runs[0]
+  after = [states[0], states[0], states[1], state]
   for t in (0, 1):                          # frame t-1 has no t-2 yet: no update, loss 0
     assert float(out.loss[t]) == 0.0 and float(out.update_norm[t]) == 0.0
+  for t in range(4):
+    with jax.enable_x64(True):
+      evaluated = _tiny_depth(after[t].trainable, inputs[t].image)
+    np.testing.assert_allclose(out.depth[t], evaluated, rtol=1e-12)
   for t in (2, 3):
     with jax.enable_x64(True):
-      own, l_d, evaluated = _expected_latency1_loss(tiny_case, t)
+      own, l_d = _expected_latency1_loss(tiny_case, t)
     own, l_d = float(own), float(l_d)
     print(f"latency 1, frame {t}: comoda {float(out.logs['loss_comoda'][t]):.10f} / {own:.10f}, "
           f"L_d {float(out.logs['loss_d'][t]):.8f} / {l_d:.8f}")
     np.testing.assert_allclose(float(out.logs["loss_comoda"][t]), own, rtol=1e-12)
     np.testing.assert_allclose(float(out.logs["loss_d"][t]), l_d, rtol=1e-12)
     np.testing.assert_allclose(float(out.loss[t]), own + l_d, rtol=1e-12)
-    np.testing.assert_allclose(out.depth[t], evaluated, rtol=1e-12)
     assert float(out.update_norm[t]) > 0 and not bool(out.skipped[t])
   assert int(state.opt_state[0].count) == 2 == int(state.method_state["pose"].opt_state[0].count)
   assert int(state.method_state["ring"]["image"]["count"]) == 2
 
 
+def test_recording_start_has_no_previous_frame(tiny_case):
+  """Frame 1 starts a new recording: with latency 1, frames 1 and 2 lack a neighbour in their
+  recording (no update, as at a video's start); frame 3 adapts frame 2 from (1, 3) with the
+  parameters no step has moved."""
+  _, inputs, _, (init, _), _, _, (state, out) = tiny_case
+  assert out.loss.tolist()[:3] == [0.0, 0.0, 0.0] and out.update_norm.tolist()[:3] == [0.0] * 3
+  with jax.enable_x64(True):
+    own, l_d = _expected_latency1_loss(tiny_case, 3, state=init)
+    evaluated = _tiny_depth(state.trainable, inputs[3].image)
+  np.testing.assert_allclose(float(out.logs["loss_comoda"][3]), float(own), rtol=1e-12)
+  np.testing.assert_allclose(float(out.logs["loss_d"][3]), float(l_d), rtol=1e-12)
+  np.testing.assert_allclose(out.depth[3], evaluated, rtol=1e-12)
+  assert float(out.update_norm[3]) > 0
+  assert int(state.opt_state[0].count) == 1 == int(state.method_state["pose"].opt_state[0].count)
+  assert int(state.method_state["ring"]["image"]["count"]) == 2
+
+
 def test_engine_run_is_finite_and_bitwise_reproducible(tiny_case):
-  _, _, _, _, ((a_state, a_out), (b_state, b_out)), _ = tiny_case
+  _, _, _, _, ((a_state, a_out), (b_state, b_out)), _, _ = tiny_case
   leaves_a = jax.tree_util.tree_leaves((a_state, a_out))
   leaves_b = jax.tree_util.tree_leaves((b_state, b_out))
   assert len(leaves_a) == len(leaves_b)
@@ -450,7 +483,7 @@ def test_nonfinite_pose_step_skips_both_networks(tiny_case):
   """engine.optax_update's guard over both networks: with a NaN in the pose network, the depth
   network, both Adam states and the pose network stay as they were, and each skip is counted
   (frames 2 and 3; frames 0 and 1 make no update)."""
-  _, _, _, _, _, (init, (state, out)) = tiny_case
+  _, _, _, _, _, (init, (state, out)), _ = tiny_case
   assert out.skipped.tolist() == [False, False, True, True] and int(state.n_skipped) == 2
   for a, b in zip(jax.tree_util.tree_leaves((state.trainable, state.opt_state,
                                              state.method_state["pose"])),

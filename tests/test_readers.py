@@ -7,6 +7,7 @@ literal per-point loop (nearest point per pixel).
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import re
@@ -24,7 +25,7 @@ from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame, Segment
 from pitta_jax.data.image_io import read_image, write_depth_png
 from pitta_jax.data.panoptic_io import write_panoptic
-from pitta_jax.data.sequence import FrameSequence
+from pitta_jax.data.sequence import FrameFiles, FrameSequence
 
 H, W = 6, 8
 
@@ -482,6 +483,8 @@ def test_waymo_layout(tmp_path):
   for frame, depth in zip(frames, expected_a + expected_b):
     np.testing.assert_array_equal(frame.depth, depth)
   np.testing.assert_array_equal(frames[2].image, _rgb(200).astype(np.float32) / np.float32(255))
+  # segment-b's first frame follows segment-a's last in the stream: a new recording
+  assert [f.starts_recording for f in frames] == [True, False, True, False, False]
   only_b = waymo.open_waymo(tmp_path, sequences="segment-b")
   assert len(only_b) == 3
   calib = waymo.read_calib(tmp_path / "segment-b" / "calib.json")
@@ -662,3 +665,23 @@ def test_gray_alpha_png_is_refused_like_grayscale(tmp_path):
   assert cv2.imread(str(tmp_path / "la.png"), cv2.IMREAD_UNCHANGED).shape == (h, w, 4)
   with pytest.raises(DataError, match=r"la\.png: grayscale image"):
     read_image(tmp_path / "la.png")
+
+
+def test_recording_starts_survive_slices_joins_and_maps(tmp_path):
+  """Frames start a recording where FrameFiles.recording changes; a slice keeps its frames'
+  marks (a resumed run slices at frame k and must see what an uninterrupted run saw), a join
+  starts one at the joint, a transform keeps them."""
+  images = []
+  for k in range(5):
+    _write_rgb(tmp_path / f"{k}.png", _rgb(k))
+    images.append(tmp_path / f"{k}.png")
+  files = [FrameFiles(name=str(k), image=images[k], recording=rec)
+           for k, rec in enumerate("aabbb")]
+  seq = FrameSequence(files, temporal=True)
+  marks = lambda s: [f.starts_recording for f in s]
+  assert marks(seq) == [True, False, True, False, False]
+  assert marks(seq[1:]) == [False, True, False, False] and marks(seq[3:]) == [False, False]
+  assert marks(seq[3:] + seq[:2]) == [False, False, True, False]
+  assert marks(seq.map(lambda f: dataclasses.replace(f, name=f.name + "!"))) == marks(seq)
+  with pytest.raises(ValueError, match="starts has 2 values for 5 frames"):
+    FrameSequence(files, starts=[True, False])

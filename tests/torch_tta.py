@@ -136,6 +136,12 @@ class ActMAD:
     self.fifo.append({n: a.detach() for n, a in acts.items()})
     return float(total.detach()), float(own.detach()), float(l_d.detach())
 
+  @torch.no_grad()
+  def depth(self, image) -> np.ndarray:
+    """The frame's depth (H, W) as upstream tests after `optimizer.step()` (eval mode)."""
+    self.enc.eval(), self.dec.eval()
+    return disp_to_depth(self.dec(self.enc(_image(image)))[("disp", 0)][0, 0]).numpy()
+
 
 # ----------------------------------------------------------------------------------- CoTTA
 

@@ -45,6 +45,8 @@ class StepInput(NamedTuple):
   valid:        () bool, False for a padding frame at the end of the last chunk (no-op step).
   intrinsics:   (3, 3) float32 camera matrix K at the network's input size (zeros if unknown).
   has_intrinsics: () bool, whether the dataset gave K for this frame.
+  starts_recording: () bool, True for the first frame of a recording that follows another
+                (`Frame.starts_recording`): methods forget the frames before it.
   """
   image: jax.Array
   panoptic: jax.Array
@@ -54,6 +56,7 @@ class StepInput(NamedTuple):
   valid: jax.Array
   intrinsics: jax.Array
   has_intrinsics: jax.Array
+  starts_recording: jax.Array
 
 
 class Consts(NamedTuple):
@@ -228,8 +231,11 @@ def adapt_step(state: AdaptState, frame: StepInput, consts: Consts, *, model: An
 
   outputs = None
   for k in range(cfg.steps_per_frame if method.adapts else 1):
-    loss_fn = functools.partial(method.loss, state=state, consts=consts, frame=frame, rng=rng,
-                                model=model, cfg=cfg, mcfg=method.config)
+    # each inner step draws afresh (CoTTA's augmented views, as upstream's `steps` loop); the
+    # first uses the frame's key itself, the update keys are fold_in(rng, 0 .. steps - 1)
+    loss_rng = rng if k == 0 else jax.random.fold_in(rng, cfg.steps_per_frame + k)
+    loss_fn = functools.partial(method.loss, state=state, consts=consts, frame=frame,
+                                rng=loss_rng, model=model, cfg=cfg, mcfg=method.config)
     if method.adapts:
       (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.trainable)
       gnorm = tree_norm(grads)

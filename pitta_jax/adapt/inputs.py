@@ -41,7 +41,7 @@ def step_input(frame: Frame, height: int, width: int, max_segments: int) -> Step
   has_k = frame.intrinsics is not None
   K = np.asarray(frame.intrinsics, np.float32) if has_k else np.zeros((3, 3), np.float32)
   return StepInput(np.asarray(frame.image, np.float32), panoptic, ids, classes, valid,
-                   np.array(True), K, np.array(has_k))
+                   np.array(True), K, np.array(has_k), np.array(bool(frame.starts_recording)))
 
 
 def stack(inputs: list[StepInput], size: int) -> StepInput:

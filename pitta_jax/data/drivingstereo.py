@@ -171,9 +171,10 @@ def _weather_files(root: Path, weather: str, size: str, depth: bool,
     if panoptic is not None:
       nested_key = f"{weather}/{stem}"
       panoptic_ref = panoptic.ref(nested_key if panoptic.has(nested_key) else stem)
+    seq = stem.split("_")[0]  # the recording: <seq>_<timestamp>
     files.append(FrameFiles(name=f"{weather}/{stem}", image=images[stem], depth=depth_loader,
-                            panoptic=panoptic_ref,
-                            **calibs.fields(stem.split("_")[0], size, wdir)))
+                            panoptic=panoptic_ref, recording=f"{weather}/{seq}",
+                            **calibs.fields(seq, size, wdir)))
   return files
 
 

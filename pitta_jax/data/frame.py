@@ -36,6 +36,10 @@ class Frame:
   name:     a stable identifier (file stem, or "<seq>/<index>").
   intrinsics: (3, 3) float64 camera matrix K of `image` in pixels, or None when the dataset
             gives none (methods that reproject, e.g. CoMoDa, need it).
+  starts_recording: True when the frame is the first of a recording that follows another one
+            in the same stream (a new drive or sequence): methods that use the previous frame
+            (Ada-Depth, CoMoDa) treat it as a first frame. Readers set it
+            (`FrameSequence`); a stream's very first frame has no previous frame either way.
   """
   image: np.ndarray
   depth: np.ndarray | None = None
@@ -43,3 +47,4 @@ class Frame:
   segments: tuple[Segment, ...] = ()
   name: str = ""
   intrinsics: np.ndarray | None = None
+  starts_recording: bool = False

@@ -271,6 +271,7 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
     files.append(FrameFiles(name=f"{folder}/image_0{camera}/{frame:010d}", image=image,
                             depth=depth_loader,
                             panoptic=None if panoptic is None else panoptic.ref(key),
+                            recording=f"{folder}/image_0{camera}",
                             **calibs.frame_fields(data, folder, camera)))
   right = sum(camera == 3 for _, _, camera in entries)
   source = "gt_depths.npz holds" if gt is not None else "the Velodyne ground truth is"
@@ -391,7 +392,7 @@ def open_raw_sequences(root: PathLike) -> list[FrameSequence]:
       if len(run) < 2:
         continue
       files = [FrameFiles(name=f"{folder}/{RAW_IMAGE_DIR[0]}/{stem}", image=images[stem],
-                          **fields) for stem in run]
+                          recording=f"{folder}/{run[0]}", **fields) for stem in run]
       sequences.append(FrameSequence(files, temporal=True, notes=notes,
                                      remedies={"intrinsics": INTRINSICS_REMEDY}))
   if not sequences:

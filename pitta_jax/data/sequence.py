@@ -6,10 +6,11 @@ when it is indexed: a 500-frame subset never sits in memory.
 
 Besides the frames, a `FrameSequence` says what a method may rely on before any frame is read:
 whether its order is capture order (`temporal`: consecutive frames of one or more recordings,
-what methods reprojecting the previous frame need), which frames carry a camera matrix
-(`FrameFiles.intrinsics`), how to supply what is missing (`remedies`, for one-line errors), and
-what the reader chose on its own (`notes`, e.g. the only image size present), and the
-dataset's own evaluation protocol where it has one (`evaluation`, e.g. the Garg crop of KITTI's
+what methods reprojecting the previous frame need), where one recording ends and the next
+begins (`FrameFiles.recording`: such a method never pairs frames across the cut), which frames
+carry a camera matrix (`FrameFiles.intrinsics`), how to supply what is missing (`remedies`, for
+one-line errors), what the reader chose on its own (`notes`, e.g. the only image size present),
+and the dataset's own evaluation protocol where it has one (`evaluation`, e.g. the Garg crop of KITTI's
 Eigen split).
 """
 
@@ -43,6 +44,9 @@ class FrameFiles:
     K is scaled to the image when they differ (e.g. a full-size calibration for half-size
     images), refused when the aspect ratios differ by more than 1%.
   intrinsics_source: the calibration file `intrinsics` came from, named in errors.
+  recording: the recording (drive, sequence) the frame was captured in. Where it changes between
+    neighbours, the later frame starts a recording (`Frame.starts_recording`): methods that use
+    the previous frame do not pair it with the last frame of the recording before.
   """
   name: str
   image: Path
@@ -53,6 +57,7 @@ class FrameFiles:
   intrinsics: np.ndarray | None = None
   intrinsics_size: tuple[int, int] | None = None
   intrinsics_source: Path | None = None
+  recording: str = ""
 
   def load(self) -> Frame:
     """Reads the frame; DataError when a file is unreadable or a size disagrees."""
@@ -101,13 +106,23 @@ class FrameSequence(Sequence[Frame]):
     evaluation: the dataset's evaluation protocol as `run.EvalConfig` values (field -> value)
       that its published results use, e.g. {"garg_crop": True} for KITTI's Eigen split; the CLI
       applies them where the user gives no flag.
+    starts: per frame, whether it starts a recording; None: the first frame and where
+      `FrameFiles.recording` changes. Joined sequences (`+`) start one at the join; a slice
+      keeps its frames' values (a run resumed at frame k slices the sequence there).
   """
 
   def __init__(self, files: Sequence[FrameFiles],
                transform: Callable[[Frame], Frame] | None = None, *, temporal: bool = False,
                remedies: Mapping[str, str] | None = None, notes: Sequence[str] = (),
-               evaluation: Mapping[str, object] | None = None):
+               evaluation: Mapping[str, object] | None = None,
+               starts: Sequence[bool] | None = None):
     self.files = tuple(files)
+    if starts is None:
+      starts = [k == 0 or f.recording != self.files[k - 1].recording
+                for k, f in enumerate(self.files)]
+    if len(starts) != len(self.files):
+      raise ValueError(f"starts has {len(starts)} values for {len(self.files)} frames")
+    self.starts = tuple(bool(b) for b in starts)
     self.transform = transform
     self.temporal = temporal
     self.remedies = dict(remedies or {})
@@ -115,9 +130,10 @@ class FrameSequence(Sequence[Frame]):
     self.evaluation = dict(evaluation or {})
 
   def _with(self, files: Sequence[FrameFiles], transform: Callable[[Frame], Frame] | None,
-            temporal: bool = True) -> FrameSequence:
+            starts: Sequence[bool], temporal: bool = True) -> FrameSequence:
     return FrameSequence(files, transform, temporal=self.temporal and temporal,
-                         remedies=self.remedies, notes=self.notes, evaluation=self.evaluation)
+                         remedies=self.remedies, notes=self.notes, evaluation=self.evaluation,
+                         starts=starts)
 
   def __len__(self) -> int:
     return len(self.files)
@@ -131,8 +147,9 @@ class FrameSequence(Sequence[Frame]):
   def __getitem__(self, index: int | slice) -> Frame | FrameSequence:
     if isinstance(index, slice):
       # a stride skips frames (or reverses them): no longer consecutive
-      return self._with(self.files[index], self.transform, temporal=index.step in (None, 1))
-    frame = self.files[index].load()
+      return self._with(self.files[index], self.transform, self.starts[index],
+                        temporal=index.step in (None, 1))
+    frame = dataclasses.replace(self.files[index].load(), starts_recording=self.starts[index])
     return frame if self.transform is None else self.transform(frame)
 
   def __iter__(self) -> Iterator[Frame]:
@@ -147,9 +164,9 @@ class FrameSequence(Sequence[Frame]):
   def map(self, transform: Callable[[Frame], Frame]) -> FrameSequence:
     """The same frames with `transform` applied (after any existing transform) on access."""
     if self.transform is None:
-      return self._with(self.files, transform)
+      return self._with(self.files, transform, self.starts)
     first = self.transform
-    return self._with(self.files, lambda frame: transform(first(frame)))
+    return self._with(self.files, lambda frame: transform(first(frame)), self.starts)
 
   def __add__(self, other: FrameSequence) -> FrameSequence:
     if not isinstance(other, FrameSequence) or other.transform is not self.transform:
@@ -161,7 +178,9 @@ class FrameSequence(Sequence[Frame]):
                          temporal=self.temporal and other.temporal,
                          remedies={**other.remedies, **self.remedies},
                          notes=self.notes + tuple(n for n in other.notes if n not in self.notes),
-                         evaluation=self.evaluation)
+                         evaluation=self.evaluation,
+                         starts=self.starts + tuple(k == 0 or b
+                                                    for k, b in enumerate(other.starts)))
 
   def __repr__(self) -> str:
     first = f", first={self.files[0].name!r}" if self.files else ""

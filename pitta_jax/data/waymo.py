@@ -134,7 +134,7 @@ def _sequence_files(root: Path, seq: str, depth: bool, panoptic: PanopticSource 
         size=None if calib is None else (calib.height, calib.width),
         size_source=None if calib is None else seq_dir / "calib.json",
         intrinsics=None if calib is None else calib.K,
-        intrinsics_source=None if calib is None else seq_dir / "calib.json"))
+        intrinsics_source=None if calib is None else seq_dir / "calib.json", recording=seq))
   return files
 
 

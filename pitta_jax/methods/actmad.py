@@ -19,10 +19,18 @@ very first frame (n = 1) the variance is 0 (divisor max(n - 1, 1)), so only the 
 the parameters. The ring holds the activations of each frame as computed before its update.
 
 BatchNorm runs in eval mode (running statistics) as upstream: the method requires
-`AdaptConfig.bn_stats == "running"` and fails at init otherwise. All encoder parameters adapt in
-upstream's setting: run with `--selector 'fraction(cnn=100,bn=100)'` (every encoder conv kernel
-and BN scale/bias; the decoder is not adapted: ActMAD's loss does not reach it and L_d is the
-paper's addition). Source statistics come in `resources["actmad_source_stats"]`
+`AdaptConfig.bn_stats == "running"` and fails at init otherwise. As upstream, the frame's depth
+is evaluated after its update (upstream steps SGD, then tests; `report_after_update`), and the
+frame joins the ring once, so one update per frame is required (`steps_per_frame == 1`).
+
+Which parameters adapt (our choice): every encoder conv kernel and BN scale/bias
+(`--selector 'fraction(cnn=100,bn=100)'`, the method's setting), never the decoder. Upstream's
+SGD takes all of `model.parameters()` and moves whatever gets a gradient: ActMAD's own loss
+reaches only the encoder, so without L_d (`ld_weight=0`) the two are the same; with L_d, the
+paper's addition computed on the decoder's output, upstream's optimiser would also step the
+decoder. We keep ActMAD's reach so that L_d changes its loss, not the set of weights it adapts;
+`--selector all` gives the other reading (the decoder then also decays with weight_decay where
+L_d is 0). Source statistics come in `resources["actmad_source_stats"]`
 ({layer path: (mean (h, w, c), var (h, w, c))}), computed once by `source_statistics`.
 """
 
@@ -89,8 +97,9 @@ def source_statistics(model, variables, images: Iterable[Any], layers: str = ENC
   (B, H, W, 3) in [0, 1], all of one size (the size adaptation runs at). BN in eval mode.
   Returns {path: (mean (h, w, c), var (h, w, c))}, accumulated in float64 with Chan's parallel
   update, i.e. the statistics of the whole set. (Upstream averages per-batch means and per-batch
-  variances with an AverageMeter; that equals these for the mean, and for the variance only up
-  to the between-batch spread and the per-batch N - 1.)
+  variances with an AverageMeter, each batch weighing the same: that equals these for the mean
+  when every batch has the same size, and for the variance only up to the between-batch spread
+  and the per-batch N - 1.)
   """
   capture = jax.jit(lambda v, x: model.capture(v, x, False, layers)[1])
   count, means, m2s = 0, {}, {}
@@ -185,5 +194,8 @@ def build(config: ActmadConfig = ActmadConfig()) -> Method:
 
   return Method("actmad", config, init=init, loss=loss, update=update,
                 optimizer=lambda cfg: optimizer(config), prepare=prepare,
-                requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),),
+                requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),
+                          ("steps_per_frame", 1, "adds each frame to its ring once")),
+                # upstream evaluates after optimizer.step() (actmad_kitti.py: step, then test)
+                report_after_update=True,
                 setting=(("selector", "fraction(cnn=100,bn=100)"),))

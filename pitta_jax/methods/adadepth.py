@@ -29,12 +29,14 @@ Reduced to this setting (our choices where upstream's setting does not carry ove
   factor has to be chosen). s cancels U's scale, so the factor matters for S, R and E.
 - Sources of U's loss: the previous frame only (upstream uses frames -1 and +1; online, the next
   frame is not there yet), from a one-image ring in the method state; K is the frame's intrinsics.
-  On the first frame (no previous frame) and on a frame without K, U does not update (its labels
-  still come from its current weights).
+  On the first frame of a recording (no previous frame; `StepInput.starts_recording` marks the
+  first frame of a recording that follows another one) and on a frame without K, U does not
+  update (its labels still come from its current weights).
 - BatchNorm runs in eval mode (running statistics) in every network: the method requires
   `AdaptConfig.bn_stats == "running"`. Upstream's S and U take their loss passes in train mode,
-  accumulating running statistics that its eval-mode passes (R, E, U's labels, the evaluated S)
-  then use; the engine never accumulates running statistics, so a train-mode pass here would
+  accumulating running statistics that its eval-mode passes of U (its labels) and of S (the
+  evaluated depth) then use (R and E are eval-mode copies whose statistics never move); the
+  engine never accumulates running statistics, so a train-mode pass here would
   train S and U on statistics that none of the other passes sees.
 - The evaluated depth is S after the frame's update (`Method.report_after_update`).
 - U's step is taken inside `loss` (its loss does not depend on S) and committed by `update`,
@@ -65,7 +67,7 @@ from flax import struct
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, finite, option
 from pitta_jax.methods.base import (INPUT_SIZE, POSE, Aux, Method, ring_init, ring_push,
-                                    variables_of)
+                                    ring_restart, variables_of)
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
 from pitta_jax.models.pose import transformation_from_parameters
 from pitta_jax.sfm import SfmLossConfig, check_scales, monodepth2_loss
@@ -243,7 +245,7 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: AdadepthConf
   del cfg
   ms = state.method_state
   sg = jax.lax.stop_gradient
-  ring = ms["frames"]
+  ring = ring_restart(ms["frames"], frame.starts_recording)
   branch, loss_u, gnorm_u, u_ok = sg(branch_step(
       ms["u"], consts.batch_stats, frame, ring["items"][0], ring["count"] > 0, rng, model, mcfg))
 
@@ -266,7 +268,7 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: AdadepthConf
           "u_grad_norm": gnorm_u, "u_updated": u_ok.astype(student.dtype),
           "u_scale": labels.scale, "keep_sup": n_sup / pixels, "keep_unsup": n_unsup / pixels,
           "loss_d": l_d, "n_instances": n}
-  return total, sg(Aux(student, logs, {"u": branch, "image": frame.image}))
+  return total, sg(Aux(student, logs, {"u": branch, "frames": ring_push(ring, frame.image)}))
 
 
 def build(config: AdadepthConfig = AdadepthConfig()) -> Method:
@@ -307,8 +309,7 @@ def build(config: AdadepthConfig = AdadepthConfig()) -> Method:
     teacher = jax.tree_util.tree_map(lambda e, s: a * e + (1.0 - a) * s, ms["teacher"],
                                      state.trainable)
     branch = select(skipped, ms["u"], aux.carry["u"])
-    frames = ring_push(ms["frames"], aux.carry["image"])
-    ms = {**ms, "teacher": teacher, "u": branch, "frames": frames}
+    ms = {**ms, "teacher": teacher, "u": branch, "frames": aux.carry["frames"]}
     return state.replace(method_state=ms), skipped, unorm
 
   return Method("adadepth", config, init=init, loss=loss, update=update,

@@ -173,6 +173,12 @@ def ring_push(ring: dict[str, jax.Array], item: jax.Array) -> dict[str, jax.Arra
   return {"items": items, "count": jnp.minimum(ring["count"] + 1, ring["items"].shape[0])}
 
 
+def ring_restart(ring: dict[str, jax.Array], restart: jax.Array) -> dict[str, jax.Array]:
+  """The ring emptied where `restart` (() bool) holds, e.g. at a frame that starts a new
+  recording (`StepInput.starts_recording`): frames of the recording before are no neighbours."""
+  return {**ring, "count": jnp.where(restart, 0, ring["count"]).astype(ring["count"].dtype)}
+
+
 def ring_valid(ring: dict[str, jax.Array]) -> jax.Array:
   """(size,) bool: which ring slots hold a frame (slot k = k frames ago, 0 = the last one)."""
   return jnp.arange(ring["items"].shape[0]) < ring["count"]

@@ -31,11 +31,14 @@ Deviations (ours; docs/method.md):
 - disparity -> depth by `disp_to_depth(0.1, 100)`, as the MonoDepth2 weights were trained
   (upstream warps with 1 / disp);
 - `latency` 0 (default, causal): the update at frame t uses (t-1 -> t); `latency` 1: the update
-  at frame t uses (t-2, t -> t-1), upstream's frame_ids (0, -1, 1) one frame late. Either way
-  the evaluated depth is frame t's, before frame t's update (predict-then-adapt);
+  at frame t uses (t-2, t -> t-1), upstream's frame_ids (0, -1, 1) one frame late. The evaluated
+  depth is frame t's: with latency 0 before frame t's update (predict-then-adapt), with latency 1
+  after it, as upstream, whose depth of frame t comes from the network already updated on the
+  window (t-2, t-1, t) (`Method.report_after_update`);
 - the first frame (latency 0), the first two (latency 1), and a frame whose K is unknown make
   no update (loss 0; parameters and both Adam states untouched), as upstream starts at the
-  second frame of a video.
+  second frame of a video; so does each recording's first frame (first two) where recordings
+  follow each other in one stream (`StepInput.starts_recording`): no frame pair spans two.
 
 Total loss: L_comoda + ld_weight * L_d (eq. 8) on the depth of the adapted test frame (the
 current frame, or with latency 1 the previous one), with the same instance masks.
@@ -73,8 +76,8 @@ from pitta_jax import prng
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, finite, option
 from pitta_jax.flat_optim import flat, flat_step
-from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, ring_valid,
-                                    variables_of)
+from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, ring_restart,
+                                    ring_valid, variables_of)
 from pitta_jax.methods.depth_refining import (DepthRefiningConfig, depth_refining_term,
                                               frame_instances)
 from pitta_jax.models.pose import transformation_from_parameters
@@ -214,8 +217,14 @@ def _frame_ring(image_shape: tuple[int, int], max_segments: int, size: int, dtyp
       seg_ids=jnp.zeros((max_segments,), jnp.int32),
       seg_classes=jnp.zeros((max_segments,), jnp.int32),
       seg_valid=jnp.zeros((max_segments,), bool), valid=jnp.zeros((), bool),
-      intrinsics=jnp.zeros((3, 3), dtype), has_intrinsics=jnp.zeros((), bool))
+      intrinsics=jnp.zeros((3, 3), dtype), has_intrinsics=jnp.zeros((), bool),
+      starts_recording=jnp.zeros((), bool))
   return {name: ring_init(x, size) for name, x in example._asdict().items()}
+
+
+def _rings_before(rings: dict, frame) -> dict:
+  """The rings as `frame` sees them: empty when it starts a new recording."""
+  return {name: ring_restart(r, frame.starts_recording) for name, r in rings.items()}
 
 
 def _ring_frame(rings: dict, k: int, frame):
@@ -239,7 +248,7 @@ def build_sample(frame, ms: dict, idx: jax.Array, config: ComodaConfig) -> Sampl
   """The step's batch: the test sample (current frame, or with latency 1 the previous one)
   and the replay windows `idx`. Missing neighbours and an unknown K are replaced by finite
   stand-ins (the current frame, the identity) and the sample is marked inactive."""
-  rings = ms["ring"]
+  rings = _rings_before(ms["ring"], frame)
   dtype = rings["image"]["items"].dtype
   if config.latency == 0:
     centre, active = frame, ring_valid(rings["image"])[0]
@@ -300,15 +309,12 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: ComodaConfig
   h, w = frame.image.shape[:2]
   idx, noise = step_draws(rng, ms["replay_images"].shape[0], mcfg, h, w, dtype)
   batch = build_sample(frame, ms, idx, mcfg)
-  b = batch.target.shape[0]
   scales = mcfg.sfm.scales
 
   def objective(depth_trainable, pose_trainable):
-    images = batch.target if mcfg.latency == 0 else jnp.concatenate(
-        [batch.target, frame.image[None].astype(dtype)])
-    outs = model.outputs(variables_of(depth_trainable, consts), images, False)
+    outs = model.outputs(variables_of(depth_trainable, consts), batch.target, False)
     check_scales(scales, len(outs))
-    disps = [outs[s][:b, ..., 0] for s in scales]
+    disps = [outs[s][..., 0] for s in scales]
     poses = camera_motions(pose, pose_trainable, batch.target, batch.sources, mcfg.offsets)
     K4, inv_K4 = _intrinsics4(batch.K)
     own, _ = monodepth2_loss(batch.target, batch.sources, disps, K4, inv_K4, poses,
@@ -316,8 +322,9 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: ComodaConfig
     l_d, n = depth_refining_term(model.spec.to_depth(outs[0][0, ..., 0]), batch.centre, mcfg.ld)
     on = batch.active.astype(dtype)
     own, l_d = own * on, l_d * on
-    # frame t's depth (H, W): the test sample itself, or with latency 1 the extra last image
-    evaluated = model.spec.to_depth(outs[0][0 if mcfg.latency == 0 else b, ..., 0])
+    # the test sample's depth (H, W): frame t's with latency 0; with latency 1 the engine
+    # reports frame t's after the update instead (report_after_update)
+    evaluated = model.spec.to_depth(outs[0][0, ..., 0])
     return own + ms["ld_weight"] * l_d, (own, l_d, n, evaluated)
 
   (total, (own, l_d, n, depth)), (g_depth, g_pose) = jax.value_and_grad(
@@ -375,7 +382,8 @@ def build(config: ComodaConfig = ComodaConfig()) -> Method:
     move, skipped = c["active"] & ok, c["active"] & ~ok
     pose = pose.replace(trainable=p.unravel(jnp.where(move, p.new, p.old)),
                         opt_state=select(move, p.opt_state, pose.opt_state))
-    ring = {name: ring_push(r, getattr(c["frame"], name)) for name, r in ms["ring"].items()}
+    ring = {name: ring_push(r, getattr(c["frame"], name))
+            for name, r in _rings_before(ms["ring"], c["frame"]).items()}
     state = state.replace(
         trainable=d.unravel(jnp.where(move, d.new, d.old)),
         opt_state=select(move, d.opt_state, state.opt_state),
@@ -394,6 +402,7 @@ def build(config: ComodaConfig = ComodaConfig()) -> Method:
                                                  "scale/bias"),
                           ("steps_per_frame", 1, "makes one step per frame")),
                 needs=("pose", "intrinsics", "previous_frame"),
+                report_after_update=config.latency == 1,
                 # kernel gradients of a batch (1 + 3 replay images) are fastest as convolutions
                 # on Eigen's library (models.conv_vjp._kernel_grad; README, Performance)
                 cpu_conv_library="eigen")
