@@ -34,7 +34,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from pitta_jax import metrics as metrics_lib
   from pitta_jax.adapt import streams
   from pitta_jax.adapt.inputs import chunks
-  from pitta_jax.run import EvalConfig, frame_metrics, model_alignment
+  from pitta_jax.run import EvalConfig, frame_metrics, input_size, model_alignment
   from pitta_jax.run import Runners
   cfg = common.adapt_config("pitta", quick=quick)
   key = ("lambda_sweep", weights.spec.name, json.dumps(weights.config, sort_keys=True,
@@ -43,10 +43,10 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   states, consts = streams.init_lambda_sweep(weights.depth, lams, cfg, tx, model=model)
   ev = EvalConfig()
   per_frame: list[list[dict]] = [[] for _ in lams]
-  h, w = weights.height, weights.width
+  h, w = input_size(weights, frames)
   bar = tqdm(total=len(frames), desc="lambda sweep", unit="frame", disable=quiet)
   for chunk, originals in chunks(frames, h, w, min(cfg.chunk_size, len(frames)),
-                                 cfg.max_segments):
+                                 cfg.max_segments, weights.spec.image_resize):
     states, out = runner(states, chunk, consts)
     depth = np.asarray(out.depth)                                     # (T, K, H, W)
     for t, frame in enumerate(originals):

@@ -130,7 +130,7 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   for path in tqdm(images, desc="predict", unit="img", disable=quiet):
     image = read_image(path)
     h, w = size or weights.spec.inference_size(image.shape[:2], trained)
-    image = resize_image(image, h, w)
+    image = resize_image(image, h, w, weights.spec.image_resize)
     disp, depth = (np.asarray(a)[0] for a in predict(weights.depth, jnp.asarray(image[None])))
     if not np.all(np.isfinite(disp)):
       raise ValueError(f"{path}: the network produced non-finite outputs on this image")

@@ -159,6 +159,16 @@ def frame_metrics(depth: np.ndarray, gt: np.ndarray, eval_cfg: EvalConfig, align
                                    valid_gt=eval_cfg.valid_gt)
 
 
+def input_size(weights: Weights, frames: Sequence[Frame]) -> tuple[int, int]:
+  """The (H, W) a run feeds the network: the size its weights were trained at, or for a network
+  that keeps the aspect ratio (Depth Anything V2, as its upstream `infer_image`) the first
+  frame's size brought to it (`ModelSpec.inference_size`: 518 x 1722 for KITTI's 375 x 1242)."""
+  trained = (weights.height, weights.width)
+  if not weights.spec.keep_aspect:
+    return trained
+  return weights.spec.inference_size(frames[0].image.shape[:2], trained)
+
+
 def check_aspect(frame: Frame, tolerance: float = 0.01) -> None:
   """The prediction is resized onto the ground truth: their aspect ratios must agree (1%)."""
   if frame.depth is None:
@@ -295,7 +305,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   finite.
 
   Args:
-    weights: the network to adapt (its config gives the input size).
+    weights: the network to adapt (`input_size`: its config's, or for a network that keeps the
+      aspect ratio the first frame's).
     frames: the sequence, any length; read lazily chunk by chunk.
     cfg: the run's config; method: the method (default: `cfg.method` with its paper defaults).
     keep: frame indices whose predicted depth is returned (for figures).
@@ -316,7 +327,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   check_needs(method, frames, f"sequence {name!r}" if name else "the sequence")  # before compiling
   if checkpoint_every:
     cfg = dataclasses.replace(cfg, chunk_size=math.gcd(cfg.chunk_size, checkpoint_every))
-  h, w = weights.height, weights.width
+  h, w = input_size(weights, frames)
   model, tx, runner = (runners or Runners()).get(weights, method, cfg)
   alignment = model_alignment(weights) if eval_cfg.alignment == "model" else eval_cfg.alignment
   state, consts = init_state(weights.depth, method, cfg, tx, model,
@@ -350,7 +361,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
              disable=quiet)
   t0 = time.perf_counter()
   # a sequence shorter than a chunk is one chunk of its own length (no padded steps)
-  stream = chunks(frames, h, w, min(cfg.chunk_size, max(len(frames), 1)), cfg.max_segments)
+  stream = chunks(frames, h, w, min(cfg.chunk_size, max(len(frames), 1)), cfg.max_segments,
+                  weights.spec.image_resize)
   chunk_frames: list[list[Frame]] = []
 
   def inputs():

@@ -523,3 +523,30 @@ def test_predict_keeps_the_aspect_ratio_as_infer_image():
   assert SPEC.inference_size((300, 300), (518, 518)) == (518, 518)
   assert SPEC.inference_size((1242, 375), (518, 518)) == (1722, 518)
   assert MONODEPTH2.inference_size((375, 1242), (192, 640)) == (192, 640)  # test_simple.py
+
+
+def test_runs_feed_the_frames_aspect_ratio_resized_as_infer_image(small, tmp_path):
+  """A run (adapt, the tables) feeds Depth Anything V2 as upstream's infer_image does: the
+  frame's aspect ratio kept (here 30x100 -> 28x98 at a trained 28x28: scale 28/30, 93.3 -> 98)
+  and the image resized by cv2.INTER_CUBIC, not clipped, then normalised. Reference: the
+  torch model on that input (upstream's pipeline), depth = 1 / disparity."""
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.checkpoint import load_weights, save_weights
+  from pitta_jax.data.frame import Frame
+  from pitta_jax.run import run_sequence
+  cfg, variables = small["converted"]["official"]
+  save_weights(tmp_path / "w", SPEC.name, {**cfg, "height": 28, "width": 28}, variables)
+  weights = load_weights(tmp_path / "w")
+  image = _image(30, 100, seed=3)[0]
+  image[:4] = 1.0   # a bright band: cubic overshoots past 1 at its edge, upstream keeps that
+  res = run_sequence(weights, [Frame(image=image)], AdaptConfig(method="none", selector="encoder_ln"),
+                     quiet=True,
+                     keep=[0])
+  depth = res.kept_depths[0]
+  assert depth.shape == (28, 98)
+  import cv2
+  resized = cv2.resize(image, (98, 28), interpolation=cv2.INTER_CUBIC)
+  assert resized.max() > 1.0
+  ref = np.maximum(_torch_depth(small["torch"]["official"], "official", resized[None])[0, ..., 0],
+                   1e-6)                                               # (28, 98) disparity
+  np.testing.assert_allclose(1.0 / depth, ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())

@@ -15,16 +15,18 @@ import numpy as np
 from pitta_jax.adapt.engine import StepInput
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame
-from pitta_jax.data.resize import resize_frame
+from pitta_jax.data.resize import IMAGE_RESIZE, resize_frame
 
 
-def step_input(frame: Frame, height: int, width: int, max_segments: int) -> StepInput:
-  """One frame at the network's size. A frame without panoptic map has no instances (N = 0)."""
+def step_input(frame: Frame, height: int, width: int, max_segments: int,
+               image_resize: str = IMAGE_RESIZE[0]) -> StepInput:
+  """One frame at the network's size (its image resized by `image_resize`, the network's
+  `ModelSpec.image_resize`). A frame without panoptic map has no instances (N = 0)."""
   if frame.image.ndim != 3 or frame.image.shape[-1] != 3:
     raise DataError(frame.name or "frame", f"image must be (H, W, 3), got {frame.image.shape}")
   if not np.all(np.isfinite(frame.image)):
     raise DataError(frame.name or "frame", "image holds NaN or infinite values")
-  frame = resize_frame(frame, height, width)
+  frame = resize_frame(frame, height, width, image_resize)
   if frame.panoptic is None:
     panoptic = np.zeros((height, width), np.int32)
     segments = ()
@@ -53,14 +55,20 @@ def stack(inputs: list[StepInput], size: int) -> StepInput:
 
 
 def chunks(frames: Iterable[Frame], height: int, width: int, chunk_size: int,
-           max_segments: int) -> Iterator[tuple[StepInput, list[Frame]]]:
+           max_segments: int, image_resize: str = IMAGE_RESIZE[0]
+           ) -> Iterator[tuple[StepInput, list[Frame]]]:
   """Yields (stacked chunk, the original frames of it) — frames keep their full-size depth for
-  evaluation. Memory holds one chunk at a time."""
+  evaluation. Memory holds one chunk at a time. image_resize: `step_input`'s."""
   batch: list[Frame] = []
+
+  def stacked() -> StepInput:
+    return stack([step_input(f, height, width, max_segments, image_resize) for f in batch],
+                 chunk_size)
+
   for frame in frames:
     batch.append(frame)
     if len(batch) == chunk_size:
-      yield stack([step_input(f, height, width, max_segments) for f in batch], chunk_size), batch
+      yield stacked(), batch
       batch = []
   if batch:
-    yield stack([step_input(f, height, width, max_segments) for f in batch], chunk_size), batch
+    yield stacked(), batch

@@ -26,13 +26,23 @@ import numpy as np
 from pitta_jax.data.frame import Frame
 
 MONODEPTH2_SIZE = (192, 640)  # (H, W) of MonoDepth2's KITTI models
+# how a network's images are resized (`ModelSpec.image_resize`): "area" as above (MonoDepth2's
+# family); "cubic": cv2.INTER_CUBIC on the [0, 1] image, not clipped, as Depth Anything V2's
+# `infer_image` (its util/transform.py `Resize`, applied to image / 255)
+IMAGE_RESIZE = ("area", "cubic")
 
 
-def resize_image(image: np.ndarray, height: int, width: int) -> np.ndarray:
-  """(H, W, 3) float32 [0, 1] -> (height, width, 3) float32 [0, 1] (INTER_AREA when shrinking)."""
+def resize_image(image: np.ndarray, height: int, width: int, method: str = IMAGE_RESIZE[0]
+                 ) -> np.ndarray:
+  """(H, W, 3) float32 [0, 1] -> (height, width, 3) float32: "area" INTER_AREA when shrinking
+  (INTER_LINEAR otherwise), clipped to [0, 1]; "cubic" INTER_CUBIC, unclipped (`IMAGE_RESIZE`)."""
+  if method not in IMAGE_RESIZE:
+    raise ValueError(f"image resize must be one of {IMAGE_RESIZE}, got {method!r}")
   h, w = image.shape[:2]
   if (h, w) == (height, width):
     return image.astype(np.float32)
+  if method == "cubic":
+    return cv2.resize(image.astype(np.float32), (width, height), interpolation=cv2.INTER_CUBIC)
   interpolation = cv2.INTER_AREA if height <= h and width <= w else cv2.INTER_LINEAR
   out = cv2.resize(image.astype(np.float32), (width, height), interpolation=interpolation)
   return np.clip(out, 0.0, 1.0)
@@ -51,10 +61,11 @@ def resize_ids(ids: np.ndarray, height: int, width: int) -> np.ndarray:
   return ids[rows[:, None], cols[None, :]]
 
 
-def resize_frame(frame: Frame, height: int = MONODEPTH2_SIZE[0], width: int = MONODEPTH2_SIZE[1]
-                 ) -> Frame:
-  """The frame with image and panoptic map at (height, width); depth (ground truth) untouched."""
-  image = resize_image(frame.image, height, width)
+def resize_frame(frame: Frame, height: int = MONODEPTH2_SIZE[0], width: int = MONODEPTH2_SIZE[1],
+                 image_resize: str = IMAGE_RESIZE[0]) -> Frame:
+  """The frame with image and panoptic map at (height, width); depth (ground truth) untouched.
+  image_resize: the image's interpolation (`resize_image`)."""
+  image = resize_image(frame.image, height, width, image_resize)
   panoptic, segments = frame.panoptic, frame.segments
   if panoptic is not None:
     panoptic = resize_ids(panoptic, height, width)

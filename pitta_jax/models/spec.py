@@ -15,7 +15,8 @@ checkpoint loader and the CLI see a network only through its spec:
   1 / max(out, eps), meaningful only up to scale and shift) or "metric_depth" (depth in metres,
   e.g. Depth Anything V2's metric models: the engine's depth is max(out, eps)).
 * Input rules: H and W multiples of `size_multiple`; `default_size` is the size the released
-  weights were trained at.
+  weights were trained at; `keep_aspect`: frames keep their aspect ratio (`inference_size`);
+  `image_resize`: how an image is brought to that size (`data.resize.resize_image`).
 * `alignment`: the evaluation protocol the network's outputs need ("median" scaling for
   monocular self-supervised networks, "scale_shift" least squares for relative depth).
 * `encoder`: the top-level module name of the encoder, the part the paper adapts (eq. 11); the
@@ -59,12 +60,19 @@ class ModelSpec:
   # `predict` on an image: False = resized to the trained (H, W) (MonoDepth2's test_simple.py);
   # True = its aspect ratio kept, each side at least the trained one (`inference_size`)
   keep_aspect: bool = False
+  # how images are resized to the input size, one of data.resize.IMAGE_RESIZE: "area"
+  # (MonoDepth2's antialiased shrink) or "cubic" (Depth Anything V2's cv2.INTER_CUBIC)
+  image_resize: str = "area"
 
   def __post_init__(self):
     if self.output not in OUTPUTS:
       raise ValueError(f"{self.name}: output {self.output!r} is not one of {OUTPUTS}")
     if self.alignment not in ALIGNMENTS:
       raise ValueError(f"{self.name}: alignment {self.alignment!r} is not one of {ALIGNMENTS}")
+    from pitta_jax.data.resize import IMAGE_RESIZE
+    if self.image_resize not in IMAGE_RESIZE:
+      raise ValueError(f"{self.name}: image_resize {self.image_resize!r} is not one of "
+                       f"{IMAGE_RESIZE}")
 
   def check_size(self, height: int, width: int) -> None:
     """Raises ValueError naming the rule when (height, width) is not a valid input size."""
@@ -76,7 +84,8 @@ class ModelSpec:
 
   def inference_size(self, image_size: tuple[int, int], trained: tuple[int, int]
                      ) -> tuple[int, int]:
-    """The (H, W) an image of `image_size` (H, W) is resized to for a prediction: `trained`, or
+    """The (H, W) an image of `image_size` (H, W) is resized to for a prediction or a run
+    (`run.run_sequence` takes its first frame's): `trained`, or
     with `keep_aspect` Depth Anything V2's `infer_image` rule (its `Resize` with
     keep_aspect_ratio, resize_method "lower_bound", ensure_multiple_of 14): one scale for both
     sides, the larger of trained / image per side, each side then rounded to a multiple of

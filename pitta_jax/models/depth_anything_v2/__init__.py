@@ -8,7 +8,8 @@ makes it upstream's metric model (architecture `depth_anything_v2_metric`, `METR
 
 Input sizes: multiples of 14. Upstream's `infer_image` resizes the shorter side to 518 (keeping
 the aspect ratio, sides rounded to multiples of 14, bicubic) and resizes the prediction back;
-for driving frames at the project's 640x192, 644x196 (46 x 14 patches) is the nearest size.
+`predict` and every run (`run.input_size`: the first frame's aspect ratio) feed it the same
+way (`SPEC.keep_aspect`, `SPEC.image_resize`), e.g. KITTI's 375x1242 frames at 518x1722.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ SPEC = ModelSpec(
     description="Depth Anything V2 (DINOv2 ViT-S/14 + DPT head): relative inverse depth, "
                 "inputs multiples of 14 (trained at 518x518)",
     keep_aspect=True,  # upstream's infer_image keeps the image's aspect ratio
+    image_resize="cubic",  # and resizes with cv2.INTER_CUBIC (util/transform.py's Resize)
 )
 
 # upstream's metric models (metric_depth/): the same network with a sigmoid x max_depth head
