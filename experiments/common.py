@@ -330,8 +330,8 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
                        resume=RESUME_OWN)
     return {"metrics": res.mean if res.status == "ok" else {}, "status": res.status,
             "metrics_before_divergence": res.mean if res.status != "ok" else None,
-            "frames": len(frames), "seconds": round(res.seconds, 2),
-            "fps": round(res.fps, 3), "n_skipped": res.n_skipped,
+            "frames": len(frames), "seconds": round(res.total_seconds, 2),
+            "fps": round(res.total_fps, 3), "n_skipped": res.n_skipped,
             "abs_rel_per_frame": [m["abs_rel"] for m in res.per_frame],
             "adapt": dataclasses.asdict(cfg), "method_config": dataclasses.asdict(method.config)}
 

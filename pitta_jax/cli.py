@@ -365,7 +365,8 @@ def _run_adapt(args) -> int:
                        checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
                        checkpoint_every=args.checkpoint_every, resume=args.resume,
                        resources=resources)
-    row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.fps, 2),
+    # fps over every frame: after --resume, the earlier call's time up to its checkpoint too
+    row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.total_fps, 2),
                                                      "frames": len(res.frame_names),
                                                      "n_skipped": res.n_skipped,
                                                      "n_excluded": len(res.excluded)},
@@ -384,6 +385,8 @@ def _run_adapt(args) -> int:
                                  "first_index": res.diverged_at,
                                  "reason": "predicted depth not finite (the method diverged)"},
             "resumed_at_frame": res.resumed_at,
+            "seconds": {"total": round(res.total_seconds, 2),
+                        "this_call": round(res.seconds, 2)},
             "logs": {k: v.tolist() for k, v in res.logs.items()}}
     table = write_results(out, [row], meta, group_title="Dataset")
     if not args.quiet:
@@ -544,9 +547,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"error: {where}{e.strerror or e}", file=sys.stderr)
     return 2
   except KeyboardInterrupt as e:
-    resumable = getattr(args, "checkpoint_every", 0) and getattr(args, "adapting", False)
+    from pathlib import Path
+    checkpointing = getattr(args, "checkpoint_every", 0) and getattr(args, "adapting", False)
+    saved = checkpointing and any(Path(args.out, "checkpoints").glob("state_??????.json"))
     print("interrupted" + ("; the last completed chunk is checkpointed: run the same command "
-                           "with --resume to continue" if resumable else ""), file=sys.stderr)
+                           "with --resume to continue" if saved else
+                           "; no checkpoint was saved yet" if checkpointing else ""),
+          file=sys.stderr)
     return 143 if isinstance(e, Terminated) else 130
 
 

@@ -79,6 +79,8 @@ class RunResult:
   n_skipped: int = 0
   excluded: list[str] = dataclasses.field(default_factory=list)  # frames without valid GT
   resumed_at: int = 0                  # frames taken from a checkpoint (--resume)
+  # wall time the checkpoint's frames took in the call(s) that ran them (up to its save)
+  seconds_before: float = 0.0
   # indices of the frames whose predicted depth has a non-finite value (a diverged method):
   # not scored
   nonfinite_indices: list[int] = dataclasses.field(default_factory=list)
@@ -109,6 +111,18 @@ class RunResult:
     """Frames per second of the frames this call ran (not those taken from a checkpoint)."""
     ran = len(self.frame_names) - self.resumed_at
     return ran / self.seconds if ran > 0 and self.seconds > 0 else float("nan")
+
+  @property
+  def total_seconds(self) -> float:
+    """Wall time of every frame: this call's and, after a resume, the earlier calls' up to the
+    checkpoint (time spent after it, on frames run again here, is not counted twice)."""
+    return self.seconds_before + self.seconds
+
+  @property
+  def total_fps(self) -> float:
+    """Frames per second over the whole sequence, resumed or not (`total_seconds`)."""
+    n = len(self.frame_names)
+    return n / self.total_seconds if n and self.total_seconds > 0 else float("nan")
 
 
 class Runners:
@@ -264,13 +278,31 @@ def _remove_checkpoint(path: Path) -> None:
   shutil.rmtree(path) if path.is_dir() else path.unlink()
 
 
-def _clear_checkpoints(directory: Path) -> None:
+def _record_marks(record: dict) -> dict:
+  """The lengths of a run record's per-frame lists (`_truncate_record` cuts back to them)."""
+  return {"lists": {k: len(record[k]) for k in ("per_frame", "names", "excluded",
+                                               "nonfinite_indices")},
+          "logs": {k: len(v) for k, v in record["logs"].items()}}
+
+
+def _truncate_record(record: dict, marks: dict) -> None:
+  """Cuts `record` back to `marks`: what a chunk interrupted while being scored added goes."""
+  for key, n in marks["lists"].items():
+    del record[key][n:]
+  record["logs"] = {k: v[:marks["logs"][k]] for k, v in record["logs"].items()
+                    if k in marks["logs"]}
+
+
+def _clear_checkpoints(directory: Path) -> int:
   """Removes the checkpoints a previous run left under `directory` (a fresh run's first step:
-  they would otherwise mix with its own), and any save a kill interrupted."""
+  they would otherwise mix with its own), and any save a kill interrupted; returns how many
+  complete ones there were."""
   if not directory.is_dir():
-    return
+    return 0
+  complete = len(list(directory.glob(CHECKPOINT_PATTERN + ".json")))
   for path in (*directory.glob(CHECKPOINT_PATTERN), *directory.glob(UNFINISHED_PATTERN)):
     _remove_checkpoint(path)
+  return complete
 
 
 def _save_checkpoint(directory: Path, state, record: dict) -> None:
@@ -337,7 +369,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   fingerprint = None if directory is None else run_fingerprint(weights, method, cfg, eval_cfg,
                                                                names)
   record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
-            "logs": {}, "fingerprint": fingerprint}
+            "logs": {}, "fingerprint": fingerprint, "seconds": 0.0}
   if directory is not None and resume:
     try:
       found = _load_newest(_resume_points(directory, fingerprint, names), state)
@@ -350,16 +382,23 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       found = None
     if found is not None:
       state, sidecar = found
-      record = {"nonfinite_indices": [], **sidecar}
+      record = {"nonfinite_indices": [], "seconds": 0.0, **sidecar}
       frames = frames[int(state.step):]
-  elif directory is not None:
-    _clear_checkpoints(directory)
+  elif directory is not None and _clear_checkpoints(directory):
+    print(f"warning: {directory}: removed an earlier run's checkpoints (without --resume / "
+          f"resume=True a run starts afresh)", file=sys.stderr)
   start = int(state.step)
   kept: dict[int, np.ndarray] = {}
   keep = set(keep)
   bar = tqdm(total=start + len(frames), initial=start, desc=name or cfg.method, unit="frame",
              disable=quiet)
   t0 = time.perf_counter()
+  seconds_before = float(record["seconds"])
+
+  def save(state) -> None:
+    record["seconds"] = seconds_before + time.perf_counter() - t0
+    _save_checkpoint(directory, state, record)
+
   # a sequence shorter than a chunk is one chunk of its own length (no padded steps)
   stream = chunks(frames, h, w, min(cfg.chunk_size, max(len(frames), 1)), cfg.max_segments,
                   weights.spec.image_resize)
@@ -374,6 +413,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       yield chunk
 
   index, last_saved = start, start
+  # the newest state whose frames are all in `record`, with the record's lengths then: a
+  # Ctrl-C while a chunk is being scored checkpoints this one, not the chunk's half-scored state
+  done = (state, _record_marks(record), index)
   try:
     for state, out in adapt_stream(state, consts, inputs(), runner):
       originals = chunk_frames.pop(0)
@@ -397,15 +439,18 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
         record["logs"].setdefault(key, []).extend(np.asarray(values).tolist())
       if directory is not None and checkpoint_every and index // checkpoint_every > (
           last_saved // checkpoint_every):
-        _save_checkpoint(directory, state, record)
+        save(state)
         last_saved = index
+      done = (state, _record_marks(record), index)
       abs_rels = [m["abs_rel"] for m in record["per_frame"]]
       bar.update(len(originals))
       bar.set_postfix(abs_rel=f"{np.mean(abs_rels) if abs_rels else float('nan'):.4f}",
                       loss=f"{float(np.mean(out.loss)):.3g}")
   except KeyboardInterrupt:
-    if directory is not None and checkpoint_every and index > last_saved:
-      _save_checkpoint(directory, state, record)  # the last completed chunk is not lost
+    done_state, marks, done_index = done
+    if directory is not None and checkpoint_every and done_index > last_saved:
+      _truncate_record(record, marks)
+      save(done_state)  # the last completed chunk is not lost
     raise
   finally:
     bar.close()
@@ -418,4 +463,5 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   return RunResult(name=name, per_frame=per_frame, mean=mean, logs=logs,
                    frame_names=record["names"], seconds=seconds, kept_depths=kept,
                    n_skipped=int(state.n_skipped), excluded=record["excluded"],
-                   resumed_at=start, nonfinite_indices=record["nonfinite_indices"])
+                   resumed_at=start, nonfinite_indices=record["nonfinite_indices"],
+                   seconds_before=seconds_before)

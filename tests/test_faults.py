@@ -184,7 +184,39 @@ def test_kill_then_resume_equals_an_uninterrupted_run(tiny_weights, tmp_path):
   assert resumed["per_frame"] == full["per_frame"] and len(full["per_frame"]) == N
   assert resumed["logs"] == full["logs"]
   assert resumed["rows"][0]["metrics"] == full["rows"][0]["metrics"]
-  assert resumed["rows"][0]["extra"]["fps"] > 0  # the frames run after the resume
+  # time and speed cover every frame: the killed call's time up to its checkpoint counts
+  seconds = resumed["seconds"]
+  assert seconds["total"] > seconds["this_call"] > 0
+  assert abs(resumed["rows"][0]["extra"]["fps"] - N / seconds["total"]) < 0.01
+
+
+def test_ctrl_c_while_a_chunk_is_scored_loses_no_frame(tiny_weights, tmp_path, monkeypatch,
+                                                       capfd):
+  """Ctrl-C between a chunk's steps and the end of its scoring: the checkpoint is the last
+  chunk whose frames were all scored (the interrupted chunk's state would skip its unscored
+  frames on --resume), and the resumed run equals an uninterrupted one, frame for frame."""
+  from pitta_jax import run as run_lib
+  real, calls = run_lib.frame_metrics, []
+
+  def interrupting(*args, **kwargs):
+    calls.append(1)
+    if len(calls) == 2 * K + 2:   # the second frame of the third chunk
+      raise KeyboardInterrupt
+    return real(*args, **kwargs)
+
+  out = tmp_path / "cut"
+  monkeypatch.setattr(run_lib, "frame_metrics", interrupting)
+  assert main(_adapt_args(tiny_weights, out)) == 130
+  assert "the last completed chunk is checkpointed" in capfd.readouterr().err
+  monkeypatch.setattr(run_lib, "frame_metrics", real)
+  saved = sorted(p.name for p in (out / "checkpoints").glob("state_??????.json"))
+  assert saved[-1] == f"state_{2 * K:06d}.json"          # not the half-scored third chunk's
+  assert main(_adapt_args(tiny_weights, out, "--resume")) == 0
+  assert main(_adapt_args(tiny_weights, tmp_path / "full")) == 0
+  resumed = json.loads((out / "results.json").read_text())
+  full = json.loads((tmp_path / "full" / "results.json").read_text())
+  assert resumed["resumed_at_frame"] == 2 * K and len(full["per_frame"]) == N
+  assert resumed["per_frame"] == full["per_frame"] and resumed["logs"] == full["logs"]
 
 
 def test_sigterm_stops_like_ctrl_c(tiny_weights, tmp_path):
@@ -233,7 +265,8 @@ def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, caps
   assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 2
   err = capsys.readouterr().err.strip()
   assert len(err.splitlines()) == 1 and str(ckpt) in err and "none of this run" in err
-  assert main(_adapt_args(tiny_weights, out, *fewer)) == 0  # fresh: the old ones go
+  assert main(_adapt_args(tiny_weights, out, *fewer)) == 0  # fresh: the old ones go, said so
+  assert "removed an earlier run's checkpoints" in capsys.readouterr().err
   assert sorted(p.name for p in ckpt.glob("state_*")) == [
       f"state_{k:06d}{ext}" for k in range(K, N - K + 1, K) for ext in ("", ".json")]
   assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
@@ -247,7 +280,10 @@ def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, caps
   assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
   assert f"resuming from state_{N - 2 * K:06d} instead" in capsys.readouterr().err
   assert json.loads((out / "results.json").read_text())["per_frame"] == done["per_frame"]
-  assert done["rows"][0]["extra"]["fps"] is None  # nothing ran: no speed (it was frames / ~0 s)
+  # nothing ran in that call: the speed is the earlier calls' (it was frames / ~0 s once)
+  seconds = done["seconds"]
+  assert seconds["total"] > seconds["this_call"] >= 0
+  assert abs(done["rows"][0]["extra"]["fps"] - (N - K) / seconds["total"]) < 0.01
 
 
 def test_garbage_in_readers_is_refused(tmp_path):
