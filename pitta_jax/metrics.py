@@ -32,7 +32,8 @@ MIN_DEPTH, MAX_DEPTH = 1e-3, 80.0  # valid ground truth and cap, MonoDepth2's ev
 STEREO_SCALE_FACTOR = 5.4
 RESIZE_DOMAINS = ("disparity", "depth")  # what `depth_metrics` interpolates onto the gt's size
 # which ground-truth pixels are scored: "range" min_depth < gt < max_depth (MonoDepth2's eigen
-# split), "positive" gt > 0 (its eigen_benchmark split, improved ground truth beyond 80 m kept)
+# split), "positive" finite gt > 0 (its eigen_benchmark split, improved ground truth beyond 80 m
+# kept)
 VALID_GT = ("range", "positive")
 
 
@@ -147,7 +148,9 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
   pred = pred.astype(np.float64)
 
   with np.errstate(invalid="ignore"):  # (H, W); NaN gt is invalid
-    valid = gt > 0 if valid_gt == "positive" else (gt > min_depth) & (gt < max_depth)
+    # an infinite depth is no measurement ("range" excludes it by its upper bound)
+    valid = ((gt > 0) & np.isfinite(gt) if valid_gt == "positive"
+             else (gt > min_depth) & (gt < max_depth))
   if garg_crop:
     valid &= garg_crop_mask(gt_h, gt_w)
   if not valid.any():

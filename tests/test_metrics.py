@@ -110,6 +110,10 @@ def test_positive_ground_truth_scores_beyond_the_cap():
   assert positive["abs_rel"] == pytest.approx((10.0 / 90.0) / 2)
   with pytest.raises(ValueError, match="valid_gt must be"):
     metrics.depth_metrics(pred, gt, valid_gt="all")
+  # an infinite ground truth (a .npy map's "no return") is no measurement: not scored
+  with_inf = metrics.depth_metrics(np.array([[10.0, 95.0, 20.0]]), np.array([[10.0, 90.0, np.inf]]),
+                                   median_scaling=False, valid_gt="positive")
+  assert with_inf == positive
 
 
 def test_garg_crop():
