@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import sys
 
@@ -106,16 +107,53 @@ def _add_convert(sub) -> None:
   p.set_defaults(func=lambda args: convert_cli.run(args))
 
 
-def _add_method_configs(p) -> None:
-  """`--adapt.*` and, for every registered method with knobs, `--<method>.*`."""
+def _method_config_classes() -> list[tuple[type, str]]:
+  """(config class, namespace): AdaptConfig's `adapt` and every registered method with knobs."""
   import dataclasses
   from pitta_jax.adapt import AdaptConfig
-  from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.methods import METHODS
-  add_config_arguments(p, AdaptConfig, "adapt", "adaptation (paper defaults)")
-  for name, (cls, _) in METHODS.items():
-    if dataclasses.fields(cls):
-      add_config_arguments(p, cls, name, f"method {name} (used with --method {name})")
+  return [(AdaptConfig, "adapt")] + [(cls, name) for name, (cls, _) in METHODS.items()
+                                     if dataclasses.fields(cls)]
+
+
+def _add_method_configs(p) -> None:
+  """`--adapt.*` and, for every registered method with knobs, `--<method>.*`; a name several of
+  them share (`--lr`, `--window`, `--ld-weight`) is a shared alias (`_route_method_aliases`)."""
+  from pitta_jax.config_cli import add_config_arguments, add_shared_aliases, shared_names
+  configs = _method_config_classes()
+  shared = shared_names(configs)
+  for cls, name in configs:
+    title = ("adaptation (paper defaults)" if name == "adapt"
+             else f"method {name} (used with --method {name})")
+    add_config_arguments(p, cls, name, title, shared=shared)
+  add_shared_aliases(p, shared, "flags several methods have (the selected method's)")
+
+
+def _route_method_aliases(args, method: str | None) -> None:
+  """Shared aliases onto their namespaced flags: the method's field, else `--adapt.*`'s
+  (`method` None: every config that has the name, as the demo runs them all)."""
+  from pitta_jax.config_cli import route_aliases
+  configs = _method_config_classes()
+  spaces = [name for _, name in configs]
+  if method is None:
+    route_aliases(args, configs, spaces, every=True)
+  else:
+    route_aliases(args, configs, [s for s in (method, "adapt") if s in spaces])
+
+
+def _check_method_flags(args, method) -> None:
+  """ValueError naming the flag: another method's `--<name>.*` flags, or `--adapt`'s optimiser
+  flags for a method that steps its own optimiser (the baselines), would be ignored."""
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.config_cli import given_fields, given_flags
+  for _, name in _method_config_classes():
+    given = given_flags(args, name)
+    if name not in ("adapt", method.name) and given:
+      raise ValueError(f"{given[0]} is a flag of --method {name}, not of --method {method.name}")
+  own = sorted(given_fields(AdaptConfig, args, "adapt") & {"optimizer", "lr", "momentum"})
+  if method.optimizer is not None and own:
+    raise ValueError(f"--adapt.{own[0]} does not apply to --method {method.name}: it steps its "
+                     f"own optimiser (set it with its --{method.name}.* flags)")
 
 
 def _method_configs_from_args(args) -> dict:
@@ -155,6 +193,7 @@ def _run_demo(args) -> int:
   from pitta_jax.methods.pitta import PittaConfig
   from pitta_jax.source_model import SourceConfig, enable_compilation_cache, load_or_train_source
   demo = config_from_args(DemoConfig, args, "demo")  # validated before any work
+  _route_method_aliases(args, None)
   adapt = config_from_args(AdaptConfig, args, "adapt")
   pitta = config_from_args(PittaConfig, args, "pitta")
   configs = _method_configs_from_args(args)
@@ -266,9 +305,12 @@ def adapt_config(args):
   otherwise, with a note saying so; what it requires (`Method.requires`) stays the user's to
   give (ValueError naming the flag, before any work)."""
   from pitta_jax.adapt import AdaptConfig
-  from pitta_jax.config_cli import apply_unless_given, config_from_args
+  from pitta_jax.config_cli import apply_unless_given, flag_dest, config_from_args
+  _route_method_aliases(args, getattr(args, flag_dest("adapt", "method"), None)
+                        or AdaptConfig().method)
   cfg = config_from_args(AdaptConfig, args, "adapt")
   method = _method_from_args(args, cfg)
+  _check_method_flags(args, method)
   cfg, own = apply_unless_given(cfg, method.setting, args, "adapt")
   notes = []
   if own:
@@ -316,6 +358,12 @@ def _run_adapt(args) -> int:
     raise ValueError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
   if args.resume and not args.checkpoint_every:
     raise ValueError("--resume needs --checkpoint-every K (the same K as the interrupted run)")
+  # run_sequence saves after every K frames exactly: chunks of gcd(chunk, K)
+  chunk = math.gcd(cfg.chunk_size, args.checkpoint_every) if args.checkpoint_every > 0 else 0
+  if chunk and chunk != cfg.chunk_size:
+    notes.append(f"--checkpoint-every {args.checkpoint_every} runs chunks of {chunk} frames, "
+                 f"not --chunk-size {cfg.chunk_size} (a multiple of the chunk size keeps it; "
+                 f"small chunks run slower)")
   weights_config = None
   if args.weights:  # cheap checks first: the weights' description, the dataset, the method's needs
     weights_config = read_model_json(args.weights)[1]
@@ -375,7 +423,8 @@ def _run_adapt(args) -> int:
             "options": args.option, "segmentation": args.segmentation, "notes": notes,
             "source": {"images": args.source_images, "replay_root": args.replay_root,
                        "stats": args.source_stats},
-            "weights": str(args.weights), "adapt": dataclasses.asdict(cfg),
+            "weights": None if args.weights is None else str(args.weights),
+            "adapt": dataclasses.asdict(cfg),
             "method": {"name": method.name, **dataclasses.asdict(method.config)},
             "eval": dataclasses.asdict(eval_cfg),
             "per_frame": res.per_frame,
@@ -508,7 +557,12 @@ class Terminated(KeyboardInterrupt):
 @contextlib.contextmanager
 def terminate_as_interrupt():
   """While the command runs, SIGTERM raises `Terminated` (the previous handler is restored
-  after; only the CLI's own process does this, never library code)."""
+  after; only the CLI's own process does this, never library code).
+
+  A signal's exception raised while Python runs a finaliser or a gc callback (JAX frees device
+  buffers from one) is printed and dropped by Python, and the command would run on: while the
+  command runs, `sys.unraisablehook` sends such a Ctrl-C or SIGTERM again, so that it lands
+  where the command can stop."""
   import signal
   import threading
   if threading.current_thread() is not threading.main_thread():
@@ -518,11 +572,23 @@ def terminate_as_interrupt():
   def stop(signum, frame):
     raise Terminated()
 
-  previous = signal.signal(signal.SIGTERM, stop)
+  def resend(unraisable):
+    if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+      signum = signal.SIGTERM if issubclass(unraisable.exc_type, Terminated) else signal.SIGINT
+      # from another thread, a moment later: a handler run inside this hook would be dropped too
+      timer = threading.Timer(0.01, os.kill, (os.getpid(), signum))
+      timer.daemon = True
+      timer.start()
+    else:
+      previous_hook(unraisable)
+
+  previous, previous_hook = signal.signal(signal.SIGTERM, stop), sys.unraisablehook
+  sys.unraisablehook = resend
   try:
     yield
   finally:
     signal.signal(signal.SIGTERM, previous)
+    sys.unraisablehook = previous_hook
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,7 +2,10 @@
 
 Field `foo_bar` of the config in namespace `adapt` becomes `--adapt.foo-bar`, and also
 `--foo-bar` when no other config of the command has that field (a short alias). A nested config
-field (`PittaConfig.ld`) continues the namespace: `--pitta.ld.window` (alias `--window`). Types
+field (`PittaConfig.ld`) continues the namespace: `--pitta.ld.window`. A name several configs
+share (`--lr`, `--window`, `--ld-weight` among the methods) is a shared alias
+(`add_shared_aliases`): `route_aliases` gives it to the selected method's field, else to
+`--adapt.*`'s, and refuses it where neither has one. Types
 come from the field annotations: int, float (`inf` allowed), str, bool (`true|false`), tuples of
 str or int (comma-separated; for `dynamic_classes` COCO names are accepted too:
 `person,car`). Help texts come from the fields' metadata (`configs.option`). Only the flags a
@@ -14,7 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import typing
-from typing import Any, TypeVar
+from typing import Any, Collection, Sequence, TypeVar
 
 from pitta_jax.configs import help_of
 
@@ -79,32 +82,41 @@ def _fields(cls: type) -> list[tuple[dataclasses.Field, Any]]:
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type, namespace: str,
-                         title: str, _group=None) -> None:
-  """Adds `--{namespace}.{field}` (and a unique short alias) for every field of `cls`."""
+                         title: str, _group=None, shared: Collection[str] = ()) -> None:
+  """Adds `--{namespace}.{field}` (and a short alias, unless another flag has it or the name is
+  in `shared`) for every field of `cls`."""
   group = _group or parser.add_argument_group(title)
   for field, annotation in _fields(cls):
     if dataclasses.is_dataclass(annotation):
-      add_config_arguments(parser, annotation, f"{namespace}.{field.name}", title, group)
+      add_config_arguments(parser, annotation, f"{namespace}.{field.name}", title, group, shared)
       continue
     kind, meta = parser_for(annotation)
     default = field.default
     shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
     flags = [f"--{namespace}.{field.name.replace('_', '-')}"]
     alias = f"--{field.name.replace('_', '-')}"
-    if alias not in parser._option_string_actions:  # argparse's own registry of flags
+    # argparse's own registry of flags: the first config to claim a name outside `shared` keeps it
+    if alias not in parser._option_string_actions and field.name not in shared:
       flags.append(alias)
     text = f"{help_of(field)} (default: {shown})".lstrip().replace("%", "%%")  # argparse formats
-    group.add_argument(*flags, dest=_dest(namespace, field.name), type=kind, default=None,
+    group.add_argument(*flags, dest=flag_dest(namespace, field.name), type=kind, default=None,
                        metavar=meta, help=text)
 
 
-def _dest(namespace: str, name: str) -> str:
+def flag_dest(namespace: str, name: str) -> str:
   return f"cfg__{namespace.replace('.', '__')}__{name}"
+
+
+def given_flags(args: argparse.Namespace, namespace: str) -> list[str]:
+  """The `--{namespace}.*` flags given on the command line (nested ones included), sorted."""
+  prefix = flag_dest(namespace, "")
+  return sorted("--" + k[len("cfg__"):].replace("__", ".").replace("_", "-")
+                for k, v in vars(args).items() if v is not None and k.startswith(prefix))
 
 
 def given_fields(cls: type, args: argparse.Namespace, namespace: str) -> set[str]:
   """The (top-level) fields of `cls` whose flags were given on the command line."""
-  return {f.name for f, _ in _fields(cls) if getattr(args, _dest(namespace, f.name), None)
+  return {f.name for f, _ in _fields(cls) if getattr(args, flag_dest(namespace, f.name), None)
           is not None}
 
 
@@ -125,8 +137,95 @@ def config_from_args(cls: type[T], args: argparse.Namespace, namespace: str,
     if dataclasses.is_dataclass(annotation):
       values[field.name] = config_from_args(annotation, args, f"{namespace}.{field.name}")
       continue
-    value = getattr(args, _dest(namespace, field.name), None)
+    value = getattr(args, flag_dest(namespace, field.name), None)
     if value is not None:
       values[field.name] = value
   values.update(fixed)
   return cls(**values)
+
+
+def leaf_fields(cls: type, namespace: str) -> list[tuple[str, str]]:
+  """(field name, namespaced flag) of every leaf field of `cls`, nested configs included:
+  ("window", "pitta.ld.window")."""
+  out = []
+  for field, annotation in _fields(cls):
+    path = f"{namespace}.{field.name}"
+    out += (leaf_fields(annotation, path) if dataclasses.is_dataclass(annotation)
+            else [(field.name, path)])
+  return out
+
+
+def shared_names(configs: Sequence[tuple[type, str]]) -> set[str]:
+  """Field names that more than one of `configs` ((class, namespace) pairs) has."""
+  owners: dict[str, set[str]] = {}
+  for cls, namespace in configs:
+    for name, _ in leaf_fields(cls, namespace):
+      owners.setdefault(name, set()).add(namespace)
+  return {name for name, spaces in owners.items() if len(spaces) > 1}
+
+
+def add_shared_aliases(parser: argparse.ArgumentParser, names: Collection[str], title: str
+                       ) -> list[str]:
+  """`--name` for each of `names` no other flag has yet (dest `alias__name`), resolved later by
+  `route_aliases`; returns the names added."""
+  group = parser.add_argument_group(title)
+  added = []
+  for name in sorted(names):
+    flag = f"--{name.replace('_', '-')}"
+    if flag in parser._option_string_actions:
+      continue
+    group.add_argument(flag, dest=f"alias__{name}", default=None, metavar="VALUE",
+                       help=f"the selected method's {name.replace('_', '-')} (else "
+                            f"--adapt.{name.replace('_', '-')}); refused where neither has it")
+    added.append(name)
+  return added
+
+
+def route_aliases(args: argparse.Namespace, configs: Sequence[tuple[type, str]],
+                  order: Sequence[str], every: bool = False) -> None:
+  """Moves each given shared alias (`add_shared_aliases`) onto its namespaced flag, parsed as
+  that field: the first namespace of `order` whose config has the name (`every`: each one that
+  has it). ValueError (one line, naming the flags) where a config has the name twice, where no
+  namespace of `order` has it, or where its namespaced flag was given too."""
+  classes = dict((namespace, cls) for cls, namespace in configs)
+  for key, text in list(vars(args).items()):
+    if not key.startswith("alias__") or text is None:
+      continue
+    name, flag = key[len("alias__"):], f"--{key[len('alias__'):].replace('_', '-')}"
+    targets = []
+    for namespace in order:
+      paths = [path for n, path in leaf_fields(classes[namespace], namespace) if n == name]
+      if len(paths) > 1:
+        raise ValueError(f"{flag} is ambiguous for {namespace}: use "
+                         + " or ".join(f"--{p.replace('_', '-')}" for p in paths))
+      targets += paths
+      if targets and not every:
+        break
+    if not targets:
+      owners = [path for cls, ns in configs for n, path in leaf_fields(cls, ns) if n == name]
+      raise ValueError(f"{flag} is not a flag of "
+                       + " or ".join(f"--{namespace}.*" for namespace in order) + "; it is "
+                       + ", ".join(f"--{p.replace('_', '-')}" for p in owners))
+    for path in targets:
+      namespace, field_name = path.rsplit(".", 1)
+      dest = flag_dest(namespace, field_name)
+      if getattr(args, dest, None) is not None:
+        raise ValueError(f"both {flag} and --{path.replace('_', '-')} given")
+      annotation = dict((f.name, a) for f, a in _fields(_config_at(classes, namespace)))[field_name]
+      kind, meta = parser_for(annotation)
+      try:
+        setattr(args, dest, kind(text))
+      except argparse.ArgumentTypeError as e:
+        raise ValueError(f"{flag}: {e}") from None
+      except ValueError:
+        raise ValueError(f"{flag}: expected {meta}, got {text!r}") from None
+    setattr(args, key, None)
+
+
+def _config_at(classes: dict[str, type], namespace: str) -> type:
+  """The config class of a (possibly nested) namespace: "pitta.ld" -> DepthRefiningConfig."""
+  top, *rest = namespace.split(".")
+  cls = classes[top]
+  for name in rest:
+    cls = dict((f.name, a) for f, a in _fields(cls))[name]
+  return cls

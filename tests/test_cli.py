@@ -137,3 +137,37 @@ def test_kitti_eigen_split_is_scored_inside_the_garg_crop_unless_a_flag_says_oth
   cfg, note = dataset_evaluation(config_from_args(EvalConfig, args, "eval"),  # eigen_benchmark
                                  {"valid_gt": "positive"}, args)
   assert cfg.valid_gt == "positive" and "--eval.valid-gt positive (give the flag" in note
+
+
+def test_shared_flags_reach_the_selected_method():
+  """A short name several configs share (--lr, --window, --ld-weight) sets the selected method's
+  field, else --adapt.*'s (before: the first config registered took it, so `--method cotta
+  --ld-weight 0` set CoMoDa's and CoTTA ran with L_d); flags that would be ignored are refused."""
+  from pitta_jax.cli import (_method_configs_from_args, _route_method_aliases, adapt_config,
+                             build_parser)
+  parser = build_parser()
+
+  def adapt(*flags):
+    return adapt_config(parser.parse_args(["adapt", "--dataset", "synthetic", *flags]))
+
+  cfg, method, _ = adapt("--method", "cotta", "--bn-stats", "running", "--ld-weight", "0",
+                         "--lr", "0.5", "--window", "3")
+  assert (method.config.ld_weight, method.config.lr, method.config.ld.window) == (0.0, 0.5, 3)
+  assert cfg.lr == 1e-4                                   # AdaptConfig's, unused by CoTTA
+  cfg, method, _ = adapt("--lr", "0.5", "--window", "7")  # PITTA: AdaptConfig's lr, its window
+  assert (cfg.lr, method.config.ld.window) == (0.5, 7)
+  for flags, match in (
+      (["--ld-weight", "0"], r"--ld-weight is not a flag of --pitta\.\* or --adapt\.\*"),
+      (["--method", "cotta", "--bn-stats", "running", "--adapt.lr", "0.5"],
+       "--adapt.lr does not apply to --method cotta: it steps its own optimiser"),
+      (["--method", "cotta", "--bn-stats", "running", "--comoda.lr", "1"],
+       "--comoda.lr is a flag of --method comoda, not of --method cotta"),
+      (["--method", "cotta", "--bn-stats", "running", "--lr", "1", "--cotta.lr", "2"],
+       "both --lr and --cotta.lr given"),
+      (["--window", "five"], "--window: expected INT, got 'five'")):
+    with pytest.raises(ValueError, match=match):
+      adapt(*flags)
+  demo = parser.parse_args(["demo", "--ld-weight", "0"])   # the demo runs them all: each one's
+  _route_method_aliases(demo, None)
+  configs = _method_configs_from_args(demo)
+  assert all(c.ld_weight == 0.0 for name, c in configs.items() if hasattr(c, "ld_weight"))

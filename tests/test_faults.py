@@ -71,11 +71,17 @@ def test_bad_out_fails_before_any_work(tmp_path, capsys):
     assert rc == 2 and match in err and err.count("\n") == 1, (bad, err)
   with pytest.raises(SystemExit) as e:  # argparse: one error line (no usage), exit 2
     main(["adapt", "--dataset", "synthetic", "--out", str(tmp_path / "o"),
-          "--dynamic-classes", "car,unicorn"])
+          "--pitta.ld.dynamic-classes", "car,unicorn"])
   err = capsys.readouterr().err
   assert e.value.code == 2 and "unicorn" in err and err.count("\n") == 1, err
   assert err.startswith("error: argument --pitta.ld.dynamic-classes") and err.endswith(
       "(see pitta-jax adapt --help)\n")
+  # the short name several methods share: the selected method's field, parsed as it
+  rc = main(["adapt", "--dataset", "synthetic", "--out", str(tmp_path / "o"),
+             "--dynamic-classes", "car,unicorn"])
+  err = capsys.readouterr().err
+  assert rc == 2 and err.count("\n") == 1 and err.startswith("error: --dynamic-classes: ") and (
+      "'unicorn' is neither an integer nor a COCO class name" in err), err
   rc = main(["adapt", "--dataset", "synthetic", "--out", str(tmp_path / "o"), "--option",
              "num_frames=3.5"])
   err = capsys.readouterr().err
@@ -207,7 +213,9 @@ def test_ctrl_c_while_a_chunk_is_scored_loses_no_frame(tiny_weights, tmp_path, m
   out = tmp_path / "cut"
   monkeypatch.setattr(run_lib, "frame_metrics", interrupting)
   assert main(_adapt_args(tiny_weights, out)) == 130
-  assert "the last completed chunk is checkpointed" in capfd.readouterr().err
+  err = capfd.readouterr().err
+  assert "the last completed chunk is checkpointed" in err
+  assert f"--checkpoint-every {K} runs chunks of {K} frames, not --chunk-size 32" in err
   monkeypatch.setattr(run_lib, "frame_metrics", real)
   saved = sorted(p.name for p in (out / "checkpoints").glob("state_??????.json"))
   assert saved[-1] == f"state_{2 * K:06d}.json"          # not the half-scored third chunk's
@@ -396,3 +404,27 @@ def test_a_binary_split_file_and_a_bad_network_field_name_their_file(tmp_path):
       {"architecture": "monodepth2", "num_layers": "18", "height": 64, "width": 96}))
   with pytest.raises(WeightsError, match=f"^{tmp_path / 'w' / 'model.json'}: num_layers"):
     read_model_json(tmp_path / "w")
+
+
+def test_sigterm_inside_a_finaliser_still_stops_the_command():
+  """A SIGTERM whose handler runs inside a finaliser or a gc callback (JAX frees buffers from
+  one): Python prints and drops the exception raised there, and the command ran to its end with
+  exit 0 (about 1 kill in 15). terminate_as_interrupt sends it again; it lands outside."""
+  from pitta_jax.cli import Terminated, terminate_as_interrupt
+
+  class Finaliser:
+    def __del__(self):
+      os.kill(os.getpid(), signal.SIGTERM)
+      for _ in range(10_000):   # the handler runs here, where Python swallows its exception
+        pass
+
+  ran_on, hooks = False, (signal.getsignal(signal.SIGTERM), sys.unraisablehook)
+  with pytest.raises(Terminated):
+    with terminate_as_interrupt():
+      Finaliser()                # collected at once: __del__ runs now
+      deadline = time.time() + 5  # the command's work (the signal is sent again within ~10 ms)
+      while time.time() < deadline:
+        pass
+      ran_on = True
+  assert not ran_on
+  assert (signal.getsignal(signal.SIGTERM), sys.unraisablehook) == hooks  # both restored
