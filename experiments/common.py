@@ -71,11 +71,8 @@ QUICK_SIZE = (64, 96)
 CHECKPOINT_EVERY = 25  # frames between a running row's checkpoints (its resume points)
 # Table 3's other networks on synthetic: train-source with a shorter recipe than MonoDepth2's
 # shipped model (whose 600 x 8 recipe takes about an hour per network on a 2-core CPU)
+# (and each network's own learning rate: source_model.NETWORK_LR)
 OTHER_NETWORK_SOURCE = dict(steps=250, batch_size=4)
-# ... with the learning rate changed where train-source's default (1e-3) does not train the
-# network: Lite-Mono stalls at loss 1.86 after 250 steps at 1e-3 (AbsRel 0.56 on All), reaches
-# 0.26 at 1e-4 and 0.20 at 3e-4 (upstream Lite-Mono trains with AdamW at 1e-4..5e-4)
-OTHER_NETWORK_LR = {"litemono": 3e-4}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -171,11 +168,9 @@ def _read_weights(ctx: Context, model: str):
     return None
   if ctx.quick:
     return _random_weights(ctx.out / "weights" / model, model)
-  from pitta_jax.source_model import SourceConfig, load_or_train_source
-  recipe = {} if model == "monodepth2" else dict(OTHER_NETWORK_SOURCE)
-  if model in OTHER_NETWORK_LR:
-    recipe["lr"] = OTHER_NETWORK_LR[model]
-  return load_or_train_source(SourceConfig(model=model, **recipe), quiet=ctx.quiet)[0]
+  from pitta_jax.source_model import load_or_train_source, network_source_config
+  recipe = {} if model == "monodepth2" else OTHER_NETWORK_SOURCE
+  return load_or_train_source(network_source_config(model, **recipe), quiet=ctx.quiet)[0]
 
 
 def _random_weights(directory: Path, model: str):

@@ -225,9 +225,14 @@ def _add_train_source(sub) -> None:
 
 def _run_train_source(args) -> int:
   import json
-  from pitta_jax.config_cli import config_from_args
-  from pitta_jax.source_model import ASSETS, SourceConfig, load_or_train_source, ship_source
+  from pitta_jax.config_cli import apply_unless_given, config_from_args
+  from pitta_jax.source_model import (ASSETS, SourceConfig, load_or_train_source,
+                                      network_defaults, ship_source)
   cfg = config_from_args(SourceConfig, args, "source")
+  cfg, own = apply_unless_given(cfg, network_defaults(cfg.model), args, "source")
+  if own:
+    print(f"note: {cfg.model} trains at --source.lr {cfg.lr} (the default 1e-3 does not train "
+          f"it; give the flag to change it)", file=sys.stderr)
   if args.ship and not os.access(ASSETS if ASSETS.is_dir() else ASSETS.parent, os.W_OK):
     raise ValueError(f"--ship: {ASSETS} is not writable (ship from a source checkout)")
   weights, report = load_or_train_source(cfg, quiet=args.quiet, retrain=args.retrain)

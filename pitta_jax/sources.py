@@ -102,8 +102,8 @@ def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False,
   if dataset != "synthetic":
     raise DataError(None, "--weights is required for real datasets (convert a checkpoint with "
                           "`pitta-jax convert NETWORK ...`)")
-  from pitta_jax.source_model import SourceConfig, load_or_train_source
-  return load_or_train_source(SourceConfig(model=model or "monodepth2"), quiet=quiet)[0]
+  from pitta_jax.source_model import load_or_train_source, network_source_config
+  return load_or_train_source(network_source_config(model or "monodepth2"), quiet=quiet)[0]
 
 
 SOURCE_BATCH = 4  # images per forward pass when a method computes source statistics
