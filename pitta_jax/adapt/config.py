@@ -29,8 +29,8 @@ class AdaptConfig:
                                        "encoder_ln, all, no_bn (all but BatchNorm scale/bias), "
                                        "fraction(cnn=a,bn=b) (Table 5)")
   reset_every: int = option(0, "0 = never; K = restore the source parameters every K frames")
-  skip_nonfinite: bool = option(True, "skip (and count) an update whose loss, gradient or new "
-                                      "parameters are not finite")
+  skip_nonfinite: bool = option(True, "skip (and count) an update whose loss, gradient, new "
+                                      "parameters or new optimiser state are not finite")
   max_segments: int = option(64, "S_max: panoptic segments per frame kept (padded)")
   chunk_size: int = option(32, "frames per compiled scan; memory is flat in sequence length")
   seed: int = option(0, "PRNG seed of the run (per frame: fold_in(seed, frame index))")
