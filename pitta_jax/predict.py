@@ -1,10 +1,14 @@
 """Depth prediction with a converted (or trained) depth network: `pitta-jax predict`.
 
 Each image is read, resized to the network's input size (`resize_image`, as the readers do),
-run in eval mode (running BN statistics), and written as `<stem>_disp.npy` (scale-0 sigmoid
-disparity, (H, W) float32 at the network's resolution), `<stem>_depth.npy`
-(`disp_to_depth(disp, 0.1, 100)`), and `<stem>_disp.png` (magma, MonoDepth2's convention).
-This is also how a user checks a conversion by eye.
+run in eval mode (running BN statistics), and written as `<stem>_disp.npy` (the network's own
+scale-0 output, e.g. MonoDepth2's sigmoid disparity), `<stem>_depth.npy` (its depth, e.g.
+`disp_to_depth(disp, 0.1, 100)`), and `<stem>_disp.png` (magma, MonoDepth2's convention) at the
+image's own size, as each upstream writes them: MonoDepth2's `test_simple.py` saves the arrays
+at the network's resolution and colours the disparity resized to the image (bilinear,
+align_corners=False); Depth Anything V2's `infer_image` returns its output resized to the image
+(bilinear, align_corners=True), so a network that keeps the aspect ratio (`ModelSpec.keep_aspect`)
+writes every output at the image's size. This is also how a user checks a conversion by eye.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from pitta_jax.outputs import save_npy
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import IMAGE_SUFFIXES, list_images, read_image, write_image
 from pitta_jax.data.resize import resize_image
+from pitta_jax.models.interpolate import linear_matrix
 
 
 DISP_PNG, DISP_NPY = "_disp.png", "_disp.npy"  # predict's outputs per image (+ _depth.npy)
@@ -94,6 +99,16 @@ def check_outputs_free(targets: Sequence[Path], suffix: str, companion_suffix: s
                               "is not overwritten: choose another --out")
 
 
+def resize_map(x: np.ndarray, size: tuple[int, int], align_corners: bool) -> np.ndarray:
+  """(h, w) -> `size` (H, W) float32 by PyTorch's bilinear `interpolate` (no antialias)."""
+  if x.shape == tuple(size):
+    return x.astype(np.float32)
+  rows = linear_matrix(x.shape[0], size[0], align_corners)                  # (H, h)
+  cols = linear_matrix(x.shape[1], size[1], align_corners)                  # (W, w)
+  return (rows.astype(np.float64) @ x.astype(np.float64) @ cols.T.astype(np.float64)
+          ).astype(np.float32)
+
+
 def make_predictor(network):
   """Jitted (variables, images (B, H, W, 3)) -> (the network's own full-resolution output
   (B, H, W), its depth (B, H, W)), eval mode."""
@@ -130,14 +145,20 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   for path in tqdm(images, desc="predict", unit="img", disable=quiet):
     image = read_image(path)
     h, w = size or weights.spec.inference_size(image.shape[:2], trained)
+    size_in = image.shape[:2]
     image = resize_image(image, h, w, weights.spec.image_resize)
     disp, depth = (np.asarray(a)[0] for a in predict(weights.depth, jnp.asarray(image[None])))
+    if weights.spec.keep_aspect:  # infer_image: the output at the image's size, then its depth
+      disp = resize_map(disp, size_in, align_corners=True)
+      depth = np.asarray(weights.spec.to_depth(disp))
     if not np.all(np.isfinite(disp)):
       raise ValueError(f"{path}: the network produced non-finite outputs on this image")
     save_npy(out / f"{path.stem}{DISP_NPY}", disp.astype(np.float32))  # first: it marks the
     save_npy(out / f"{path.stem}_depth.npy", depth.astype(np.float32))  # PNG as an output
     png = out / f"{path.stem}{DISP_PNG}"
-    # near = bright: the disparity as it is, or the inverse of a metric network's depth
-    write_image(png, viz.colorize(1.0 / depth if weights.spec.output == "metric_depth" else disp))
+    # near = bright: the disparity as it is, or the inverse of a metric network's depth; at the
+    # image's size (test_simple.py colours the disparity resized to it)
+    shown = 1.0 / depth if weights.spec.output == "metric_depth" else disp
+    write_image(png, viz.colorize(resize_map(shown, size_in, align_corners=False)))
     written.append(png)
   return written

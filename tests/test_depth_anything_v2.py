@@ -550,3 +550,25 @@ def test_runs_feed_the_frames_aspect_ratio_resized_as_infer_image(small, tmp_pat
   ref = np.maximum(_torch_depth(small["torch"]["official"], "official", resized[None])[0, ..., 0],
                    1e-6)                                               # (28, 98) disparity
   np.testing.assert_allclose(1.0 / depth, ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
+
+
+def test_predict_writes_infer_image_outputs_at_the_image_size(small, tmp_path):
+  """`predict` as upstream's infer_image: aspect ratio kept, bicubic input, the output resized
+  to the image with bilinear align_corners=True (torch's interpolate as infer_image calls it)."""
+  import cv2
+  from pitta_jax.checkpoint import save_weights
+  from pitta_jax.data.image_io import read_image
+  from pitta_jax.predict import predict_images
+  cfg, variables = small["converted"]["official"]
+  save_weights(tmp_path / "w", SPEC.name, {**cfg, "height": 28, "width": 28}, variables)
+  rgb = (np.random.default_rng(4).uniform(0, 1, (30, 100, 3)) * 255).astype(np.uint8)
+  cv2.imwrite(str(tmp_path / "im.png"), rgb[..., ::-1])
+  predict_images(tmp_path / "w", str(tmp_path / "im.png"), tmp_path / "pred", quiet=True)
+  disp = np.load(tmp_path / "pred" / "im_disp.npy")
+  assert disp.shape == (30, 100)
+  assert cv2.imread(str(tmp_path / "pred" / "im_disp.png")).shape[:2] == (30, 100)
+  x = cv2.resize(read_image(tmp_path / "im.png"), (98, 28), interpolation=cv2.INTER_CUBIC)
+  out = torch.from_numpy(_torch_depth(small["torch"]["official"], "official", x[None])[..., 0])
+  ref = torch.nn.functional.interpolate(out[:, None], (30, 100), mode="bilinear",
+                                        align_corners=True)[0, 0].numpy()
+  np.testing.assert_allclose(disp, ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())

@@ -37,15 +37,17 @@ def test_predict_writes_outputs_matching_torch(converted, tmp_path):
   rng = np.random.default_rng(0)
   img_dir = tmp_path / "imgs"
   img_dir.mkdir()
-  for i, (h, w) in enumerate([(120, 200), (64, 96)]):
+  sizes = [(120, 200), (64, 96)]
+  for i, (h, w) in enumerate(sizes):
     cv2.imwrite(str(img_dir / f"im{i}.png"), rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
   assert main(["predict", "--weights", str(weights), "--images", str(img_dir), "--out",
                str(tmp_path / "pred"), "--quiet"]) == 0
   for i in range(2):
     disp = np.load(tmp_path / "pred" / f"im{i}_disp.npy")
     depth = np.load(tmp_path / "pred" / f"im{i}_depth.npy")
-    assert disp.shape == depth.shape == (H, W)
-    assert (tmp_path / "pred" / f"im{i}_disp.png").is_file()
+    assert disp.shape == depth.shape == (H, W)   # test_simple.py's npy: the network's size
+    png = cv2.imread(str(tmp_path / "pred" / f"im{i}_disp.png"))
+    assert png.shape[:2] == sizes[i]               # its colour map: the image's size
     x = resize_image(read_image(img_dir / f"im{i}.png"), H, W)
     with torch.no_grad():
       ref = dec(enc(torch.from_numpy(x[None]).permute(0, 3, 1, 2)))[("disp", 0)][0, 0].numpy()
