@@ -282,8 +282,9 @@ def row_key(ctx: Context, row: RowSpec, case: str, parts, weights_id: dict) -> s
   return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 
-def cached(ctx: Context, key: str, compute: Callable[[], dict]) -> dict:
-  """The row result stored under `key`, computed (and stored atomically) when absent."""
+def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "metrics") -> dict:
+  """The row result stored under `key`, computed (and stored atomically) when absent or not a
+  result (a stored result holds `field`: a row's "metrics", a lambda sweep's "sweep")."""
   from pitta_jax.outputs import atomic_write_text, json_safe
   path = ctx.out / "rows" / f"{key}.json"
   if path.is_file():
@@ -291,7 +292,7 @@ def cached(ctx: Context, key: str, compute: Callable[[], dict]) -> dict:
       stored = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
       stored = None  # a torn file cannot exist (atomic writes); a hand-edited one is recomputed
-    if isinstance(stored, dict) and isinstance(stored.get("metrics"), dict):
+    if isinstance(stored, dict) and isinstance(stored.get(field), (dict, list)):
       return stored
   result = compute()
   path.parent.mkdir(parents=True, exist_ok=True)

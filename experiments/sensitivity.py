@@ -80,7 +80,7 @@ def run(args, runners=None) -> int:
                                                                           weights))
   sweep = common.cached(ctx, key, lambda: {"sweep": lambda_sweep(
       weights, common.case_frames(ctx, (CASE,), weights.height, weights.width), lams,
-      ctx.quiet, ctx.quick, shared)})["sweep"]
+      ctx.quiet, ctx.quick, shared)}, field="sweep")["sweep"]
   ref = results[0][2]
   dense_ref = next(e for s, n, e in results if n == "dense: reference")
   running_ref = next(e for s, n, e in results if n == "running: reference")

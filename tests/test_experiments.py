@@ -54,6 +54,12 @@ def test_cached_rows_are_computed_once(tmp_path):
     (tmp_path / "rows" / "k.json").write_text(text)
     assert common.cached(ctx, "k", compute) == {"metrics": {"abs_rel": 0.5}}
   assert len(calls) == 5
+  # a lambda sweep's result (Table 4, the sensitivity study) is {"sweep": [...]}: cached too
+  # (it was recomputed on every run: the check asked for "metrics")
+  sweep = lambda: calls.append(1) or {"sweep": [{"metrics": {"abs_rel": 0.4}}], "seconds": 3.0}
+  assert common.cached(ctx, "s", sweep, field="sweep") == common.cached(ctx, "s", sweep,
+                                                                          field="sweep")
+  assert len(calls) == 6
 
 
 def test_captions_say_quick_weights_and_row_subsets():
@@ -293,6 +299,8 @@ def test_table4_quick_is_one_vmapped_sweep(quick_out):
       p.name for p in (quick_out[0] / "table4" / "figures").iterdir()}
   md = (quick_out[0] / "table4" / "table4.md").read_text()
   assert "**Ours**" in md and "**Paper**" in md and "Waymo" in md
+  seconds = {x["seconds"] for x in lines if x["source"] == "ours"}   # the sweep's, every row
+  assert len(seconds) == 1 and float(seconds.pop()) > 0
 
 
 def test_table5_quick(quick_out):
