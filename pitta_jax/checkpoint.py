@@ -63,7 +63,14 @@ def save_tree(path: str | os.PathLike, tree: Any) -> None:
   try:
     ckpt.save(os.path.abspath(path), tree, force=True)
     ckpt.wait_until_finished()
-  except BaseException:  # a full disk, Ctrl-C: no half-written temporary directory stays
+  except BaseException as e:  # a full disk, Ctrl-C: no half-written temporary directory stays
+    if isinstance(e, KeyboardInterrupt):
+      # orbax writes from its own threads: let them end first (deleting their files under
+      # them printed hundreds of lines of their tracebacks); a second Ctrl-C stops the wait
+      try:
+        ckpt.wait_until_finished()
+      except BaseException:
+        pass
     import shutil
     for tmp in Path(path).parent.glob(f"{Path(path).name}.orbax-checkpoint-tmp*"):
       shutil.rmtree(tmp, ignore_errors=True)

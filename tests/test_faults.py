@@ -429,3 +429,33 @@ def test_sigterm_inside_a_finaliser_still_stops_the_command():
       ran_on = True
   assert not ran_on
   assert (signal.getsignal(signal.SIGTERM), sys.unraisablehook) == hooks  # both restored
+
+
+def test_ctrl_c_during_a_checkpoint_save_waits_for_its_writers(tmp_path, monkeypatch):
+  """Ctrl-C while orbax's threads write a checkpoint: save_tree lets them finish before it
+  removes the half-written directory (it removed it under them: hundreds of lines of their
+  tracebacks), then re-raises; a second Ctrl-C during that wait still stops."""
+  from pitta_jax import checkpoint
+  events = []
+
+  class Writer:                           # orbax's checkpointer: save() starts threads
+    def __init__(self, interrupts):
+      self.interrupts = interrupts
+
+    def save(self, path, tree, force):
+      (tmp_path / "state.orbax-checkpoint-tmp-1").mkdir()
+      events.append("save")
+
+    def wait_until_finished(self):
+      events.append("wait")
+      if self.interrupts:
+        self.interrupts -= 1
+        raise KeyboardInterrupt
+
+  for interrupts, waits in ((1, 2), (2, 2)):
+    events.clear()
+    monkeypatch.setattr(checkpoint, "_checkpointer", lambda n=interrupts: Writer(n))
+    with pytest.raises(KeyboardInterrupt):
+      checkpoint.save_tree(tmp_path / "state", {"a": np.zeros(2)})
+    assert events == ["save"] + ["wait"] * waits
+    assert not list(tmp_path.glob("state.orbax-checkpoint-tmp*"))
