@@ -68,7 +68,9 @@ REAL = {
 FRAMES = 50        # frames per part of a case on synthetic (All: 4 parts)
 QUICK_FRAMES = 2   # --quick: frames per part (one compile serves every case: same chunk)
 QUICK_SIZE = (64, 96)
-CHECKPOINT_EVERY = 25  # frames between a running row's checkpoints (its resume points)
+# frames between a running row's checkpoints (its resume points): a multiple of the chunk size
+# (AdaptConfig's 32), which run_sequence would otherwise shrink to gcd(32, K) frames
+CHECKPOINT_EVERY = 32
 # Table 3's other networks on synthetic: train-source with a shorter recipe than MonoDepth2's
 # shipped model (whose 600 x 8 recipe takes about an hour per network on a 2-core CPU)
 # (and each network's own learning rate: source_model.NETWORK_LR)
@@ -216,19 +218,23 @@ def weights_identity(ctx: Context, model: str, weights) -> dict:
 
 
 def case_frames(ctx: Context, parts: Sequence[dict], height: int, width: int) -> list:
-  """The frames of a test case: its parts one after another (one continual run)."""
+  """The frames of a test case: its parts one after another (one continual run), each part's
+  first frame marked as starting a recording (a method never pairs frames of two parts)."""
   frames: list = []
   for part in parts:
     if ctx.dataset == "synthetic":
       from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-      frames += generate_sequence(SyntheticConfig(height=height, width=width,
-                                                  num_frames=ctx.frames, **part))
+      got = list(generate_sequence(SyntheticConfig(height=height, width=width,
+                                                   num_frames=ctx.frames, **part)))
     else:
       from pitta_jax.sources import open_frames
       seq = open_frames(ctx.dataset, ctx.root, [*ctx.options, *(f"{k}={v}" for k, v in
                                                                part.items())],
                         ctx.segmentation, height, width)
-      frames += list(seq[:ctx.frames]) if ctx.frames else list(seq)
+      got = list(seq[:ctx.frames]) if ctx.frames else list(seq)
+    if got:
+      got[0] = dataclasses.replace(got[0], starts_recording=True)
+    frames += got
   return frames
 
 

@@ -353,3 +353,13 @@ def test_a_signal_stops_a_table_like_the_pitta_jax_commands(tmp_path, capsys, si
   assert "interrupted: finished rows are cached" in capsys.readouterr().err
   assert not (tmp_path / "o" / ".pitta-jax.lock").exists()
   assert signal.getsignal(signal.SIGTERM) is before  # the handler is the command's only
+
+
+def test_a_case_of_several_parts_marks_where_each_starts():
+  """Table 1's "All" is four streets in one run: each part's first frame starts a recording,
+  so CoMoDa and Ada-Depth never pair frames of two streets (before: no frame was marked)."""
+  ctx = common.Context("synthetic", None, [], "gt", {}, None, True, 3, True)
+  parts = [{"domain": "clear", "seed": 1}, {"domain": "fog", "seed": 2},
+           {"domain": "rain", "seed": 3}]
+  frames = common.case_frames(ctx, parts, 32, 48)
+  assert [f.starts_recording for f in frames] == [True, False, False] * 3
