@@ -395,8 +395,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   t0 = time.perf_counter()
   seconds_before = float(record["seconds"])
 
-  def save(state) -> None:
-    record["seconds"] = seconds_before + time.perf_counter() - t0
+  def save(state, elapsed: float) -> None:
+    """A checkpoint of `state` with the record, whose time is `elapsed` s of this call."""
+    record["seconds"] = seconds_before + elapsed
     _save_checkpoint(directory, state, record)
 
   # a sequence shorter than a chunk is one chunk of its own length (no padded steps)
@@ -415,7 +416,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   index, last_saved = start, start
   # the newest state whose frames are all in `record`, with the record's lengths then: a
   # Ctrl-C while a chunk is being scored checkpoints this one, not the chunk's half-scored state
-  done = (state, _record_marks(record), index)
+  # (and this call's time then: a resumed run does not count the cut chunk's time twice)
+  done = (state, _record_marks(record), index, 0.0)
   try:
     for state, out in adapt_stream(state, consts, inputs(), runner):
       originals = chunk_frames.pop(0)
@@ -439,18 +441,18 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
         record["logs"].setdefault(key, []).extend(np.asarray(values).tolist())
       if directory is not None and checkpoint_every and index // checkpoint_every > (
           last_saved // checkpoint_every):
-        save(state)
+        save(state, time.perf_counter() - t0)
         last_saved = index
-      done = (state, _record_marks(record), index)
+      done = (state, _record_marks(record), index, time.perf_counter() - t0)
       abs_rels = [m["abs_rel"] for m in record["per_frame"]]
       bar.update(len(originals))
       bar.set_postfix(abs_rel=f"{np.mean(abs_rels) if abs_rels else float('nan'):.4f}",
                       loss=f"{float(np.mean(out.loss)):.3g}")
   except KeyboardInterrupt:
-    done_state, marks, done_index = done
+    done_state, marks, done_index, done_elapsed = done
     if directory is not None and checkpoint_every and done_index > last_saved:
       _truncate_record(record, marks)
-      save(done_state)  # the last completed chunk is not lost
+      save(done_state, done_elapsed)  # the last completed chunk is not lost
     raise
   finally:
     bar.close()
