@@ -116,9 +116,10 @@ def _method_config_classes() -> list[tuple[type, str]]:
                                      if dataclasses.fields(cls)]
 
 
-def _add_method_configs(p) -> None:
+def _add_method_configs(p, every: bool = False) -> None:
   """`--adapt.*` and, for every registered method with knobs, `--<method>.*`; a name several of
-  them share (`--lr`, `--window`, `--ld-weight`) is a shared alias (`_route_method_aliases`)."""
+  them share (`--lr`, `--window`, `--ld-weight`) is a shared alias (`_route_method_aliases`;
+  `every`: the demo's, which sets it in every method)."""
   from pitta_jax.config_cli import add_config_arguments, add_shared_aliases, shared_names
   configs = _method_config_classes()
   shared = shared_names(configs)
@@ -126,7 +127,8 @@ def _add_method_configs(p) -> None:
     title = ("adaptation (paper defaults)" if name == "adapt"
              else f"method {name} (used with --method {name})")
     add_config_arguments(p, cls, name, title, shared=shared)
-  add_shared_aliases(p, shared, "flags several methods have (the selected method's)")
+  add_shared_aliases(p, shared, "flags several methods have (" + (
+      "every method's" if every else "the selected method's") + ")", every)
 
 
 def _route_method_aliases(args, method: str | None) -> None:
@@ -180,7 +182,7 @@ def _add_demo(sub) -> None:
                   "+ L_d) on fog, rain, night and snow sequences; print the 7 metrics and "
                   "write results.json, results.csv, table.md and figures/ to --out.")
   add_config_arguments(p, DemoConfig, "demo", "demo")
-  _add_method_configs(p)
+  _add_method_configs(p, every=True)
   p.add_argument("--retrain", action="store_true", help="retrain the source model (ignore cache)")
   p.add_argument("--quiet", action="store_true", help="no progress bars")
   p.set_defaults(func=_run_demo)
@@ -577,12 +579,21 @@ def terminate_as_interrupt():
   def stop(signum, frame):
     raise Terminated()
 
+  resent: list[tuple[threading.Timer, type[KeyboardInterrupt], list]] = []
+
   def resend(unraisable):
     if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
       signum = signal.SIGTERM if issubclass(unraisable.exc_type, Terminated) else signal.SIGINT
+      fired: list = []
+
+      def fire():
+        fired.append(True)
+        os.kill(os.getpid(), signum)
+
       # from another thread, a moment later: a handler run inside this hook would be dropped too
-      timer = threading.Timer(0.01, os.kill, (os.getpid(), signum))
+      timer = threading.Timer(0.01, fire)
       timer.daemon = True
+      resent.append((timer, unraisable.exc_type, fired))
       timer.start()
     else:
       previous_hook(unraisable)
@@ -592,8 +603,15 @@ def terminate_as_interrupt():
   try:
     yield
   finally:
+    for timer, _, _ in resent:  # before the handlers go: a signal sent meanwhile still lands
+      timer.cancel()
+      timer.join()
     signal.signal(signal.SIGTERM, previous)
     sys.unraisablehook = previous_hook
+  # the command ended before a signal sent again arrived: it stops here, not after main returns
+  late = [kind for _, kind, fired in resent if not fired]
+  if late:
+    raise late[0]()
 
 
 def main(argv: list[str] | None = None) -> int:

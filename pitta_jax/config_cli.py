@@ -164,19 +164,22 @@ def shared_names(configs: Sequence[tuple[type, str]]) -> set[str]:
   return {name for name, spaces in owners.items() if len(spaces) > 1}
 
 
-def add_shared_aliases(parser: argparse.ArgumentParser, names: Collection[str], title: str
-                       ) -> list[str]:
+def add_shared_aliases(parser: argparse.ArgumentParser, names: Collection[str], title: str,
+                       every: bool = False) -> list[str]:
   """`--name` for each of `names` no other flag has yet (dest `alias__name`), resolved later by
-  `route_aliases`; returns the names added."""
+  `route_aliases` (`every`: its help says it sets every config's field); returns the names
+  added."""
   group = parser.add_argument_group(title)
   added = []
   for name in sorted(names):
     flag = f"--{name.replace('_', '-')}"
     if flag in parser._option_string_actions:
       continue
-    group.add_argument(flag, dest=f"alias__{name}", default=None, metavar="VALUE",
-                       help=f"the selected method's {name.replace('_', '-')} (else "
-                            f"--adapt.{name.replace('_', '-')}); refused where neither has it")
+    dashed = name.replace('_', '-')
+    text = (f"every method's {dashed} (each --<method>.{dashed} and --adapt.{dashed} that "
+            f"exists)" if every else f"the selected method's {dashed} (else --adapt.{dashed}); "
+                                     f"refused where neither has it")
+    group.add_argument(flag, dest=f"alias__{name}", default=None, metavar="VALUE", help=text)
     added.append(name)
   return added
 

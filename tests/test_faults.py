@@ -459,3 +459,23 @@ def test_ctrl_c_during_a_checkpoint_save_waits_for_its_writers(tmp_path, monkeyp
       checkpoint.save_tree(tmp_path / "state", {"a": np.zeros(2)})
     assert events == ["save"] + ["wait"] * waits
     assert not list(tmp_path.glob("state.orbax-checkpoint-tmp*"))
+
+
+def test_a_signal_dropped_as_the_command_ends_still_stops_it():
+  """The command returns before the signal sent again arrives: the block raises it on the way
+  out (before: the timer fired after the handlers were restored, killing the process without
+  a message, or a traceback after main returned)."""
+  from pitta_jax.cli import Terminated, terminate_as_interrupt
+
+  class Finaliser:
+    def __del__(self):
+      os.kill(os.getpid(), signal.SIGTERM)
+      for _ in range(10_000):
+        pass
+
+  hooks = (signal.getsignal(signal.SIGTERM), sys.unraisablehook)
+  with pytest.raises(Terminated):
+    with terminate_as_interrupt():
+      Finaliser()                 # and the block ends at once
+  assert (signal.getsignal(signal.SIGTERM), sys.unraisablehook) == hooks
+  time.sleep(0.05)                # nothing fires later
