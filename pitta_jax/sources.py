@@ -175,6 +175,12 @@ def method_resources(method, weights: Weights, dataset: str, source_images: str 
   """
   from pitta_jax.methods.base import POSE, PoseNet, SourceData
   resources: dict[str, Any] = {}
+  if weights.spec.keep_aspect and (method.prepare is not None or source_stats):
+    # its source data (e.g. ActMAD's per-location statistics) would be at the trained size,
+    # while runs feed each dataset's aspect ratio (run.input_size)
+    raise DataError(None, f"--method {method.name} prepares source-domain data at one input "
+                          f"size, but {weights.spec.name} takes each dataset's aspect ratio: "
+                          f"not supported")
   if "pose" in method.needs:
     if weights.pose is None or weights.spec.build_pose is None:
       raise no_pose_error(method)

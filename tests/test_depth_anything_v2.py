@@ -572,3 +572,17 @@ def test_predict_writes_infer_image_outputs_at_the_image_size(small, tmp_path):
   ref = torch.nn.functional.interpolate(out[:, None], (30, 100), mode="bilinear",
                                         align_corners=True)[0, 0].numpy()
   np.testing.assert_allclose(disp, ref, rtol=1e-4, atol=1e-5 * np.abs(ref).max())
+
+
+def test_methods_with_source_data_are_refused():
+  """ActMAD's source statistics are per location at one input size; Depth Anything V2's runs
+  take each dataset's aspect ratio, so the pair is refused before any work (one line)."""
+  import types
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.methods import build as build_method
+  from pitta_jax.sources import method_resources
+  weights = types.SimpleNamespace(spec=SPEC, pose=None)
+  with pytest.raises(DataError, match="--method actmad prepares source-domain data at one input "
+                                      "size, but depth_anything_v2 takes each dataset's"):
+    method_resources(build_method("actmad"), weights, "synthetic")
+  assert method_resources(build_method("cotta"), weights, "synthetic") == {}
