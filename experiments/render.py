@@ -191,19 +191,21 @@ def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, 
                 group_title: str, row_title: str, metrics: Sequence[str] = METRIC_NAMES,
                 seconds: float, meta: dict[str, Any], marked: bool = True) -> str:
   """Writes NAME.md/.csv/.tex and results.json atomically; returns the markdown.
-  marked: bold / underline the best and second (`ranks`)."""
+  marked: bold / underline the best and second (`ranks`). Every file is rendered before the
+  first is written, so a kill can mix two runs' files only within the four renames."""
   out.mkdir(parents=True, exist_ok=True)
   title = f"Table {name[len('table'):]}" if name.startswith("table") else name.capitalize()
   md = (f"### {title}\n\n{caption}\n\n"
         + markdown(entries, layout, group_title, row_title, metrics, marked)
         + f"\nWall time: {seconds:.0f} s ({meta.get('load', '')}).\n")
-  atomic_write_text(out / f"{name}.md", md)
-  atomic_write_text(out / f"{name}.csv", csv_text(entries, name))
-  atomic_write_text(out / f"{name}.tex", latex(entries, layout, group_title, row_title, metrics,
-                                               caption, f"tab:{name}", marked))
   payload = {"table": name, "caption": caption, "seconds": round(seconds, 1), **meta,
              "rows": [dataclasses.asdict(e) for e in entries]}
   payload, n_bad = json_safe(json.loads(json.dumps(payload, default=str)))
   payload["non_finite_values"] = n_bad
-  atomic_write_text(out / "results.json", json.dumps(payload, indent=1, allow_nan=False) + "\n")
+  files = {f"{name}.md": md, f"{name}.csv": csv_text(entries, name),
+           f"{name}.tex": latex(entries, layout, group_title, row_title, metrics, caption,
+                                f"tab:{name}", marked),
+           "results.json": json.dumps(payload, indent=1, allow_nan=False) + "\n"}
+  for file_name, text in files.items():
+    atomic_write_text(out / file_name, text)
   return md
