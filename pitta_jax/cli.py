@@ -128,7 +128,7 @@ def _add_method_configs(p, every: bool = False) -> None:
              else f"method {name} (used with --method {name})")
     add_config_arguments(p, cls, name, title, shared=shared)
   add_shared_aliases(p, shared, "flags several methods have (" + (
-      "every method's" if every else "the selected method's") + ")", every)
+      "every method's" if every else "the selected method's") + ")", every, configs[0])
 
 
 def _route_method_aliases(args, method: str | None) -> None:

@@ -165,10 +165,12 @@ def shared_names(configs: Sequence[tuple[type, str]]) -> set[str]:
 
 
 def add_shared_aliases(parser: argparse.ArgumentParser, names: Collection[str], title: str,
-                       every: bool = False) -> list[str]:
+                       every: bool = False, fallback: tuple[type, str] | None = None) -> list[str]:
   """`--name` for each of `names` no other flag has yet (dest `alias__name`), resolved later by
-  `route_aliases` (`every`: its help says it sets every config's field); returns the names
-  added."""
+  `route_aliases`; its help says it sets the selected config's field, else `fallback`'s
+  ((class, namespace), named where it has the field), or with `every` every config's. Returns
+  the names added."""
+  backup = {n for n, _ in leaf_fields(*fallback)} if fallback else set()
   group = parser.add_argument_group(title)
   added = []
   for name in sorted(names):
@@ -176,9 +178,12 @@ def add_shared_aliases(parser: argparse.ArgumentParser, names: Collection[str], 
     if flag in parser._option_string_actions:
       continue
     dashed = name.replace('_', '-')
-    text = (f"every method's {dashed} (each --<method>.{dashed} and --adapt.{dashed} that "
-            f"exists)" if every else f"the selected method's {dashed} (else --adapt.{dashed}); "
-                                     f"refused where neither has it")
+    if every:
+      text = f"every method's {dashed} (each --<namespace>.{dashed} there is)"
+    elif name in backup:
+      text = f"the selected method's {dashed}, else --{fallback[1]}.{dashed}"
+    else:
+      text = f"the selected method's {dashed} (refused where it has none)"
     group.add_argument(flag, dest=f"alias__{name}", default=None, metavar="VALUE", help=text)
     added.append(name)
   return added
