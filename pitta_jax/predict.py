@@ -28,7 +28,7 @@ from pitta_jax.outputs import save_npy
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import IMAGE_SUFFIXES, list_images, read_image, write_image
 from pitta_jax.data.resize import resize_image
-from pitta_jax.models.interpolate import linear_matrix
+from pitta_jax.models.interpolate import resize_bilinear
 
 
 DISP_PNG, DISP_NPY = "_disp.png", "_disp.npy"  # predict's outputs per image (+ _depth.npy)
@@ -100,13 +100,8 @@ def check_outputs_free(targets: Sequence[Path], suffix: str, companion_suffix: s
 
 
 def resize_map(x: np.ndarray, size: tuple[int, int], align_corners: bool) -> np.ndarray:
-  """(h, w) -> `size` (H, W) float32 by PyTorch's bilinear `interpolate` (no antialias)."""
-  if x.shape == tuple(size):
-    return x.astype(np.float32)
-  rows = linear_matrix(x.shape[0], size[0], align_corners)                  # (H, h)
-  cols = linear_matrix(x.shape[1], size[1], align_corners)                  # (W, w)
-  return (rows.astype(np.float64) @ x.astype(np.float64) @ cols.T.astype(np.float64)
-          ).astype(np.float32)
+  """(h, w) -> `size` (H, W) by PyTorch's bilinear `interpolate` (`models.interpolate`)."""
+  return np.asarray(resize_bilinear(jnp.asarray(x)[..., None], size, align_corners))[..., 0]
 
 
 def make_predictor(network):
