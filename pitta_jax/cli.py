@@ -636,9 +636,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"error: {where}{e.strerror or e}", file=sys.stderr)
     return 2
   except KeyboardInterrupt as e:
-    from pathlib import Path
+    from pitta_jax.run import complete_checkpoints
     checkpointing = getattr(args, "checkpoint_every", 0) and getattr(args, "adapting", False)
-    saved = checkpointing and any(Path(args.out, "checkpoints").glob("state_??????.json"))
+    saved = checkpointing and bool(complete_checkpoints(os.path.join(args.out, "checkpoints")))
     print("interrupted" + ("; the last completed chunk is checkpointed: run the same command "
                            "with --resume to continue" if saved else
                            "; no checkpoint was saved yet" if checkpointing else ""),

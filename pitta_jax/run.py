@@ -293,13 +293,19 @@ def _truncate_record(record: dict, marks: dict) -> None:
                     if k in marks["logs"]}
 
 
+def complete_checkpoints(directory: str | Path) -> list[Path]:
+  """The sidecars of the complete checkpoints under `directory` (a state without its sidecar
+  is never used), oldest first."""
+  return sorted(Path(directory).glob(CHECKPOINT_PATTERN + ".json"))
+
+
 def _clear_checkpoints(directory: Path) -> int:
   """Removes the checkpoints a previous run left under `directory` (a fresh run's first step:
   they would otherwise mix with its own), and any save a kill interrupted; returns how many
   complete ones there were."""
   if not directory.is_dir():
     return 0
-  complete = len(list(directory.glob(CHECKPOINT_PATTERN + ".json")))
+  complete = len(complete_checkpoints(directory))
   for path in (*directory.glob(CHECKPOINT_PATTERN), *directory.glob(UNFINISHED_PATTERN)):
     _remove_checkpoint(path)
   return complete
