@@ -144,14 +144,14 @@ def config_from_args(cls: type[T], args: argparse.Namespace, namespace: str,
   return cls(**values)
 
 
-def leaf_fields(cls: type, namespace: str) -> list[tuple[str, str]]:
-  """(field name, namespaced flag) of every leaf field of `cls`, nested configs included:
-  ("window", "pitta.ld.window")."""
+def leaf_fields(cls: type, namespace: str) -> list[tuple[str, str, Any]]:
+  """(field name, namespaced flag, annotation) of every leaf field of `cls`, nested configs
+  included: ("window", "pitta.ld.window", int)."""
   out = []
   for field, annotation in _fields(cls):
     path = f"{namespace}.{field.name}"
     out += (leaf_fields(annotation, path) if dataclasses.is_dataclass(annotation)
-            else [(field.name, path)])
+            else [(field.name, path, annotation)])
   return out
 
 
@@ -159,7 +159,7 @@ def shared_names(configs: Sequence[tuple[type, str]]) -> set[str]:
   """Field names that more than one of `configs` ((class, namespace) pairs) has."""
   owners: dict[str, set[str]] = {}
   for cls, namespace in configs:
-    for name, _ in leaf_fields(cls, namespace):
+    for name, _, _ in leaf_fields(cls, namespace):
       owners.setdefault(name, set()).add(namespace)
   return {name for name, spaces in owners.items() if len(spaces) > 1}
 
@@ -170,7 +170,7 @@ def add_shared_aliases(parser: argparse.ArgumentParser, names: Collection[str], 
   `route_aliases`; its help says it sets the selected config's field, else `fallback`'s
   ((class, namespace), named where it has the field), or with `every` every config's. Returns
   the names added."""
-  backup = {n for n, _ in leaf_fields(*fallback)} if fallback else set()
+  backup = {n for n, _, _ in leaf_fields(*fallback)} if fallback else set()
   group = parser.add_argument_group(title)
   added = []
   for name in sorted(names):
@@ -202,24 +202,22 @@ def route_aliases(args: argparse.Namespace, configs: Sequence[tuple[type, str]],
     name, flag = key[len("alias__"):], f"--{key[len('alias__'):].replace('_', '-')}"
     targets = []
     for namespace in order:
-      paths = [path for n, path in leaf_fields(classes[namespace], namespace) if n == name]
-      if len(paths) > 1:
+      found = [(path, a) for n, path, a in leaf_fields(classes[namespace], namespace) if n == name]
+      if len(found) > 1:
         raise ValueError(f"{flag} is ambiguous for {namespace}: use "
-                         + " or ".join(f"--{p.replace('_', '-')}" for p in paths))
-      targets += paths
+                         + " or ".join(f"--{p.replace('_', '-')}" for p, _ in found))
+      targets += found
       if targets and not every:
         break
     if not targets:
-      owners = [path for cls, ns in configs for n, path in leaf_fields(cls, ns) if n == name]
+      owners = [path for cls, ns in configs for n, path, _ in leaf_fields(cls, ns) if n == name]
       raise ValueError(f"{flag} is not a flag of "
                        + " or ".join(f"--{namespace}.*" for namespace in order) + "; it is "
                        + ", ".join(f"--{p.replace('_', '-')}" for p in owners))
-    for path in targets:
-      namespace, field_name = path.rsplit(".", 1)
-      dest = flag_dest(namespace, field_name)
+    for path, annotation in targets:
+      dest = flag_dest(*path.rsplit(".", 1))
       if getattr(args, dest, None) is not None:
         raise ValueError(f"both {flag} and --{path.replace('_', '-')} given")
-      annotation = dict((f.name, a) for f, a in _fields(_config_at(classes, namespace)))[field_name]
       kind, meta = parser_for(annotation)
       try:
         setattr(args, dest, kind(text))
@@ -228,12 +226,3 @@ def route_aliases(args: argparse.Namespace, configs: Sequence[tuple[type, str]],
       except ValueError:
         raise ValueError(f"{flag}: expected {meta}, got {text!r}") from None
     setattr(args, key, None)
-
-
-def _config_at(classes: dict[str, type], namespace: str) -> type:
-  """The config class of a (possibly nested) namespace: "pitta.ld" -> DepthRefiningConfig."""
-  top, *rest = namespace.split(".")
-  cls = classes[top]
-  for name in rest:
-    cls = dict((f.name, a) for f, a in _fields(cls))[name]
-  return cls
