@@ -18,7 +18,7 @@ from typing import Any, Sequence
 
 from experiments.common import Entry
 from pitta_jax.metrics import METRIC_NAMES
-from pitta_jax.outputs import atomic_write_text, json_safe
+from pitta_jax.outputs import atomic_write_files, json_safe
 from pitta_jax.report import HEADERS, HIGHER_IS_BETTER
 
 TEX_HEADERS = {"abs_rel": r"AbsRel $\downarrow$", "sq_rel": r"SqRel $\downarrow$",
@@ -191,8 +191,8 @@ def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, 
                 group_title: str, row_title: str, metrics: Sequence[str] = METRIC_NAMES,
                 seconds: float, meta: dict[str, Any], marked: bool = True) -> str:
   """Writes NAME.md/.csv/.tex and results.json atomically; returns the markdown.
-  marked: bold / underline the best and second (`ranks`). Every file is rendered before the
-  first is written, so a kill can mix two runs' files only within the four renames."""
+  marked: bold / underline the best and second (`ranks`). Every file is rendered and written
+  to a synced temporary file before the first rename (`outputs.atomic_write_files`)."""
   out.mkdir(parents=True, exist_ok=True)
   title = f"Table {name[len('table'):]}" if name.startswith("table") else name.capitalize()
   md = (f"### {title}\n\n{caption}\n\n"
@@ -206,6 +206,5 @@ def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, 
            f"{name}.tex": latex(entries, layout, group_title, row_title, metrics, caption,
                                 f"tab:{name}", marked),
            "results.json": json.dumps(payload, indent=1, allow_nan=False) + "\n"}
-  for file_name, text in files.items():
-    atomic_write_text(out / file_name, text)
+  atomic_write_files(out, files)
   return md

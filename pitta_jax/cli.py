@@ -349,7 +349,7 @@ def _run_adapt(args) -> int:
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.methods import build
   from pitta_jax.outputs import open_output_dir
-  from pitta_jax.report import Row, write_results
+  from pitta_jax.report import Row, clear_earlier_results, write_results
   from pitta_jax.run import EvalConfig, run_sequence
   from pitta_jax.checkpoint import read_model_json
   from pitta_jax.sources import (check_dataset_args, check_run_needs, check_stats_method,
@@ -419,7 +419,7 @@ def _run_adapt(args) -> int:
                        quiet=args.quiet,
                        checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
                        checkpoint_every=args.checkpoint_every, resume=args.resume,
-                       resources=resources)
+                       resources=resources, on_start=lambda: clear_earlier_results(out))
     # fps over every frame: after --resume, the earlier call's time up to its checkpoint too
     row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.total_fps, 2),
                                                      "frames": len(res.frame_names),

@@ -33,7 +33,7 @@ from pitta_jax.plots import PlotConfig, per_frame_figure, save_figure
 from pitta_jax.data.image_io import write_image
 from pitta_jax.data.resize import resize_frame
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-from pitta_jax.report import Row, write_results
+from pitta_jax.report import Row, clear_earlier_results, write_results
 from pitta_jax.run import EvalConfig, RunResult, Runners, run_sequence
 from pitta_jax.source_model import SourceConfig, load_or_train_source
 from pitta_jax.sources import method_resources
@@ -49,6 +49,10 @@ ROWS = {
     "actmad": ("ActMAD + L_d", "actmad", {}),
     "cotta": ("CoTTA + L_d", "cotta", {}),
 }
+
+# the figures a run writes under --out (`_figures`' depth maps, `run_demo`'s per-frame AbsRel),
+# removed at the start of a rerun so that shifts it no longer runs leave none behind
+FIGURES = ("figures/*_frame[0-9][0-9][0-9]*.png", "figures/*_abs_rel_per_frame.png")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +98,7 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
   t_start = time.perf_counter()
   out = Path(demo.out)
   weights, train_report = load_or_train_source(source, quiet=quiet)
+  clear_earlier_results(out, FIGURES)
   h, w = weights.height, weights.width
   runners = Runners()  # one compile per row serves every shift
   resources: dict[str, dict] = {}

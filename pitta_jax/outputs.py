@@ -7,6 +7,8 @@ writes, and JSON that is always valid.
   Used as a context manager, a command that fails leaves no directory it created behind.
 - `atomic_write_text` / `atomic_write_bytes`: a temporary file in the same directory, fsync,
   then `os.replace`: a reader (or a crash) sees the old file or the new one, never half of one.
+  `atomic_write_files`: the files of one result (a table's .md/.csv/.tex/results.json), every
+  one written and synced before the first rename, so a failure while writing replaces none.
 - `json_safe`: NaN/Inf become `null` (the JSON standard has no such numbers) and are counted.
 """
 
@@ -81,20 +83,32 @@ def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
   """Writes `data` to `path` atomically (temp file in the same directory + fsync + rename)."""
   path = Path(path)
-  tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-  try:
-    with open(tmp, "wb") as f:
-      f.write(data)
-      f.flush()
-      os.fsync(f.fileno())
-    os.replace(tmp, path)
-  except BaseException:
-    tmp.unlink(missing_ok=True)
-    raise
+  atomic_write_files(path.parent, {path.name: data})
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
   atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_files(directory: str | os.PathLike, contents: dict[str, str | bytes]) -> None:
+  """Writes the files of one result ({name: text or bytes}) into `directory`, each atomically:
+  every temporary file is written and synced before the first rename, so a kill can leave two
+  runs' files side by side only within the renames themselves (no I/O between them), never
+  while a later file is still being written. Text is written as UTF-8."""
+  directory = Path(directory)
+  temps = {name: directory / f".{name}.tmp-{os.getpid()}" for name in contents}
+  try:
+    for name, data in contents.items():
+      with open(temps[name], "wb") as f:
+        f.write(data.encode("utf-8") if isinstance(data, str) else data)
+        f.flush()
+        os.fsync(f.fileno())
+    for name, tmp in temps.items():
+      os.replace(tmp, directory / name)
+  except BaseException:
+    for tmp in temps.values():
+      tmp.unlink(missing_ok=True)
+    raise
 
 
 def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:

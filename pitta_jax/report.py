@@ -8,14 +8,16 @@ import csv
 import dataclasses
 import io
 import json
+import sys
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from pitta_jax.metrics import METRIC_NAMES
-from pitta_jax.outputs import atomic_write_text, json_safe
+from pitta_jax.outputs import atomic_write_files, json_safe
 
+RESULT_FILES = ("results.json", "results.csv", "table.md")  # what `write_results` writes
 HIGHER_IS_BETTER = ("a1", "a2", "a3")  # threshold accuracies; the errors are lower-is-better
 HEADERS = {"abs_rel": "AbsRel ↓", "sq_rel": "SqRel ↓", "rmse": "RMSE ↓", "rmse_log": "RMSElog ↓",
            "a1": "δ<1.25 ↑", "a2": "δ<1.25² ↑", "a3": "δ<1.25³ ↑"}
@@ -75,11 +77,29 @@ def write_results(out_dir: str | Path, rows: Sequence[Row], meta: dict[str, Any]
     writer.writerow([r.group, r.method, *(f"{r.metrics.get(m, float('nan')):.6f}"
                                           for m in METRIC_NAMES),
                      *(r.extra.get(k, "") for k in extra_keys)])
-  atomic_write_text(out / "results.json",
-                    json.dumps(payload, indent=2, allow_nan=False) + "\n")
-  atomic_write_text(out / "results.csv", buffer.getvalue())
-  atomic_write_text(out / "table.md", table)
+  texts = (json.dumps(payload, indent=2, allow_nan=False) + "\n", buffer.getvalue(), table)
+  atomic_write_files(out, dict(zip(RESULT_FILES, texts)))
   return table
+
+
+def clear_earlier_results(out_dir: str | Path, patterns: Sequence[str] = ()) -> list[str]:
+  """Removes what an earlier run of the same command left in `out_dir`: `RESULT_FILES` and the
+  files matching `patterns` (globs relative to `out_dir`, e.g. the demo's figures), with one
+  warning naming them. A run calls it once its inputs are checked and before its first step,
+  so that a run killed (or failing) on the way leaves no earlier results beside its own
+  checkpoints that could pass for its own, and a rerun with fewer shifts keeps no figures of
+  the others. No other file is touched. Returns the removed paths, relative to `out_dir`."""
+  out = Path(out_dir)
+  found = [out / name for name in RESULT_FILES if (out / name).is_file()]
+  found += sorted(p for pattern in patterns for p in out.glob(pattern) if p.is_file())
+  for path in found:
+    path.unlink(missing_ok=True)
+  names = [str(p.relative_to(out)) for p in found]
+  if names:
+    shown = ", ".join(names[:6]) + (f" and {len(names) - 6} more" if len(names) > 6 else "")
+    print(f"warning: {out}: removed an earlier run's results ({shown}); this run writes its own "
+          f"when it ends", file=sys.stderr)
+  return names
 
 
 def _jsonable(x):

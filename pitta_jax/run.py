@@ -14,7 +14,7 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -331,7 +331,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                  name: str = "", quiet: bool = False, keep: Sequence[int] = (),
                  checkpoint_dir: str | Path | None = None, checkpoint_every: int = 0,
                  runners: Runners | None = None, resume: bool | str = False,
-                 resources: dict | None = None) -> RunResult:
+                 resources: dict | None = None,
+                 on_start: Callable[[], Any] | None = None) -> RunResult:
   """Runs a method online over `frames` (predict-then-adapt) and evaluates each prediction
   against the frame's ground truth (when it has one).
 
@@ -357,6 +358,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       run starts afresh (a cache's checkpoints, e.g. an experiment row's).
     resources: host-side inputs of the method (e.g. ActMAD's source statistics); the input
       size (H, W) is added as `resources["input_size"]`.
+    on_start: called once the frames, the method and the checkpoints to resume from are
+      checked, before the first step (the CLI removes an earlier run's result files there, so
+      that a refused --resume keeps them).
   """
   from pitta_jax.sources import check_frame_needs, check_needs
   if len(frames) == 0:
@@ -393,6 +397,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   elif directory is not None and _clear_checkpoints(directory):
     print(f"warning: {directory}: removed an earlier run's checkpoints (without --resume / "
           f"resume=True a run starts afresh)", file=sys.stderr)
+  if on_start is not None:
+    on_start()
   start = int(state.step)
   kept: dict[int, np.ndarray] = {}
   keep = set(keep)

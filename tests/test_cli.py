@@ -31,6 +31,11 @@ def demo_out(tmp_path_factory):
   mp = pytest.MonkeyPatch()
   mp.setenv(source_model.CACHE_ENV, str(cache))
   out = tmp_path_factory.mktemp("demo")
+  # what an earlier demo with more shifts left (removed by this run) and a file of the user's
+  (out / "figures").mkdir()
+  for name in ("figures/snow_frame039.png", "figures/snow_abs_rel_per_frame.png", "results.json",
+               "notes.txt"):
+    (out / name).write_text("earlier")
   result = run_demo(DemoConfig(shifts=("fog",), num_frames=3, methods=("none", "bn", "pitta"),
                                out=str(out)), AdaptConfig(),
                     source=TINY, quiet=True)
@@ -55,6 +60,11 @@ def test_demo_writes_results_table_and_figures(demo_out):
   assert (out / "table.md").read_text() == result["table"]
   for name in ("fog_frame002.png", "fog_abs_rel_per_frame.png", "clear_frame002.png"):
     assert (out / "figures" / name).stat().st_size > 1000
+  # the earlier run's snow figures are gone, the user's file is not
+  assert sorted(p.name for p in (out / "figures").iterdir()) == [
+      "clear_abs_rel_per_frame.png", "clear_frame002.png", "fog_abs_rel_per_frame.png",
+      "fog_frame002.png"]
+  assert (out / "notes.txt").read_text() == "earlier"
   head = (out / "figures" / "fog_abs_rel_per_frame.png").read_bytes()[:24]  # PNG + IHDR
   assert head[:8] == b"\x89PNG\r\n\x1a\n" and head[16:24] == (720).to_bytes(4, "big") + (
       360).to_bytes(4, "big")  # matplotlib, 7.2 x 3.6 inches at 100 dpi

@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from pitta_jax.cli import main
-from pitta_jax.outputs import OutputError, atomic_write_text, json_safe, open_output_dir
+from pitta_jax.outputs import (OutputError, atomic_write_files, atomic_write_text, json_safe,
+                               open_output_dir)
 from pitta_jax.report import Row, write_results
 
 
@@ -111,6 +112,24 @@ def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
   with pytest.raises(OSError):
     atomic_write_text(path, Boom("new"))
   assert path.read_text() == "old" and not list(tmp_path.glob(".*.tmp-*"))
+
+
+def test_files_of_one_result_are_replaced_together_or_not_at_all(tmp_path):
+  """The disk fills while the third of a table's files is written: none of the earlier run's
+  files is replaced (each was, one by one, until the first two had been renamed)."""
+  names = ("t.md", "t.csv", "results.json")
+  for name in names:
+    (tmp_path / name).write_text("old")
+
+  class Boom(str):
+    def encode(self, *a, **k):
+      raise OSError(28, "No space left on device")
+  with pytest.raises(OSError):
+    atomic_write_files(tmp_path, {"t.md": "new", "t.csv": "new", "results.json": Boom("new")})
+  assert [(tmp_path / n).read_text() for n in names] == ["old"] * 3
+  assert not list(tmp_path.glob(".*.tmp-*"))
+  atomic_write_files(tmp_path, {"t.md": "new", "t.csv": b"new"})
+  assert [(tmp_path / n).read_text() for n in names] == ["new", "new", "old"]
 
 
 def test_non_utf8_file_names_are_read(tmp_path):
@@ -211,9 +230,17 @@ def test_ctrl_c_while_a_chunk_is_scored_loses_no_frame(tiny_weights, tmp_path, m
     return real(*args, **kwargs)
 
   out = tmp_path / "cut"
+  out.mkdir()
+  for name in ("results.json", "results.csv", "table.md", "notes.txt"):  # an earlier run's
+    (out / name).write_text("earlier")
   monkeypatch.setattr(run_lib, "frame_metrics", interrupting)
   assert main(_adapt_args(tiny_weights, out)) == 130
   err = capfd.readouterr().err
+  # no earlier results beside this run's checkpoints; the user's own file stays
+  assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
+      "checkpoints", "notes.txt"]
+  assert (f"warning: {out}: removed an earlier run's results (results.json, results.csv, "
+          f"table.md)") in err
   assert "the last completed chunk is checkpointed" in err
   assert f"--checkpoint-every {K} runs chunks of {K} frames, not --chunk-size 32" in err
   monkeypatch.setattr(run_lib, "frame_metrics", real)
@@ -270,10 +297,12 @@ def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, caps
       f"state_{k:06d}{ext}" for k in range(N - K, N + 1, K) for ext in ("", ".json")]
   fewer = ["--option", f"num_frames={N - K}"]  # the same first frames, another sequence
   capsys.readouterr()
+  earlier = (out / "results.json").read_text()
   assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 2
   err = [line for line in capsys.readouterr().err.splitlines()
          if not line.startswith("note: ")]   # the run's notes (the chunk size) come first
   assert len(err) == 1 and str(ckpt) in err[0] and "none of this run" in err[0]
+  assert (out / "results.json").read_text() == earlier  # a refused --resume removes nothing
   assert main(_adapt_args(tiny_weights, out, *fewer)) == 0  # fresh: the old ones go, said so
   assert "removed an earlier run's checkpoints" in capsys.readouterr().err
   assert sorted(p.name for p in ckpt.glob("state_*")) == [
