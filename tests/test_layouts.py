@@ -188,10 +188,22 @@ def test_drivingstereo_sizes_and_lone_subdirectory(tmp_path):
   np.testing.assert_array_equal(frames[0].image, images[0].astype(np.float32) / np.float32(255))
   make_foggy(tmp_path, "half")
   both = drivingstereo.open_drivingstereo(tmp_path, weather="foggy")
-  assert both.notes == () and both.files[0].image.suffix == ".jpg"  # half when both exist
+  assert both.files[0].image.suffix == ".jpg"  # half when both exist, said in a note
+  assert both.notes == ("DrivingStereo size=half: both left-image-half-size/ and "
+                        "left-image-full-size/ are here; the half-size images and ground truth "
+                        "are read and scored (--option size=full for the full size)",)
+  # the default weather=all with only foggy downloaded: the message names what is there
+  with pytest.raises(DataError, match=r"weather cloudy, rainy, sunny not found here \(with the "
+                                      r"default weather=all .*\); found foggy: --option "
+                                      r"weather=foggy"):
+    drivingstereo.open_drivingstereo(tmp_path, weather="all")
+  with pytest.raises(DataError, match=r"foggy: this is one weather's directory .*: pass its "
+                                      r"parent as --root and --option weather=foggy"):
+    drivingstereo.open_drivingstereo(tmp_path / "foggy", weather="foggy")
+  (tmp_path / "cloudy").mkdir()  # no weather at all: the subset's own message
   with pytest.raises(DataError, match=r"cloudy: no left-image-half-size/ or left-image-full-size/ "
                                       r"directory here or in cloudy/cloudy/"):
-    drivingstereo.open_drivingstereo(tmp_path, weather="all")
+    drivingstereo.open_drivingstereo(tmp_path / "cloudy", weather="cloudy")
   other = tmp_path / "other"
   make_foggy(other, "full")
   (other / "sunny" / "sunny" / "left-image-half-size").mkdir(parents=True)

@@ -98,6 +98,42 @@ def test_annotation_file(tmp_path):
     source.ref("000140")
 
 
+def test_annotation_file_of_another_taxonomy_is_mapped_to_coco_by_name(tmp_path):
+  """A panoptic annotation file as cityscapesScripts' createPanopticImgs.py writes it: Cityscapes
+  label ids (road 7, sidewalk 8, person 24, rider 25, car 26), which COCO's table reads as
+  train, truck, zebra, giraffe and nothing. Read by name, the dynamic instances are the person,
+  the rider and the cars (hand-listed), not the road and the sidewalk."""
+  from pitta_jax.masks import dynamic_ids_from_segments
+  ids = np.array([[7, 8, 24001], [25001, 26001, 26002]], np.int32)
+  png_dir = tmp_path / "cityscapes_panoptic_val"
+  panoptic_io.write_panoptic_png(png_dir / "frankfurt_000000_000294_gtFine_panoptic.png", ids)
+  segments_info = [{"id": int(i), "category_id": int(i) // 1000 or int(i), "iscrowd": 0,
+                    "bbox": [0, 0, 1, 1], "area": 1} for i in ids.ravel()]
+  categories = [{"id": 7, "name": "road", "supercategory": "flat", "isthing": 0},
+                {"id": 8, "name": "sidewalk", "supercategory": "flat", "isthing": 0},
+                {"id": 24, "name": "person", "supercategory": "human", "isthing": 1},
+                {"id": 25, "name": "rider", "supercategory": "human", "isthing": 1},
+                {"id": 26, "name": "car", "supercategory": "vehicle", "isthing": 1}]
+  ann = tmp_path / "cityscapes_panoptic_val.json"
+  ann.write_text(json.dumps({"annotations": [{
+      "image_id": "frankfurt_000000_000294",
+      "file_name": "frankfurt_000000_000294_gtFine_panoptic.png",
+      "segments_info": segments_info}], "categories": categories}))
+  source = panoptic_io.PanopticSource(annotation_file=ann)
+  assert len(source.notes) == 1 and "category ids are not COCO's" in source.notes[0]
+  assert "26 'car' -> 3" in source.notes[0] and "8 'sidewalk'" in source.notes[0]
+  _, segments = source.ref("frankfurt_000000_000294_gtFine_panoptic").load()
+  assert {s.id: s.category_id for s in segments} == {
+      7: 149, 8: 0, 24001: 1, 25001: 1, 26001: 3, 26002: 3}  # road, none, person x2, car x2
+  assert sorted(dynamic_ids_from_segments(segments, 8)[:4].tolist()) == [24001, 25001, 26001,
+                                                                         26002]
+  # the frame's image stem is not the annotation's file name: the message shows one
+  with pytest.raises(DataError, match=r"frankfurt_000000_000294_leftImg8bit\.png: panoptic PNG "
+                     r"not found \(the file_names in cityscapes_panoptic_val\.json are like "
+                     r"'frankfurt_000000_000294_gtFine_panoptic\.png'\)"):
+    source.ref("frankfurt_000000_000294_leftImg8bit")
+
+
 @pytest.mark.parametrize("case, pattern", [
     ("unlisted", r"a\.png: segment ids 2 appear in the PNG but not in segments_info"),
     ("gray", r"a\.png: panoptic PNG must be 8-bit RGB"),

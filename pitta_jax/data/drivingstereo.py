@@ -80,17 +80,27 @@ def choose_size(root: PathLike, weathers: tuple[str, ...]) -> tuple[str, str | N
   """(size, note): half when every weather has both, else the one size all of them have."""
   root = require_dir(root, "DrivingStereo root")
   present = {w: sizes_present(root, w) for w in weathers}
-  for w, sizes in present.items():
-    if not sizes:
-      raise DataError(root / w, f"no left-image-half-size/ or left-image-full-size/ directory "
-                                f"here or in {w}/{w}/ (is this a DrivingStereo weather subset?)")
+  missing = [w for w, sizes in present.items() if not sizes]
+  if missing and len(missing) < len(weathers):  # weather=all, some weathers not here
+    have = [w for w in weathers if w not in missing]
+    raise DataError(root, f"weather {', '.join(missing)} not found here (with the default "
+                          f"weather=all every one of {', '.join(weathers)} is read); found "
+                          f"{', '.join(have)}: --option weather={have[0]}")
+  for w in missing:
+    if any((root / f"left-image-{size}-size").is_dir() for size in SIZES):
+      raise DataError(root, f"this is one weather's directory (it holds left-image-*-size/): "
+                            f"pass its parent as --root and --option weather={root.name}")
+    raise DataError(root / w, f"no left-image-half-size/ or left-image-full-size/ directory "
+                              f"here or in {w}/{w}/ (is this a DrivingStereo weather subset?)")
   common = [s for s in SIZES if all(s in sizes for sizes in present.values())]
   if not common:
     found = ", ".join(f"{w}: {'/'.join(sizes)}" for w, sizes in present.items())
     raise DataError(root, f"no image size common to the weathers ({found}); pass --option "
                           f"size=half|full and complete that size")
   if len(common) == 2:
-    return "half", None
+    return "half", ("DrivingStereo size=half: both left-image-half-size/ and "
+                    "left-image-full-size/ are here; the half-size images and ground truth are "
+                    "read and scored (--option size=full for the full size)")
   return common[0], (f"DrivingStereo size={common[0]}: the only left-image-*-size/ directory "
                      f"({', '.join(weathers)})")
 

@@ -282,6 +282,7 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
   if velodyne is not None:
     notes.append(f"{split_file.name}: ground truth projected from the Velodyne scans "
                  f"(velodyne_points/), as MonoDepth2's export_gt_depth.py writes gt_depths.npz")
+  notes += list(panoptic.notes) if panoptic is not None else []
   return FrameSequence(files, temporal=split_is_temporal(entries), notes=notes, remedies={
       "intrinsics": INTRINSICS_REMEDY,
       "previous_frame": "a split file whose lines are consecutive frames of each drive (the "

@@ -14,7 +14,11 @@ segment id as `id = R + 256 G + 256^2 B` (0 = void), and per image a list `segme
   `<directory>.json` is found on its own (`find_annotation_file`).
 
 `isthing` comes from the segment entry, else from the file's `categories`, else from the COCO
-table. Segments listed in the JSON but absent from the PNG are dropped (a `Frame` holds the
+table. An annotation file whose `categories` name its ids otherwise than COCO does (another
+taxonomy, e.g. cityscapesScripts' `createPanopticImgs.py`, where 24 is "person" and 26 "car",
+COCO's "zebra" and no class) has its ids mapped to COCO's by name (`coco_ids_by_name`), with a
+note; a category COCO does not name keeps its id where COCO has no such id, else gets 0 (no
+COCO class: never dynamic). Segments listed in the JSON but absent from the PNG are dropped (a `Frame` holds the
 segments present in its map); ids in the PNG without a JSON entry are an error, as in
 panopticapi's own checks.
 """
@@ -159,26 +163,72 @@ def _key(file_name: str) -> str:
   return str(PurePosixPath(file_name).with_suffix(""))
 
 
-def read_annotation_file(path: PathLike) -> dict[str, tuple[Segment, ...]]:
+# names of other taxonomies whose class COCO files under another name (COCO labels a rider as
+# a person; Cityscapes' "rider" is the person on a bicycle or motorcycle)
+COCO_NAME_ALIASES = {"rider": "person"}
+
+
+def coco_ids_by_name(categories: Sequence[Any], path: PathLike
+                     ) -> tuple[dict[int, int], str | None]:
+  """The COCO id of each of a file's categories ({"id", "name", ...} entries), by name, and a
+  note when that is not the identity (None when every id already means COCO's class).
+
+  A category named as a COCO one (case and `-`/`_` ignored, `COCO_NAME_ALIASES`) gets its COCO
+  id; one COCO does not name keeps its id if COCO has no such id, else gets 0 (no COCO class).
+  """
+  def norm(name: str) -> str:
+    return name.strip().lower().replace("_", " ").replace("-", " ")
+  coco_names = {norm(c.name): c for c in coco.CATEGORIES}
+  mapping, renamed, unknown = {}, [], []
+  for c in categories:
+    if not isinstance(c, dict) or not isinstance(c.get("id"), int) or \
+        not isinstance(c.get("name"), str):
+      continue
+    name = norm(c["name"])
+    target = coco_names.get(norm(COCO_NAME_ALIASES.get(name, name)))
+    if target is not None:
+      mapping[c["id"]] = target.id
+      if target.id != c["id"]:
+        renamed.append(f"{c['id']} {c['name']!r} -> {target.id}")
+    elif c["id"] in coco.CATEGORY_IDS:
+      mapping[c["id"]] = 0
+      unknown.append(f"{c['id']} {c['name']!r}")
+  if not renamed and not unknown:
+    return mapping, None
+  note = (f"{path}: category ids are not COCO's; mapped by name to COCO ids "
+          f"({', '.join(renamed[:8])}{', ...' if len(renamed) > 8 else ''})")
+  if unknown:
+    note += (f"; without a COCO class (id 0, never dynamic): {', '.join(unknown[:8])}"
+             f"{', ...' if len(unknown) > 8 else ''}")
+  return mapping, note
+
+
+def read_annotation_file(path: PathLike) -> tuple[dict[str, tuple[Segment, ...]], tuple[str, ...]]:
   """Reads a COCO-style panoptic annotation file.
 
   Returns:
     segments by key, the key being each annotation's `file_name` without its suffix
-    (`"000000000139.png"` -> `"000000000139"`).
+    (`"000000000139.png"` -> `"000000000139"`), with COCO category ids (`coco_ids_by_name`);
+    and the notes on what was mapped.
   """
   data = _read_json(path)
   if not isinstance(data, dict) or not isinstance(data.get("annotations"), list):
     raise DataError(path, "not a COCO panoptic annotation file (no 'annotations' list)")
-  categories = None
+  categories, mapping, notes = None, {}, ()
   if isinstance(data.get("categories"), list):
     categories = {c["id"]: bool(c["isthing"]) for c in data["categories"]
                   if isinstance(c, dict) and "id" in c and "isthing" in c}
+    mapping, note = coco_ids_by_name(data["categories"], path)
+    notes = (note,) if note else ()
   table = {}
   for k, ann in enumerate(data["annotations"]):
     if not isinstance(ann, dict) or "file_name" not in ann or "segments_info" not in ann:
       raise DataError(path, f"annotations[{k}] lacks 'file_name' or 'segments_info'")
-    table[_key(ann["file_name"])] = parse_segments(ann["segments_info"], path, categories)
-  return table
+    segments = parse_segments(ann["segments_info"], path, categories)
+    table[_key(ann["file_name"])] = tuple(
+        dataclasses.replace(s, category_id=mapping.get(s.category_id, s.category_id))
+        for s in segments)
+  return table, notes
 
 
 def check_segments(ids: np.ndarray, segments: Sequence[Segment], path: PathLike
@@ -261,7 +311,10 @@ class PanopticSource:
       if annotation_file is not None:
         self.notes = (f"panoptic segments from the COCO annotation file {annotation_file}",)
     self.annotation_file = None if annotation_file is None else Path(annotation_file)
-    self._table = None if annotation_file is None else read_annotation_file(annotation_file)
+    self._table = None
+    if annotation_file is not None:
+      self._table, mapped = read_annotation_file(annotation_file)
+      self.notes += mapped
 
   def has(self, key: str) -> bool:
     """True when frame `key` has a PNG and its segments (an annotation or its own JSON)."""
@@ -275,14 +328,20 @@ class PanopticSource:
 
     Raises DataError when the PNG, its JSON or its annotation is missing.
     """
-    png = require_file(self.directory / f"{key}.png", "panoptic PNG")
+    example = next(iter(self._table or ()), None)
+    named = (f" (the file_names in {self.annotation_file.name} are like '{example}.png')"
+             if example is not None else "")
+    png = self.directory / f"{key}.png"
+    if not png.is_file() and self._table is not None and key not in self._table:
+      raise DataError(png, f"panoptic PNG not found{named}")
+    png = require_file(png, "panoptic PNG")
     if self._table is not None and key in self._table:
       return PanopticRef(png=png, segments=self._table[key])
     if png.with_suffix(".json").is_file():
       return PanopticRef(png=png, json=png.with_suffix(".json"))
     if self._table is not None:
       raise DataError(self.annotation_file, f"no annotation with file_name '{key}.png' (nor a "
-                                            f"per-image {png.with_suffix('.json').name})")
+                                            f"per-image {png.with_suffix('.json').name}){named}")
     raise DataError(png.with_suffix(".json"), "panoptic JSON not found (per-image JSON, or one "
                                               "COCO annotation file in the PNG directory or "
                                               "beside it as <directory>.json, or --option "
