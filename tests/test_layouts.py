@@ -212,6 +212,21 @@ def test_drivingstereo_sizes_and_lone_subdirectory(tmp_path):
     drivingstereo.choose_size(other, ("foggy", "sunny"))
 
 
+def test_drivingstereo_notes_frames_seconds_apart():
+  """The stems' timestamps: 0.680 s and 0.815 s gaps (median 0.7475, by hand) are noted; 10 Hz
+  frames and stems without timestamps are not."""
+  seq = "2018-10-25-07-37-26"
+  sparse = [f"{seq}_2018-10-25-07-45-25-505", f"{seq}_2018-10-25-07-45-26-185",
+            f"{seq}_2018-10-25-07-45-27-000"]
+  assert drivingstereo.frame_spacing_note("foggy", sparse) == (
+      "DrivingStereo foggy: consecutive frames are 0.75 s apart (median; largest 0.8 s), a "
+      "subsample of the drive rather than video-rate frames: methods that pair consecutive "
+      "frames (CoMoDa, Ada-Depth) see that interval's motion")
+  video = [f"{seq}_2018-10-25-07-45-25-{ms:03d}" for ms in (0, 100, 200, 300)]
+  assert drivingstereo.frame_spacing_note("foggy", video) is None
+  assert drivingstereo.frame_spacing_note("foggy", ["a_1", "a_2"]) is None
+
+
 def _ds_calib(path: Path, fx: float, cx: float, fy: float, cy: float, w: int, h: int) -> None:
   """A DrivingStereo calibration file (KITTI-style keys of cameras 101 and 103)."""
   path.parent.mkdir(parents=True, exist_ok=True)

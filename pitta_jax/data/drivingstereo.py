@@ -15,6 +15,9 @@ Frames are sorted by stem (chronological within a sequence: the order is tempora
 "all" concatenates cloudy, foggy, rainy, sunny in that order (the paper's "All", adaptation
 continuing across them). Frame names are `<weather>/<stem>`.
 
+The stems' timestamps say how far apart the frames are: a weather whose frames are more than
+`SPARSE_FRAMES_S` apart (median) is noted as a subsample of the drive (`frame_spacing_note`).
+
 Size: `size=None` takes the size whose `left-image-<size>-size/` exists in every requested
 weather: half when both do, else the only one (said in `FrameSequence.notes`).
 
@@ -35,8 +38,11 @@ synthetic exporter writes). Once a panoptic source applies, every frame must hav
 
 from __future__ import annotations
 
+import datetime
 import functools
 from pathlib import Path
+
+import numpy as np
 
 from pitta_jax.data.calib import rectified_calib
 from pitta_jax.data.errors import DataError
@@ -157,6 +163,34 @@ class _Calibrations:
     return self._cache[key]
 
 
+# frames further apart than this (median, seconds) are noted as a subsample of the drive: the
+# KITTI raw drives that MonoDepth2-style self-supervision was built on run at 10 Hz (0.1 s)
+SPARSE_FRAMES_S = 0.2
+
+
+def frame_spacing_note(weather: str, stems: list[str]) -> str | None:
+  """A note on how far apart in time a weather's frames are, from the timestamps in their stems
+  (`<seq>_<YYYY-MM-DD-HH-MM-SS-mmm>`), when the median gap within a recording exceeds
+  `SPARSE_FRAMES_S`: the methods that pair consecutive frames (CoMoDa's and Ada-Depth's warps)
+  then see the motion of that interval. None when the stems carry no such timestamps."""
+  epoch = datetime.datetime(1970, 1, 1)  # naive: differences without time zones
+  times: dict[str, list[float]] = {}
+  for stem in stems:
+    seq, _, stamp = stem.partition("_")
+    try:
+      t = datetime.datetime.strptime(stamp, "%Y-%m-%d-%H-%M-%S-%f")
+    except ValueError:
+      return None
+    times.setdefault(seq, []).append((t - epoch).total_seconds())
+  gaps = [b - a for ts in times.values() for a, b in zip(sorted(ts), sorted(ts)[1:])]
+  if not gaps or float(np.median(gaps)) <= SPARSE_FRAMES_S:
+    return None
+  return (f"DrivingStereo {weather}: consecutive frames are {float(np.median(gaps)):.2f} s apart "
+          f"(median; largest {max(gaps):.1f} s), a subsample of the drive rather than video-rate "
+          f"frames: methods that pair consecutive frames (CoMoDa, Ada-Depth) see that interval's "
+          f"motion")
+
+
 def _weather_files(root: Path, weather: str, size: str, depth: bool,
                    panoptic: PanopticSource | None, calibs: _Calibrations) -> list[FrameFiles]:
   wdir = weather_dir(root, weather, size)
@@ -227,6 +261,9 @@ def open_drivingstereo(root: PathLike, weather: str = "all", size: str | None = 
   panoptic = panoptic_source(panoptic_dir, panoptic_json)
   files = []
   for w in weathers:
-    files += _weather_files(root, w, size, depth, panoptic, calibs)
+    part = _weather_files(root, w, size, depth, panoptic, calibs)
+    note = frame_spacing_note(w, [f.name.split("/", 1)[1] for f in part])
+    notes += [note] if note else []
+    files += part
   return FrameSequence(files, temporal=True, remedies={"intrinsics": INTRINSICS_REMEDY},
                        notes=notes + list(panoptic.notes if panoptic else ()))
