@@ -429,6 +429,9 @@ def test_a_binary_split_file_and_a_bad_network_field_name_their_file(tmp_path):
   split.write_bytes(b"\xff\xfe2011_09_26 0000000000 l\n")
   with pytest.raises(DataError, match=f"^{split}: not a text split file"):
     read_split(split)
+  split.write_text("9 0 l\n")  # MonoDepth2's splits/odom/test_files_09.txt
+  with pytest.raises(DataError, match=f"^{split}: line 1 is '9 0 l': a KITTI odometry split"):
+    read_split(split)
   (tmp_path / "w").mkdir()
   (tmp_path / "w" / "model.json").write_text(json.dumps(
       {"architecture": "monodepth2", "num_layers": "18", "height": 64, "width": 96}))

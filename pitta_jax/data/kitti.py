@@ -186,6 +186,10 @@ def read_split(path: PathLike) -> list[tuple[str, int, int]]:
     if len(fields) != 3 or fields[2] not in SIDE_TO_CAMERA or not fields[1].isdigit():
       raise DataError(path, f"line {number} is {line.strip()!r}, expected '<folder> <frame> "
                             f"<side l|r|2|3>'")
+    if fields[0].isdigit():  # MonoDepth2's odometry splits: '<sequence> <frame> <side>'
+      raise DataError(path, f"line {number} is {line.strip()!r}: a KITTI odometry split "
+                            f"(sequences/NN/), which is not read; use a raw-data split "
+                            f"('<date>/<drive>_sync <frame> <side>', e.g. splits/eigen)")
     entries.append((fields[0], int(fields[1]), SIDE_TO_CAMERA[fields[2]]))
   return entries
 
