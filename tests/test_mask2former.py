@@ -434,6 +434,18 @@ def test_safetensors_reader_matches_the_library(tmp_path):
   (tmp_path / "bad.safetensors").write_bytes(b"\xff" * 8 + b"{}")
   with pytest.raises(CheckpointError, match="header length"):
     wc.read_safetensors(tmp_path / "bad.safetensors")
+  # malformed headers: one line naming the file (were KeyError / AttributeError tracebacks)
+  for header, what in ((b'[1, 2]', "a list, not an object"),
+                       (b'{"w": {"shape": [1], "data_offsets": [0, 4]}}', "w needs a dtype"),
+                       (b'{"w": {"dtype": "F32", "shape": ["x"], "data_offsets": [0, 4]}}',
+                        "w needs a dtype, a shape of non-negative integers")):
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(len(header).to_bytes(8, "little") + header + b"\0" * 4)
+    with pytest.raises(CheckpointError, match=re.escape(f"{bad}: corrupt safetensors header")
+                       + ".*" + re.escape(what)):
+      wc.read_safetensors(bad)
+  with pytest.raises(CheckpointError, match="nope.safetensors: no such file"):
+    wc.read_safetensors(tmp_path / "nope.safetensors")
 
 
 # ------------------------------------------------------------------------------ components

@@ -235,6 +235,14 @@ def test_run_writes_a_weights_directory(tiny, tmp_path):
   meta = json.loads((out / "model.json").read_text())
   assert (meta["architecture"], meta["height"], meta["width"]) == ("monovit", 320, 1024)
   assert meta["num_layers"] == list(TINY["num_layers"]) and (out / "depth").is_dir()
+  assert "use_stereo" not in meta  # the single file records none: median scaling
+  # the mono+stereo release, which records no use_stereo either: evaluated with x5.4
+  args = parser.parse_args(["--depth", str(tiny["root"] / "deepnet.pth"), "--height", "320",
+                            "--width", "1024", "--use-stereo", "--out", str(tmp_path / "ms")])
+  from pitta_jax.checkpoint import load_weights
+  from pitta_jax.run import model_alignment
+  assert json.loads((run(args) / "model.json").read_text())["use_stereo"] is True
+  assert model_alignment(load_weights(tmp_path / "ms")) == "stereo"
 
 
 def test_input_size_must_be_multiple_of_32(tiny):

@@ -497,6 +497,27 @@ def test_load_pickle_python2_numpy1_names(tmp_path):
   assert got["author"] == "caf\xe9"  # A Python 2 str, decoded as latin-1 (detectron2 does too).
 
 
+def test_the_wrong_format_is_named_with_the_flag_that_reads_it(tmp_path):
+  """A safetensors file (Hugging Face) or a plain pickle of NumPy arrays (detectron2's .pkl)
+  given where a torch.save file is read, and a safetensors file where a pickle is: each says
+  what the file is and which --from reads it (was: a forbidden-global refusal of numpy's
+  `_reconstruct`, or 'truncated or corrupt pickle')."""
+  from safetensors.numpy import save_file
+  st = tmp_path / "model.safetensors"
+  save_file({"w": np.ones((2, 3), np.float32)}, str(st))
+  pkl = tmp_path / "model_final.pkl"
+  pkl.write_bytes(pickle.dumps({"model": {"w": np.ones(3)}, "__author__": "d2"}, protocol=4))
+  with pytest.raises(CheckpointError, match=r"model\.safetensors: not a PyTorch checkpoint but a "
+                                            r"safetensors file .*`--from hf`"):
+    load_pth(st)
+  with pytest.raises(CheckpointError, match=r"model\.safetensors: not a PyTorch checkpoint but a "
+                                            r"safetensors file"):
+    load_pickle(st)
+  with pytest.raises(CheckpointError, match=r"model_final\.pkl: not a PyTorch checkpoint: a plain "
+                                            r"pickle .*`--from detectron2`"):
+    load_pth(pkl)
+
+
 def test_load_pickle_rejects_torch_checkpoints_and_garbage(tmp_path):
   path = _save({"w": torch.ones(2)}, tmp_path / "w.pth", "zip")
   with pytest.raises(CheckpointError, match="use load_pth"):

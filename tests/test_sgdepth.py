@@ -219,3 +219,43 @@ def test_unexpected_missing_and_misshapen_keys_are_named(released, tmp_path):
   with pytest.raises(CheckpointError,
                      match=r"common.decoder.blocks.step_0.conv.weight has shape \(256, 512, 1, 1\)"):
     conv.convert_sgdepth(tmp_path / "wrong.pth")
+
+
+def test_a_file_of_another_network_is_named(released, tmp_path):
+  """MonoDepth2's encoder.pth (as upstream's trainer saves it: the ResnetEncoder's state_dict and
+  the training size) given to the SGDepth converter, and SGDepth's model.pth given as MonoDepth2's
+  encoder: each message names what the file looks like and the converter that reads it (the
+  first said 'is it a decoder?' of a file holding encoder keys)."""
+  from weights_convert.monodepth2 import convert_monodepth2
+  from weights_convert.strict import check_keys
+  encoder = tm.ResnetEncoder(18)
+  md2 = tmp_path / "encoder.pth"
+  torch.save({**encoder.state_dict(), "height": 192, "width": 640, "use_stereo": False}, md2)
+  with pytest.raises(CheckpointError, match=rf"^{md2}: not an SGDepth model\.pth \(no "
+                     r"common\.encoder\.encoder\.\* keys\); its keys look like a ResNet "
+                     r"encoder\.pth \(`pitta-jax convert monodepth2 --encoder`\)$"):
+    conv.convert_sgdepth(md2)
+  with pytest.raises(CheckpointError, match=r"holds no ResNet encoder .*: its keys look like "
+                     r"SGDepth's model\.pth \(`pitta-jax convert sgdepth`\)$"):
+    convert_monodepth2(released["path"], md2)
+  # a key list is cut after 8 names per kind, and the file's look is named
+  present = [f"convs.X_0{i}_Conv_0.conv.conv.weight" for i in range(10)]
+  with pytest.raises(CheckpointError) as info:
+    check_keys("depth.pth", present, ["decoder.0.conv.conv.weight"], lambda k: False)
+  assert str(info.value) == (
+      "depth.pth: 10 unexpected keys: " + ", ".join(present[:8]) + ", ... and 2 more; 1 missing "
+      "keys: decoder.0.conv.conv.weight (1 keys expected); its keys look like an HR-Depth or "
+      "MonoViT depth.pth (`pitta-jax convert hrdepth` / `monovit`)")
+
+
+def test_a_stereo_release_without_pose_files_says_so(tmp_path):
+  """MonoDepth2's stereo_640x192 ships no pose network: the README's command with its pose flags
+  says to leave them out (was: pose_encoder.pth: no such file)."""
+  from weights_convert.monodepth2 import convert_monodepth2
+  encoder = tmp_path / "encoder.pth"
+  torch.save({**tm.ResnetEncoder(18).state_dict(), "height": 192, "width": 640,
+              "use_stereo": True}, encoder)
+  with pytest.raises(CheckpointError, match=r"pose_encoder\.pth: no such file; a stereo-trained "
+                     r"release .* leave out --pose-encoder and --pose"):
+    convert_monodepth2(encoder, tmp_path / "depth.pth", tmp_path / "pose_encoder.pth",
+                       tmp_path / "pose.pth")

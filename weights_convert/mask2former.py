@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, load_pth, load_pth_or_pickle
+from weights_convert.pth import CheckpointError, checked_path, load_pth, load_pth_or_pickle
 
 from pitta_jax.models.mask2former.load import CONFIG_JSON, PARAMS_DIR
 
@@ -294,23 +294,37 @@ _SAFETENSORS_DTYPES = {
 
 def read_safetensors(path: str | os.PathLike) -> dict[str, np.ndarray]:
   """Reads a `.safetensors` file: u64 LE header size, JSON header, then the raw tensor bytes."""
-  path = str(path)
+  path = checked_path(path)
   with open(path, "rb") as f:
     data = f.read()
   if len(data) < 8:
     raise CheckpointError(f"{path}: too short for a safetensors file")
   (n,) = struct.unpack("<Q", data[:8])
   if 8 + n > len(data):
-    raise CheckpointError(f"{path}: header length {n} exceeds the file size {len(data)}")
+    raise CheckpointError(f"{path}: header length {n} exceeds the file size {len(data)}"
+                          + ("" if data[8:9] == b"{" else " (not a safetensors file?)"))
   try:
     header = json.loads(data[8:8 + n])
   except (UnicodeDecodeError, json.JSONDecodeError) as e:
     raise CheckpointError(f"{path}: corrupt safetensors header ({e})") from None
+  if not isinstance(header, dict):
+    raise CheckpointError(f"{path}: corrupt safetensors header (a {type(header).__name__}, "
+                          f"not an object of tensors)")
   body = memoryview(data)[8 + n:]
   out = {}
   for name, info in header.items():
     if name == "__metadata__":
       continue
+    if not (isinstance(info, dict) and isinstance(info.get("dtype"), str)
+            and isinstance(info.get("shape"), list)
+            and all(isinstance(d, int) and not isinstance(d, bool) and d >= 0
+                    for d in info["shape"])
+            and isinstance(info.get("data_offsets"), list) and len(info["data_offsets"]) == 2
+            and all(isinstance(o, int) and not isinstance(o, bool)
+                    for o in info["data_offsets"])):
+      raise CheckpointError(f"{path}: corrupt safetensors header: {name} needs a dtype, a shape "
+                            f"of non-negative integers and two integer data_offsets, got "
+                            f"{str(info)[:120]}")
     dtype_name, shape, (start, stop) = info["dtype"], info["shape"], info["data_offsets"]
     if dtype_name == "BF16":
       import ml_dtypes

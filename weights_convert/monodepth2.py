@@ -20,6 +20,7 @@ import numpy as np
 
 from weights_convert import rules as R
 from weights_convert.pth import METADATA_KEYS, CheckpointError, int_entry, load_state_dict
+from weights_convert.strict import layout_of
 
 RESNET_BLOCKS = {18: ("basic", (2, 2, 2, 2)), 34: ("basic", (3, 4, 6, 3)),
                  50: ("bottleneck", (3, 4, 6, 3))}
@@ -79,9 +80,12 @@ def infer_num_layers(state: dict, path: str) -> int:
     return 50
   if not any(isinstance(k, str) and k.startswith("encoder.") for k in state):
     found = next((k for k in state if k not in METADATA_KEYS), None)
+    other = layout_of(k for k in state if isinstance(k, str))
+    guess = f"its keys look like {other}" if other else "is it a decoder?"
+    if other is None or "monodepth2" in other:
+      guess += "; check that the encoder and decoder files are not swapped"
     raise CheckpointError(f"{path}: holds no ResNet encoder (no `encoder.*` key"
-                          + (f"; found e.g. {found!r}" if found else "") + "): is it a decoder? "
-                          "check that the encoder and decoder files are not swapped")
+                          + (f"; found e.g. {found!r}" if found else "") + f"): {guess}")
   n_layer3 = len({k.split(".")[2] for k in state if k.startswith("encoder.layer3.")})
   if n_layer3 == 2:
     return 18
@@ -118,6 +122,11 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
   if (pose_encoder is None) != (pose is None):
     raise CheckpointError("--pose-encoder and --pose go together: give both or neither")
   enc_state = load_state_dict(encoder)
+  missing = [p for p in (pose_encoder, pose) if p is not None and not os.path.exists(p)]
+  if missing and _flag(enc_state, "use_stereo"):
+    raise CheckpointError(f"{missing[0]}: no such file; a stereo-trained release (use_stereo in "
+                          f"{encoder}) may ship no pose network: leave out --pose-encoder and "
+                          f"--pose")
   dec_state = load_state_dict(depth)
   num_layers = num_layers or infer_num_layers(enc_state, str(encoder))
   overlap = set(enc_state) & set(dec_state) - set(METADATA_KEYS)

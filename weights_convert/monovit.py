@@ -263,13 +263,17 @@ def _size(state: dict, key: str, given: int | None, path: str) -> int:
 
 
 def convert_monovit(encoder: str | os.PathLike | None, depth: str | os.PathLike,
-                    height: int | None = None, width: int | None = None):
+                    height: int | None = None, width: int | None = None,
+                    use_stereo: bool | None = None):
   """Converts MonoViT checkpoint files to Flax variables.
 
   Args:
     encoder: encoder.pth, or None when `depth` is a whole `DeepNet` (high-resolution releases).
     depth: depth.pth (decoder state dict, or `[module.]encoder.*` + `[module.]decoder.*`).
     height, width: the training size; required when the files do not record it.
+    use_stereo: trained with stereo pairs (evaluated with MonoDepth2's x5.4 instead of median
+      scaling); the files' entry when None. The high-resolution single-file releases record
+      none (upstream evaluates `mono+stereo_1024x320` with `--eval_stereo`): pass True there.
 
   Returns:
     (config, variables): config {"height", "width"[, "use_stereo"], and the MPViT layout lists
@@ -310,7 +314,9 @@ def convert_monovit(encoder: str | os.PathLike | None, depth: str | os.PathLike,
            for path, state, rules, aliases, ignorable in parts]
   config = {"height": _size(meta_state, "height", height, meta_path),
             "width": _size(meta_state, "width", width, meta_path)}
-  if "use_stereo" in meta_state:
+  if use_stereo is not None:
+    config["use_stereo"] = bool(use_stereo)
+  elif "use_stereo" in meta_state:
     config["use_stereo"] = bool(np.asarray(meta_state["use_stereo"]).item())
   config.update({k: list(v) for k, v in layout.items()})
 
@@ -329,6 +335,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       "or a whole DeepNet `module.encoder.*` + `module.decoder.*`)")
   parser.add_argument("--height", type=int, help="training height (when the files lack it)")
   parser.add_argument("--width", type=int, help="training width (when the files lack it)")
+  parser.add_argument("--use-stereo", action="store_true", default=None,
+                      help="the weights were trained with stereo pairs (e.g. the single-file "
+                           "mono+stereo_1024x320 release, which records no use_stereo): "
+                           "evaluated with MonoDepth2's x5.4 factor instead of median scaling")
   parser.add_argument("--out", required=True, help="output weights directory")
 
 
@@ -336,7 +346,8 @@ def run(args: argparse.Namespace) -> Path:
   import jax
   from pitta_jax.checkpoint import save_weights
   from pitta_jax.models.monovit import SPEC
-  config, variables = convert_monovit(args.encoder, args.depth, args.height, args.width)
+  config, variables = convert_monovit(args.encoder, args.depth, args.height, args.width,
+                                      args.use_stereo)
   out = save_weights(args.out, SPEC.name, config, variables,
                      source={"encoder": str(args.encoder) if args.encoder else None,
                              "depth": str(args.depth)})

@@ -41,13 +41,22 @@ except ImportError:  # NumPy 1.x.
   from numpy.core.multiarray import _reconstruct as _np_reconstruct
   from numpy.core.multiarray import scalar as _np_scalar
 
-__all__ = ["CheckpointError", "ForbiddenGlobalError", "load_pickle", "load_pth"]
+__all__ = ["CheckpointError", "ForbiddenGlobalError", "checked_path", "load_pickle", "load_pth"]
 
 # Pickled as an int by the legacy format's first pickle (torch/serialization.py).
 _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 _LEGACY_PROTOCOL = 1001
 _ZIP_MAGIC = b"PK\x03\x04"  # A zip's first local file header.
 _LEGACY_NOT_PICKLE = "a legacy torch checkpoint, not a plain pickle (use load_pth)"
+_LEGACY_NOT_PICKLE_HINT = " (detectron2 .pkl weights: `--from detectron2` where the converter has it)"
+_SAFETENSORS = ("not a PyTorch checkpoint but a safetensors file (Hugging Face weights: `--from hf` where "
+                "the converter has it)")
+
+
+def _is_safetensors(path: str, head: bytes) -> bool:
+  """The file starts as a safetensors file does: a u64 header size within the file, then `{`."""
+  return len(head) >= 9 and head[8:9] == b"{" and \
+      8 < int.from_bytes(head[:8], "little") < os.path.getsize(path)
 
 # torch dtype name (as `torch.<name>` pickles it) -> NumPy dtype of the returned array.
 _DTYPES: dict[str, np.dtype] = {
@@ -575,7 +584,8 @@ def _load_legacy(path: str, f: BinaryIO, allow_numpy: bool) -> Any:
 # Public API.
 
 
-def _checked_path(path: str | os.PathLike) -> str:
+def checked_path(path: str | os.PathLike) -> str:
+  """`path` as a string; CheckpointError (one line) when it is missing or not a regular file."""
   path = os.fspath(path)
   if not os.path.exists(path):
     raise CheckpointError(f"{path}: no such file")
@@ -612,7 +622,7 @@ def load_pth(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
     ForbiddenGlobalError: the pickle references a global outside the allow-list.
     CheckpointError: missing, truncated, corrupt or unsupported file.
   """
-  path = _checked_path(path)
+  path = checked_path(path)
   try:
     with open(path, "rb") as f:
       head = f.read(512)
@@ -621,18 +631,18 @@ def load_pth(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
       if len(head) >= 262 and head[257:262] == b"ustar":
         raise _FormatError("legacy tar checkpoint (torch < 0.4) is not supported; re-save it "
                            "with a newer torch")
+      if _is_safetensors(path, head):
+        raise _FormatError(_SAFETENSORS)
       if not head.startswith(b"\x80"):
         raise _FormatError("not a PyTorch checkpoint (neither a zip archive nor a legacy pickle)")
       f.seek(0)
       try:
         magic = _unpickle(f, path, _allowed(torch=False, numpy=False))
-      except ForbiddenGlobalError:
-        raise
-      except Exception:
+      except Exception:  # e.g. a NumPy array: the first object of a plain pickle, not a number
         magic = None
       if not (_is_int(magic) and magic == _LEGACY_MAGIC):
-        raise _FormatError("not a PyTorch checkpoint: a pickle without torch's magic number "
-                           "(for a plain pickle use load_pickle)")
+        raise _FormatError(f"not a PyTorch checkpoint: a plain pickle without torch's magic "
+                           f"number{_LEGACY_NOT_PICKLE_HINT}")
       return _load_legacy(path, f, allow_numpy)
   except CheckpointError:
     raise
@@ -644,7 +654,7 @@ def load_pth_or_pickle(path: str | os.PathLike, *, allow_numpy: bool = True) -> 
   """`load_pth` of a torch.save file (zip or legacy), else `load_pickle` of a plain pickle: told
   apart by the file's content, not its suffix (detectron2 writes `.pkl` pickles, a training
   script `.pth` / `.pt` / `.ckpt` torch files)."""
-  path = _checked_path(path)
+  path = checked_path(path)
   with open(path, "rb") as f:
     head = f.read(4)
   if head == _ZIP_MAGIC:
@@ -745,11 +755,14 @@ def load_pickle(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
     ForbiddenGlobalError: the pickle references a global outside the allow-list.
     CheckpointError: missing, truncated or corrupt file, or a torch checkpoint.
   """
-  path = _checked_path(path)
+  path = checked_path(path)
   try:
     with open(path, "rb") as f:
-      if f.read(4) == _ZIP_MAGIC:
+      head = f.read(16)
+      if head.startswith(_ZIP_MAGIC):
         raise _FormatError("a zip archive, not a plain pickle (a torch checkpoint? use load_pth)")
+      if _is_safetensors(path, head):
+        raise _FormatError(_SAFETENSORS)
       f.seek(0)
       obj = _unpickle(f, path, _allowed(torch=False, numpy=allow_numpy))
     if _is_int(obj) and obj == _LEGACY_MAGIC:

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from weights_convert import rules as R
 from weights_convert.monodepth2 import encoder_rules, infer_num_layers
+from weights_convert.strict import layout_of
 from weights_convert.pth import CheckpointError, load_state_dict
 
 ENCODER_PREFIX = "common.encoder.encoder."
@@ -107,6 +108,11 @@ def convert_sgdepth(model: str | os.PathLike, height: int | None = None,
   state, path = load_state_dict(model), str(model)
   encoder_view = {k[len("common.encoder."):]: v for k, v in state.items()
                   if k.startswith(ENCODER_PREFIX)}  # MonoDepth2's `encoder.*` layout
+  if not encoder_view:
+    other = layout_of(k for k in state if isinstance(k, str))
+    raise CheckpointError(f"{path}: not an SGDepth model.pth (no {ENCODER_PREFIX}* keys)"
+                          + (f"; its keys look like {other}"
+                             if other else ""))
   num_layers = infer_num_layers(encoder_view, path)
   split, num_scales = infer_split(state, path), infer_num_scales(state, path)
   config = {"num_layers": num_layers, "num_scales": num_scales,
