@@ -498,9 +498,8 @@ def _run_source_stats(args) -> int:
     raise ValueError(f"--{e}") from None
   if Path(args.out).is_dir():
     raise ValueError(f"--out {args.out}: is a directory; name the .npz file to write")
-  blocking = next((p for p in Path(args.out).parents if p.exists() and not p.is_dir()), None)
-  if blocking is not None:  # found now, not after the statistics are computed
-    raise ValueError(f"--out {args.out}: {blocking} is a file, not a directory")
+  from pitta_jax.outputs import check_writable_file
+  check_writable_file(args.out)  # found now, not after the statistics are computed
   if Path(args.out).exists():  # replace only an earlier statistics file, never another file
     from pitta_jax.source_stats import read_source_stats
     try:

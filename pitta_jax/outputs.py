@@ -80,6 +80,22 @@ def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
   return OutputDir(p, fd, created)
 
 
+def check_writable_file(path: str | os.PathLike, what: str = "--out") -> None:
+  """OutputError (one line) unless a file can be written at `path`: a probe file is written and
+  removed in its nearest existing folder (the folders below it are made when the file is
+  written), so that a command that writes one file at its end fails before its work."""
+  p = Path(path)
+  folder = next(a for a in p.parents if a.exists())
+  if not folder.is_dir():
+    raise OutputError(f"{what} {p}: {folder} is a file, not a directory")
+  probe = folder / f".pitta-jax-probe-{os.getpid()}"
+  try:
+    probe.write_bytes(b"ok")
+    probe.unlink()
+  except OSError as e:
+    raise OutputError(f"{what} {p}: cannot write there ({e.strerror or e})") from None
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
   """Writes `data` to `path` atomically (temp file in the same directory + fsync + rename)."""
   path = Path(path)

@@ -13,9 +13,10 @@ writes every output at the image's size. This is also how a user checks a conver
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -46,7 +47,8 @@ def expand_images(spec: str, unique_stems: bool = True) -> list[Path]:
   elif path.is_file():
     paths = [path]
   else:
-    paths = sorted(Path(p) for p in glob.glob(spec) if Path(p).suffix.lower() in IMAGE_SUFFIXES)
+    paths = sorted(Path(p) for p in glob.glob(spec, recursive=True)  # `**`: any depth
+                   if Path(p).suffix.lower() in IMAGE_SUFFIXES)
   if not paths:
     raise DataError(spec, f"no image found (a file, a directory or a glob of {IMAGE_SUFFIXES})")
   if unique_stems:
@@ -69,34 +71,54 @@ def check_images(paths: Sequence[Path], quiet: bool = False) -> None:
   """Reads every image once before anything is written (DataError naming the first unreadable
   one): a bad image found halfway would leave half of the outputs behind."""
   for path in tqdm(paths, desc="checking images", unit="img", disable=quiet or len(paths) < 50):
-    read_image(path)
+    read_image(path, gray=True)
 
 
-def is_own_output(path: Path, companion_suffix: str, suffix: str) -> bool:
-  """Whether `path` (named ...`suffix`) was written by this command: the file it always writes
-  beside it (`companion_suffix` in place of `suffix`) is there too."""
-  return path.name.endswith(suffix) and (
-      path.with_name(path.name[:-len(suffix)] + companion_suffix).is_file())
+@dataclasses.dataclass(frozen=True)
+class Outputs:
+  """The files a command writes per image `<stem>`: `<stem><suffix>` for each of `suffixes`.
+  `looks_own(path)` says whether an existing file of the first suffix holds what the command
+  writes there (default: it exists); a group is an earlier output of the command when every
+  file is there and the first looks its own."""
+  suffixes: tuple[str, ...]
+  looks_own: Callable[[Path], bool] = Path.is_file
+
+  def group(self, out_dir: Path, stem: str) -> list[Path]:
+    return [out_dir / f"{stem}{s}" for s in self.suffixes]
+
+  def is_earlier_output(self, path: Path) -> bool:
+    """Whether `path`, named `<stem>` + one of the suffixes, belongs to a complete group."""
+    for suffix in self.suffixes:
+      if path.name.endswith(suffix):
+        group = self.group(path.parent, path.name[:-len(suffix)])
+        return all(p.is_file() for p in group) and self.looks_own(group[0])
+    return False
 
 
-def without_own_outputs(paths: Sequence[Path], out_dir: Path, suffix: str,
-                        companion_suffix: str) -> list[Path]:
-  """`paths` less the files a previous run of the command wrote into `out_dir` (names ending in
-  `suffix`, with their companion file beside them), so that a rerun with --out in the image
-  directory does not take them as input; a user's own image of such a name stays an input."""
+PREDICT_OUTPUTS = Outputs((DISP_NPY, "_depth.npy", DISP_PNG))
+
+
+def without_own_outputs(paths: Sequence[Path], out_dir: Path, outputs: Outputs) -> list[Path]:
+  """`paths` less the files a previous run of the command wrote into `out_dir` (complete groups
+  of `outputs`), so that a rerun with --out in the image directory does not take them as
+  input; a user's own image of such a name stays an input."""
   out = out_dir.resolve()
   return [p for p in paths
-          if not (p.resolve().parent == out and is_own_output(p, companion_suffix, suffix))]
+          if not (p.resolve().parent == out and outputs.is_earlier_output(p))]
 
 
-def check_outputs_free(targets: Sequence[Path], suffix: str, companion_suffix: str) -> None:
-  """DataError naming the first of `targets` (the files the command is about to write) that
-  exists without being one of its earlier outputs: a user's file would be replaced."""
-  for target in targets:
-    if target.exists() and not is_own_output(target, companion_suffix, suffix):
-      raise DataError(target, f"exists and is not an earlier output of this command (no "
-                              f"{target.name[:-len(suffix)] + companion_suffix} beside it); it "
-                              "is not overwritten: choose another --out")
+def check_outputs_free(out_dir: Path, stems: Sequence[str], outputs: Outputs) -> None:
+  """DataError naming the first file the command is about to write that exists without being
+  part of one of its earlier outputs (a complete group): a user's file (e.g. a ground-truth
+  `<stem>_depth.npy` beside the images, or a labelme `<stem>.json`) would be replaced."""
+  for stem in stems:
+    group = outputs.group(out_dir, stem)
+    present = [p for p in group if p.exists()]
+    if present and not outputs.is_earlier_output(present[0]):
+      others = ", ".join(p.name for p in group if p != present[0])
+      raise DataError(present[0], f"exists and is not an earlier output of this command (which "
+                                  f"writes {others} beside it); it is not overwritten: choose "
+                                  f"another --out")
 
 
 def resize_map(x: np.ndarray, size: tuple[int, int], align_corners: bool) -> np.ndarray:
@@ -129,16 +151,16 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   trained = (weights.height, weights.width)
   out = Path(out_dir)
   images = expand_images(images) if isinstance(images, str) else list(images)
-  images = without_own_outputs(images, out, DISP_PNG, DISP_NPY)
+  images = without_own_outputs(images, out, PREDICT_OUTPUTS)
   if not images:
     raise DataError(out, "no image to predict besides this command's own outputs")
-  check_outputs_free([out / f"{p.stem}{DISP_PNG}" for p in images], DISP_PNG, DISP_NPY)
+  check_outputs_free(out, [p.stem for p in images], PREDICT_OUTPUTS)
   check_images(images, quiet)
   predict = make_predictor(weights.network())
   out.mkdir(parents=True, exist_ok=True)
   written = []
   for path in tqdm(images, desc="predict", unit="img", disable=quiet):
-    image = read_image(path)
+    image = read_image(path, gray=True)
     h, w = size or weights.spec.inference_size(image.shape[:2], trained)
     size_in = image.shape[:2]
     image = resize_image(image, h, w, weights.spec.image_resize)

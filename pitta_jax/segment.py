@@ -28,6 +28,7 @@ before they reach the adaptation step, so the segmenter is outside any gradient.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -43,8 +44,8 @@ from pitta_jax.data.image_io import read_image
 from pitta_jax.data.panoptic_io import write_panoptic
 from pitta_jax.data.sequence import FrameSequence
 from pitta_jax.models.mask2former import CONFIG_JSON, InferenceConfig, load_mask2former, segment
-from pitta_jax.predict import (check_images, check_outputs_free, check_unique_stems,
-                               expand_images)
+from pitta_jax.predict import (Outputs, check_images, check_outputs_free, check_unique_stems,
+                               expand_images, without_own_outputs)
 
 
 PathLike = str | os.PathLike[str]
@@ -164,6 +165,20 @@ def segmented_frames(frames: Sequence[Frame], weights_dir: PathLike | Segmenter,
   return MappedFrames(frames, segmenter.segment_frame)
 
 
+def _is_segments_json(path: Path) -> bool:
+  """Whether `path` is a per-image panoptic JSON as `write_panoptic` writes it (not, e.g., a
+  labelme annotation of the same stem)."""
+  try:
+    data = json.loads(path.read_text())
+  except (OSError, ValueError):
+    return False
+  return isinstance(data, dict) and set(data) == {"segments_info"}
+
+
+# per image: the segments JSON (written first) and the id PNG
+SEGMENT_OUTPUTS = Outputs((".json", ".png"), looks_own=_is_segments_json)
+
+
 def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_dir: PathLike,
                    input_size: tuple[int, int] | None = None, quiet: bool = False
                    ) -> list[Path]:
@@ -183,19 +198,23 @@ def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_
     the written PNG paths, in input order. The maps have each image's own size.
   """
   segmenter = Segmenter(weights_dir, input_size)
-  paths = expand_images(images) if isinstance(images, str) else [Path(p) for p in images]
-  check_unique_stems(paths)  # a list given by the caller too
   out = Path(out_dir)
+  paths = (expand_images(images, unique_stems=False) if isinstance(images, str)
+           else [Path(p) for p in images])
+  paths = without_own_outputs(paths, out, SEGMENT_OUTPUTS)  # a rerun into the image directory
+  if not paths:
+    raise DataError(out, "no image to segment besides this command's own outputs")
+  check_unique_stems(paths)  # a list given by the caller too
   for path in paths:
     if (out / f"{path.stem}.png").resolve() == path.resolve():
       raise DataError(path, f"--out {out} would overwrite this input with its panoptic map "
                             "(outputs are OUT/<stem>.png): choose another --out")
-  check_outputs_free([out / f"{p.stem}.png" for p in paths], ".png", ".json")
+  check_outputs_free(out, [p.stem for p in paths], SEGMENT_OUTPUTS)
   check_images(paths, quiet)
   out.mkdir(parents=True, exist_ok=True)
   written = []
   for path in tqdm(paths, desc="segment", unit="img", disable=quiet):
-    ids, segments = segmenter(read_image(path))
+    ids, segments = segmenter(read_image(path, gray=True))
     png = out / f"{path.stem}.png"
     write_panoptic(png, ids, segments)
     written.append(png)

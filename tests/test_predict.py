@@ -105,6 +105,34 @@ def test_predict_checks_every_image_first_and_skips_its_own_outputs(converted, t
   assert (user / "a_disp.png").read_bytes() == before and not list(user.glob("*.npy"))
 
 
+def test_predict_keeps_a_users_files_reads_gray_and_globs_any_depth(converted, tmp_path, capsys):
+  """A ground-truth `a_depth.npy` beside `a.png` with --out the image directory is refused, not
+  replaced (it was, with exit 0); a grayscale image predicts as its channel repeated three times
+  (PIL's convert("RGB"), written by cv2 as a colour image: the reference); `**` in a glob
+  matches any depth of folders (KITTI's '<date>/<drive>/image_02/data')."""
+  weights = converted[0]
+  rng = np.random.default_rng(2)
+  d = tmp_path / "gt"
+  d.mkdir()
+  cv2.imwrite(str(d / "a.png"), rng.integers(0, 256, (64, 96, 3), dtype=np.uint8))
+  np.save(d / "a_depth.npy", np.full((64, 96), 7.0, np.float32))
+  before = (d / "a_depth.npy").read_bytes()
+  args = ["predict", "--weights", str(weights), "--quiet", "--images"]
+  assert main([*args, str(d), "--out", str(d)]) == 2
+  assert f"{d / 'a_depth.npy'}: exists and is not an earlier output" in capsys.readouterr().err
+  assert (d / "a_depth.npy").read_bytes() == before and not (d / "a_disp.png").exists()
+  gray = rng.integers(0, 256, (64, 96), dtype=np.uint8)
+  tree = tmp_path / "kitti" / "2011_09_26" / "2011_09_26_drive_0001_sync" / "image_02" / "data"
+  tree.mkdir(parents=True)
+  cv2.imwrite(str(tree / "0000000000.png"), gray)  # one channel
+  cv2.imwrite(str(tmp_path / "rgb.png"), cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
+  assert main([*args, str(tmp_path / "kitti" / "**" / "image_02" / "data" / "*.png"),
+               "--out", str(tmp_path / "o")]) == 0
+  assert main([*args, str(tmp_path / "rgb.png"), "--out", str(tmp_path / "ref")]) == 0
+  np.testing.assert_array_equal(np.load(tmp_path / "o" / "0000000000_disp.npy"),
+                                np.load(tmp_path / "ref" / "rgb_disp.npy"))
+
+
 def test_convert_errors_exit_2(converted, tmp_path, capsys):
   root = converted[3]
   assert main(["convert", "monodepth2", "--encoder", str(root / "depth.pth"), "--depth",

@@ -665,6 +665,9 @@ def test_gray_alpha_png_is_refused_like_grayscale(tmp_path):
   assert cv2.imread(str(tmp_path / "la.png"), cv2.IMREAD_UNCHANGED).shape == (h, w, 4)
   with pytest.raises(DataError, match=r"la\.png: grayscale image"):
     read_image(tmp_path / "la.png")
+  # taken where a user's images are read (predict, segment): the gray value in R, G and B
+  np.testing.assert_array_equal(read_image(tmp_path / "la.png", gray=True),
+                                np.full((h, w, 3), np.float32(90) / np.float32(255)))
 
 
 def test_recording_starts_survive_slices_joins_and_maps(tmp_path):

@@ -13,6 +13,7 @@ thresholds (the fixture asserts segments exist). Images are 60x90: the network i
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -254,3 +255,15 @@ def test_cli_argument_errors(weights, image_dir, tmp_path, capsys):
   with pytest.raises(DataError, match=r"b\.png: exists and is not an earlier output"):
     segment_images(weights[0], [tmp_path / "x" / "b.jpg"], tmp_path / "x")
   assert (tmp_path / "x" / "b.png").read_bytes() == before
+  # nor a labelme annotation `<stem>.json` beside the images (it was replaced, exit 0)
+  (tmp_path / "y").mkdir()
+  write_image(tmp_path / "y" / "c.jpg", np.zeros((H, W, 3), np.uint8))
+  (tmp_path / "y" / "c.json").write_text('{"version": "5.0", "shapes": []}')
+  with pytest.raises(DataError, match=r"c\.json: exists and is not an earlier output"):
+    segment_images(weights[0], str(tmp_path / "y"), tmp_path / "y")
+  assert json.loads((tmp_path / "y" / "c.json").read_text())["version"] == "5.0"
+  # a rerun into a folder of JPEG images skips its own c.png + c.json (it took c.png as a
+  # second image of stem c and refused)
+  (tmp_path / "y" / "c.json").unlink()
+  first = segment_images(weights[0], str(tmp_path / "y"), tmp_path / "y")
+  assert segment_images(weights[0], str(tmp_path / "y"), tmp_path / "y") == first

@@ -147,6 +147,11 @@ def test_layers_matching_only_modules_with_several_outputs_fail_in_one_line(writ
   assert main(["source-stats", "--weights", str(root / "weights"), "--images",
                str(root / "src" / "*" / "*.png"), "--out", str(tmp_path / "f" / "x.npz")]) == 2
   assert f"{tmp_path / 'f'} is a file, not a directory" in capsys.readouterr().err
+  # a folder nothing can be written to (root writes anywhere on disk; not in /proc): refused
+  # before the images are read, with the statistics left uncomputed
+  assert main(["source-stats", "--weights", str(root / "weights"), "--images",
+               str(tmp_path / "no-images-here"), "--out", "/proc/pitta-jax-test/x.npz"]) == 2
+  assert "--out /proc/pitta-jax-test/x.npz: cannot write there" in capsys.readouterr().err
   # an existing file that is not a statistics file (the weights' model.json) is not replaced
   before = (root / "weights" / "model.json").read_bytes()
   assert main(["source-stats", "--weights", str(root / "weights"), "--images",

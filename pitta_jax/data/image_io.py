@@ -90,18 +90,26 @@ def _png_gray_alpha(path: PathLike) -> bool:
   return len(head) == 26 and head[:8] == PNG_SIGNATURE and head[25] == PNG_GRAY_ALPHA
 
 
-def read_image(path: PathLike) -> np.ndarray:
+def read_image(path: PathLike, gray: bool = False) -> np.ndarray:
   """Reads a colour image.
 
   Args:
     path: a PNG or JPEG file, 8 or 16 bit, 3 or 4 channels.
+    gray: also take a grayscale image (with or without alpha), its channel repeated as R, G
+      and B (what PIL's `convert("RGB")` in MonoDepth2's test_simple.py and cv2.imread in
+      Depth Anything V2's run.py make of it); else it is an error, for a dataset's frames a sign
+      of a wrong directory (KITTI's image_00/01 are the grayscale cameras).
 
   Returns:
     (H, W, 3) float32 RGB in [0, 1] (alpha, if any, dropped).
   """
   array = _imread(path, "image")
-  if array.ndim == 2 or array.shape[2] == 1 or _png_gray_alpha(path):
-    raise DataError(path, f"grayscale image of shape {array.shape}, expected 3 colour channels")
+  if array.ndim == 2 or array.shape[2] == 1:
+    if not gray:
+      raise DataError(path, f"grayscale image of shape {array.shape}, expected 3 colour channels")
+    array = np.repeat(array.reshape(array.shape[0], array.shape[1], 1), 3, axis=2)
+  elif not gray and _png_gray_alpha(path):
+    raise DataError(path, "grayscale image with alpha, expected 3 colour channels")
   if array.shape[2] not in (3, 4):
     raise DataError(path, f"image has {array.shape[2]} channels, expected 3 (or 4 with alpha)")
   if array.dtype == np.uint8:
