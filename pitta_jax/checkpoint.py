@@ -130,8 +130,12 @@ def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]
     raise WeightsError(f"{weights_dir}: not a weights directory with a {MODEL_JSON} (make one "
                        f"with `pitta-jax convert ...` or `pitta-jax train-source`)")
   if not path.is_file():
+    pth = sorted(p.name for p in Path(weights_dir).glob("*.pth"))
+    hint = (f"; this folder holds PyTorch files ({', '.join(pth[:4])}): convert them first, e.g. "
+            f"`pitta-jax convert monodepth2 --encoder {Path(weights_dir) / 'encoder.pth'} --depth "
+            f"{Path(weights_dir) / 'depth.pth'} --out DIR`" if pth else "")
     raise WeightsError(f"{path}: not found; a weights directory is made by `pitta-jax convert "
-                       f"...` or `pitta-jax train-source`")
+                       f"...` or `pitta-jax train-source`{hint}")
   meta = read_json_object(path)
   arch = meta.get("architecture")
   if arch not in MODELS:

@@ -215,7 +215,8 @@ def _add_train_source(sub) -> None:
       "train-source", help="train the clear-domain source MonoDepth2 of the synthetic benchmark",
       description="Train MonoDepth2 ResNet-18 from scratch on clear synthetic frames with a "
                   "supervised depth loss; cached under $PITTA_JAX_CACHE or ~/.cache/pitta-jax "
-                  "by config hash. Prints the weights directory (usable with --weights).")
+                  "by config hash. Prints a JSON report whose \"weights_dir\" is the weights "
+                  "directory (usable with --weights).")
   add_config_arguments(p, SourceConfig, "source", "training")
   p.add_argument("--retrain", action="store_true", help="ignore a cached (or shipped) model")
   p.add_argument("--ship", action="store_true",
@@ -297,7 +298,8 @@ def _add_adapt(sub, name: str) -> None:
   p.add_argument("--resume", action="store_true",
                  help="continue from the newest checkpoint under OUT/checkpoints (the frames "
                       "it holds are not run again; results equal an uninterrupted run's)")
-  p.add_argument("--quiet", action="store_true", help="no progress bars")
+  p.add_argument("--quiet", action="store_true",
+                 help="no progress bars and no table on the terminal (the results files have it)")
   # the evaluation protocol first: its short aliases (--min-depth, --max-depth) stay its own
   # when a method's config has a field of the same name (CoMoDa's MonoDepth2 loss)
   add_config_arguments(p, EvalConfig, "eval", "evaluation")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import re
 import typing
 from typing import Any, Collection, Sequence, TypeVar
 
@@ -141,7 +142,17 @@ def config_from_args(cls: type[T], args: argparse.Namespace, namespace: str,
     if value is not None:
       values[field.name] = value
   values.update(fixed)
-  return cls(**values)
+  try:
+    return cls(**values)
+  except ValueError as e:  # a field's check: name the flags of the fields it names
+    text = str(e)
+    named = [f.name for f, _ in _fields(cls) if re.search(rf"\b{f.name}\b", text)]
+    if not named or "--" in text:
+      raise
+    flags = ", ".join(f"--{namespace}.{n.replace('_', '-')}" for n in named)
+    if len(named) == 1 and text.startswith(f"{named[0]}: "):  # "field: ..." -> "--flag: ..."
+      text = text[len(named[0]) + 2:]
+    raise ValueError(f"{flags}: {text}") from None
 
 
 def leaf_fields(cls: type, namespace: str) -> list[tuple[str, str, Any]]:

@@ -36,7 +36,9 @@ DISP_PNG, DISP_NPY = "_disp.png", "_disp.npy"  # predict's outputs per image (+ 
 
 
 def expand_images(spec: str, unique_stems: bool = True) -> list[Path]:
-  """A file, a directory (its images), or a glob pattern -> sorted image paths.
+  """A file, a directory (its images), a glob pattern (`**`: any depth), or a `.txt` list of
+  image paths, one per line (Depth Anything V2's `run.py --img-path list.txt`; relative paths
+  from the working directory, as there) -> image paths (sorted, except a list's order).
 
   unique_stems: refuse two images with one file stem (their outputs, named by stem, would
   overwrite each other); False where nothing is written per image (source statistics).
@@ -44,6 +46,8 @@ def expand_images(spec: str, unique_stems: bool = True) -> list[Path]:
   path = Path(spec)
   if path.is_dir():  # every image, `a.png` and `a.jpg` too (the stem check below refuses them)
     paths = sorted(list_images(path, IMAGE_SUFFIXES, all_suffixes=True).values())
+  elif path.is_file() and path.suffix.lower() == ".txt":
+    paths = read_image_list(path)
   elif path.is_file():
     paths = [path]
   else:
@@ -56,14 +60,34 @@ def expand_images(spec: str, unique_stems: bool = True) -> list[Path]:
   return paths
 
 
+def read_image_list(path: Path) -> list[Path]:
+  """The image paths of a text file, one per line (blank lines skipped); DataError naming the
+  list and the line of the first that is not an image file."""
+  try:
+    lines = path.read_text().splitlines()
+  except (OSError, UnicodeDecodeError) as e:
+    raise DataError(path, f"cannot read the image list ({e})") from None
+  paths = []
+  for number, line in enumerate(lines, start=1):
+    if not line.strip():
+      continue
+    image = Path(line.strip())
+    if not image.is_file() or image.suffix.lower() not in IMAGE_SUFFIXES:
+      raise DataError(path, f"line {number}: {line.strip()!r} is not an image file "
+                            f"({', '.join(IMAGE_SUFFIXES)})")
+    paths.append(image)
+  return paths
+
+
 def check_unique_stems(paths: Sequence[Path]) -> None:
   """DataError naming the second of two images with one file stem: outputs named by stem
   (OUT/<stem>.png) would overwrite each other."""
   stems: dict[str, Path] = {}
   for p in paths:
     if p.stem in stems:
-      raise DataError(p, f"has the same file stem as {stems[p.stem]}; their outputs would "
-                         f"overwrite each other (one directory at a time)")
+      raise DataError(p, f"has the same file stem as {stems[p.stem]}; their outputs (named by "
+                         f"stem) would overwrite each other: rename one, or give a glob of one "
+                         f"suffix or one folder")
     stems[p.stem] = p
 
 
@@ -147,7 +171,11 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   """
   weights = load_weights(weights_dir)
   if size is not None:
-    weights.spec.check_size(*size)  # ValueError naming the network's rule
+    try:
+      weights.spec.check_size(*size)  # ValueError naming the network's rule
+    except ValueError as e:
+      raise ValueError(f"--height/--width: {e}; these weights were trained at "
+                       f"{weights.width}x{weights.height}") from None
   trained = (weights.height, weights.width)
   out = Path(out_dir)
   images = expand_images(images) if isinstance(images, str) else list(images)

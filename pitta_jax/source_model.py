@@ -103,9 +103,8 @@ class SourceConfig:
           f"train-source cannot train {self.model} ({spec.output} output); it runs from a "
           f"converted checkpoint (`pitta-jax convert ...`, then --weights)")
     spec.check_size(self.height, self.width)
-    check(min(self.sequences, self.frames_per_sequence, self.steps, self.batch_size,
-              self.pose_max_gap) >= 1,
-          "sequences, frames_per_sequence, steps, batch_size and pose_max_gap must be >= 1")
+    for name in ("sequences", "frames_per_sequence", "steps", "batch_size", "pose_max_gap"):
+      check(getattr(self, name) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
     finite(self.lr, "lr", 0.0)
     check(self.lr > 0, f"lr must be > 0 (training needs steps), got {self.lr}")
     finite(self.pose_fraction, "pose_fraction", 0.0)

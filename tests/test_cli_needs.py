@@ -168,8 +168,20 @@ def test_evaluation_without_ground_truth_is_refused_before_work(cli, tmp_path, c
 
 def test_dynamic_classes_must_be_coco_ids(cli):
   rc, err = cli("--dataset", "synthetic", "--dynamic-classes", "9999,-5")
-  assert rc == 2 and err == ("error: dynamic_classes: not COCO panoptic category ids: 9999, -5 "
+  assert rc == 2 and err == ("error: --pitta.ld.dynamic-classes: not COCO panoptic category ids: "
+                             "9999, -5 "
                              "(ids 1-200, 133 of them; names such as car work too)\n")
+
+
+def test_a_config_check_names_the_flag(capsys):
+  """A field's check, raised by its config class, is reported with the flag that sets it (it
+  named the field: 'steps, batch_size and ... must be >= 1' for --source.steps 0)."""
+  from pitta_jax.cli import main
+  assert main(["train-source", "--source.steps", "0"]) == 2
+  assert capsys.readouterr().err == "error: --source.steps: steps must be >= 1, got 0\n"
+  assert main(["train-source", "--source.pose-fraction", "2"]) == 2
+  assert capsys.readouterr().err == ("error: --source.pose-fraction: pose_fraction must be in "
+                                     "[0, 1], got 2.0\n")
 
 
 def test_depth_refining_config_takes_coco_names_and_refuses_non_integers():

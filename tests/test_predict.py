@@ -5,6 +5,8 @@ Reference: `tests/torch_monodepth2.py` run on the same resized image.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -139,3 +141,33 @@ def test_convert_errors_exit_2(converted, tmp_path, capsys):
                str(root / "depth.pth"), "--out", str(tmp_path / "w")]) == 2
   err = capsys.readouterr().err
   assert err.startswith("error: ") and "depth.pth" in err and err.count("\n") == 1
+
+
+def test_an_image_list_a_raw_checkpoint_folder_and_a_bad_size_are_explained(converted, tmp_path,
+                                                                              monkeypatch):
+  """A Depth Anything V2-style `.txt` list of images (one path per line, from the working
+  directory) is read in its order; a line that is not an image is named with its number. A
+  --weights folder of unconverted .pth files names the converter; a --height/--width the network
+  refuses says the size the weights were trained at."""
+  from pitta_jax.checkpoint import WeightsError, read_model_json
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.predict import expand_images, predict_images
+  monkeypatch.chdir(tmp_path)
+  for name in ("b.png", "a.jpg"):
+    cv2.imwrite(name, np.zeros((8, 8, 3), np.uint8))
+  (tmp_path / "list.txt").write_text("b.png\n\na.jpg\n")
+  assert expand_images("list.txt") == [Path("b.png"), Path("a.jpg")]
+  (tmp_path / "list.txt").write_text("b.png\nnotes.md\n")
+  with pytest.raises(DataError, match=r"list\.txt: line 2: 'notes\.md' is not an image file"):
+    expand_images("list.txt")
+  raw = tmp_path / "mono_640x192"
+  raw.mkdir()
+  for name in ("encoder.pth", "depth.pth"):
+    (raw / name).write_bytes(b"")
+  with pytest.raises(WeightsError, match=r"model\.json: not found; .* holds PyTorch files "
+                     r"\(depth\.pth, encoder\.pth\): convert them first, e\.g\. `pitta-jax "
+                     r"convert monodepth2"):
+    read_model_json(raw)
+  with pytest.raises(ValueError, match=r"--height/--width: input size 320x100 .*; these "
+                     r"weights were trained at \d+x\d+$"):
+    predict_images(converted[0], "b.png", tmp_path / "o", size=(100, 320))
