@@ -141,7 +141,8 @@ def check_outputs_free(out_dir: Path, stems: Sequence[str], outputs: Outputs) ->
     if present and not outputs.is_earlier_output(present[0]):
       others = ", ".join(p.name for p in group if p != present[0])
       raise DataError(present[0], f"exists and is not an earlier output of this command (which "
-                                  f"writes {others} beside it); it is not overwritten: choose "
+                                  f"writes {others} beside it; remove it if a killed run left "
+                                  f"it); it is not overwritten: choose "
                                   f"another --out")
 
 
