@@ -4,7 +4,8 @@ A table is a list of `Entry`s (a row of the paper's table: its group, e.g. the t
 label, e.g. the method, and our metrics or the reason it has none), computed by `run_row` for
 each (`RowSpec`, `Case`) pair. Each computed row is cached under `OUT/rows/<key>.json`, the key
 a hash of everything that determines it (row, test case, dataset and options, weights, size,
-frame count, evaluation protocol, `FORMAT`), so a re-run only computes what changed and an
+frame count, the resolved AdaptConfig, method config and evaluation protocol, `FORMAT`), so a
+re-run only computes what changed (a changed library default included) and an
 interrupted table resumes: finished rows are read back, and the row that was running resumes
 from its last checkpoint (`run_sequence(..., resume=True)`).
 
@@ -280,11 +281,22 @@ def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str]) -> 
 
 
 def row_key(ctx: Context, row: RowSpec, case: str, parts, weights_id: dict) -> str:
+  """The cache key of a row's result: a hash of the row, the test case, the data, the weights,
+  the frame count, and the configurations it resolves to (the AdaptConfig with the method's
+  setting, the method's config, the evaluation protocol), so that a changed library default
+  recomputes the rows it changes instead of serving them from the cache."""
+  from pitta_jax.methods import method_config_class
+  from pitta_jax.run import EvalConfig
+  # the method config's defaults (the row's changes are in `row`; a sweep's are not one config)
+  resolved = {"adapt": dataclasses.asdict(adapt_config(row.method, row.adapt, ctx.quick)),
+              "method": dataclasses.asdict(method_config_class(row.method)()),
+              "eval": dataclasses.asdict(EvalConfig())}
   text = json.dumps({"format": FORMAT, "row": dataclasses.asdict(row), "case": case,
                      "parts": parts, "dataset": ctx.dataset,
                      "root": str(Path(ctx.root).resolve()) if ctx.root else None,
                      "options": sorted(ctx.options), "segmentation": ctx.segmentation,
-                     "weights": weights_id, "frames": ctx.frames}, sort_keys=True, default=str)
+                     "weights": weights_id, "frames": ctx.frames, "resolved": resolved},
+                    sort_keys=True, default=str)
   return hashlib.sha256(text.encode()).hexdigest()[:20]
 
 
@@ -453,6 +465,9 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
     if given:
       raise DataError(None, f"{', '.join(given)}: for real datasets only (the synthetic "
                             "benchmark brings its own source data)")
+    if args.option:  # the stand-ins' streets, shifts and sizes are the table's (SYNTHETIC)
+      raise DataError(None, f"--option {args.option[0]}: for real datasets' readers only (the "
+                            f"synthetic stand-ins of the test cases are fixed: docs/experiments.md)")
     from pitta_jax.sources import check_dataset_args
     check_dataset_args("synthetic", None, list(args.option), args.segmentation)
   else:
@@ -549,7 +564,7 @@ def caption_notes(ctx: Context) -> str:
   notes = []
   if ctx.quick:
     notes.append(f"--quick: seeded random {QUICK_SIZE[1]}x{QUICK_SIZE[0]} networks, "
-                 f"{QUICK_FRAMES} frames per part: a test of the pipeline, not results.")
+                 f"{ctx.frames} frames per part: a test of the pipeline, not results.")
   if ctx.weights:
     notes.append("Weights: " + ", ".join(f"{m}={d}" for m, d in sorted(ctx.weights.items()))
                  + ".")

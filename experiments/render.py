@@ -27,13 +27,14 @@ TEX_HEADERS = {"abs_rel": r"AbsRel $\downarrow$", "sq_rel": r"SqRel $\downarrow$
                "a3": r"$\delta<1.25^3$ $\uparrow$"}
 
 
-def _fmt(v: float | None) -> str:
-  return "—" if v is None or not math.isfinite(v) else f"{v:.3f}"
+def _fmt(v: float | None, decimals: int = 3) -> str:
+  return "—" if v is None or not math.isfinite(v) else f"{v:.{decimals}f}"
 
 
 def ranks(entries: Sequence[Entry], metric: str, which: str = "ours",
-          marked: bool = True) -> dict[int, int]:
-  """{entry index: 1 (best) or 2 (second)} within each group, on rounded values (ties share);
+          marked: bool = True, decimals: int = 3) -> dict[int, int]:
+  """{entry index: 1 (best) or 2 (second)} within each group, on the values rounded to the
+  `decimals` shown (ties share);
   for the paper's numbers, the marks as the paper prints them.
 
   Ours are ranked among the rows the paper compares (those with a paper label) when the table
@@ -58,7 +59,7 @@ def ranks(entries: Sequence[Entry], metric: str, which: str = "ours",
     for i, e in enumerate(entries):
       v = e.metrics.get(metric)
       if e.group == group and compared[i] and v is not None and math.isfinite(v):
-        vals.append((i, round(v, 3)))
+        vals.append((i, round(v, decimals)))
     distinct = sorted({v for _, v in vals}, reverse=metric in HIGHER_IS_BETTER)
     for i, v in vals:
       r = distinct.index(v) + 1
@@ -72,15 +73,15 @@ def _mark_md(text: str, rank: int | None) -> str:
 
 
 def markdown(entries: Sequence[Entry], layout: str, group_title: str, row_title: str,
-             metrics: Sequence[str], marked: bool = True) -> str:
+             metrics: Sequence[str], marked: bool = True, decimals: int = 3) -> str:
   """Ours, then the paper's, each as its own labelled block."""
   blocks = []
   for which, title in (("ours", "Ours"), ("paper", "Paper")):
     if which == "paper" and not any(e.paper for e in entries):
       continue
-    blocks.append(f"**{title}**\n\n" + (_md_rows(entries, which, group_title, row_title, marked)
-                                        if layout == "rows" else
-                                        _md_columns(entries, which, row_title, metrics, marked)))
+    blocks.append(f"**{title}**\n\n" + (
+        _md_rows(entries, which, group_title, row_title, marked, decimals) if layout == "rows"
+        else _md_columns(entries, which, row_title, metrics, marked, decimals)))
   return "\n".join(blocks)
 
 
@@ -89,10 +90,10 @@ def _label(e: Entry, which: str) -> str:
   return e.spec.paper if which == "paper" and e.spec is not None and e.spec.paper else e.label
 
 
-def _md_rows(entries, which, group_title, row_title, marked=True) -> str:
+def _md_rows(entries, which, group_title, row_title, marked=True, decimals=3) -> str:
   head = f"| {group_title} | {row_title} | " + " | ".join(HEADERS[m] for m in METRIC_NAMES) + " |"
   lines = [head, "|" + "---|" * (len(METRIC_NAMES) + 2)]
-  rk = {m: ranks(entries, m, which, marked) for m in METRIC_NAMES}
+  rk = {m: ranks(entries, m, which, marked, decimals) for m in METRIC_NAMES}
   for i, e in enumerate(entries):
     values = e.metrics if which == "ours" else e.paper
     if which == "paper" and not values:
@@ -100,24 +101,24 @@ def _md_rows(entries, which, group_title, row_title, marked=True) -> str:
     if which == "ours" and e.status != "ok":
       cells = [e.status] + [""] * (len(METRIC_NAMES) - 1)
     else:
-      cells = [_mark_md(_fmt(values.get(m)), rk[m].get(i)) for m in METRIC_NAMES]
+      cells = [_mark_md(_fmt(values.get(m), decimals), rk[m].get(i)) for m in METRIC_NAMES]
     lines.append(f"| {e.group} | {_label(e, which)} | " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
 
 
-def _md_columns(entries, which, row_title, metrics, marked=True) -> str:
+def _md_columns(entries, which, row_title, metrics, marked=True, decimals=3) -> str:
   shown = [e for e in entries if which == "ours" or e.paper]
   head = f"| {row_title} | " + " | ".join(_label(e, which) for e in shown) + " |"
   lines = [head, "|" + "---|" * (len(shown) + 1)]
   for m in metrics:
-    rk = ranks(shown, m, which, marked)
+    rk = ranks(shown, m, which, marked, decimals)
     cells = []
     for i, e in enumerate(shown):
       if which == "ours" and e.status != "ok":
         cells.append(e.status)
         continue
       values = e.metrics if which == "ours" else e.paper
-      cells.append(_mark_md(_fmt(values.get(m)), rk.get(i)))
+      cells.append(_mark_md(_fmt(values.get(m), decimals), rk.get(i)))
     lines.append(f"| {HEADERS[m]} | " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
 
@@ -135,7 +136,8 @@ def _mark_tex(text: str, rank: int | None) -> str:
 
 
 def latex(entries: Sequence[Entry], layout: str, group_title: str, row_title: str,
-          metrics: Sequence[str], caption: str, label: str, marked: bool = True) -> str:
+          metrics: Sequence[str], caption: str, label: str, marked: bool = True,
+          decimals: int = 3) -> str:
   """Our numbers as a booktabs table in the paper's layout (needs \\usepackage{booktabs})."""
   lines = [r"\begin{table}[t]", r"\centering", rf"\caption{{{_tex_escape(caption)}}}",
            rf"\label{{{label}}}"]
@@ -143,7 +145,7 @@ def latex(entries: Sequence[Entry], layout: str, group_title: str, row_title: st
     lines += [r"\begin{tabular}{ll" + "c" * len(METRIC_NAMES) + "}", r"\toprule",
               f"{_tex_escape(group_title)} & {_tex_escape(row_title)} & "
               + " & ".join(TEX_HEADERS[m] for m in METRIC_NAMES) + r" \\", r"\midrule"]
-    rk = {m: ranks(entries, m, marked=marked) for m in METRIC_NAMES}
+    rk = {m: ranks(entries, m, marked=marked, decimals=decimals) for m in METRIC_NAMES}
     groups = list(dict.fromkeys(e.group for e in entries))
     for g, group in enumerate(groups):
       for i, e in enumerate(entries):
@@ -152,7 +154,8 @@ def latex(entries: Sequence[Entry], layout: str, group_title: str, row_title: st
         if e.status != "ok":
           cells = [rf"\multicolumn{{{len(METRIC_NAMES)}}}{{c}}{{{_tex_escape(e.status)}}}"]
         else:
-          cells = [_mark_tex(_fmt(e.metrics.get(m)), rk[m].get(i)) for m in METRIC_NAMES]
+          cells = [_mark_tex(_fmt(e.metrics.get(m), decimals), rk[m].get(i))
+                   for m in METRIC_NAMES]
         lines.append(f"{_tex_escape(group)} & {_tex_escape(e.label)} & " + " & ".join(cells)
                      + r" \\")
       if g < len(groups) - 1:
@@ -162,8 +165,9 @@ def latex(entries: Sequence[Entry], layout: str, group_title: str, row_title: st
               f"{_tex_escape(row_title)} & " + " & ".join(_tex_escape(e.label) for e in entries)
               + r" \\", r"\midrule"]
     for m in metrics:
-      rk = ranks(entries, m, marked=marked)
-      cells = [_mark_tex(_fmt(e.metrics.get(m)), rk.get(i)) if e.status == "ok" else "--"
+      rk = ranks(entries, m, marked=marked, decimals=decimals)
+      cells = [_mark_tex(_fmt(e.metrics.get(m), decimals), rk.get(i)) if e.status == "ok"
+               else "--"
                for i, e in enumerate(entries)]
       lines.append(f"{TEX_HEADERS[m]} & " + " & ".join(cells) + r" \\")
   lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
@@ -189,14 +193,16 @@ def csv_text(entries: Sequence[Entry], table: str) -> str:
 
 def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, caption: str,
                 group_title: str, row_title: str, metrics: Sequence[str] = METRIC_NAMES,
-                seconds: float, meta: dict[str, Any], marked: bool = True) -> str:
+                seconds: float, meta: dict[str, Any], marked: bool = True,
+                decimals: int = 3) -> str:
   """Writes NAME.md/.csv/.tex and results.json atomically; returns the markdown.
-  marked: bold / underline the best and second (`ranks`). Every file is rendered and written
+  marked: bold / underline the best and second (`ranks`); decimals: of our values in .md and
+  .tex (the paper prints 3; the sensitivity study's differences need 4). Every file is rendered and written
   to a synced temporary file before the first rename (`outputs.atomic_write_files`)."""
   out.mkdir(parents=True, exist_ok=True)
   title = f"Table {name[len('table'):]}" if name.startswith("table") else name.capitalize()
   md = (f"### {title}\n\n{caption}\n\n"
-        + markdown(entries, layout, group_title, row_title, metrics, marked)
+        + markdown(entries, layout, group_title, row_title, metrics, marked, decimals)
         + f"\nWall time: {seconds:.0f} s ({meta.get('load', '')}).\n")
   payload = {"table": name, "caption": caption, "seconds": round(seconds, 1), **meta,
              "rows": [dataclasses.asdict(e) for e in entries]}
@@ -204,7 +210,7 @@ def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, 
   payload["non_finite_values"] = n_bad
   files = {f"{name}.md": md, f"{name}.csv": csv_text(entries, name),
            f"{name}.tex": latex(entries, layout, group_title, row_title, metrics, caption,
-                                f"tab:{name}", marked),
+                                f"tab:{name}", marked, decimals),
            "results.json": json.dumps(payload, indent=1, allow_nan=False) + "\n"}
   atomic_write_files(out, files)
   return md

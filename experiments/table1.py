@@ -33,7 +33,9 @@ ROWS = (
     RowSpec("PITTA", "pitta", paper="PITTA (ours)"),
 )
 TITLE = ("MonoDepth2 ResNet-18 adapted online; every baseline with PITTA's L_d "
-         "(paper Sec. 4.1). Bold: best, underlined: second, per test case.")
+         "(paper Sec. 4.1). Bold: best, underlined: second, per test case, among the paper's "
+         "methods (our added rows, BN batch stats and the baselines without L_d, are not "
+         "ranked).")
 
 
 def run(args, runners=None) -> int:

@@ -7,6 +7,8 @@ vmapped run (`pitta_jax.adapt.streams`: one stream per lambda, the same frames).
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import math
 import sys
@@ -97,9 +99,15 @@ def run(args, runners=None) -> int:
       return {"sweep": sweep, "seconds": round(took(), 2)}
     cached = common.cached(ctx, key, compute, field="sweep")
     # one vmapped run computes every lambda: each row's seconds are the whole sweep's
+    # what each stream ran with (lambda_sweep's AdaptConfig, PITTA's config at that lambda)
+    adapt = dataclasses.asdict(common.adapt_config("pitta", quick=ctx.quick))
+    from pitta_jax.methods.pitta import PittaConfig
+    pitta = PittaConfig()
     entries = [Entry(case, label(lam), r["metrics"], extra={
         "lambda": lam, "frames": r["frames"], "seconds": cached.get("seconds"),
-        "abs_rel_per_frame": r["abs_rel_per_frame"]})
+        "abs_rel_per_frame": r["abs_rel_per_frame"], "adapt": adapt,
+        "method_config": dataclasses.asdict(dataclasses.replace(pitta, lam=lam)),
+        "row_key": key})
         for lam, r in zip(LAMBDAS, cached["sweep"])]
   common.attach_paper(entries, 4, lambda e: {"lambda": e.extra["lambda"]})
   caption = (f"PITTA's lambda of eq. 10 (AbsRel, δ<1.25), 12 streams in one vmapped run (each "

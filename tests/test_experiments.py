@@ -131,7 +131,10 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   assert not (tmp_path / "o").exists()
   # flags the synthetic benchmark cannot use are refused, not ignored
   for flags, message in ((["--source-images", "x"], "--source-images: for real datasets only"),
-                         (["--option", "foo=1"], "synthetic has no option foo"),
+                         (["--option", "foo=1"], "--option foo=1: for real datasets' "),
+                         # a valid synthetic option was taken and ignored (rows unchanged)
+                         (["--option", "domain=fog"], "the synthetic stand-ins of the test cases "
+                                                      "are fixed"),
                          (["--segmentation", "mask2former:x"], "use --segmentation gt")):
     assert table1.main(["--quick", *flags, "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
@@ -363,3 +366,25 @@ def test_a_case_of_several_parts_marks_where_each_starts():
            {"domain": "rain", "seed": 3}]
   frames = common.case_frames(ctx, parts, 32, 48)
   assert [f.starts_recording for f in frames] == [True, False, False] * 3
+
+
+def test_a_changed_library_default_changes_the_row_key(monkeypatch):
+  """A cached row is keyed by the configurations it resolves to: a method setting (e.g. the
+  selector Ada-Depth's setting gained) or a config default that changes is a new key, so the
+  row is computed again instead of read back (the key hashed the row's own changes only)."""
+  import types
+  from experiments import common
+  from experiments.common import RowSpec
+  from pitta_jax.methods.adadepth import AdadepthConfig
+  ctx = types.SimpleNamespace(quick=False, dataset="synthetic", root=None, options=(),
+                              segmentation="gt", frames=50)
+  row = RowSpec("Ada-Depth + L_d", "adadepth")
+  key = common.row_key(ctx, row, "Foggy", ("fog",), {"w": 1})
+  assert common.row_key(ctx, row, "Foggy", ("fog",), {"w": 1}) == key  # deterministic
+  monkeypatch.setattr("pitta_jax.methods.method_setting",
+                      lambda name: {"bn_stats": "running", "selector": "encoder_bn"})
+  assert common.row_key(ctx, row, "Foggy", ("fog",), {"w": 1}) != key
+  monkeypatch.undo()
+  monkeypatch.setattr("pitta_jax.methods.method_config_class",
+                      lambda name: lambda: AdadepthConfig(lr=2e-5))
+  assert common.row_key(ctx, row, "Foggy", ("fog",), {"w": 1}) != key
