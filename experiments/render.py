@@ -194,15 +194,18 @@ def csv_text(entries: Sequence[Entry], table: str) -> str:
 def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, caption: str,
                 group_title: str, row_title: str, metrics: Sequence[str] = METRIC_NAMES,
                 seconds: float, meta: dict[str, Any], marked: bool = True,
-                decimals: int = 3) -> str:
+                decimals: int = 3, paper_notes: Sequence[str] = ()) -> str:
   """Writes NAME.md/.csv/.tex and results.json atomically; returns the markdown.
   marked: bold / underline the best and second (`ranks`); decimals: of our values in .md and
-  .tex (the paper prints 3; the sensitivity study's differences need 4). Every file is rendered and written
+  .tex (the paper prints 3; the sensitivity study's differences need 4); paper_notes: what the
+  paper's numbers need said (`experiments/paper/tableN.json` notes: misprints, missing marks),
+  listed under the paper's block. Every file is rendered and written
   to a synced temporary file before the first rename (`outputs.atomic_write_files`)."""
   out.mkdir(parents=True, exist_ok=True)
   title = f"Table {name[len('table'):]}" if name.startswith("table") else name.capitalize()
   md = (f"### {title}\n\n{caption}\n\n"
         + markdown(entries, layout, group_title, row_title, metrics, marked, decimals)
+        + "".join(f"\n- Paper: {note}" for note in paper_notes) + ("\n" if paper_notes else "")
         + f"\nWall time: {seconds:.0f} s ({meta.get('load', '')}).\n")
   payload = {"table": name, "caption": caption, "seconds": round(seconds, 1), **meta,
              "rows": [dataclasses.asdict(e) for e in entries]}

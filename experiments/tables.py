@@ -52,6 +52,9 @@ def publish(ctx: Context, name: str, entries: Sequence[Entry], elapsed: float,
   notes = caption_notes(ctx)
   if notes:
     layout = {**layout, "caption": f"{layout.get('caption', '')} {notes}".strip()}
+  if name.startswith("table") and any(e.paper for e in entries):  # e.g. Table 4's misprint
+    from experiments.paper import load_paper_table
+    layout = {**layout, "paper_notes": tuple(load_paper_table(int(name[5:])).get("notes", ()))}
   md = write_table(ctx.out, name, entries, seconds=elapsed, meta=meta(ctx), **layout)
   if not ctx.quiet:
     print(md)

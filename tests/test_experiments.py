@@ -302,6 +302,8 @@ def test_table4_quick_is_one_vmapped_sweep(quick_out):
       p.name for p in (quick_out[0] / "table4" / "figures").iterdir()}
   md = (quick_out[0] / "table4" / "table4.md").read_text()
   assert "**Ours**" in md and "**Paper**" in md and "Waymo" in md
+  assert "- Paper: AbsRel at λ = 0.2 is printed as 1.999" in md  # the misprint said under it
+  assert payload["rows"][2]["extra"]["method_config"]["lam"] == 0.2  # each stream's config
   seconds = {x["seconds"] for x in lines if x["source"] == "ours"}   # the sweep's, every row
   assert len(seconds) == 1 and float(seconds.pop()) > 0
 
