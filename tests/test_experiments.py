@@ -7,6 +7,7 @@ import csv
 import json
 import math
 
+import numpy as np
 import pytest
 
 from experiments import common, render
@@ -390,3 +391,17 @@ def test_a_changed_library_default_changes_the_row_key(monkeypatch):
   monkeypatch.setattr("pitta_jax.methods.method_config_class",
                       lambda name: lambda: AdadepthConfig(lr=2e-5))
   assert common.row_key(ctx, row, "Foggy", ("fog",), {"w": 1}) != key
+
+
+def test_table3_figures_draw_sunny_under_alls_sunny_part():
+  """Sunny is its own run on All's last part (cloudy, foggy, rainy, sunny): its curve starts at
+  All's frame 6 of 8 here (two frames per part), not at frame 0 beside All's cloudy part."""
+  from experiments.table3 import _aligned_for_figures
+  entries = [Entry("SGDepth", "No adaptation", {}, extra={"abs_rel_per_frame": [0.5] * 8}),
+             Entry("SGDepth", "Sunny", {}, extra={"abs_rel_per_frame": [0.1, 0.2]}),
+             Entry("SGDepth", "All", {}, extra={"abs_rel_per_frame": [0.3] * 8})]
+  drawn = _aligned_for_figures(entries)
+  assert drawn[1].label.startswith("Sunny (its own run")
+  np.testing.assert_array_equal(drawn[1].extra["abs_rel_per_frame"], [np.nan] * 6 + [0.1, 0.2])
+  assert drawn[0] is entries[0] and drawn[2] is entries[2]
+  assert entries[1].extra["abs_rel_per_frame"] == [0.1, 0.2]  # the table's own entry unchanged
