@@ -27,7 +27,8 @@ from pitta_jax import viz
 from pitta_jax.checkpoint import load_weights
 from pitta_jax.outputs import save_npy
 from pitta_jax.data.errors import DataError
-from pitta_jax.data.image_io import IMAGE_SUFFIXES, list_images, read_image, write_image
+from pitta_jax.data.image_io import (IMAGE_SUFFIXES, exif_upright, list_images, read_image,
+                                     write_image)
 from pitta_jax.data.resize import resize_image
 from pitta_jax.models.interpolate import resize_bilinear
 
@@ -190,6 +191,8 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   written = []
   for path in tqdm(images, desc="predict", unit="img", disable=quiet):
     image = read_image(path, gray=True)
+    if weights.spec.exif_orientation:  # Depth Anything V2's run.py: cv2.imread turns it upright
+      image = exif_upright(path, image)
     h, w = size or weights.spec.inference_size(image.shape[:2], trained)
     size_in = image.shape[:2]
     image = resize_image(image, h, w, weights.spec.image_resize)

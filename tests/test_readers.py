@@ -688,3 +688,24 @@ def test_recording_starts_survive_slices_joins_and_maps(tmp_path):
   assert marks(seq.map(lambda f: dataclasses.replace(f, name=f.name + "!"))) == marks(seq)
   with pytest.raises(ValueError, match="starts has 2 values for 5 frames"):
     FrameSequence(files, starts=[True, False])
+
+
+@pytest.mark.parametrize("orientation", [1, 3, 6, 8, 2, 5])
+def test_exif_orientation_as_pil_turns_it(tmp_path, orientation):
+  """A JPEG stored 8x12 with an EXIF orientation (6: a phone held upright) is turned as PIL's
+  ImageOps.exif_transpose turns it (the reference; cv2.imread in Depth Anything V2's run.py
+  does the same), for rotations and flips; read_image alone keeps the stored pixels."""
+  from PIL import Image, ImageOps
+  from pitta_jax.data.image_io import exif_upright
+  rng = np.random.default_rng(orientation)
+  stored = np.repeat(np.repeat(rng.integers(0, 256, (4, 6, 3), dtype=np.uint8), 2, 0), 2, 1)
+  img = Image.fromarray(stored)
+  exif = img.getexif()
+  exif[0x0112] = orientation
+  path = tmp_path / "phone.jpg"
+  img.save(path, quality=100, exif=exif)
+  ours = exif_upright(path, read_image(path))
+  with Image.open(path) as im:
+    ref = np.asarray(ImageOps.exif_transpose(im).convert("RGB"), np.float32) / 255
+  assert read_image(path).shape == (8, 12, 3) and ours.shape == ref.shape
+  assert np.abs(ours - ref).mean() < 2 / 255  # two JPEG decoders, the same pixels

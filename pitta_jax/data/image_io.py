@@ -90,6 +90,26 @@ def _png_gray_alpha(path: PathLike) -> bool:
   return len(head) == 26 and head[:8] == PNG_SIGNATURE and head[25] == PNG_GRAY_ALPHA
 
 
+def exif_upright(path: PathLike, image: np.ndarray) -> np.ndarray:
+  """`image` (as decoded from `path`, (H, W, C)) turned upright by the file's EXIF orientation,
+  as `cv2.imread` does by default (a JPEG from a phone or camera stores it; other files and a
+  JPEG without one come back unchanged). OpenCV applies the orientation while decoding to
+  8-bit colour; the turn found there (none, a rotation, a flip) is applied to `image`."""
+  data = np.fromfile(path, np.uint8)
+  stored = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+  upright = cv2.imdecode(data, cv2.IMREAD_COLOR)
+  if stored is None or upright is None or (stored.shape == upright.shape
+                                           and np.array_equal(stored, upright)):
+    return image
+  for k in range(4):  # the 8 EXIF orientations: rotations by k * 90 degrees, with a flip or not
+    for flipped in (False, True):
+      candidate = np.rot90(np.fliplr(stored) if flipped else stored, -k)
+      if candidate.shape == upright.shape and np.array_equal(candidate, upright):
+        turned = np.rot90(np.fliplr(image) if flipped else image, -k)
+        return np.ascontiguousarray(turned)
+  return image
+
+
 def read_image(path: PathLike, gray: bool = False) -> np.ndarray:
   """Reads a colour image.
 

@@ -16,7 +16,8 @@ checkpoint loader and the CLI see a network only through its spec:
   e.g. Depth Anything V2's metric models: the engine's depth is max(out, eps)).
 * Input rules: H and W multiples of `size_multiple`; `default_size` is the size the released
   weights were trained at; `keep_aspect`: frames keep their aspect ratio (`inference_size`);
-  `image_resize`: how an image is brought to that size (`data.resize.resize_image`).
+  `image_resize`: how an image is brought to that size (`data.resize.resize_image`);
+  `exif_orientation`: `predict` turns a JPEG upright by its EXIF orientation first.
 * `alignment`: the evaluation protocol the network's outputs need ("median" scaling for
   monocular self-supervised networks, "scale_shift" least squares for relative depth).
 * `encoder`: the top-level module name of the encoder, the part the paper adapts (eq. 11); the
@@ -63,6 +64,10 @@ class ModelSpec:
   # how images are resized to the input size, one of data.resize.IMAGE_RESIZE: "area"
   # (MonoDepth2's antialiased shrink) or "cubic" (Depth Anything V2's cv2.INTER_CUBIC)
   image_resize: str = "area"
+  # `predict` on a JPEG with an EXIF orientation: False = the pixels as stored (MonoDepth2's
+  # test_simple.py reads with PIL, which does not turn them); True = turned upright as
+  # cv2.imread does (Depth Anything V2's run.py)
+  exif_orientation: bool = False
 
   def __post_init__(self):
     if self.output not in OUTPUTS:

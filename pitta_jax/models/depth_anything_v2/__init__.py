@@ -66,6 +66,7 @@ SPEC = ModelSpec(
                 "inputs multiples of 14 (trained at 518x518)",
     keep_aspect=True,  # upstream's infer_image keeps the image's aspect ratio
     image_resize="cubic",  # and resizes with cv2.INTER_CUBIC (util/transform.py's Resize)
+    exif_orientation=True,  # run.py reads with cv2.imread, which applies EXIF orientation
 )
 
 # upstream's metric models (metric_depth/): the same network with a sigmoid x max_depth head
