@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import os
 import sys
 
@@ -352,7 +351,7 @@ def _run_adapt(args) -> int:
   from pitta_jax.methods import build
   from pitta_jax.outputs import open_output_dir
   from pitta_jax.report import Row, clear_earlier_results, write_results
-  from pitta_jax.run import EvalConfig, run_sequence
+  from pitta_jax.run import EvalConfig, checkpoint_chunk_size, run_sequence
   from pitta_jax.checkpoint import read_model_json
   from pitta_jax.sources import (check_dataset_args, check_run_needs, check_stats_method,
                                  method_resources, open_frames, open_weights)
@@ -367,9 +366,8 @@ def _run_adapt(args) -> int:
     raise ValueError(f"--checkpoint-every must be >= 0, got {args.checkpoint_every}")
   if args.resume and not args.checkpoint_every:
     raise ValueError("--resume needs --checkpoint-every K (the same K as the interrupted run)")
-  # run_sequence saves after every K frames exactly: chunks of gcd(chunk, K)
-  chunk = math.gcd(cfg.chunk_size, args.checkpoint_every) if args.checkpoint_every > 0 else 0
-  if chunk and chunk != cfg.chunk_size:
+  chunk = checkpoint_chunk_size(cfg.chunk_size, args.checkpoint_every)
+  if chunk != cfg.chunk_size:
     notes.append(f"--checkpoint-every {args.checkpoint_every} runs chunks of {chunk} frames, "
                  f"not --chunk-size {cfg.chunk_size} (a multiple of the chunk size keeps it; "
                  f"small chunks run slower)")

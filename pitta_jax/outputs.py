@@ -65,9 +65,7 @@ def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
   created = [a for a in reversed((p, *p.parents)) if not a.exists()]
   try:
     p.mkdir(parents=True, exist_ok=True)
-    probe = p / f".pitta-jax-probe-{os.getpid()}"
-    probe.write_bytes(b"ok")
-    probe.unlink()
+    _write_probe(p)
   except OSError as e:
     raise OutputError(f"{what} {p}: cannot write there ({e.strerror or e})") from None
   fd = os.open(p / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
@@ -80,6 +78,15 @@ def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
   return OutputDir(p, fd, created)
 
 
+def _write_probe(folder: Path) -> None:
+  """Writes and removes a small file in `folder` (OSError where that is not possible): the one
+  proof that outputs can be written there (permissions do not stop root, a read-only mount
+  does)."""
+  probe = folder / f".pitta-jax-probe-{os.getpid()}"
+  probe.write_bytes(b"ok")
+  probe.unlink()
+
+
 def check_writable_file(path: str | os.PathLike, what: str = "--out") -> None:
   """OutputError (one line) unless a file can be written at `path`: a probe file is written and
   removed in its nearest existing folder (the folders below it are made when the file is
@@ -88,10 +95,8 @@ def check_writable_file(path: str | os.PathLike, what: str = "--out") -> None:
   folder = next(a for a in p.parents if a.exists())
   if not folder.is_dir():
     raise OutputError(f"{what} {p}: {folder} is a file, not a directory")
-  probe = folder / f".pitta-jax-probe-{os.getpid()}"
   try:
-    probe.write_bytes(b"ok")
-    probe.unlink()
+    _write_probe(folder)
   except OSError as e:
     raise OutputError(f"{what} {p}: cannot write there ({e.strerror or e})") from None
 

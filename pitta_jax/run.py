@@ -173,6 +173,12 @@ def frame_metrics(depth: np.ndarray, gt: np.ndarray, eval_cfg: EvalConfig, align
                                    valid_gt=eval_cfg.valid_gt)
 
 
+def checkpoint_chunk_size(chunk_size: int, checkpoint_every: int) -> int:
+  """The chunk size of a run that checkpoints every `checkpoint_every` frames (0: none): it
+  saves after exact frames at chunk ends, so chunks of gcd(chunk_size, checkpoint_every)."""
+  return math.gcd(chunk_size, checkpoint_every) if checkpoint_every > 0 else chunk_size
+
+
 def input_size(weights: Weights, frames: Sequence[Frame]) -> tuple[int, int]:
   """The (H, W) a run feeds the network: the size its weights were trained at, or for a network
   that keeps the aspect ratio (Depth Anything V2, as its upstream `infer_image`) the first
@@ -367,8 +373,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     raise DataError(name or "sequence", "no frames to adapt on")
   method = method if method is not None else build_method(cfg.method)
   check_needs(method, frames, f"sequence {name!r}" if name else "the sequence")  # before compiling
-  if checkpoint_every:
-    cfg = dataclasses.replace(cfg, chunk_size=math.gcd(cfg.chunk_size, checkpoint_every))
+  cfg = dataclasses.replace(cfg, chunk_size=checkpoint_chunk_size(cfg.chunk_size,
+                                                                  checkpoint_every))
   h, w = input_size(weights, frames)
   model, tx, runner = (runners or Runners()).get(weights, method, cfg)
   alignment = model_alignment(weights) if eval_cfg.alignment == "model" else eval_cfg.alignment

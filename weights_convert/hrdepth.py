@@ -34,7 +34,7 @@ from weights_convert import rules as R
 from weights_convert.monodepth2 import (METADATA_KEYS, encoder_rules,
                                         infer_num_layers)
 from weights_convert.pth import CheckpointError, int_entry, load_state_dict
-from weights_convert.strict import SHOWN_KEYS
+from weights_convert.strict import shown
 
 # upstream layer kind -> the PyTorch parameter names of one layer (relative to the layer)
 PARAMS = {
@@ -89,9 +89,7 @@ def check_twins(state: dict, twins: dict[str, str], path: str) -> None:
       problems.append(f"{dkey} differs from its twin {ckey}")
   if problems:
     raise CheckpointError(f"{path}: `decoder.<i>` and `convs.<name>` are the same upstream "
-                          f"layers, but " + "; ".join(problems[:SHOWN_KEYS])
-                          + (f"; ... and {len(problems) - SHOWN_KEYS} more"
-                             if len(problems) > SHOWN_KEYS else ""))
+                          f"layers, but " + shown(problems, sep="; "))
 
 
 def decoder_rules() -> R.Rules:

@@ -48,15 +48,10 @@ _LEGACY_MAGIC = 0x1950A86A20F9469CFC6C
 _LEGACY_PROTOCOL = 1001
 _ZIP_MAGIC = b"PK\x03\x04"  # A zip's first local file header.
 _LEGACY_NOT_PICKLE = "a legacy torch checkpoint, not a plain pickle (use load_pth)"
-_LEGACY_NOT_PICKLE_HINT = " (detectron2 .pkl weights: `--from detectron2` where the converter has it)"
-_SAFETENSORS = ("not a PyTorch checkpoint but a safetensors file (Hugging Face weights: `--from hf` where "
-                "the converter has it)")
-
-
-def _is_safetensors(path: str, head: bytes) -> bool:
-  """The file starts as a safetensors file does: a u64 header size within the file, then `{`."""
-  return len(head) >= 9 and head[8:9] == b"{" and \
-      8 < int.from_bytes(head[:8], "little") < os.path.getsize(path)
+# what a file in the other converters' formats is, and the flag that reads it
+_PLAIN_PICKLE_HINT = " (detectron2 .pkl weights: `--from detectron2` where the converter has it)"
+_SAFETENSORS = ("not a PyTorch checkpoint but a safetensors file (Hugging Face weights: "
+                "`--from hf` where the converter has it)")
 
 # torch dtype name (as `torch.<name>` pickles it) -> NumPy dtype of the returned array.
 _DTYPES: dict[str, np.dtype] = {
@@ -581,6 +576,12 @@ def _load_legacy(path: str, f: BinaryIO, allow_numpy: bool) -> Any:
 
 
 # ----------------------------------------------------------------------------------------------
+def _is_safetensors(path: str, head: bytes) -> bool:
+  """The file starts as a safetensors file does: a u64 header size within the file, then `{`."""
+  return len(head) >= 9 and head[8:9] == b"{" and \
+      8 < int.from_bytes(head[:8], "little") < os.path.getsize(path)
+
+
 # Public API.
 
 
@@ -642,7 +643,7 @@ def load_pth(path: str | os.PathLike, *, allow_numpy: bool = True) -> Any:
         magic = None
       if not (_is_int(magic) and magic == _LEGACY_MAGIC):
         raise _FormatError(f"not a PyTorch checkpoint: a plain pickle without torch's magic "
-                           f"number{_LEGACY_NOT_PICKLE_HINT}")
+                           f"number{_PLAIN_PICKLE_HINT}")
       return _load_legacy(path, f, allow_numpy)
   except CheckpointError:
     raise

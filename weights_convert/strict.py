@@ -34,10 +34,10 @@ LAYOUTS = (
 )
 
 
-def shown(keys: Sequence[str]) -> str:
-  """The first `SHOWN_KEYS` of `keys`, then how many more."""
-  more = len(keys) - SHOWN_KEYS
-  return ", ".join(keys[:SHOWN_KEYS]) + (f", ... and {more} more" if more > 0 else "")
+def shown(items: Sequence[str], sep: str = ", ") -> str:
+  """The first `SHOWN_KEYS` of `items` joined by `sep`, then how many more."""
+  more = len(items) - SHOWN_KEYS
+  return sep.join(items[:SHOWN_KEYS]) + (f"{sep}... and {more} more" if more > 0 else "")
 
 
 def layout_of(keys: Iterable[str]) -> str | None:

@@ -18,8 +18,8 @@ table. An annotation file whose `categories` name its ids otherwise than COCO do
 taxonomy, e.g. cityscapesScripts' `createPanopticImgs.py`, where 24 is "person" and 26 "car",
 COCO's "zebra" and no class) has its ids mapped to COCO's by name (`coco_ids_by_name`), with a
 note; a category COCO does not name keeps its id where COCO has no such id, else gets 0 (no
-COCO class: never dynamic). Segments listed in the JSON but absent from the PNG are dropped (a `Frame` holds the
-segments present in its map); ids in the PNG without a JSON entry are an error, as in
+COCO class: never dynamic). Segments listed in the JSON but absent from the PNG are dropped (a
+`Frame` holds the segments present in its map); ids in the PNG without a JSON entry are an error, as in
 panopticapi's own checks.
 """
 
@@ -195,11 +195,12 @@ def coco_ids_by_name(categories: Sequence[Any], path: PathLike
       unknown.append(f"{c['id']} {c['name']!r}")
   if not renamed and not unknown:
     return mapping, None
-  note = (f"{path}: category ids are not COCO's; mapped by name to COCO ids "
-          f"({', '.join(renamed[:8])}{', ...' if len(renamed) > 8 else ''})")
+
+  def first(items: list[str], n: int = 8) -> str:
+    return ", ".join(items[:n]) + (", ..." if len(items) > n else "")
+  note = f"{path}: category ids are not COCO's; mapped by name to COCO ids ({first(renamed)})"
   if unknown:
-    note += (f"; without a COCO class (id 0, never dynamic): {', '.join(unknown[:8])}"
-             f"{', ...' if len(unknown) > 8 else ''}")
+    note += f"; without a COCO class (id 0, never dynamic): {first(unknown)}"
   return mapping, note
 
 
@@ -316,6 +317,12 @@ class PanopticSource:
       self._table, mapped = read_annotation_file(annotation_file)
       self.notes += mapped
 
+  def _file_names_hint(self) -> str:
+    """For a frame not found: what the annotation file's file_names look like."""
+    example = next(iter(self._table or ()), None)
+    return (f" (the file_names in {self.annotation_file.name} are like '{example}.png')"
+            if example is not None else "")
+
   def has(self, key: str) -> bool:
     """True when frame `key` has a PNG and its segments (an annotation or its own JSON)."""
     png = self.directory / f"{key}.png"
@@ -328,12 +335,9 @@ class PanopticSource:
 
     Raises DataError when the PNG, its JSON or its annotation is missing.
     """
-    example = next(iter(self._table or ()), None)
-    named = (f" (the file_names in {self.annotation_file.name} are like '{example}.png')"
-             if example is not None else "")
     png = self.directory / f"{key}.png"
     if not png.is_file() and self._table is not None and key not in self._table:
-      raise DataError(png, f"panoptic PNG not found{named}")
+      raise DataError(png, f"panoptic PNG not found{self._file_names_hint()}")
     png = require_file(png, "panoptic PNG")
     if self._table is not None and key in self._table:
       return PanopticRef(png=png, segments=self._table[key])
@@ -341,7 +345,8 @@ class PanopticSource:
       return PanopticRef(png=png, json=png.with_suffix(".json"))
     if self._table is not None:
       raise DataError(self.annotation_file, f"no annotation with file_name '{key}.png' (nor a "
-                                            f"per-image {png.with_suffix('.json').name}){named}")
+                                            f"per-image {png.with_suffix('.json').name})"
+                                            f"{self._file_names_hint()}")
     raise DataError(png.with_suffix(".json"), "panoptic JSON not found (per-image JSON, or one "
                                               "COCO annotation file in the PNG directory or "
                                               "beside it as <directory>.json, or --option "
