@@ -4,7 +4,8 @@ Reference: `tests/torch_litemono.py`, a PyTorch Lite-Mono (base model) with upst
 names, random O(1) weights and non-trivial BN statistics, saved with `torch.save` as upstream's
 trainer lays it out (encoder.pth with height/width/use_stereo, depth.pth), converted by
 `weights_convert.litemono` (which does not use torch), and compared output by output.
-Tolerances: 1e-4 max abs on disparities (float32); 1e-3 relative on float64 gradients.
+Tolerances: 1e-4 max abs on disparities (float32); 1e-6 relative on float64 gradients (measured
+~3e-8: the float32 sin map of the position encoding).
 Inputs are 96x64 (the smallest comfortable multiple of 16) to keep compile and run times low.
 """
 
@@ -169,7 +170,7 @@ def test_norm_gradients_match_torch_autograd_float64(base):
   print(f"gamma/beta grads, worst max-relative diff: BN ({2 * len(bn)} leaves) {worst_bn:.2e}, "
         f"LN ({2 * len(ln)} leaves) {worst_ln:.2e}")
   np.testing.assert_allclose(loss_j, loss_t.item(), rtol=1e-8)  # float32 sin map: ~1e-10
-  assert worst_bn < 1e-3 and worst_ln < 1e-3
+  assert worst_bn < 1e-6 and worst_ln < 1e-6
 
 
 def test_training_size_selects_upstream_dilations(tmp_path, base):

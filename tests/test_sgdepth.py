@@ -3,8 +3,8 @@
 Reference: `tests/torch_sgdepth.py`, upstream's multi-task module tree with upstream's state_dict
 names, random weights and BN statistics, saved with `torch.save(model.state_dict())` as upstream's
 `model.pth`, converted without torch and compared output by output at 96x64 (the network needs
-multiples of 32). Tolerances: 1e-4 max abs on disparities (float32), 1e-3 relative on float64
-gradients.
+multiples of 32). Tolerances: 1e-4 max abs on disparities (float32), 1e-9 relative on float64
+gradients (rounding: measured 3e-14).
 """
 
 from __future__ import annotations
@@ -138,7 +138,7 @@ def test_encoder_bn_gradient_matches_torch_float64(released):
   print(f"sgdepth loss float64 jax {loss_j:.12f} torch {loss_t.item():.12f}; encoder BN "
         f"gamma/beta grads worst max-relative diff over 40 leaves: {rel:.2e}")
   np.testing.assert_allclose(loss_j, loss_t.item(), rtol=1e-10)
-  assert rel < 1e-3
+  assert rel < 1e-9
 
 
 def encoder_bn_grads(net, variables, x, weights):
