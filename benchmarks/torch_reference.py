@@ -35,9 +35,9 @@ loss as the JAX method, written as their upstream code does it:
   `deque(maxlen=K)` of previous frames' detached activations, L1 of the per-location mean and
   variance against the source statistics, + L_d; SGD (Nesterov, weight decay) on every encoder
   conv and BN parameter;
-- `TorchCotta` (qinenergy/cotta): student, EMA teacher and frozen anchor (`deepcopy`), N
-  augmented views (upstream's loop of per-view transforms, `tests/torch_tta.t_augment`) through
-  the teacher as one batch, per-pixel gate, L1 + L_d; Adam on every parameter, EMA, stochastic
+- `TorchCotta` (qinenergy/cotta): student and EMA teacher (`deepcopy`), N augmented views
+  (upstream's loop of per-view transforms, `tests/torch_tta.t_augment`) through the teacher as
+  one batch, their mean as the pseudo label (or the method's per-pixel gate), L1 + L_d; Adam on every parameter, EMA, stochastic
   restore.
 """
 
@@ -250,14 +250,13 @@ class TorchActmad:
 
 
 class TorchCotta:
-  """CoTTA + L_d: student, EMA teacher, anchor; Adam on every parameter; BN eval mode.
-  config: the JAX method's `CottaConfig`."""
+  """CoTTA + L_d: student, EMA teacher, the source as the restore target; Adam on every
+  parameter; BN eval mode. config: the JAX method's `CottaConfig`."""
 
   def __init__(self, encoder, decoder, config, seed=0, fused: bool = FUSED_OPTIMIZERS):
     self.model = nn.ModuleDict({"enc": encoder, "dec": decoder}).eval()
-    self.anchor = copy.deepcopy(self.model)
     self.teacher = copy.deepcopy(self.model)
-    for p in list(self.anchor.parameters()) + list(self.teacher.parameters()):
+    for p in self.teacher.parameters():
       p.requires_grad_(False)
     self.source = {n: p.detach().clone() for n, p in self.model.named_parameters()}
     self.optimizer = torch.optim.Adam(self.model.parameters(), lr=config.lr, fused=fused)
@@ -289,13 +288,13 @@ class TorchCotta:
     c = self.cfg
     student = self.disp(self.model, image)[0]
     with torch.no_grad():
-      anchor = self.disp(self.anchor, image)[0]
       views, flips = self.views(image)
-      out = self.disp(self.teacher, torch.cat([image, views]))
-      teacher = out[0]
-      outs = torch.stack([o.flip(-1) if f else o for o, f in zip(out[1:], flips)])
-      pseudo = torch.where((anchor - teacher).abs() / teacher > c.threshold,
-                           outs.mean(0), teacher)
+      spread = c.gate == "spread"
+      out = self.disp(self.teacher, torch.cat([image, views]) if spread else views)
+      outs = torch.stack([o.flip(-1) if f else o for o, f in zip(out[int(spread):], flips)])
+      pseudo = outs.mean(0)
+      if spread:
+        pseudo = torch.where(outs.std(0) / pseudo > c.threshold, pseudo, out[0])
     loss = F.l1_loss(student, pseudo) + c.ld_weight * depth_refining(
         disp_to_depth(student), instance_masks(panoptic, segments), c.ld.window)
     self.optimizer.zero_grad(set_to_none=True)

@@ -1,17 +1,20 @@
 """CoTTA (methods/cotta.py) against the PyTorch reference of tests/torch_tta.py.
 
-Reference: CoTTA as its official code runs a step (deepcopy teacher and anchor, augmented
-teacher views averaged, student loss, Adam step, EMA over parameters(), stochastic restore
-`src * mask + p * (1 - mask)`), with the depth adaptations of methods/cotta.py (per-pixel gate,
-L1 on disparity, flip back) and PITTA's L_d, written with native ops on the PyTorch MonoDepth2
-of torch_monodepth2 (random weights, converted with weights_convert.monodepth2). float64 on
-both sides, 64x96, N = 4 views. The random draws are the JAX run's own (`sample_augment` and
-`restore_masks` from the step's keys), passed explicitly to PyTorch. The teacher starts away
-from the anchor (its BN parameters perturbed on both sides) and the threshold is set between
-two of the frame's |anchor - teacher| / teacher values, so the gate picks both branches.
-Checked after one step: the loss, CoTTA's own term, L_d, the gate fraction, the evaluated
-depth (the pseudo label's), the student after Adam + restore and the EMA teacher; with
-ld_weight 0 the loss and the student equal plain CoTTA's.
+Reference: CoTTA as its official code runs a step (deepcopy teacher, augmented teacher views
+averaged into the pseudo label, student loss, Adam step, EMA over parameters(), stochastic
+restore `src * mask + p * (1 - mask)`), with the depth adaptations of methods/cotta.py (L1 on
+disparity, flip back; the gate 'spread' with `torch.std`) and PITTA's L_d, written with native
+ops on the PyTorch MonoDepth2 of torch_monodepth2 (random weights, converted with
+weights_convert.monodepth2). float64 on both sides, 64x96, N = 4 views. The random draws are
+the JAX run's own (`sample_augment` and `restore_masks` from the step's keys), passed
+explicitly to PyTorch. The teacher starts away from the source (its BN parameters perturbed on
+both sides). Checked after one step, with the default gate (the views' mean everywhere) and
+with gate 'spread' at a threshold between two of the frame's spread values (so that it picks
+both branches): the loss, CoTTA's own term, L_d, the gate fraction, the evaluated depth (the
+pseudo label's), the student after Adam + restore and the EMA teacher; with ld_weight 0 the
+loss and the student equal plain CoTTA's. And from the source itself, on a frame under a
+shift, the default pseudo label is the augmented mean from the first step (a gate on the
+anchor's disagreement with the teacher, used before, never fired there).
 """
 
 from __future__ import annotations
@@ -47,12 +50,22 @@ def _reference(enc, dec, threshold, ld_weight):
   ref = torch_tta.CoTTA(copy.deepcopy(enc), copy.deepcopy(dec), LR, EMA, threshold, ld_weight,
                         WINDOW)
   g = torch.Generator().manual_seed(5)
-  with torch.no_grad():  # a teacher away from the anchor
+  with torch.no_grad():  # a teacher away from the source
     for m in ref.ema_model.modules():
       if isinstance(m, torch.nn.BatchNorm2d):
         m.weight.mul_(1 + 0.3 * torch.randn(m.weight.shape, generator=g, dtype=m.weight.dtype))
         m.bias.add_(0.1 * torch.randn(m.bias.shape, generator=g, dtype=m.bias.dtype))
   return ref
+
+
+def _mcfg(restore_p: float, **kw) -> CottaConfig:
+  return CottaConfig(n_augment=N_AUG, ema_decay=EMA, restore_p=restore_p, lr=LR,
+                     ld=DepthRefiningConfig(max_instances=4, window=WINDOW), **kw)
+
+
+def _aug(draws) -> dict:
+  return {"order": draws.order, "factors": draws.factors, "sigma": draws.sigma,
+          "flip": draws.flip, "noise": draws.noise}
 
 
 @pytest.fixture(scope="module")
@@ -65,16 +78,9 @@ def case(tmp_path_factory):
   _, variables, _ = convert_monodepth2(root / "encoder.pth", root / "depth.pth")
   enc, dec = enc.double(), dec.double()
   frames = adapt_frames.make_frames(1, seed=4)
-  # the threshold: halfway between the two middle values of the frame's relative disagreement
-  ref = _reference(enc, dec, 0.0, 1.0)
-  ref.anchor.eval(), ref.ema_model.eval()
-  with torch.no_grad():
-    x = torch.from_numpy(frames.image[0].astype(np.float64)).permute(2, 0, 1)[None]
-    a, t = ref.disp(ref.anchor, x)[0], ref.disp(ref.ema_model, x)[0]
-  rel = np.sort(((a - t).abs() / t).numpy().ravel())
-  threshold = float(rel[rel.size // 2 - 1] + rel[rel.size // 2]) / 2
+  ref = _reference(enc, dec, None, 1.0)
   teacher = torch_tta.encoder_params(ref.ema_model["enc"], bn_only=True)
-  return enc, dec, variables, frames, threshold, teacher
+  return enc, dec, variables, frames, teacher
 
 
 @pytest.fixture(scope="module")
@@ -85,38 +91,63 @@ def step64(case):
     return _float64_step(case, CFG, RESTORE_P)
 
 
-@pytest.fixture(scope="module")
-def jax_run(case, step64):
-  """One engine step with ld_weight 1 and one with 0 (one compile), and the step's draws."""
-  frames, threshold = case[3], case[4]
-  mcfg = CottaConfig(n_augment=N_AUG, threshold=threshold, ema_decay=EMA, restore_p=RESTORE_P,
-                     lr=LR, ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
+def _frame(frames, image=None) -> StepInput:
+  frame = StepInput(*(jnp.asarray(v[0], jnp.float64 if v.dtype == np.float32 else None)
+                      for v in frames))
+  return frame if image is None else frame._replace(image=jnp.asarray(image))
+
+
+def _draws(init, mcfg: CottaConfig):
+  """The step's augmentation draws and restore masks (from the engine's per-frame key)."""
+  rng = jax.random.fold_in(init.rng, init.step)
+  draws = jax.tree_util.tree_map(np.asarray, sample_augment(rng, N_AUG, H, W, mcfg, jnp.float64))
+  masks = restore_masks(jax.random.fold_in(rng, 0), init.trainable, RESTORE_P)
+  return draws, {k: np.asarray(v) for k, v in flatten_dict(masks["encoder"], sep="/").items()}
+
+
+def _run(case, step64, ld_weights):
+  """One engine step per ld_weight (one compile), from the perturbed teacher, and its draws."""
   with jax.enable_x64(True):
-    step, init, consts, perturbed = step64
+    step, init, consts, perturbed, mcfg = step64
     init = init.replace(method_state={**init.method_state, "teacher": perturbed})
-    frame = StepInput(*(jnp.asarray(v[0], jnp.float64 if v.dtype == np.float32 else None)
-                        for v in frames))
-    rng = jax.random.fold_in(init.rng, init.step)           # the engine's per-frame key
-    draws = jax.tree_util.tree_map(np.asarray, sample_augment(rng, N_AUG, H, W, mcfg, jnp.float64))
-    masks = restore_masks(jax.random.fold_in(rng, 0), init.trainable, RESTORE_P)
+    draws, masks = _draws(init, mcfg)
     runs = []
-    for w in (1.0, 0.0):
+    for w in ld_weights:
       s0 = init.replace(method_state={**init.method_state, "ld_weight": jnp.asarray(w, jnp.float64)})
-      state, out = step(s0, frame, consts)
+      state, out = step(s0, _frame(case[3]), consts)
       flat = lambda t: {k: np.asarray(v) for k, v in flatten_dict(t["encoder"], sep="/").items()}
       runs.append((jax.tree_util.tree_map(np.asarray, out), flat(state.trainable),
                    flat(state.method_state["teacher"])))
-  masks = {k: np.asarray(v) for k, v in flatten_dict(masks["encoder"], sep="/").items()}
   return draws, masks, runs
 
 
-def _torch_step(case, draws, masks, ld_weight):
-  enc, dec, _, frames, threshold, _ = case
+@pytest.fixture(scope="module")
+def jax_run(case, step64):
+  """The default gate: one engine step with ld_weight 1 and one with 0, and the step's draws."""
+  return _run(case, step64, (1.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def spread_run(case):
+  """gate 'spread' at a threshold halfway between the two middle values of the frame's spread
+  (the PyTorch teacher's views from the step's draws): (threshold, draws, masks, runs)."""
+  enc, dec, _, frames, _ = case
+  with jax.enable_x64(True):
+    draws = _draws(_float64_step(case, CFG, RESTORE_P)[1], _mcfg(RESTORE_P))[0]
+  x = torch.from_numpy(frames.image[0].astype(np.float64)).permute(2, 0, 1)[None]
+  outs = _reference(enc, dec, None, 1.0).views(x, _aug(draws))
+  rel = np.sort((outs.std(0) / outs.mean(0)).numpy().ravel())
+  threshold = float(rel[rel.size // 2 - 1] + rel[rel.size // 2]) / 2
+  with jax.enable_x64(True):
+    step64 = _float64_step(case, CFG, RESTORE_P, gate="spread", threshold=threshold)
+  return (threshold, *_run(case, step64, (1.0,)))
+
+
+def _torch_step(case, draws, masks, ld_weight, threshold=None):
+  enc, dec, _, frames, _ = case
   ref = _reference(enc, dec, threshold, ld_weight)
-  aug = {"order": draws.order, "factors": draws.factors, "sigma": draws.sigma,
-         "flip": draws.flip, "noise": draws.noise}
   by_name = {n: masks[torch_tta.flax_path(n[len("enc."):])] for n in ref.trainable}
-  result = ref.step(frames.image[0], frames.panoptic[0], IDS, aug, by_name)
+  result = ref.step(frames.image[0], frames.panoptic[0], IDS, _aug(draws), by_name)
   return (result, torch_tta.encoder_params(ref.model["enc"], bn_only=True),
           torch_tta.encoder_params(ref.ema_model["enc"], bn_only=True))
 
@@ -128,10 +159,10 @@ def _worst_rel(a: dict, b: dict, ref: dict) -> float:
              for k in b)
 
 
-def test_one_step_matches_torch(case, jax_run):
-  draws, masks, runs = jax_run
-  out, student, teacher = runs[0]
-  (total, own, l_d, pseudo, gate), t_student, t_teacher = _torch_step(case, draws, masks, 1.0)
+def _check_step(case, draws, masks, run, threshold, gate_range):
+  out, student, teacher = run
+  (total, own, l_d, pseudo, gate), t_student, t_teacher = _torch_step(case, draws, masks, 1.0,
+                                                                      threshold)
   n_restored = sum(int(m.sum()) for m in masks.values())
   print(f"views flipped {draws.flip.tolist()}, orders {draws.order.tolist()}; restored "
         f"{n_restored} of {sum(m.size for m in masks.values())} elements")
@@ -139,7 +170,7 @@ def test_one_step_matches_torch(case, jax_run):
   print(f"loss jax {float(out.loss):.10f} torch {total:.10f}; CoTTA term "
         f"{float(out.logs['loss_cotta']):.10f} / {own:.10f}; L_d {float(out.logs['loss_d']):.6f} / "
         f"{l_d:.6f}; gate fraction {float(out.logs['gate_fraction']):.3f} / {gate:.3f}")
-  assert 0.3 < gate < 0.7
+  assert gate_range[0] <= gate <= gate_range[1]
   np.testing.assert_allclose(float(out.logs["gate_fraction"]), gate, rtol=0, atol=0)
   np.testing.assert_allclose(float(out.logs["loss_cotta"]), own, rtol=1e-9)
   np.testing.assert_allclose(float(out.logs["loss_d"]), l_d, rtol=1e-9)
@@ -156,6 +187,32 @@ def test_one_step_matches_torch(case, jax_run):
     np.testing.assert_array_equal(student[k][m], src[k][m])
 
 
+def test_one_step_matches_torch(case, jax_run):
+  """The default gate: the pseudo label is the views' mean at every pixel."""
+  draws, masks, runs = jax_run
+  _check_step(case, draws, masks, runs[0], None, (1.0, 1.0))
+
+
+def test_one_step_with_the_spread_gate_matches_torch(case, spread_run):
+  threshold, draws, masks, runs = spread_run
+  print(f"threshold on std / mean of the views: {threshold:.4g}")
+  _check_step(case, draws, masks, runs[0], threshold, (0.3, 0.7))
+
+
+def test_the_augmented_label_acts_from_the_source_on(case, step64):
+  """From the source itself (student = teacher = source), the first step's own loss is the
+  student's distance to the augmented mean, not 0: under the earlier gate (the anchor's
+  disagreement with the teacher) nothing fired there, the label was the student's own
+  prediction and the loss 0, and at EMA 0.999 it stayed so for hundreds of frames."""
+  with jax.enable_x64(True):
+    step, init, consts, _, _ = step64
+    _, out = step(init, _frame(case[3]), consts)
+  own = float(out.logs["loss_cotta"])
+  print(f"first step from the source: CoTTA's own loss {own:.3e}, gate fraction "
+        f"{float(out.logs['gate_fraction'])}")
+  assert own > 1e-4 and float(out.logs["gate_fraction"]) == 1.0
+
+
 def test_ld_weight_zero_is_plain_cotta(case, jax_run):
   draws, masks, runs = jax_run
   out0, student0, _ = runs[1]
@@ -170,13 +227,12 @@ def test_ld_weight_zero_is_plain_cotta(case, jax_run):
   assert rs < 1e-6
 
 
-def _float64_step(case, cfg: AdaptConfig, restore_p: float):
-  """(a jitted float64 engine step of CoTTA under `cfg` with the case's threshold and
-  `restore_p`, its initial state, its constants, the case's perturbed BN tree as a trainable
-  tree); call it under `jax.enable_x64(True)`."""
-  _, _, variables, _, threshold, teacher = case
-  mcfg = CottaConfig(n_augment=N_AUG, threshold=threshold, ema_decay=EMA, restore_p=restore_p,
-                     lr=LR, ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
+def _float64_step(case, cfg: AdaptConfig, restore_p: float, **mcfg_kw):
+  """(a jitted float64 engine step of CoTTA under `cfg` with `restore_p` and the CottaConfig
+  fields `mcfg_kw`, its initial state, its constants, the case's perturbed BN tree as a
+  trainable tree, the CottaConfig); call it under `jax.enable_x64(True)`."""
+  _, _, variables, _, teacher = case
+  mcfg = _mcfg(restore_p, **mcfg_kw)
   v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
   model, method = network("monodepth2", {"num_layers": 18}), build("cotta", mcfg)
   tx = make_optimizer(cfg, method)
@@ -184,7 +240,7 @@ def _float64_step(case, cfg: AdaptConfig, restore_p: float):
   init, consts = init_state(v64, method, cfg, tx, model)
   perturbed = {"encoder": unflatten_dict({k: jnp.asarray(v) for k, v in teacher.items()},
                                          sep="/")}
-  return step, init, consts, perturbed
+  return step, init, consts, perturbed, mcfg
 
 
 def test_reset_copies_the_teacher_from_the_source_as_upstream(case):
@@ -194,13 +250,11 @@ def test_reset_copies_the_teacher_from_the_source_as_upstream(case):
   (perturbed) values stay in that average."""
   frames = case[3]
   with jax.enable_x64(True):
-    step, init, consts, perturbed = _float64_step(case, dataclasses.replace(CFG, reset_every=1),
-                                                  restore_p=0.0)
+    step, init, consts, perturbed, _ = _float64_step(
+        case, dataclasses.replace(CFG, reset_every=1), restore_p=0.0)
     init = init.replace(step=jnp.asarray(1, init.step.dtype),  # step 1: reset_every 1 resets
                         method_state={**init.method_state, "teacher": perturbed})
-    frame = StepInput(*(jnp.asarray(v[0], jnp.float64 if v.dtype == np.float32 else None)
-                        for v in frames))
-    state, _ = step(init, frame, consts)
+    state, _ = step(init, _frame(frames), consts)
   flat = lambda t: flatten_dict(jax.tree_util.tree_map(np.asarray, t)["encoder"], sep="/")
   source, student, got = flat(init.source), flat(state.trainable), flat(
       state.method_state["teacher"])
@@ -220,12 +274,11 @@ def test_nonfinite_step_keeps_the_student_but_not_the_teacher_or_the_restore(cas
   with the mask from `restore_masks` and the step's key, a student away from the source."""
   frames = case[3]
   with jax.enable_x64(True):
-    step, init, consts, perturbed = step64
+    step, init, consts, perturbed, _ = step64
     init = init.replace(trainable=perturbed)  # student != source; teacher = source
     image = np.array(frames.image[0], np.float64)
     image[3, 5, 1] = np.nan
-    frame = StepInput(*(jnp.asarray(v[0], jnp.float64 if v.dtype == np.float32 else None)
-                        for v in frames))._replace(image=jnp.asarray(image))
+    frame = _frame(frames, image)
     masks = restore_masks(jax.random.fold_in(jax.random.fold_in(init.rng, init.step), 0),
                           init.trainable, RESTORE_P)
     state, out = step(init, frame, consts)

@@ -7,8 +7,8 @@ Written the way their official code does it, with native ops, not shaped after o
   momentum, weight_decay, nesterov=True)`. Our online variant's batch = the current frame + a
   `collections.deque(maxlen=K)` of previous frames' detached hooked outputs; with a single
   sample the variance is taken as 0.
-- CoTTA (qinenergy/cotta, cifar/cotta.py + my_transforms.py): `deepcopy` teacher and anchor,
-  N augmented views with torchvision's tensor formulas (brightness/contrast/saturation blends,
+- CoTTA (qinenergy/cotta, cifar/cotta.py + my_transforms.py): `deepcopy` teacher (the anchor
+  only gates, see `CoTTA`), N augmented views with torchvision's tensor formulas (brightness/contrast/saturation blends,
   gamma with the 1e-8 clamp, edge padding, a 5x5 Gaussian blur, centre crop, flip, noise, clip) from
   explicitly given draws, `torch.optim.Adam`, `ema = a * ema + (1 - a) * p` over
   `parameters()`, restore `p = src * mask + p * (1 - mask)` with given masks.
@@ -180,9 +180,10 @@ def t_augment(img: torch.Tensor, order, factors, sigma, flip, noise) -> torch.Te
 
 
 class CoTTA:
+  """threshold None: the pseudo label is the views' mean (upstream under a shift, where the
+  anchor is not confident); else per pixel where the views' `std / mean` exceeds it."""
   def __init__(self, enc, dec, lr, ema, threshold, ld_weight, s):
     self.model = nn.ModuleDict({"enc": enc, "dec": dec})
-    self.anchor = copy.deepcopy(self.model)
     self.ema_model = copy.deepcopy(self.model)
     for p in self.ema_model.parameters():
       p.detach_()
@@ -195,21 +196,29 @@ class CoTTA:
   def disp(self, model, x):
     return model["dec"](model["enc"](x))[("disp", 0)][:, 0]
 
+  @torch.no_grad()
+  def views(self, x, aug):
+    """The teacher's disparities of the N augmented views of x (1, 3, H, W), flipped back."""
+    self.ema_model.eval()
+    views = torch.cat([t_augment(x, aug["order"][i], aug["factors"][i], aug["sigma"][i],
+                                 aug["flip"][i], aug["noise"][i])
+                       for i in range(len(aug["sigma"]))])
+    outs = self.disp(self.ema_model, views)
+    return torch.stack([o.flip(-1) if f else o for o, f in zip(outs, aug["flip"])])
+
   def step(self, image, panoptic, ids, aug, masks):
     """aug: dict of numpy draws (order, factors, sigma, flip, noise); masks: {name: bool array}
     of the restore. Returns (total, own loss, L_d, pseudo label, gate fraction)."""
-    self.model.eval(), self.anchor.eval(), self.ema_model.eval()
+    self.model.eval(), self.ema_model.eval()
     x = _image(image)
     student = self.disp(self.model, x)[0]
     with torch.no_grad():
-      anchor = self.disp(self.anchor, x)[0]
       teacher = self.disp(self.ema_model, x)[0]
-      views = torch.cat([t_augment(x, aug["order"][i], aug["factors"][i], aug["sigma"][i],
-                                   aug["flip"][i], aug["noise"][i])
-                         for i in range(len(aug["sigma"]))])
-      outs = self.disp(self.ema_model, views)
-      outs = torch.stack([o.flip(-1) if f else o for o, f in zip(outs, aug["flip"])])
-      gate = (anchor - teacher).abs() / teacher > self.threshold
+      outs = self.views(x, aug)
+      if self.threshold is None:
+        gate = torch.ones_like(teacher, dtype=torch.bool)
+      else:
+        gate = outs.std(0) / outs.mean(0) > self.threshold
       pseudo = torch.where(gate, outs.mean(0), teacher)
     own = F.l1_loss(student, pseudo)
     l_d = depth_refining(disp_to_depth(student), panoptic, ids, self.s)

@@ -8,9 +8,17 @@ teacher moves (EMA) and each trainable element is restored to the source with pr
 
 For depth (our choices, the paper gives none):
 - prediction = the network's scale-0 disparity (`model.outputs(...)[0]`, (H, W));
-- confidence gate per pixel: the augmented mean is used where the anchor and the teacher
-  disagree, |d_anchor - d_teacher| / d_teacher > `threshold`, else the teacher's single view
-  (classification CoTTA gates the whole batch on the anchor's mean max-probability);
+- the gate: upstream takes the augmented mean where the anchor is not confident (the
+  classification code when the batch's mean max-probability is below `ap`, 0.92 on CIFAR-10;
+  the dense code per pixel, where the anchor's class probability is below 0.69, a 5% quantile
+  of the source domain), so under a domain shift the augmented mean is the label from the first
+  frame on. A depth network has no class probability. `gate="always"` (default) takes the
+  augmented mean everywhere; `gate="spread"` is a per-pixel stand-in for the dense rule: the
+  augmented mean where the views disagree, their relative spread std / mean (unbiased std, as
+  `torch.std`) above `threshold`, else the teacher's single view. (A gate on the anchor's
+  disagreement with the teacher, which these steps used before, cannot fire: the teacher
+  starts as the anchor and its EMA at 0.999 barely leaves it, so the method was a mean teacher
+  without its augmentation.);
 - loss: L1 (mean over pixels) between the student's disparity and the pseudo label
   (stop-gradient), in place of the soft cross-entropy, + ld_weight * L_d (eq. 8) on the
   student's depth (paper Sec. 4.1);
@@ -19,8 +27,8 @@ For depth (our choices, the paper gives none):
   implemented), 5x5 Gaussian blur (on the edge-padded image, as upstream's pad-blur-crop),
   horizontal flip with p 0.5 (the prediction is flipped back),
   Gaussian noise, clipping to [0, 1]; no affine warp (a warped disparity map would need warping
-  back and its border filled). The plain image and the N views go through the teacher as one
-  batch;
+  back and its border filled). The N views (with gate 'spread' also the plain image) go
+  through the teacher as one batch;
 - the evaluated depth is the depth of the pseudo label (what upstream's forward returns).
 
 BatchNorm is in eval mode (running statistics) for all three networks, so a view's prediction
@@ -28,8 +36,8 @@ does not depend on the other views: the method requires `AdaptConfig.bn_stats ==
 (Upstream's classification CoTTA sets `track_running_stats=False` before copying the teacher
 and the anchor, so all three normalise with the statistics of the test batch, each augmented
 view with its own; with one frame per step, batch statistics would be those of one image.)
-The anchor and the restore target are the engine's `state.source` (the trainable leaves at the
-start); the teacher is in the method state. Which leaves adapt is `AdaptConfig.selector`
+The restore target (upstream's anchor, the source) is the engine's `state.source` (the
+trainable leaves at the start); the teacher is in the method state. Which leaves adapt is `AdaptConfig.selector`
 (upstream adapts every weight and bias: `--selector all`). With `reset_every`, the engine resets
 the student and its optimiser and the teacher is copied from the source again, as upstream's
 `reset()` does (the anchor is the source throughout).
@@ -51,15 +59,18 @@ from pitta_jax.methods.base import Aux, Method, variables_of
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
 
 JITTERS = ("brightness", "contrast", "saturation", "gamma")  # the order index of AugParams
+GATES = ("always", "spread")  # CottaConfig.gate
 
 
 @dataclasses.dataclass(frozen=True)
 class CottaConfig:
   """CoTTA's knobs (upstream cifar/cotta.py, get_tta_transforms non-soft) and the paper's L_d."""
   n_augment: int = option(32, "N augmented teacher views (upstream: 32)")
-  threshold: float = option(0.1, "per-pixel gate: augmented mean where |d_anchor - d_teacher| / "
-                                 "d_teacher exceeds this (ours; upstream gates on class "
-                                 "confidence)")
+  gate: str = option("always", "where the pseudo label is the augmented mean: 'always' (upstream "
+                               "under a domain shift, where the anchor is not confident) or "
+                               "'spread' (per pixel, where the views' std / mean > threshold)")
+  threshold: float = option(0.1, "gate='spread': the views' relative spread above which a pixel "
+                                 "takes the augmented mean")
   ema_decay: float = option(0.999, "teacher EMA decay (upstream mt_alpha 0.999 on ImageNet-C)")
   restore_p: float = option(0.01, "probability of restoring each trainable element to the source "
                                   "per step (upstream rst_m 0.01)")
@@ -77,6 +88,9 @@ class CottaConfig:
 
   def __post_init__(self):
     check(self.n_augment >= 1, f"n_augment must be >= 1, got {self.n_augment}")
+    check(self.gate in GATES, f"gate must be one of {', '.join(GATES)}, got {self.gate!r}")
+    check(self.gate != "spread" or self.n_augment >= 2,
+          f"gate='spread' needs n_augment >= 2 (the views' spread), got {self.n_augment}")
     finite(self.threshold, "threshold", 0.0)
     check(0.0 <= self.ema_decay <= 1.0, f"ema_decay must be in [0, 1], got {self.ema_decay}")
     check(0.0 <= self.restore_p <= 1.0, f"restore_p must be in [0, 1], got {self.restore_p}")
@@ -175,16 +189,27 @@ def augment_views(image: jax.Array, params: AugParams) -> jax.Array:
   return jax.vmap(finish)(jittered, params.sigma, params.flip, params.noise)
 
 
-def teacher_predictions(model, variables, image: jax.Array, params: AugParams
-                        ) -> tuple[jax.Array, jax.Array]:
-  """The teacher's disparity of `image` (H, W) and its mean over the augmented views (H, W)
-  (each view's prediction flipped back), from one batched forward of 1 + N images (BN eval
+def teacher_predictions(model, variables, image: jax.Array, params: AugParams, plain: bool
+                        ) -> tuple[jax.Array | None, jax.Array]:
+  """The teacher's disparity of `image` (H, W) if `plain` (else None), and its N augmented views'
+  disparities (N, H, W), each flipped back, from one batched forward of the images (BN eval
   mode: the views do not see each other)."""
   views = augment_views(image, params)
-  disp = model.outputs(variables, jnp.concatenate([image[None], views]), False)[0][..., 0]
-  plain, disp = disp[0], disp[1:]                                           # (H, W), (N, H, W)
-  disp = jnp.where(params.flip[:, None, None], disp[:, :, ::-1], disp)
-  return plain, jnp.mean(disp, axis=0)
+  batch = jnp.concatenate([image[None], views]) if plain else views
+  disp = model.outputs(variables, batch, False)[0][..., 0]
+  single, disp = (disp[0], disp[1:]) if plain else (None, disp)             # (H, W), (N, H, W)
+  return single, jnp.where(params.flip[:, None, None], disp[:, :, ::-1], disp)
+
+
+def pseudo_label(single: jax.Array | None, views: jax.Array, mcfg: CottaConfig
+                 ) -> tuple[jax.Array, jax.Array]:
+  """(pseudo label (H, W), gate (H, W) bool: where it is the views' mean) from the teacher's
+  single view (H, W) (None for gate 'always') and its augmented views (N, H, W)."""
+  averaged = jnp.mean(views, axis=0)
+  if mcfg.gate == "always":
+    return averaged, jnp.ones(averaged.shape, bool)
+  gate = jnp.std(views, axis=0, ddof=1) / averaged > mcfg.threshold
+  return jnp.where(gate, averaged, single), gate
 
 
 def restore_masks(rng: jax.Array, tree, p: float):
@@ -214,12 +239,11 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: CottaConfig)
   sg = jax.lax.stop_gradient
   student = _disp(model, variables_of(trainable, consts), frame.image)      # (H, W)
   teacher_vars = trainable_lib.merge(ms["teacher"], consts.frozen, consts.batch_stats)
-  anchor = sg(_disp(model, variables_of(state.source, consts), frame.image))
   h, w = frame.image.shape[:2]
   params = sample_augment(rng, mcfg.n_augment, h, w, mcfg, frame.image.dtype)
-  teacher, averaged = sg(teacher_predictions(model, teacher_vars, frame.image, params))
-  gate = jnp.abs(anchor - teacher) / teacher > mcfg.threshold
-  pseudo = jnp.where(gate, averaged, teacher)
+  single, views = sg(teacher_predictions(model, teacher_vars, frame.image, params,
+                                         plain=mcfg.gate != "always"))
+  pseudo, gate = pseudo_label(single, views, mcfg)
   own = jnp.mean(nonsmooth.absolute(student - pseudo))
   l_d, n = depth_refining_term(model.spec.to_depth(student), frame, mcfg.ld)
   total = own + ms["ld_weight"] * l_d
