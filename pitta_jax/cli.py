@@ -351,7 +351,7 @@ def _run_adapt(args) -> int:
   from pitta_jax.methods import build
   from pitta_jax.outputs import open_output_dir
   from pitta_jax.report import Row, clear_earlier_results, write_results
-  from pitta_jax.run import EvalConfig, checkpoint_chunk_size, run_sequence
+  from pitta_jax.run import EvalConfig, checkpoint_chunk_size, metric_factor, run_sequence
   from pitta_jax.checkpoint import read_model_json
   from pitta_jax.sources import (check_dataset_args, check_run_needs, check_stats_method,
                                  method_resources, open_frames, open_weights)
@@ -373,7 +373,12 @@ def _run_adapt(args) -> int:
                  f"small chunks run slower)")
   weights_config = None
   if args.weights:  # cheap checks first: the weights' description, the dataset, the method's needs
-    weights_config = read_model_json(args.weights)[1]
+    weights_spec, weights_config = read_model_json(args.weights)
+    if (args.adapting and method.metres and method.config.depth_scale is None
+        and metric_factor(weights_spec, weights_config) is None):
+      notes.append(f"--method {method.name}'s thresholds are in metres and these weights predict "
+                   f"depth up to scale (no stereo pairs in training): their units are taken as "
+                   f"metres; --{method.name}.depth-scale F sets the factor")
   check_dataset_args(args.dataset, args.root, args.option, args.segmentation)
   source_flags = [f for f, v in (("--source-images", args.source_images),
                                  ("--replay-root", args.replay_root),

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import re
+import types
 import typing
 from typing import Any, Collection, Sequence, TypeVar
 
@@ -63,8 +64,12 @@ def _parse_int_tuple(text: str) -> tuple[int, ...]:
 
 
 def parser_for(annotation: Any) -> tuple[Any, str]:
-  """(argparse type, metavar) for a field annotation."""
+  """(argparse type, metavar) for a field annotation (`X | None`: X's, the flag sets X)."""
   origin = typing.get_origin(annotation)
+  if origin in (typing.Union, types.UnionType):
+    given = [a for a in typing.get_args(annotation) if a is not type(None)]
+    if len(given) == 1:
+      return parser_for(given[0])
   if annotation is bool:
     return parse_bool, "{true,false}"
   if annotation is int:
@@ -93,7 +98,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, namespace: 
       continue
     kind, meta = parser_for(annotation)
     default = field.default
-    shown = ",".join(map(str, default)) if isinstance(default, tuple) else default
+    shown = (",".join(map(str, default)) if isinstance(default, tuple)
+             else "unset" if default is None else default)
     flags = [f"--{namespace}.{field.name.replace('_', '-')}"]
     alias = f"--{field.name.replace('_', '-')}"
     # argparse's own registry of flags: the first config to claim a name outside `shared` keeps it

@@ -14,7 +14,7 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -26,7 +26,7 @@ from pitta_jax.adapt.inputs import chunks
 from pitta_jax.checkpoint import Weights
 from pitta_jax.configs import check, option
 from pitta_jax.methods import Method, build as build_method
-from pitta_jax.methods.base import INPUT_SIZE
+from pitta_jax.methods.base import INPUT_SIZE, METRIC_FACTOR
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame
 
@@ -157,9 +157,27 @@ def model_alignment(weights: Weights) -> str:
   that a median-scaled network trained with stereo pairs (model.json `use_stereo`, as
   MonoDepth2's `stereo_*` and `mono+stereo_*` releases) is scaled by 5.4 as MonoDepth2's
   `evaluate_depth.py` does (`metrics.STEREO_SCALE_FACTOR`)."""
-  if weights.spec.alignment == "median" and weights.config.get("use_stereo") is True:
-    return "stereo"
-  return weights.spec.alignment
+  return "stereo" if _stereo_trained(weights.spec, weights.config) else weights.spec.alignment
+
+
+def _stereo_trained(spec, config: Mapping[str, Any]) -> bool:
+  """A median-scaled network whose weights were trained with stereo pairs (`use_stereo`)."""
+  return spec.alignment == "median" and config.get("use_stereo") is True
+
+
+def metric_factor(spec, config: Mapping[str, Any]) -> float | None:
+  """The fixed factor from a network's depth to metres, where its weights (`spec`, model.json
+  `config`) give one: 1 for a network that predicts metres (`ModelSpec.output` "metric_depth",
+  and the source models `pitta-jax train-source` trains, supervised in metres on the synthetic
+  benchmark: model.json `source.trained_by`), MonoDepth2's 5.4 for weights trained with stereo
+  pairs (`use_stereo`, a baseline of 0.1 units for KITTI's 54 cm), None for weights up to scale
+  (monocular training)."""
+  source = config.get("source")
+  if spec.output == "metric_depth" or (isinstance(source, Mapping) and "trained_by" in source):
+    return 1.0
+  if _stereo_trained(spec, config):
+    return metrics_lib.STEREO_SCALE_FACTOR
+  return None
 
 
 def frame_metrics(depth: np.ndarray, gt: np.ndarray, eval_cfg: EvalConfig, alignment: str
@@ -379,7 +397,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   model, tx, runner = (runners or Runners()).get(weights, method, cfg)
   alignment = model_alignment(weights) if eval_cfg.alignment == "model" else eval_cfg.alignment
   state, consts = init_state(weights.depth, method, cfg, tx, model,
-                             {INPUT_SIZE: (h, w), **(resources or {})})
+                             {INPUT_SIZE: (h, w),
+                              METRIC_FACTOR: metric_factor(weights.spec, weights.config),
+                              **(resources or {})})
   directory = Path(checkpoint_dir) if checkpoint_dir else None
   names = None if directory is None else _frame_names(frames)
   fingerprint = None if directory is None else run_fingerprint(weights, method, cfg, eval_cfg,

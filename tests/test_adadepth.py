@@ -8,7 +8,8 @@ student's forward, the reference, EMA and updated branch predictions under `no_g
 `augment_pseudo` (boolean masks, `torch.median`, `torch.mul`, `torch.clamp`), `compute_losses`
 (SILog on `depth[mask]`), the student's Adam step, `update_ema_variables` over `parameters()`,
 and the student's prediction after its step. Reduced as methods/adadepth.py documents: every
-network in eval mode, the previous frame as the only source frame, depths times `depth_scale`.
+network in eval mode, the previous frame as the only source frame, depths times the factor to
+metres (given to the JAX step as the weights' factor, `resources[METRIC_FACTOR]`).
 PITTA's L_d on the student's depth with torch_tta's native-op implementation.
 
 float64 on both sides (Adam's first step is lr * g / (|g| + eps): it needs exact small
@@ -44,7 +45,7 @@ from pitta_jax.adapt import AdaptConfig, StepInput, init_state, make_optimizer, 
 from pitta_jax.adapt.inputs import step_input
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
 from pitta_jax.methods import adadepth
-from pitta_jax.methods.base import INPUT_SIZE, POSE, PoseNet, ring_push
+from pitta_jax.methods.base import INPUT_SIZE, METRIC_FACTOR, POSE, PoseNet, ring_push
 from pitta_jax.methods.depth_refining import DepthRefiningConfig
 from pitta_jax.models.pose import PoseNet as PoseModule
 from pitta_jax.models.registry import network
@@ -251,7 +252,6 @@ def case():
 
 def _method(case) -> adadepth.AdadepthConfig:
   return adadepth.AdadepthConfig(lr=LR, ema_decay=EMA, threshold=case["threshold"],
-                                 depth_scale=case["scale"],
                                  ld=DepthRefiningConfig(max_instances=4, window=WINDOW))
 
 
@@ -274,7 +274,7 @@ def jax_run(case):
     step = jax.jit(make_step(model, method, CFG, tx))
     pose = PoseNet(PoseModule(18), variables64([penc, pdec], POSE_RULES))
     fresh, consts = init_state(variables64([enc, dec], DEPTH_RULES), method, CFG, tx, model,
-                               {POSE: pose, INPUT_SIZE: (H, W)})
+                               {POSE: pose, INPUT_SIZE: (H, W), METRIC_FACTOR: case["scale"]})
     teacher = params_of(flat64(case["teacher"].values(), DEPTH_RULES))
     ms = fresh.method_state
     init = fresh.replace(method_state={
@@ -435,3 +435,27 @@ def test_requirements_fail_before_work():
                              ({POSE: None}, "resources\\['input_size'\\]")]:
     with pytest.raises(ValueError, match=missing):
       method.init(model, None, AdaptConfig(bn_stats="running"), resources)
+
+
+def test_factor_to_metres_comes_from_the_weights():
+  """`run.metric_factor`: 1 for a metric network and for our source models (supervised in
+  metres), MonoDepth2's 5.4 for stereo-trained weights (its evaluate_depth.py's
+  STEREO_SCALE_FACTOR), none for monocular weights; Ada-Depth takes its config's depth_scale
+  first, then the weights' factor, then 1."""
+  from pitta_jax.models.depth_anything_v2 import METRIC_SPEC, SPEC as DAV2
+  from pitta_jax.models.registry import MODELS
+  from pitta_jax.run import metric_factor
+  md2 = MODELS["monodepth2"]
+  assert metric_factor(md2, {"num_layers": 18, "use_stereo": True}) == 5.4
+  assert metric_factor(md2, {"num_layers": 18, "use_stereo": False}) is None
+  assert metric_factor(md2, {"num_layers": 18, "source": {"encoder": "encoder.pth"}}) is None
+  assert metric_factor(md2, {"source": {"trained_by": "pitta-jax train-source"}}) == 1.0
+  assert metric_factor(METRIC_SPEC, {}) == 1.0 and metric_factor(DAV2, {}) is None
+  cfg = adadepth.AdadepthConfig()
+  assert cfg.depth_scale is None and adadepth.build().metres
+  assert adadepth.depth_scale(cfg, {METRIC_FACTOR: 5.4}) == 5.4
+  assert adadepth.depth_scale(cfg, {METRIC_FACTOR: None}) == 1.0
+  assert adadepth.depth_scale(cfg, {}) == 1.0
+  assert adadepth.depth_scale(adadepth.AdadepthConfig(depth_scale=2.0), {METRIC_FACTOR: 5.4}) == 2.0
+  with pytest.raises(ValueError, match="depth_scale must be > 0"):
+    adadepth.AdadepthConfig(depth_scale=0.0)

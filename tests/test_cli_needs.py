@@ -199,3 +199,29 @@ def test_depth_refining_config_takes_coco_names_and_refuses_non_integers():
       ({"max_instances": 2.0}, r"max_instances must be an int >= 1, got 2\.0")]:
     with pytest.raises(ValueError, match=message):
       DepthRefiningConfig(**kwargs)
+
+
+@pytest.mark.parametrize("model_json, flags, noted", [
+    ({"use_stereo": False}, (), True),
+    ({"use_stereo": False}, ("--adadepth.depth-scale", "30"), False),
+    ({"use_stereo": True}, (), False),
+])
+def test_metre_thresholds_on_weights_up_to_scale_are_noted(tmp_path, capsys, model_json, flags,
+                                                           noted):
+  """Ada-Depth's thresholds are in metres: monocular weights give no factor to metres, so the
+  run notes that their units are taken as metres (the factor is 5.4 for stereo-trained weights;
+  a given --adadepth.depth-scale is the user's). The run then stops at the weights (a model.json
+  only) after its notes."""
+  weights = tmp_path / "weights"
+  weights.mkdir()
+  (weights / "model.json").write_text(json.dumps(
+      {"architecture": "monodepth2", "height": 64, "width": 96, "num_layers": 18,
+       "has_pose": True, **model_json}))
+  rc = main(["adapt", "--weights", str(weights), "--out", str(tmp_path / "out"), "--quiet",
+             "--method", "adadepth", "--bn-stats", "running", "--dataset", "synthetic", *flags])
+  lines = capsys.readouterr().err.splitlines()
+  note = ("note: --method adadepth's thresholds are in metres and these weights predict depth up "
+          "to scale (no stereo pairs in training): their units are taken as metres; "
+          "--adadepth.depth-scale F sets the factor")
+  assert rc == 2 and lines[-1].startswith("error: ") and "weights" in lines[-1]
+  assert (note in lines) == noted

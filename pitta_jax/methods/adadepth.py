@@ -24,9 +24,12 @@ Reduced to this setting (our choices where upstream's setting does not carry ove
   depth network plus the weights' pose network (`resources["pose"]`), with its own Adam state;
   upstream's U is a separately trained self-supervised MonoDepth2 and its S a supervised NeWCRFs.
 - Metric depth: tau, the clamp range and the `P > 1` mask are in metres; our depths are
-  multiplied by one fixed factor `depth_scale` (1 for our synthetic source model, which predicts
-  metres; MonoDepth2's KITTI stereo weights: 5.4; monocular MonoDepth2 is up to scale, so a
-  factor has to be chosen). s cancels U's scale, so the factor matters for S, R and E.
+  multiplied by one fixed factor `depth_scale`, by default the weights' own
+  (`resources["metric_factor"]`, `run.metric_factor`: 1 for a network that predicts metres, as
+  our synthetic source models; 5.4 for MonoDepth2 weights trained with stereo pairs).
+  Monocular weights are up to scale and give none: the factor is then 1 (the network's units
+  taken as metres, with a note from the CLI) unless `depth_scale` is given. s cancels U's
+  scale, so the factor matters for S, R and E.
 - Sources of U's loss: the previous frame only (upstream uses frames -1 and +1; online, the next
   frame is not there yet), from a one-image ring in the method state; K is the frame's intrinsics.
   On the first frame of a recording (no previous frame; `StepInput.starts_recording` marks the
@@ -66,7 +69,7 @@ from flax import struct
 
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, finite, option
-from pitta_jax.methods.base import (INPUT_SIZE, POSE, Aux, Method, ring_init, ring_push,
+from pitta_jax.methods.base import (INPUT_SIZE, METRIC_FACTOR, POSE, Aux, Method, ring_init, ring_push,
                                     ring_restart, variables_of)
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
 from pitta_jax.models.pose import transformation_from_parameters
@@ -84,8 +87,10 @@ class AdadepthConfig:
                                   "with alpha 0.99, no warm-up)")
   threshold: float = option(0.4, "tau: a pixel keeps its pseudo label where (a - b)^2 / a < tau, "
                                  "depths in metres (upstream README: --thres 0.4)")
-  depth_scale: float = option(1.0, "fixed factor from the network's depth to metres (ours: 1 for "
-                                   "the synthetic source model; MonoDepth2 KITTI stereo: 5.4)")
+  depth_scale: float | None = option(None, "fixed factor from the network's depth to metres; "
+                                          "unset: the weights' own (1 for a metric network, 5.4 "
+                                          "for stereo-trained MonoDepth2), 1 for weights up to "
+                                          "scale")
   min_depth: float = option(1e-3, "metres: labels are clamped to [min_depth, max_depth]; E must "
                                   "exceed it to enter the scale median (upstream MIN_DEPTH)")
   max_depth: float = option(80.0, "metres: upper clamp of the labels (upstream MAX_DEPTH)")
@@ -103,8 +108,9 @@ class AdadepthConfig:
     finite(self.lr, "lr", 0.0)
     check(0.0 <= self.ema_decay <= 1.0, f"ema_decay must be in [0, 1], got {self.ema_decay}")
     finite(self.threshold, "threshold", 0.0)
-    finite(self.depth_scale, "depth_scale", 0.0)
-    check(self.depth_scale > 0, f"depth_scale must be > 0, got {self.depth_scale}")
+    if self.depth_scale is not None:
+      finite(self.depth_scale, "depth_scale", 0.0)
+      check(self.depth_scale > 0, f"depth_scale must be > 0, got {self.depth_scale}")
     finite(self.min_depth, "min_depth", 0.0)
     finite(self.max_depth, "max_depth", 0.0)
     check(0 < self.min_depth < self.max_depth,
@@ -256,7 +262,7 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: AdadepthConf
   ref = sg(depth_of(variables_of(state.source, consts)))
   ema = sg(depth_of(variables_of(ms["teacher"], consts)))
   unsup = sg(depth_of({"params": branch.params["depth"], "batch_stats": consts.batch_stats}))
-  k = mcfg.depth_scale
+  k = ms["depth_scale"]
   labels = pseudo_labels(k * ref, k * ema, k * unsup, mcfg)
   l_sup, n_sup = silog(k * student, labels.sup, mcfg)
   l_unsup, n_unsup = silog(k * student, labels.unsup, mcfg)
@@ -269,6 +275,15 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: AdadepthConf
           "u_scale": labels.scale, "keep_sup": n_sup / pixels, "keep_unsup": n_unsup / pixels,
           "loss_d": l_d, "n_instances": n}
   return total, sg(Aux(student, logs, {"u": branch, "frames": ring_push(ring, frame.image)}))
+
+
+def depth_scale(config: AdadepthConfig, resources: dict) -> float:
+  """The factor to metres: `config.depth_scale`, else the weights' (`resources[METRIC_FACTOR]`,
+  given by `run.run_sequence`), else 1."""
+  if config.depth_scale is not None:
+    return config.depth_scale
+  factor = resources.get(METRIC_FACTOR)
+  return 1.0 if factor is None else factor
 
 
 def build(config: AdadepthConfig = AdadepthConfig()) -> Method:
@@ -298,7 +313,8 @@ def build(config: AdadepthConfig = AdadepthConfig()) -> Method:
     h, w = resources[INPUT_SIZE]
     return {"teacher": teacher, "u": branch,
             "frames": ring_init(jnp.zeros((h, w, 3), dtype), 1),
-            "ld_weight": jnp.asarray(config.ld_weight, dtype)}
+            "ld_weight": jnp.asarray(config.ld_weight, dtype),
+            "depth_scale": jnp.asarray(depth_scale(config, resources), dtype)}
 
   def update(state, grads, loss_value, aux, rng, tx, cfg):
     """S's Adam step (non-finite guard), U's step unless S's was rejected, E's EMA, the ring."""
@@ -320,5 +336,6 @@ def build(config: AdadepthConfig = AdadepthConfig()) -> Method:
                 # decoder's parameters in one Adam)
                 setting=(("selector", "all"),),
                 needs=("pose", "intrinsics", "previous_frame"), report_after_update=True,
+                metres=True,
                 # U's Adam step differentiates every kernel of its depth and pose networks
                 own_conv_kernel_grads=True)

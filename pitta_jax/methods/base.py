@@ -38,6 +38,9 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
   own_conv_kernel_grads: the step differentiates convolution kernels outside the trainable
       tree, whatever `AdaptConfig.selector` says (Ada-Depth's self-supervised branch U, which
       adapts every weight of its own networks); `auto` then treats it as adapting conv kernels.
+  metres: the method's constants are in metres: it multiplies the network's depth by its
+      config's `depth_scale`, else by the weights' factor to metres (resources["metric_factor"],
+      `run.metric_factor`), else 1 (the CLI notes that case).
   report_after_update: the frame's evaluated depth is the adapted network's prediction *after*
       the frame's update (`predict` with the new trainable leaves, one more forward pass) instead
       of `Aux.depth` (e.g. Ada-Depth, whose official code evaluates the student after its step).
@@ -61,6 +64,9 @@ Tree = Any
 NEEDS = ("pose", "intrinsics", "previous_frame")
 POSE = "pose"  # the resources key of the weights' pose network
 INPUT_SIZE = "input_size"  # the resources key of the frames' (H, W) (`run.run_sequence` gives it)
+# the resources key of the factor from the network's depth to metres where the weights give one,
+# else None (`run.metric_factor`; `run.run_sequence` gives it)
+METRIC_FACTOR = "metric_factor"
 
 
 class PoseNet(NamedTuple):
@@ -123,6 +129,7 @@ class Method:
   setting: tuple[tuple[str, Any], ...] = ()
   # evaluate the depth predicted after the frame's update instead of Aux.depth
   report_after_update: bool = False
+  metres: bool = False
   # `AdaptConfig.conv_library = "auto"` for this method on a CPU (see the module docstring)
   cpu_conv_library: str = "auto"
   # conv kernel gradients outside the trainable tree, whatever the selector (module docstring)
