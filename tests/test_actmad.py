@@ -2,7 +2,8 @@
 
 Reference: ActMAD as its official code computes it (BN forward hooks, torch.mean/var over the
 batch, nn.L1Loss per layer summed, BN in eval mode, torch SGD with Nesterov momentum and weight
-decay) on the PyTorch MonoDepth2 of torch_monodepth2 with random weights, converted to Flax with
+decay), with the source statistics of the whole set (ours: upstream averages per-batch ones,
+see test_source_stats.py) on the PyTorch MonoDepth2 of torch_monodepth2 with random weights, converted to Flax with
 weights_convert.monodepth2; + PITTA's L_d with native ops. float64 on both sides, 64x96.
 Checked: the source statistics; 3 online frames with a ring of K = 1 (0, 1, 1 previous frame:
 the oldest drops out), per frame the total loss, ActMAD's own loss and L_d, and the adapted
@@ -82,7 +83,7 @@ def jax_run(case):
 @pytest.fixture(scope="module")
 def torch_stats(case):
   enc, dec, _, _, source = case
-  return torch_tta.actmad_source_stats(enc, dec, source)
+  return torch_tta.pooled_source_stats(enc, dec, source)
 
 
 def _torch_run(case, stats, trainable, ld_weight, n_frames):

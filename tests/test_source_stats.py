@@ -1,9 +1,11 @@
 """`pitta-jax source-stats` and ActMAD's statistics files: written once, checked when loaded.
 
-Reference: tests/torch_tta.py's `actmad_source_stats` (ActMAD's forward hooks on the PyTorch
-MonoDepth2 of torch_monodepth2, torch.mean / torch.var over the images) on the same random
-weights, converted with `pitta-jax convert`; the file is read back with plain `np.load`. The
-synthetic cache is checked by counting the computations.
+Reference: tests/torch_tta.py's `pooled_source_stats` (ActMAD's forward hooks on the PyTorch
+MonoDepth2 of torch_monodepth2, torch.mean / torch.var over all the images) on the same random
+weights, converted with `pitta-jax convert`; the file is read back with plain `np.load`. Our
+statistics are the whole set's; upstream averages per-batch ones (`upstream_source_stats`): the
+file is checked against those through the exact relation between the two. The synthetic cache
+is checked by counting the computations.
 """
 
 from __future__ import annotations
@@ -59,7 +61,7 @@ def test_file_equals_torch_reference(written):
   assert (arrays["meta:architecture"].item(), arrays["meta:height"].item(),
           arrays["meta:width"].item(), arrays["meta:images"].item()) == ("monodepth2", H, W, N)
   assert arrays["meta:layers"].item() == ActmadConfig().layers
-  ref = torch_tta.actmad_source_stats(enc, dec, images)
+  ref = torch_tta.pooled_source_stats(enc, dec, images)
   names = {torch_tta.flax_path(f"{n}.weight").rsplit("/", 1)[0]: n for n in ref}
   layers = sorted(k[len("mean:"):] for k in arrays if k.startswith("mean:"))
   assert len(layers) == len(ref) == 20
@@ -212,3 +214,30 @@ def test_source_batches_read_lazily_with_a_progress_bar(capsys):
   assert "source statistics" in capsys.readouterr().err
   assert len(list(SourceData(images).batches(4))) == 2
   assert capsys.readouterr().err == ""  # no title: no bar
+
+
+def test_file_against_upstreams_averaged_batches(written):
+  """Upstream's statistics are the mean over loader batches of each batch's torch.mean and
+  torch.var (unbiased, per batch). With two batches of 2 images: our mean equals theirs, and
+  our variance is theirs plus the spread between the batches, exactly
+  (N - 1) var = sum_b (n_b - 1) var_b + sum_b n_b (mean_b - mean)^2."""
+  root, out, images, enc, dec = written
+  (avg, per_batch) = torch_tta.upstream_source_stats(enc, dec, [images[:2], images[2:]])
+  names = {torch_tta.flax_path(f"{n}.weight").rsplit("/", 1)[0]: n for n in avg}
+  with np.load(out, allow_pickle=False) as data:
+    arrays = {k: data[k] for k in data.files}
+  worst_mean = worst_var = gap = 0.0
+  for layer in sorted(k[len("mean:"):] for k in arrays if k.startswith("mean:")):
+    name = names[layer.split("/", 1)[1]]
+    hwc = lambda t: t.permute(1, 2, 0).numpy()
+    mean, var = arrays[f"mean:{layer}"], arrays[f"var:{layer}"]
+    u_mean, u_var = hwc(avg[name][0]), hwc(avg[name][1])
+    within = sum((2 - 1) * hwc(b[name][1]) for b in per_batch)
+    between = sum(2 * (hwc(b[name][0]) - u_mean) ** 2 for b in per_batch)
+    worst_mean = max(worst_mean, np.max(np.abs(mean - u_mean)) / np.max(np.abs(u_mean)))
+    worst_var = max(worst_var, np.max(np.abs((N - 1) * var - (within + between)))
+                    / np.max(np.abs(within + between)))
+    gap = max(gap, np.max(np.abs(var - u_var)) / np.max(u_var))
+  print(f"vs upstream's averaged batches (2 + 2): mean {worst_mean:.1e}, variance through the "
+        f"relation {worst_var:.1e}; our variance differs from theirs by up to {gap:.2f} x max")
+  assert worst_mean < 1e-5 and worst_var < 1e-5

@@ -6,7 +6,11 @@ Written the way their official code does it, with native ops, not shaped after o
   layer summed, model in train mode with its BN modules in eval mode, `torch.optim.SGD(lr,
   momentum, weight_decay, nesterov=True)`. Our online variant's batch = the current frame + a
   `collections.deque(maxlen=K)` of previous frames' detached hooked outputs; with a single
-  sample the variance is taken as 0.
+  sample the variance is taken as 0. Source statistics both ways: upstream's `AverageMeter` of
+  per-batch statistics (`upstream_source_stats`) and the whole set's (`pooled_source_stats`,
+  our definition).
+Where our variant departs from upstream (online batch, BN eval mode in CoTTA, no hue), the
+reference follows the variant, as methods/*.py document it.
 - CoTTA (qinenergy/cotta, cifar/cotta.py + my_transforms.py): `deepcopy` teacher (the anchor
   only gates, see `CoTTA`), N augmented views with torchvision's tensor formulas (brightness/contrast/saturation blends,
   gamma with the 1e-8 clamp, edge padding, a 5x5 Gaussian blur, centre crop, flip, noise, clip) from
@@ -92,13 +96,32 @@ def _hooked_forward(enc, dec, x):
   return disp, saved
 
 
-def actmad_source_stats(enc, dec, images: np.ndarray) -> dict:
-  """{bn name: (mean, var)} over the images (N, H, W, 3), eval mode, each (C, h, w)."""
+def pooled_source_stats(enc, dec, images: np.ndarray) -> dict:
+  """{bn name: (mean, var)} of the whole set of images (N, H, W, 3): `torch.mean` / `torch.var`
+  over all their hooked outputs stacked, eval mode, each (C, h, w). This is our definition
+  (`actmad.source_statistics`); upstream's is `upstream_source_stats`."""
   enc.eval(), dec.eval()
   with torch.no_grad():
     outs = [_hooked_forward(enc, dec, _image(im))[1] for im in images]
   return {n: (torch.vstack([o[n] for o in outs]).mean(0), torch.vstack([o[n] for o in outs]).var(0))
           for n in outs[0]}
+
+
+def upstream_source_stats(enc, dec, batches: list[np.ndarray]) -> tuple[dict, list[dict]]:
+  """ActMAD's own clean statistics (methods/actmad_kitti.py with utils' `SaveOutput` and
+  `AverageMeter`): per loader batch (B, H, W, 3) the hooked outputs' `torch.mean(dim=0)` and
+  `torch.var(dim=0)`, averaged over batches, each batch counting once. Returns
+  ({bn name: (mean, var)}, the per-batch {bn name: (mean, var)})."""
+  enc.eval(), dec.eval()
+  per_batch = []
+  with torch.no_grad():
+    for batch in batches:
+      x = torch.cat([_image(im) for im in batch])
+      outs = _hooked_forward(enc, dec, x)[1]
+      per_batch.append({n: (o.mean(dim=0), o.var(dim=0)) for n, o in outs.items()})
+  meters = {n: tuple(sum(b[n][i] for b in per_batch) / len(per_batch) for i in range(2))
+            for n in per_batch[0]}
+  return meters, per_batch
 
 
 class ActMAD:
