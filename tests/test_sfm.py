@@ -231,12 +231,12 @@ def loss_case():
 
 @pytest.fixture(scope="module")
 def jax_loss():
-  """One compiled value-and-gradient of the loss per dtype, shared by the loss tests."""
+  """One compiled value-and-gradient of the loss per case and dtype, shared by the loss tests."""
   compiled = {}
 
   def run(case, dtype, weights):
     with _x64(dtype):
-      if dtype not in compiled:
+      if (id(case), dtype) not in compiled:
         def f(disps, aa, tr, weights):
           poses = jnp.stack([sfm.transformation_from_parameters(aa[:, i], tr[:, i])
                              for i in range(N)], 1)
@@ -245,8 +245,9 @@ def jax_loss():
               jnp.asarray(case["K"], dtype), jnp.asarray(case["inv_K"], dtype), poses,
               cfg=sfm.SfmLossConfig(), noise=jnp.asarray(case["noise"], dtype),
               pixel_weights=weights)
-        compiled[dtype] = jax.jit(jax.value_and_grad(f, argnums=(0, 1, 2), has_aux=True))
-      (val, aux), grads = compiled[dtype](
+        compiled[id(case), dtype] = jax.jit(jax.value_and_grad(f, argnums=(0, 1, 2),
+                                                               has_aux=True))
+      (val, aux), grads = compiled[id(case), dtype](
           [jnp.asarray(d, dtype) for d in case["disps"]], jnp.asarray(case["aa"], dtype),
           jnp.asarray(case["tr"], dtype), jnp.asarray(weights, dtype))
       return np.asarray(val), jax.tree.map(np.asarray, aux), jax.tree.map(np.asarray, grads)
@@ -298,6 +299,28 @@ def test_monodepth2_loss_float64(loss_case, jax_loss, torch_float64):
   assert 0.05 < want["sel"].mean() < 0.95, "the identity and the warped losses must both win"
   np.testing.assert_array_equal(got[1].identity_selection, want["sel"])
   _compare_loss(got, want, 1e-10, 1e-12, 1e-9)
+
+
+def test_monodepth2_loss_exact_ties_float64(loss_case, jax_loss):
+  """The per-pixel minimum at exact ties, as `torch.min(dim)` takes it: the first candidate wins
+  and gets the whole gradient. Source 1 is source 0 with source 0's pose, so the two warped
+  candidates are equal bit for bit wherever they are computed; PyTorch then sends their
+  gradient to source 0's pose only (source 1's pose gradient is exactly 0), and so must we.
+  (A rule that split ties, or took the last, would put gradient on source 1's pose.)"""
+  sources, aa, tr = (loss_case[k].copy() for k in ("sources", "aa", "tr"))
+  sources[:, 1], aa[:, 1], tr[:, 1] = sources[:, 0], aa[:, 0], tr[:, 0]
+  case = {**loss_case, "sources": sources, "aa": aa, "tr": tr}
+  want = _torch_loss(case, np.float64, np.ones((B, H, W)))
+  cand = want["candidates"]                                           # (S, B, 2N, H, W)
+  np.testing.assert_array_equal(cand[:, :, N], cand[:, :, N + 1])     # the warped pair ties
+  print(f"warped (tied) source wins at {want['sel'].mean():.3f} of the pixels")
+  assert 0.05 < want["sel"].mean() < 0.95
+  assert np.all(want["gaa"][:, 1] == 0) and np.all(want["gtr"][:, 1] == 0)
+  assert np.max(np.abs(want["gaa"][:, 0])) > 0 and np.max(np.abs(want["gtr"][:, 0])) > 0
+  got = jax_loss(case, np.float64, np.ones((B, H, W)))
+  np.testing.assert_array_equal(got[1].identity_selection, want["sel"])
+  _compare_loss(got, want, 1e-10, 1e-12, 1e-9)
+  assert np.all(got[2][1][:, 1] == 0) and np.all(got[2][2][:, 1] == 0)
 
 
 def _float32_kinks(ref: dict, margin: float = 1e-5) -> dict[str, np.ndarray]:
