@@ -17,7 +17,8 @@ frame the loss, CoMoDa's own term, L_d and the evaluated depth, and the depth AN
 parameters after 2 updates (ld_weight 1) and after 1 update (ld_weight 0, against the reference
 without L_d); at the first update loss(ld 1) - loss(ld 0) = L_d. On tiny networks (a second,
 cheap compile): latency 1 (no update on frames 0, 1; frame t-1 adapted from (t-2, t), its loss
-rebuilt with the library's loss kit; the evaluated depth is frame t's after the update, as
+rebuilt in PyTorch from the tiny networks' outputs as upstream's triplet mode composes it:
+sources [t-2, t], poses inverted for the earlier frame; the evaluated depth is frame t's after the update, as
 upstream's), two runs bitwise equal,
 and the non-finite guard over both networks.
 """
@@ -45,13 +46,11 @@ from pitta_jax.masks import DEFAULT_DYNAMIC_COCO_IDS
 from pitta_jax.methods.base import POSE, PoseNet, SourceData
 from pitta_jax.methods.comoda import (REPLAY_IMAGES, REPLAY_K, ComodaConfig, build, replay_set,
                                       step_draws)
-from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
+from pitta_jax.methods.depth_refining import DepthRefiningConfig
 from pitta_jax.models.depth_decoder import disp_to_depth
 from pitta_jax.models.pose import PoseNet as FlaxPoseNet
-from pitta_jax.models.pose import transformation_from_parameters
 from pitta_jax.models.registry import Network, network
 from pitta_jax.models.spec import ModelSpec
-from pitta_jax.sfm import monodepth2_loss
 from weights_convert import rules as R
 from weights_convert.monodepth2 import (convert_monodepth2, depth_decoder_rules, encoder_rules,
                                         pose_decoder_rules)
@@ -377,21 +376,15 @@ def tiny_case():
 
 
 @jax.jit
-def _latency1_terms(depth_params, pose_params, centre_frame, target, before, after, K, mask, noise):
-  """MonoDepth2's loss of the targets from (before, after) + L_d of the first target's depth,
-  written out with the library's loss kit."""
+def _tiny_outputs(depth_params, pose_params, target, before, after):
+  """The tiny networks' outputs the reference needs: the targets' 4 disparities (B, h, w) and
+  the pose decoder's (axisangle, translation) (B, 2, 1, 3) of MonoDepth2's `predict_poses`
+  pairs: frame -1 as (source, target), frame +1 as (target, source)."""
+  disps = [d[..., 0] for d in TinyDepth().apply({"params": depth_params, "batch_stats": {}},
+                                                target)]
   pose_vars = {"params": pose_params, "batch_stats": {}}
-  a, tr = TinyPose().apply(pose_vars, jnp.concatenate([before, target], -1))
-  T_before = transformation_from_parameters(a[:, 0], tr[:, 0], invert=True)
-  a, tr = TinyPose().apply(pose_vars, jnp.concatenate([target, after], -1))
-  T_after = transformation_from_parameters(a[:, 0], tr[:, 0])
-  variables = {"params": depth_params, "batch_stats": {}}
-  disps = [d[..., 0] for d in TinyDepth().apply(variables, target)]
-  own, _ = monodepth2_loss(target, jnp.stack([before, after], 1), disps, K, jnp.linalg.inv(K),
-                           jnp.stack([T_before, T_after], 1), cfg=LATENCY1.sfm, noise=noise,
-                           pixel_weights=mask)
-  l_d, _ = depth_refining_term(disp_to_depth(disps[0][0], 0.1, 100.0), centre_frame, LATENCY1.ld)
-  return own, l_d
+  return (disps, TinyPose().apply(pose_vars, jnp.concatenate([before, target], -1)),
+          TinyPose().apply(pose_vars, jnp.concatenate([target, after], -1)))
 
 
 @jax.jit
@@ -402,8 +395,11 @@ def _tiny_depth(depth_params, image):
 
 
 def _expected_latency1_loss(case, t, state=None):
-  """Step t's terms built by hand: MonoDepth2's loss of frame t-1 from (t-2, t) and the replay
-  triplets, K of frame t-1, frame t-1's moving objects masked, + L_d of frame t-1's depth, with
+  """Step t's terms in PyTorch, as upstream's triplet mode composes them: MonoDepth2's loss
+  (tests/torch_sfm.py) of frame t-1 from sources [t-2, t] and of the replay triplets' centres
+  from their neighbours, poses by `transformation_from_parameters` with `invert=True` for the
+  earlier frame and `invert=False` for the later one, K of frame t-1, frame t-1's moving
+  objects masked, + L_d (torch_tta) of frame t-1's depth; the tiny networks' outputs come from
   the parameters before step t (`state`, by default the uninterrupted run's)."""
   frames, inputs, replay, states, _, _, _ = case
   if state is None:
@@ -417,12 +413,20 @@ def _expected_latency1_loss(case, t, state=None):
   ids = [s.id for s in frames[t - 1].segments if s.category_id in DEFAULT_DYNAMIC_COCO_IDS]
   mask = np.concatenate([(~np.isin(inputs[t - 1].panoptic, ids))[None],
                          np.ones((len(idx), TINY_H, TINY_W))])
-  terms = _latency1_terms(
-      state.trainable, state.method_state["pose"].trainable, inputs[t - 1],
-      np.concatenate([inputs[t - 1].image[None], images[idx, 1]]),
-      np.concatenate([inputs[t - 2].image[None], images[idx, 0]]),
-      np.concatenate([inputs[t].image[None], images[idx, 2]]), K, mask, noise)
-  return tuple(np.asarray(x) for x in terms)
+  target = np.concatenate([inputs[t - 1].image[None], images[idx, 1]])
+  before = np.concatenate([inputs[t - 2].image[None], images[idx, 0]])
+  after = np.concatenate([inputs[t].image[None], images[idx, 2]])
+  disps, (a_b, t_b), (a_a, t_a) = jax.tree_util.tree_map(np.asarray, _tiny_outputs(
+      state.trainable, state.method_state["pose"].trainable, target, before, after))
+  f64 = lambda x: torch.from_numpy(np.asarray(x, np.float64))
+  poses = [torch_sfm.transformation_from_parameters(f64(a_b)[:, 0], f64(t_b)[:, 0], invert=True),
+           torch_sfm.transformation_from_parameters(f64(a_a)[:, 0], f64(t_a)[:, 0])]
+  loss = torch_sfm.Monodepth2Loss(len(target), TINY_H, TINY_W, dtype=torch.float64)
+  own, *_ = loss(_chw(target), [_chw(before), _chw(after)], [f64(d)[:, None] for d in disps],
+                 f64(K), f64(np.linalg.inv(K)), poses, f64(noise), pixel_weights=f64(mask))
+  depth = torch_tta.disp_to_depth(f64(disps[0][0]))
+  l_d = torch_tta.depth_refining(depth, inputs[t - 1].panoptic, ids, WINDOW)
+  return float(own), float(l_d)
 
 
 def test_latency_1_adapts_the_previous_frame_one_frame_late(tiny_case):
