@@ -1,7 +1,8 @@
 """The decoder's fast layer forms (`models.layers`) against their plain definitions.
 
 - `reflect_pad` equals NumPy's `np.pad(mode="reflect")` (what `nn.ReflectionPad2d` does),
-  including maps of 1 pixel (NumPy's rule);
+  and on maps of 1 pixel NumPy's rule (our extension: `nn.ReflectionPad2d` raises there, so
+  upstream MonoDepth2 cannot run an input whose 1/32 map is 1 pixel, e.g. 32 pixels wide);
 - `reflect_conv3x3` (padded conv with the ring sliced off, or VALID) equals the VALID conv of
   the reflection-padded map, bit for bit, on both sides of the `padded_conv_is_cheap` rule;
 - `upsample_reflect_conv3x3` (four 2x2 phase convs at low resolution, or the direct form below

@@ -193,7 +193,7 @@ def reflect_pad(x: jax.Array, pad: int = 1) -> jax.Array:
   and backward (about 10% of a decoder convolution's time at 640x192).
   """
   h, w = x.shape[1], x.shape[2]
-  if pad == 0 or pad >= h or pad >= w:  # maps this small: NumPy's rule (repeats at size 1)
+  if pad == 0 or pad >= h or pad >= w:  # NumPy's rule (repeats at size 1); torch's raises
     return jnp.pad(x, ((0, 0), (pad, pad), (pad, pad), (0, 0)), mode="reflect")
   x = jnp.concatenate([jnp.flip(x[:, 1:pad + 1], 1), x, jnp.flip(x[:, h - pad - 1:h - 1], 1)], 1)
   return jnp.concatenate([jnp.flip(x[:, :, 1:pad + 1], 2), x,
