@@ -13,6 +13,9 @@ ReLU (as in a network, and so that XLA cannot hoist it):
 - `patches`: one matrix product of the input's nine shifted copies, (N H W, 9 C) @ (9 C, O)
   (what `conv_vjp` uses for ResNet's last stage, `FEW_PIXELS_*`);
 - `taps`: nine products of a shifted copy with one tap of the kernel, summed;
+- `winograd`: Winograd's F(2x2, 3x3) (Lavin and Gray, 2016): 4x4 input tiles at stride 2, 16
+  products (tiles, C) @ (C, O) of the transformed tiles and kernel (2.25x fewer multiplies than
+  the convolution), the 2x2 outputs of each tile interleaved back;
 each compiled with XLA's default convolution library and with Eigen's (`--libraries`), and
 `torch`: `torch.nn.functional.conv2d` in NCHW and in `channels_last` (oneDNN), same threads.
 Every form is checked against `conv` (relative 1e-5). Prints one JSON line per layer: the best
@@ -69,7 +72,31 @@ def taps_form(x: jax.Array, k: jax.Array) -> jax.Array:
   return sum(jnp.einsum("nhwc,co->nhwo", s, taps[t]) for t, s in enumerate(_shifted(x)))
 
 
-FORMS = {"conv": conv_form, "patches": patches_form, "taps": taps_form}
+def _winograd_rows(r: list[jax.Array]) -> list[jax.Array]:
+  """B^T d of Winograd's F(2, 3) along a list of four rows (or columns) d."""
+  return [r[0] - r[2], r[1] + r[2], r[2] - r[1], r[1] - r[3]]
+
+
+def winograd_form(x: jax.Array, k: jax.Array) -> jax.Array:
+  """F(2x2, 3x3): Y = A^T [(G k G^T) * (B^T d B)] A per 4x4 tile d (H and W even)."""
+  n, h, w, c = x.shape
+  g = jnp.array([[1, 0, 0], [.5, .5, .5], [.5, -.5, .5], [0, 0, 1]], k.dtype)
+  u = jnp.einsum("ai,ijco,bj->abco", g, k, g).reshape(16, c, -1)     # (16, C, O)
+  xp = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)))
+  th, tw = h // 2, w // 2
+  rows = _winograd_rows([xp[:, i:i + 2 * th:2] for i in range(4)])  # 4 x (N, th, W + 2, C)
+  v = jnp.stack([t for r in rows
+                 for t in _winograd_rows([r[:, :, j:j + 2 * tw:2] for j in range(4)])])
+  m = lax.dot_general(v.reshape(16, n * th * tw, c), u, (((2,), (1,)), ((0,), (0,))))
+  m = m.reshape(4, 4, n, th, tw, -1)                                 # (4, 4, N, th, tw, O)
+  t = [m[0] + m[1] + m[2], m[1] - m[2] - m[3]]                       # A^T along rows
+  y = [[s[0] + s[1] + s[2], s[1] - s[2] - s[3]] for s in t]          # and along columns
+  y = jnp.stack([jnp.stack(y[0], -2), jnp.stack(y[1], -2)], 2)       # (N, th, 2, tw, 2, O)
+  return y.reshape(n, h, w, -1)
+
+
+FORMS = {"conv": conv_form, "patches": patches_form, "taps": taps_form,
+         "winograd": winograd_form}
 
 
 def time_jax(form, x, k, loops: int, reps: int, compiler_options: dict | None
