@@ -37,8 +37,8 @@ loss as the JAX method, written as their upstream code does it:
   conv and BN parameter;
 - `TorchCotta` (qinenergy/cotta): student and EMA teacher (`deepcopy`), N augmented views
   (upstream's loop of per-view transforms, `tests/torch_tta.t_augment`) through the teacher as
-  one batch, their mean as the pseudo label (or the method's per-pixel gate), L1 + L_d; Adam on every parameter, EMA, stochastic
-  restore.
+  one batch, their mean as the pseudo label (or the method's per-pixel gate), L1 + L_d; Adam on
+  every parameter, EMA, stochastic restore.
 """
 
 from __future__ import annotations

@@ -3,8 +3,8 @@
 Reference: ActMAD as its official code computes it (BN forward hooks, torch.mean/var over the
 batch, nn.L1Loss per layer summed, BN in eval mode, torch SGD with Nesterov momentum and weight
 decay), with the source statistics of the whole set (ours: upstream averages per-batch ones,
-see test_source_stats.py) on the PyTorch MonoDepth2 of torch_monodepth2 with random weights, converted to Flax with
-weights_convert.monodepth2; + PITTA's L_d with native ops. float64 on both sides, 64x96.
+see test_source_stats.py) on the PyTorch MonoDepth2 of torch_monodepth2 with random weights,
+converted to Flax with weights_convert.monodepth2; + PITTA's L_d with native ops. float64 on both sides, 64x96.
 Checked: the source statistics; 3 online frames with a ring of K = 1 (0, 1, 1 previous frame:
 the oldest drops out), per frame the total loss, ActMAD's own loss and L_d, and the adapted
 parameters after the 3 updates; with ld_weight 0 one step's loss and parameters equal plain

@@ -69,8 +69,8 @@ from flax import struct
 
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, finite, option
-from pitta_jax.methods.base import (INPUT_SIZE, METRIC_FACTOR, POSE, Aux, Method, ring_init, ring_push,
-                                    ring_restart, variables_of)
+from pitta_jax.methods.base import (INPUT_SIZE, METRIC_FACTOR, POSE, Aux, Method, ring_init,
+                                    ring_push, ring_restart, variables_of)
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
 from pitta_jax.models.pose import transformation_from_parameters
 from pitta_jax.sfm import SfmLossConfig, check_scales, monodepth2_loss

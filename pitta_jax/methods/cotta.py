@@ -37,8 +37,8 @@ does not depend on the other views: the method requires `AdaptConfig.bn_stats ==
 and the anchor, so all three normalise with the statistics of the test batch, each augmented
 view with its own; with one frame per step, batch statistics would be those of one image.)
 The restore target (upstream's anchor, the source) is the engine's `state.source` (the
-trainable leaves at the start); the teacher is in the method state. Which leaves adapt is `AdaptConfig.selector`
-(upstream adapts every weight and bias: `--selector all`). With `reset_every`, the engine resets
+trainable leaves at the start); the teacher is in the method state. Which leaves adapt is
+`AdaptConfig.selector` (upstream adapts every weight and bias: `--selector all`). With `reset_every`, the engine resets
 the student and its optimiser and the teacher is copied from the source again, as upstream's
 `reset()` does (the anchor is the source throughout).
 """
