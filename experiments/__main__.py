@@ -1,5 +1,4 @@
-import sys
-
 from experiments import main
+from pitta_jax.cli import exit_with
 
-sys.exit(main())
+exit_with(main())

@@ -19,7 +19,6 @@ the frame's statistics (train-mode BN, as in TENT), and the loss moves the BN sc
 from __future__ import annotations
 
 import math
-import sys
 from typing import Sequence
 
 import numpy as np
@@ -144,4 +143,5 @@ def main(argv: Sequence[str] | None = None, runners=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from pitta_jax.cli import exit_with
+  exit_with(main())

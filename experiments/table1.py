@@ -7,7 +7,6 @@ by every method of the paper's comparison; each baseline with PITTA's L_d added 
 
 from __future__ import annotations
 
-import sys
 from typing import Sequence
 
 from experiments import common
@@ -62,4 +61,5 @@ def main(argv: Sequence[str] | None = None, runners=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from pitta_jax.cli import exit_with
+  exit_with(main())

@@ -7,7 +7,6 @@ every baseline with PITTA's L_d (paper Sec. 4.1).
 
 from __future__ import annotations
 
-import sys
 from typing import Sequence
 
 from experiments import common
@@ -38,4 +37,5 @@ def main(argv: Sequence[str] | None = None, runners=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from pitta_jax.cli import exit_with
+  exit_with(main())

@@ -15,7 +15,6 @@ attention blocks): its BatchNorms, as for the CNNs.
 from __future__ import annotations
 
 import dataclasses
-import sys
 from typing import Sequence
 
 from experiments import common
@@ -103,4 +102,5 @@ def main(argv: Sequence[str] | None = None, runners=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from pitta_jax.cli import exit_with
+  exit_with(main())

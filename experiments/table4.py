@@ -11,7 +11,6 @@ import dataclasses
 
 import json
 import math
-import sys
 from typing import Sequence
 
 import numpy as np
@@ -124,4 +123,5 @@ def main(argv: Sequence[str] | None = None, runners=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from pitta_jax.cli import exit_with
+  exit_with(main())

@@ -7,7 +7,6 @@ a% of the encoder's conv layers and the scale/shift of its last b% of BN layers.
 
 from __future__ import annotations
 
-import sys
 from typing import Sequence
 
 from experiments import common
@@ -41,4 +40,5 @@ def main(argv: Sequence[str] | None = None, runners=None) -> int:
 
 
 if __name__ == "__main__":
-  sys.exit(main())
+  from pitta_jax.cli import exit_with
+  exit_with(main())

@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import os
 import sys
+from typing import NoReturn
 
 from pitta_jax.data.errors import DataError
 
@@ -650,5 +651,24 @@ def main(argv: list[str] | None = None) -> int:
     return 143 if isinstance(e, Terminated) else 130
 
 
+def exit_with(code: int) -> NoReturn:
+  """Ends the process with a command's exit code. A failed or interrupted command ends it at
+  once (`os._exit`, after flushing): JAX may still be compiling on a thread of its own (a Ctrl-C
+  is handled only once the compile returns to Python, and another may be under way), and
+  tensorstore's reads of a damaged checkpoint may still be pending; the interpreter's teardown
+  frees what they use, which crashed the process (SIGSEGV instead of exit 130) or printed
+  asyncio tracebacks after the error line. Every file the command writes is closed by then."""
+  sys.stdout.flush()
+  sys.stderr.flush()
+  if code:
+    os._exit(code)
+  sys.exit(code)
+
+
+def console() -> NoReturn:
+  """The `pitta-jax` console script."""
+  exit_with(main())
+
+
 if __name__ == "__main__":
-  sys.exit(main())
+  console()

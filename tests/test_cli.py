@@ -181,3 +181,23 @@ def test_shared_flags_reach_the_selected_method():
   _route_method_aliases(demo, None)
   configs = _method_configs_from_args(demo)
   assert all(c.ld_weight == 0.0 for name, c in configs.items() if hasattr(c, "ld_weight"))
+
+
+def test_a_failed_or_interrupted_command_ends_the_process_at_once(monkeypatch):
+  """`exit_with` (the console scripts' exit): a non-zero code ends the process with os._exit
+  (no interpreter teardown under a compile still running on JAX's thread, which crashed a
+  Ctrl-C'd run with SIGSEGV); 0 exits normally."""
+  import os
+  from pitta_jax import cli
+  ended = []
+
+  def fake_exit(code):
+    ended.append(code)
+    raise SystemExit(code)
+  monkeypatch.setattr(os, "_exit", fake_exit)
+  for code in (2, 130, 143):
+    with pytest.raises(SystemExit):
+      cli.exit_with(code)
+  with pytest.raises(SystemExit) as e:
+    cli.exit_with(0)
+  assert ended == [2, 130, 143] and e.value.code == 0

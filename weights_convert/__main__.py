@@ -1,5 +1,4 @@
-import sys
-
+from pitta_jax.cli import exit_with
 from weights_convert.cli import main
 
-sys.exit(main())
+exit_with(main())
