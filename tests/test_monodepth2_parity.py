@@ -348,3 +348,41 @@ def test_convert_never_writes_over_its_inputs_and_replaces_old_weights_whole(r18
   assert main(["convert", "monodepth2", "--encoder", str(enc), "--depth", str(depth), "--out",
                str(out)]) == 0
   assert not (out / "pose").exists() and not load_weights(out).config["has_pose"]
+
+
+@pytest.mark.parametrize("layout", ["dataset", "user_json", "user_file_in_depth", "empty_path"])
+def test_convert_refuses_to_replace_what_is_not_earlier_weights(r18, tmp_path, capsys, layout):
+  """What a conversion writes (model.json, depth/, pose/) replaces only earlier weights: a
+  dataset's depth/ folder, a user's model.json, or a depth/ beside a foreign model.json are
+  refused before any work, one line, exit 2, untouched; other files in --out (the .pth files
+  converted) are left alone; an empty --out is refused."""
+  import json
+  import shutil
+  from pitta_jax.cli import main
+  enc, depth, _, _ = _paths(r18["root"] / "zip")
+  out = tmp_path / "out"
+  (out / "depth").mkdir(parents=True)
+  if layout == "dataset":
+    (out / "depth" / "0000.png").write_bytes(b"ground truth")
+    (out / "image").mkdir()
+  elif layout == "user_json":
+    shutil.rmtree(out / "depth")
+    (out / "model.json").write_text(json.dumps({"notes": "mine"}))
+  elif layout == "user_file_in_depth":
+    (out / "depth" / "notes.txt").write_text("mine")
+    (out / "model.json").write_text("not json")
+  before = sorted(p.relative_to(out).as_posix() for p in out.rglob("*"))
+  target = "" if layout == "empty_path" else str(out)
+  assert main(["convert", "monodepth2", "--encoder", str(enc), "--depth", str(depth), "--out",
+               target]) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and err.startswith(f"error: --out {target}".rstrip())
+  assert ("an empty path" if layout == "empty_path" else "not earlier pitta-jax weights") in err
+  assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == before
+  # the converted .pth files beside the weights: left alone
+  shutil.rmtree(out)
+  out.mkdir()
+  shutil.copy(enc, out / "encoder.pth")
+  assert main(["convert", "monodepth2", "--encoder", str(out / "encoder.pth"), "--depth",
+               str(depth), "--out", str(out)]) == 0
+  assert (out / "encoder.pth").is_file() and load_weights(out).config["num_layers"] == 18

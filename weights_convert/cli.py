@@ -45,6 +45,39 @@ def add_subcommands(parser: argparse.ArgumentParser) -> None:
 
 # what a converter writes under --out (a depth network's weights directory, or Mask2Former's)
 WRITTEN = (MODEL_JSON, "depth", "pose", CONFIG_JSON, PARAMS_DIR)
+def check_output_replaceable(out: str) -> None:
+  """ValueError when --out holds something a conversion would replace (model.json, depth/,
+  pose/, config.json, params/) that is not earlier pitta-jax weights: a dataset's depth/
+  folder, a user's own model.json. Earlier weights (a model.json or Mask2Former's config.json
+  naming an architecture, beside orbax checkpoint folders) are replaced, as a rerun expects;
+  anything else in --out (e.g. the .pth files converted) is left alone."""
+  import json
+  from pathlib import Path
+  if not out:
+    raise ValueError("--out: an empty path (give the weights directory to write)")
+  path = Path(out)
+  present = [name for name in WRITTEN if (path / name).exists()] if path.is_dir() else []
+  if not present:
+    return
+
+  def is_description(p: Path) -> bool:
+    try:
+      return p.is_file() and "architecture" in json.loads(p.read_text())
+    except (OSError, ValueError, TypeError):
+      return False
+
+  def is_checkpoint(p: Path) -> bool:
+    return p.is_dir() and any((p / m).is_file() for m in ("_METADATA", "_CHECKPOINT_METADATA"))
+  descriptions = [n for n in present if n in (MODEL_JSON, CONFIG_JSON)]
+  foreign = [n for n in present
+             if not (is_description(path / n) if n in (MODEL_JSON, CONFIG_JSON)
+                     else is_checkpoint(path / n))]
+  if foreign or not descriptions:
+    names = foreign or present
+    shown = ", ".join(f"{n}/" if (path / n).is_dir() else n for n in names)
+    raise ValueError(f"--out {out}: its {shown} would be replaced and "
+                     f"{'are' if len(names) > 1 else 'is'} not earlier pitta-jax weights: choose "
+                     f"a new or empty directory")
 
 
 def check_inputs_outside_output(args: argparse.Namespace) -> None:
@@ -67,7 +100,8 @@ def check_inputs_outside_output(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
   from pitta_jax.outputs import open_output_dir
   try:
-    check_inputs_outside_output(args)
+    check_inputs_outside_output(args)  # the more specific message first
+    check_output_replaceable(args.out)
     with open_output_dir(args.out):  # checked and locked before reading any checkpoint
       args.convert_fn(args)
   except (CheckpointError, FileNotFoundError, ValueError) as e:
