@@ -79,9 +79,19 @@ def save_tree(path: str | os.PathLike, tree: Any) -> None:
 
 def load_tree(path: str | os.PathLike) -> Any:
   """Reads an orbax checkpoint written by `save_tree` (arrays come back as NumPy); its values
-  are read once synchronously first (`_check_readable`)."""
-  _check_readable(Path(path))
-  return _checkpointer().restore(os.path.abspath(path))
+  are read once synchronously first (`_check_readable`). WeightsError naming the directory when
+  it is missing or unreadable (orbax raises many kinds for a damaged one: a missing _METADATA
+  is a FileNotFoundError, a truncated array a ValueError)."""
+  path = Path(path)
+  if not path.is_dir():
+    raise WeightsError(f"{path}: the checkpoint is missing")
+  try:
+    _check_readable(path)
+    return _checkpointer().restore(os.path.abspath(path))
+  except WeightsError:
+    raise
+  except Exception as e:
+    raise _unreadable(path, e) from None
 
 
 def save_weights(out_dir: str | os.PathLike, architecture: str, config: dict[str, Any],
@@ -216,25 +226,14 @@ def _check_readable(path: Path) -> None:
       raise _unreadable(path, e) from None
 
 
-def _restore(path: Path) -> Any:
-  if not path.is_dir():
-    raise WeightsError(f"{path}: the checkpoint is missing")
-  try:
-    return load_tree(path)
-  except WeightsError:
-    raise
-  except Exception as e:  # orbax raises many kinds for a corrupt directory
-    raise _unreadable(path, e) from None
-
-
 def load_weights(weights_dir: str | os.PathLike) -> Weights:
   """Loads and validates a weights directory written by `save_weights`."""
   root = Path(weights_dir)
   spec, config = read_model_json(root)
-  depth = _check_tree(_restore(root / "depth"), spec.build(config), config, root / "depth", 3)
+  depth = _check_tree(load_tree(root / "depth"), spec.build(config), config, root / "depth", 3)
   pose = None
   if config.get("has_pose"):
     if spec.build_pose is None:
       raise WeightsError(f"{root / MODEL_JSON}: has_pose is set, but {spec.name} has no pose net")
-    pose = _check_tree(_restore(root / "pose"), spec.build_pose(config), config, root / "pose", 6)
+    pose = _check_tree(load_tree(root / "pose"), spec.build_pose(config), config, root / "pose", 6)
   return Weights(spec, config, depth, pose)

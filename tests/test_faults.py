@@ -318,6 +318,13 @@ def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, caps
   assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
   assert f"resuming from state_{N - 2 * K:06d} instead" in capsys.readouterr().err
   assert json.loads((out / "results.json").read_text())["per_frame"] == done["per_frame"]
+  # orbax's _METADATA gone (its FileNotFoundError): the same fallback, one warning line
+  (ckpt / f"state_{N - K:06d}" / "_METADATA").unlink()
+  assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
+  fallback = [line for line in capsys.readouterr().err.splitlines() if "resuming from" in line]
+  assert len(fallback) == 1 and fallback[0].startswith("warning: ")
+  assert f"resuming from state_{N - 2 * K:06d} instead" in fallback[0]
+  assert json.loads((out / "results.json").read_text())["per_frame"] == done["per_frame"]
   # nothing ran in that call: the speed is the earlier calls' (it was frames / ~0 s once)
   seconds = done["seconds"]
   assert seconds["total"] > seconds["this_call"] >= 0
