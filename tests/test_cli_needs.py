@@ -182,6 +182,11 @@ def test_a_config_check_names_the_flag(capsys):
   assert main(["train-source", "--source.pose-fraction", "2"]) == 2
   assert capsys.readouterr().err == ("error: --source.pose-fraction: pose_fraction must be in "
                                      "[0, 1], got 2.0\n")
+  # a seed jax.random.PRNGKey cannot take (it raised OverflowError after the weights loaded)
+  for seed in ("-1", str(2**63)):
+    assert main(["adapt", "--dataset", "synthetic", "--out", "unused", "--seed", seed]) == 2
+    assert capsys.readouterr().err == (f"error: --adapt.seed: seed must be in [0, 2^63), got "
+                                       f"{seed}\n")
 
 
 def test_depth_refining_config_takes_coco_names_and_refuses_non_integers():
