@@ -132,12 +132,13 @@ def atomic_write_files(directory: str | os.PathLike, contents: dict[str, str | b
     raise
 
 
-def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
-  """`np.save` atomically."""
+def npy_bytes(array: np.ndarray) -> bytes:
+  """What `np.save` writes for `array` (no pickles)."""
   import io
   buffer = io.BytesIO()
   np.save(buffer, np.asarray(array), allow_pickle=False)
-  atomic_write_bytes(path, buffer.getvalue())
+  return buffer.getvalue()
+
 
 
 def json_safe(obj: Any) -> tuple[Any, int]:

@@ -25,10 +25,10 @@ from tqdm import tqdm
 
 from pitta_jax import viz
 from pitta_jax.checkpoint import load_weights
-from pitta_jax.outputs import save_npy
+from pitta_jax.outputs import atomic_write_files, npy_bytes
 from pitta_jax.data.errors import DataError
-from pitta_jax.data.image_io import (IMAGE_SUFFIXES, exif_upright, list_images, read_image,
-                                     write_image)
+from pitta_jax.data.image_io import (IMAGE_SUFFIXES, exif_upright, image_bytes, list_images,
+                                     read_image)
 from pitta_jax.data.resize import resize_image
 from pitta_jax.models.interpolate import resize_bilinear
 
@@ -202,12 +202,15 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
       depth = np.asarray(weights.spec.to_depth(disp))
     if not np.all(np.isfinite(disp)):
       raise ValueError(f"{path}: the network produced non-finite outputs on this image")
-    save_npy(out / f"{path.stem}{DISP_NPY}", disp.astype(np.float32))  # first: it marks the
-    save_npy(out / f"{path.stem}_depth.npy", depth.astype(np.float32))  # PNG as an output
-    png = out / f"{path.stem}{DISP_PNG}"
     # near = bright: the disparity as it is, or the inverse of a metric network's depth; at the
     # image's size (test_simple.py colours the disparity resized to it)
     shown = 1.0 / depth if weights.spec.output == "metric_depth" else disp
-    write_image(png, viz.colorize(resize_map(shown, size_in, align_corners=False)))
-    written.append(png)
+    # the image's three files at once (all written, then renamed): an interrupted run leaves
+    # an image with all of them or none, so its rerun takes them as its own
+    atomic_write_files(out, {
+        f"{path.stem}{DISP_NPY}": npy_bytes(disp.astype(np.float32)),
+        f"{path.stem}_depth.npy": npy_bytes(depth.astype(np.float32)),
+        f"{path.stem}{DISP_PNG}": image_bytes(
+            viz.colorize(resize_map(shown, size_in, align_corners=False)))})
+    written.append(out / f"{path.stem}{DISP_PNG}")
   return written

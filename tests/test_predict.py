@@ -107,6 +107,37 @@ def test_predict_checks_every_image_first_and_skips_its_own_outputs(converted, t
   assert (user / "a_disp.png").read_bytes() == before and not list(user.glob("*.npy"))
 
 
+def test_an_interrupted_predict_leaves_whole_images_and_reruns(converted, tmp_path, capsys,
+                                                               monkeypatch):
+  """A Ctrl-C while an image's files are written leaves that image with none of them (no
+  temporary file either): the same command then runs again and writes the rest (it refused
+  before, the image's .npy files being there without their PNG)."""
+  from pitta_jax import predict
+  rng = np.random.default_rng(2)
+  d = tmp_path / "imgs"
+  d.mkdir()
+  for name in ("000", "001", "002"):
+    cv2.imwrite(str(d / f"{name}.png"), rng.integers(0, 256, (64, 96, 3), dtype=np.uint8))
+  encoded = []
+
+  def interrupted(*args, **kwargs):  # the second image's PNG: after its .npy bytes are made
+    encoded.append(1)
+    if len(encoded) == 2:
+      raise KeyboardInterrupt
+    return real(*args, **kwargs)
+  real = predict.image_bytes
+  monkeypatch.setattr(predict, "image_bytes", interrupted)
+  out = tmp_path / "o"
+  with pytest.raises(KeyboardInterrupt):
+    predict.predict_images(converted[0], str(d), out, quiet=True)
+  assert sorted(p.name for p in out.iterdir()) == [  # image 000 whole, nothing of 001
+      f"000{s}" for s in ("_depth.npy", "_disp.npy", "_disp.png")]
+  monkeypatch.setattr(predict, "image_bytes", real)
+  args = ["predict", "--weights", str(converted[0]), "--images", str(d), "--quiet", "--out"]
+  assert main([*args, str(out)]) == 0
+  assert len(list(out.iterdir())) == 9
+
+
 def test_predict_keeps_a_users_files_reads_gray_and_globs_any_depth(converted, tmp_path, capsys):
   """A ground-truth `a_depth.npy` beside `a.png` with --out the image directory is refused, not
   replaced (it was, with exit 0); a grayscale image predicts as its channel repeated three times

@@ -144,10 +144,24 @@ def read_image(path: PathLike, gray: bool = False) -> np.ndarray:
 
 def write_image(path: PathLike, image: np.ndarray) -> None:
   """Writes (H, W, 3) RGB, float in [0, 1] (rounded to 8 bit) or uint8, as PNG/JPEG by suffix."""
+  _imwrite(path, _bgr8(image))
+
+
+def image_bytes(image: np.ndarray, suffix: str = ".png") -> bytes:
+  """The file `write_image` writes for `image`, as bytes (for a group of files written at
+  once, `outputs.atomic_write_files`)."""
+  ok, data = cv2.imencode(suffix, _bgr8(image))
+  if not ok:
+    raise ValueError(f"cannot encode an image as {suffix!r}")
+  return data.tobytes()
+
+
+def _bgr8(image: np.ndarray) -> np.ndarray:
+  """(H, W, 3) RGB, float in [0, 1] (rounded to 8 bit) or uint8 -> uint8 BGR (OpenCV's)."""
   image = np.asarray(image)
   if image.dtype != np.uint8:
     image = np.clip(np.rint(np.asarray(image, np.float64) * 255.0), 0, 255).astype(np.uint8)
-  _imwrite(path, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+  return cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
 
 
 def _imwrite(path: PathLike, array: np.ndarray) -> None:
