@@ -75,6 +75,7 @@ def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
     os.close(fd)
     raise OutputError(f"{what} {p}: another pitta-jax run is writing there; wait for it or "
                       f"choose another directory") from None
+  remove_stale_temps(p)  # a killed run's half-written files (its results' temporaries)
   return OutputDir(p, fd, created)
 
 
@@ -101,6 +102,35 @@ def check_writable_file(path: str | os.PathLike, what: str = "--out") -> None:
     raise OutputError(f"{what} {p}: cannot write there ({e.strerror or e})") from None
 
 
+def _temp_path(directory: Path, name: str) -> Path:
+  """Where `atomic_write_files` writes `name` before its rename (named after the writer's pid)."""
+  return directory / f".{name}.tmp-{os.getpid()}"
+
+
+def remove_stale_temps(directory: str | os.PathLike) -> list[Path]:
+  """Removes the temporary files `atomic_write_files` left in `directory` when a kill (SIGKILL)
+  stopped its writer before the rename: `.<name>.tmp-<pid>` whose process is gone (a live
+  writer's are kept). Returns the removed paths."""
+  removed = []
+  for path in Path(directory).glob(".*.tmp-*"):
+    pid = path.name.rsplit(".tmp-", 1)[1]
+    if not (pid.isdigit() and path.is_file()) or _alive(int(pid)):
+      continue
+    path.unlink(missing_ok=True)
+    removed.append(path)
+  return removed
+
+
+def _alive(pid: int) -> bool:
+  try:
+    os.kill(pid, 0)
+  except ProcessLookupError:
+    return False
+  except PermissionError:  # another user's process
+    return True
+  return True
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
   """Writes `data` to `path` atomically (temp file in the same directory + fsync + rename)."""
   path = Path(path)
@@ -117,7 +147,7 @@ def atomic_write_files(directory: str | os.PathLike, contents: dict[str, str | b
   runs' files side by side only within the renames themselves (no I/O between them), never
   while a later file is still being written. Text is written as UTF-8."""
   directory = Path(directory)
-  temps = {name: directory / f".{name}.tmp-{os.getpid()}" for name in contents}
+  temps = {name: _temp_path(directory, name) for name in contents}
   try:
     for name, data in contents.items():
       with open(temps[name], "wb") as f:

@@ -29,6 +29,7 @@ from pitta_jax.methods import Method, build as build_method
 from pitta_jax.methods.base import INPUT_SIZE, METRIC_FACTOR
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame
+from pitta_jax.outputs import remove_stale_temps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -332,6 +333,7 @@ def _clear_checkpoints(directory: Path) -> int:
   complete = len(complete_checkpoints(directory))
   for path in (*directory.glob(CHECKPOINT_PATTERN), *directory.glob(UNFINISHED_PATTERN)):
     _remove_checkpoint(path)
+  remove_stale_temps(directory)
   return complete
 
 
@@ -348,6 +350,7 @@ def _save_checkpoint(directory: Path, state, record: dict) -> None:
   for old in (*sorted(directory.glob(CHECKPOINT_PATTERN))[:-KEEP_CHECKPOINTS],
               *directory.glob(UNFINISHED_PATTERN)):
     _remove_checkpoint(old)
+  remove_stale_temps(directory)  # a sidecar a kill left half-written
 
 
 def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,

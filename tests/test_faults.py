@@ -132,6 +132,21 @@ def test_files_of_one_result_are_replaced_together_or_not_at_all(tmp_path):
   assert [(tmp_path / n).read_text() for n in names] == ["new", "new", "old"]
 
 
+def test_a_killed_writers_temporaries_go_when_the_directory_is_next_opened(tmp_path):
+  """SIGKILL between an atomic write's temporary file and its rename leaves
+  `.<name>.tmp-<pid>`: the next command that opens the directory removes it, once its writer is
+  gone (a live writer's stays; other dot-files are not touched)."""
+  dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                        capture_output=True, text=True, check=True)
+  stale = tmp_path / f".results.json.tmp-{int(dead.stdout)}"
+  live = tmp_path / f".results.csv.tmp-{os.getpid()}"
+  other = tmp_path / ".notes.tmp-draft"
+  for path in (stale, live, other):
+    path.write_text("x")
+  open_output_dir(tmp_path).close()
+  assert not stale.exists() and live.exists() and other.exists()
+
+
 def test_non_utf8_file_names_are_read(tmp_path):
   from pitta_jax.data.image_io import read_image, write_image
   name = os.fsdecode(b"frame_\xff\xfe.png")  # surrogate-escaped: not valid UTF-8
