@@ -448,7 +448,7 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   runners: a compile cache to share with other tables run in the same process."""
   from pitta_jax.data.errors import DataError
   from pitta_jax.models.registry import MODELS
-  from pitta_jax.sources import parse_segmentation
+  from pitta_jax.sources import check_unique_options, parse_segmentation
   if args.dataset != "synthetic" and not args.root:
     raise DataError(None, f"--dataset {args.dataset} needs --root DIR")
   if args.dataset == "synthetic" and args.root:
@@ -459,6 +459,7 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   if args.root and not Path(args.root).is_dir():
     raise DataError(args.root, "--root: not a directory")
   parse_segmentation(args.segmentation)
+  check_unique_options(args.option)
   if args.dataset == "synthetic":  # flags for real data only: refused, not silently ignored
     given = [f for f, v in (("--source-images", args.source_images),
                             ("--replay-root", args.replay_root)) if v]

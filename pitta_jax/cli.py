@@ -355,7 +355,8 @@ def _run_adapt(args) -> int:
   from pitta_jax.run import EvalConfig, checkpoint_chunk_size, metric_factor, run_sequence
   from pitta_jax.checkpoint import read_model_json
   from pitta_jax.sources import (check_dataset_args, check_run_needs, check_stats_method,
-                                 method_resources, open_frames, open_weights)
+                                 check_unique_options, method_resources, open_frames,
+                                 open_weights)
   notes = []
   if args.adapting:
     cfg, method, notes = adapt_config(args)
@@ -380,6 +381,7 @@ def _run_adapt(args) -> int:
       notes.append(f"--method {method.name}'s thresholds are in metres and these weights predict "
                    f"depth up to scale (no stereo pairs in training): their units are taken as "
                    f"metres; --{method.name}.depth-scale F sets the factor")
+  check_unique_options(args.option)
   check_dataset_args(args.dataset, args.root, args.option, args.segmentation)
   source_flags = [f for f, v in (("--source-images", args.source_images),
                                  ("--replay-root", args.replay_root),

@@ -59,6 +59,8 @@ class OutputDir:
 
 def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
   """Creates/checks/locks `path` before any work (see the module docstring)."""
+  if not str(path).strip():  # Path("") is the working directory: never meant
+    raise OutputError(f"{what}: an empty path")
   p = Path(path)
   if p.exists() and not p.is_dir():
     raise OutputError(f"{what} {p}: exists and is not a directory")

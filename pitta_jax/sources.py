@@ -38,6 +38,16 @@ def split_options(items: Sequence[str]) -> dict[str, str]:
   return options
 
 
+def check_unique_options(items: Sequence[str]) -> None:
+  """DataError when a user's `--option` KEY is given more than once (the last would win
+  silently). Internally, a test case's options are appended to the user's, and override them."""
+  seen: dict[str, str] = {}
+  for key, value in ((k.strip(), v.strip()) for k, _, v in (i.partition("=") for i in items)):
+    if key in seen:
+      raise DataError(None, f"--option {key} given twice ({seen[key]}, {value}): give it once")
+    seen[key] = value
+
+
 def _coerce(key: str, text: str, annotation: Any) -> Any:
   """`text` as the type `annotation` names (Optional and unions tried in order)."""
   from pitta_jax.config_cli import parse_bool, parser_for

@@ -182,6 +182,16 @@ def test_a_config_check_names_the_flag(capsys):
   assert main(["train-source", "--source.pose-fraction", "2"]) == 2
   assert capsys.readouterr().err == ("error: --source.pose-fraction: pose_fraction must be in "
                                      "[0, 1], got 2.0\n")
+  # a median window wider than the frame (it ran for minutes per frame), an empty --out (the
+  # working directory), a reader option given twice (the last one won)
+  for flags, message in [
+      (("--window", "641", "--out", "unused"), "window 641 exceeds the frame's smaller side (96 "
+                                               "pixels of 320x96)"),
+      (("--out", ""), "--out: an empty path"),
+      (("--option", "domain=fog", "--option", "domain=rain", "--out", "unused"),
+       "--option domain given twice (fog, rain): give it once")]:
+    assert main(["adapt", "--dataset", "synthetic", "--quiet", *flags]) == 2
+    assert capsys.readouterr().err.splitlines()[-1] == f"error: {message}"
   # a seed jax.random.PRNGKey cannot take (it raised OverflowError after the weights loaded)
   for seed in ("-1", str(2**63)):
     assert main(["adapt", "--dataset", "synthetic", "--out", "unused", "--seed", seed]) == 2

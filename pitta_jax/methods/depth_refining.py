@@ -71,9 +71,18 @@ def frame_instances(frame, cfg: DepthRefiningConfig) -> tuple[jax.Array, jax.Arr
   return index_map, jnp.sum(inst_valid.astype(jnp.int32)), inst_ids
 
 
+def _check_window(cfg: DepthRefiningConfig, shape: tuple[int, ...]) -> None:
+  """A window wider than the frame's smaller side is refused when the step is traced (before
+  any frame): its median would take most of the frame, at a cost growing with the window's
+  area (641 on 320x96 frames did not finish two frames in two minutes)."""
+  check(cfg.window <= min(shape), f"window {cfg.window} exceeds the frame's smaller side "
+                                  f"({min(shape)} pixels of {shape[1]}x{shape[0]})")
+
+
 def frame_loss(depth: jax.Array, frame, cfg: DepthRefiningConfig,
                lam: float | jax.Array) -> losses.PittaLoss:
   """Eq. 10 on an engine frame: L_d (eqs. 3-8) + lam * L_e (eqs. 5-6, 9) of `depth` (H, W)."""
+  _check_window(cfg, depth.shape)
   index_map, n, inst_ids = frame_instances(frame, cfg)
   return losses.pitta_loss_from_index(
       frame.image, depth, index_map, n, s=cfg.window, lam=lam, mode=cfg.mask_mode,
@@ -83,6 +92,7 @@ def frame_loss(depth: jax.Array, frame, cfg: DepthRefiningConfig,
 def depth_refining_term(depth: jax.Array, frame, cfg: DepthRefiningConfig
                         ) -> tuple[jax.Array, jax.Array]:
   """L_d (eq. 8) of `depth` (H, W) on an engine frame, and N."""
+  _check_window(cfg, depth.shape)
   index_map, n, inst_ids = frame_instances(frame, cfg)
   l_d = losses.depth_refining_loss_from_index(
       depth, index_map, n, s=cfg.window, mode=cfg.mask_mode, impl=cfg.loss_impl,
