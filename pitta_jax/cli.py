@@ -152,10 +152,16 @@ def _check_method_flags(args, method) -> None:
     given = given_flags(args, name)
     if name not in ("adapt", method.name) and given:
       raise ValueError(f"{given[0]} is a flag of --method {name}, not of --method {method.name}")
-  own = sorted(given_fields(AdaptConfig, args, "adapt") & {"optimizer", "lr", "momentum"})
+  given = given_fields(AdaptConfig, args, "adapt")
+  own = sorted(given & {"optimizer", "lr", "momentum"})
   if method.optimizer is not None and own:
     raise ValueError(f"--adapt.{own[0]} does not apply to --method {method.name}: it steps its "
                      f"own optimiser (set it with its --{method.name}.* flags)")
+  updating = sorted(given & {"optimizer", "lr", "momentum", "steps_per_frame", "selector",
+                             "reset_every", "skip_nonfinite"})
+  if not method.adapts and updating:
+    raise ValueError(f"--adapt.{updating[0].replace('_', '-')} does not apply to --method "
+                     f"{method.name}: it never updates the network")
 
 
 def _method_configs_from_args(args) -> dict:

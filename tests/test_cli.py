@@ -174,6 +174,10 @@ def test_shared_flags_reach_the_selected_method():
        "--comoda.lr is a flag of --method comoda, not of --method cotta"),
       (["--method", "cotta", "--bn-stats", "running", "--lr", "1", "--cotta.lr", "2"],
        "both --lr and --cotta.lr given"),
+      (["--method", "none", "--lr", "1e-3"],
+       "--adapt.lr does not apply to --method none: it never updates the network"),
+      (["--method", "none", "--steps-per-frame", "5"],
+       "--adapt.steps-per-frame does not apply to --method none: it never updates"),
       (["--window", "five"], "--window: expected INT, got 'five'")):
     with pytest.raises(ValueError, match=match):
       adapt(*flags)
