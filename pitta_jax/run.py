@@ -423,6 +423,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       state, sidecar = found
       record = {"nonfinite_indices": [], "seconds": 0.0, **sidecar}
       frames = frames[int(state.step):]
+    elif resume != RESUME_OWN:  # the user asked to resume: say that there was nothing to resume
+      print(f"note: --resume: no checkpoint in {directory}; the run starts at its first frame",
+            file=sys.stderr)
   elif directory is not None and _clear_checkpoints(directory):
     print(f"warning: {directory}: removed an earlier run's checkpoints (without --resume / "
           f"resume=True a run starts afresh)", file=sys.stderr)

@@ -189,18 +189,18 @@ def tiny_weights(tmp_path_factory):
   return root
 
 
-def _adapt_args(weights, out, *extra):
+def _adapt_args(weights, out, *extra, frames: int = N):
   """The default PITTA configuration at 64x96 in chunks of K frames: the program `experiments
   --quick` compiles too (the suite's shared XLA cache then serves the killed subprocess)."""
   return ["adapt", "--dataset", "synthetic", "--weights", str(weights), "--option",
-          f"num_frames={N}", "--option", "domain=fog", "--checkpoint-every", str(K),
+          f"num_frames={frames}", "--option", "domain=fog", "--checkpoint-every", str(K),
           "--quiet", "--out", str(out), *extra]
 
 
-def _run_until_first_checkpoint(weights, out, *extra) -> subprocess.Popen:
+def _run_until_first_checkpoint(weights, out, *extra, frames: int = N) -> subprocess.Popen:
   """`pitta-jax adapt` in a subprocess, returned once its first checkpoint is complete."""
   proc = subprocess.Popen([sys.executable, "-m", "pitta_jax.cli",
-                           *_adapt_args(weights, out, *extra)],
+                           *_adapt_args(weights, out, *extra, frames=frames)],
                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
   sidecar = out / "checkpoints" / f"state_{K:06d}.json"
   deadline = time.time() + 300
@@ -273,7 +273,7 @@ def test_sigterm_stops_like_ctrl_c(tiny_weights, tmp_path):
   """SIGTERM (a scheduler's stop): the run stops as on Ctrl-C, with the last completed chunk
   checkpointed, the output directory unlocked, exit 143 and a line saying how to resume."""
   out = tmp_path / "term"
-  proc = _run_until_first_checkpoint(tiny_weights, out, "--option", "num_frames=400")
+  proc = _run_until_first_checkpoint(tiny_weights, out, frames=400)
   proc.send_signal(signal.SIGTERM)
   assert proc.wait(timeout=120) == 143
   err = proc.stderr.read().decode()
@@ -307,22 +307,25 @@ def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, caps
   another run's with one line (exit 2), and a fresh run clears the checkpoints it finds."""
   out = tmp_path / "out"
   ckpt = out / "checkpoints"
-  assert main(_adapt_args(tiny_weights, out)) == 0  # N frames: checkpoints at 2, 4, 6
+  capsys.readouterr()
+  assert main(_adapt_args(tiny_weights, out, "--resume")) == 0  # N frames: checkpoints at 2, 4, 6
+  assert (f"note: --resume: no checkpoint in {ckpt}; the run starts at its first frame"
+          in capsys.readouterr().err.splitlines())
   assert sorted(p.name for p in ckpt.glob("state_*")) == [  # the newest two are kept
       f"state_{k:06d}{ext}" for k in range(N - K, N + 1, K) for ext in ("", ".json")]
-  fewer = ["--option", f"num_frames={N - K}"]  # the same first frames, another sequence
+  fewer = N - K  # the same first frames, another sequence
   capsys.readouterr()
   earlier = (out / "results.json").read_text()
-  assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 2
+  assert main(_adapt_args(tiny_weights, out, "--resume", frames=fewer)) == 2
   err = [line for line in capsys.readouterr().err.splitlines()
          if not line.startswith("note: ")]   # the run's notes (the chunk size) come first
   assert len(err) == 1 and str(ckpt) in err[0] and "none of this run" in err[0]
   assert (out / "results.json").read_text() == earlier  # a refused --resume removes nothing
-  assert main(_adapt_args(tiny_weights, out, *fewer)) == 0  # fresh: the old ones go, said so
+  assert main(_adapt_args(tiny_weights, out, frames=fewer)) == 0  # fresh: the old ones go
   assert "removed an earlier run's checkpoints" in capsys.readouterr().err
   assert sorted(p.name for p in ckpt.glob("state_*")) == [
       f"state_{k:06d}{ext}" for k in range(K, N - K + 1, K) for ext in ("", ".json")]
-  assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
+  assert main(_adapt_args(tiny_weights, out, "--resume", frames=fewer)) == 0
   done = json.loads((out / "results.json").read_text())
   assert done["resumed_at_frame"] == N - K
   # the newest state damaged (a kill during its save): the one before it is taken, with a warning
@@ -330,12 +333,12 @@ def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, caps
     if f.is_file() and f.parent.name == "d":  # the OCDBT data files
       f.write_bytes(b"garbage")
   capsys.readouterr()
-  assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
+  assert main(_adapt_args(tiny_weights, out, "--resume", frames=fewer)) == 0
   assert f"resuming from state_{N - 2 * K:06d} instead" in capsys.readouterr().err
   assert json.loads((out / "results.json").read_text())["per_frame"] == done["per_frame"]
   # orbax's _METADATA gone (its FileNotFoundError): the same fallback, one warning line
   (ckpt / f"state_{N - K:06d}" / "_METADATA").unlink()
-  assert main(_adapt_args(tiny_weights, out, *fewer, "--resume")) == 0
+  assert main(_adapt_args(tiny_weights, out, "--resume", frames=fewer)) == 0
   fallback = [line for line in capsys.readouterr().err.splitlines() if "resuming from" in line]
   assert len(fallback) == 1 and fallback[0].startswith("warning: ")
   assert f"resuming from state_{N - 2 * K:06d} instead" in fallback[0]
