@@ -156,7 +156,12 @@ def enable_compilation_cache() -> None:
   """Persist XLA executables under the cache root, so a second run skips the compiles
   (tens of seconds per network on a CPU). Safe to call more than once."""
   path = cache_root() / "xla"
-  path.mkdir(parents=True, exist_ok=True)
+  try:
+    path.mkdir(parents=True, exist_ok=True)
+  except OSError as e:  # e.g. $PITTA_JAX_CACHE pointing nowhere writable: named, one line
+    from pitta_jax.data.errors import DataError
+    raise DataError(path, f"cannot create the cache directory ({e.strerror or e}); set "
+                          f"${CACHE_ENV} to a writable directory") from None
   jax.config.update("jax_compilation_cache_dir", str(path))
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 

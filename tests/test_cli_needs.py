@@ -240,3 +240,17 @@ def test_metre_thresholds_on_weights_up_to_scale_are_noted(tmp_path, capsys, mod
           "--adadepth.depth-scale F sets the factor")
   assert rc == 2 and lines[-1].startswith("error: ") and "weights" in lines[-1]
   assert (note in lines) == noted
+
+
+def test_an_unusable_cache_directory_is_named(tmp_path, monkeypatch, capsys):
+  """$PITTA_JAX_CACHE pointing at a file: one line naming the variable (it printed OSError's
+  bare text, without saying which setting was wrong)."""
+  from pitta_jax.cli import main
+  from pitta_jax.source_model import CACHE_ENV
+  blocker = tmp_path / "file"
+  blocker.write_text("x")
+  monkeypatch.setenv(CACHE_ENV, str(blocker))
+  assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and err.startswith(f"error: {blocker}")
+  assert f"set ${CACHE_ENV} to a writable directory" in err
