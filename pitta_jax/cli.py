@@ -627,8 +627,18 @@ def terminate_as_interrupt():
     raise late[0]()
 
 
+def _quiet_opencv() -> None:
+  """Silences OpenCV's own log lines (e.g. "[ WARN:0@...] PNG input buffer is incomplete"):
+  the readers raise a one-line error for the same file, which they would precede. The
+  command's choice, unless --debug; the library leaves OpenCV's settings alone."""
+  import cv2.utils.logging as cv_logging
+  cv_logging.setLogLevel(cv_logging.LOG_LEVEL_SILENT)
+
+
 def main(argv: list[str] | None = None) -> int:
   argv = list(sys.argv[1:] if argv is None else argv)
+  if "--debug" not in argv:
+    _quiet_opencv()
   if argv[:1] == ["experiment"]:  # its own parsers (flags such as --help belong to the table)
     import experiments
     with terminate_as_interrupt():
