@@ -202,3 +202,15 @@ def test_an_image_list_a_raw_checkpoint_folder_and_a_bad_size_are_explained(conv
   with pytest.raises(ValueError, match=r"--height/--width: input size 320x100 .*; these "
                      r"weights were trained at \d+x\d+$"):
     predict_images(converted[0], "b.png", tmp_path / "o", size=(100, 320))
+
+
+def test_an_undecodable_image_is_one_line_without_opencvs_logs(converted, tmp_path, capfd):
+  """A PNG that is only its signature: OpenCV logs a WARN and an ERROR line of its own to the
+  process's stderr while decoding it; the command silences them, so the reader's line is all."""
+  d = tmp_path / "imgs"
+  d.mkdir()
+  (d / "a.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+  assert main(["predict", "--weights", str(converted[0]), "--images", str(d), "--quiet",
+               "--out", str(tmp_path / "o")]) == 2
+  err = capfd.readouterr().err
+  assert err == f"error: {d / 'a.png'}: cannot decode image (not a PNG/JPEG file, or truncated)\n"
