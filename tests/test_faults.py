@@ -172,6 +172,10 @@ def test_dangling_symlink_is_an_error(tmp_path):
   (tmp_path / "000001.png").symlink_to(tmp_path / "missing.png")
   with pytest.raises(DataError, match="dangling symbolic link"):
     list_images(tmp_path)
+  (tmp_path / "000001.png").unlink()
+  (tmp_path / "000002.png").mkdir()  # was skipped: the sequence lost a frame without a word
+  with pytest.raises(DataError, match="000002.png: has an image's name but is not a file"):
+    list_images(tmp_path)
 
 
 # ---------------------------------------------------------------------- resume after kill -9

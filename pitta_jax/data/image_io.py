@@ -233,7 +233,8 @@ def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES,
                 all_suffixes: bool = False) -> dict[str, Path]:
   """Image files of `directory` (not recursive) by stem, suffix case-insensitive.
 
-  Hidden files (`.name`, e.g. macOS `._*` resource forks in zip archives) are skipped.
+  Hidden files (`.name`, e.g. macOS `._*` resource forks in zip archives) are skipped; a
+  directory with an image's name is a DataError.
 
   Args:
     directory: the directory to list; DataError when missing.
@@ -250,8 +251,8 @@ def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES,
       continue
     if path.is_symlink() and not path.exists():
       raise DataError(path, "is a dangling symbolic link (its target is missing)")
-    if not path.is_file():
-      continue
+    if not path.is_file():  # a frame silently missing from a sequence would shift the rest
+      raise DataError(path, "has an image's name but is not a file")
     if all_suffixes:
       found[path.name] = path
       continue
