@@ -39,10 +39,16 @@ def _add_predict(sub) -> None:
   p.set_defaults(func=_run_predict)
 
 
+MAX_SIDE = 16384  # --height/--width: beyond any camera here (an 8K frame is 7680 wide)
+
+
 def _size(args) -> tuple[int, int] | None:
   """(--height, --width), or None when neither is given."""
   if (args.height is None) != (args.width is None):
     raise ValueError("give both --height and --width, or neither")
+  if args.height is not None and max(args.height, args.width) > MAX_SIDE:
+    raise ValueError(f"--height/--width: {args.height}x{args.width} is more than {MAX_SIDE} "
+                     f"pixels on a side")
   return None if args.height is None else (args.height, args.width)
 
 

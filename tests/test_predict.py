@@ -202,6 +202,10 @@ def test_an_image_list_a_raw_checkpoint_folder_and_a_bad_size_are_explained(conv
   with pytest.raises(ValueError, match=r"--height/--width: input size 320x100 .*; these "
                      r"weights were trained at \d+x\d+$"):
     predict_images(converted[0], "b.png", tmp_path / "o", size=(100, 320))
+  # a size no frame has (OpenCV ran out of memory with a traceback)
+  assert main(["predict", "--weights", str(converted[0]), "--images", "b.png", "--out",
+               str(tmp_path / "big"), "--height", "3200000", "--width", "3200000"]) == 2
+  assert not (tmp_path / "big").exists()
 
 
 def test_an_undecodable_image_is_one_line_without_opencvs_logs(converted, tmp_path, capfd):
