@@ -418,7 +418,7 @@ def _expected_latency1_loss(case, t, state=None):
   after = np.concatenate([inputs[t].image[None], images[idx, 2]])
   disps, (a_b, t_b), (a_a, t_a) = jax.tree_util.tree_map(np.asarray, _tiny_outputs(
       state.trainable, state.method_state["pose"].trainable, target, before, after))
-  f64 = lambda x: torch.from_numpy(np.asarray(x, np.float64))
+  f64 = lambda x: torch.from_numpy(np.array(x, np.float64))  # a writable copy
   poses = [torch_sfm.transformation_from_parameters(f64(a_b)[:, 0], f64(t_b)[:, 0], invert=True),
            torch_sfm.transformation_from_parameters(f64(a_a)[:, 0], f64(t_a)[:, 0])]
   loss = torch_sfm.Monodepth2Loss(len(target), TINY_H, TINY_W, dtype=torch.float64)
