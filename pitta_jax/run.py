@@ -267,6 +267,9 @@ def _resume_points(directory: Path, fingerprint: str, names: Sequence[str]
         not isinstance(done, list) or done != list(names[:len(done)]):
       others += 1
       continue
+    if len(done) != int(path.name[len("state_"):]):  # a sidecar not of its state's frames
+      others += 1
+      continue
     found.append((path, record))
   if others and not found:
     raise DataError(directory, f"{others} checkpoint(s) here, none of this run (another run's "
@@ -426,6 +429,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     elif resume != RESUME_OWN:  # the user asked to resume: say that there was nothing to resume
       print(f"note: --resume: no checkpoint in {directory}; the run starts at its first frame",
             file=sys.stderr)
+    for unfinished in directory.glob(UNFINISHED_PATTERN):  # a save a kill cut short: its
+      _remove_checkpoint(unfinished)                        # temporary directory is in the way
   elif directory is not None and _clear_checkpoints(directory):
     print(f"warning: {directory}: removed an earlier run's checkpoints (without --resume / "
           f"resume=True a run starts afresh)", file=sys.stderr)

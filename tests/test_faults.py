@@ -347,6 +347,17 @@ def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, caps
   assert len(fallback) == 1 and fallback[0].startswith("warning: ")
   assert f"resuming from state_{N - 2 * K:06d} instead" in fallback[0]
   assert json.loads((out / "results.json").read_text())["per_frame"] == done["per_frame"]
+  # a sidecar whose frames are not its state's (cut to one): not used; nor is a save a kill
+  # left unfinished in the way (orbax warned of its temporary directory)
+  newest = json.loads((ckpt / f"state_{N - K:06d}.json").read_text())
+  (ckpt / f"state_{N - K:06d}.json").write_text(json.dumps(
+      {**newest, "names": newest["names"][:1]}))
+  (ckpt / f"state_{N:06d}.orbax-checkpoint-tmp-1").mkdir()
+  assert main(_adapt_args(tiny_weights, out, "--resume", frames=fewer)) == 0
+  again = json.loads((out / "results.json").read_text())
+  assert again["resumed_at_frame"] == K and again["per_frame"] == done["per_frame"]
+  assert "orbax-checkpoint-tmp" not in capsys.readouterr().err
+  assert not list(ckpt.glob("*.orbax-checkpoint-tmp*"))
   # nothing ran in that call: the speed is the earlier calls' (it was frames / ~0 s once)
   seconds = done["seconds"]
   assert seconds["total"] > seconds["this_call"] >= 0
