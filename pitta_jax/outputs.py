@@ -172,7 +172,6 @@ def npy_bytes(array: np.ndarray) -> bytes:
   return buffer.getvalue()
 
 
-
 def json_safe(obj: Any) -> tuple[Any, int]:
   """(obj with every non-finite float replaced by None, how many were replaced)."""
   count = 0

@@ -45,6 +45,8 @@ def add_subcommands(parser: argparse.ArgumentParser) -> None:
 
 # what a converter writes under --out (a depth network's weights directory, or Mask2Former's)
 WRITTEN = (MODEL_JSON, "depth", "pose", CONFIG_JSON, PARAMS_DIR)
+
+
 def check_output_replaceable(out: str) -> None:
   """ValueError when --out holds something a conversion would replace (model.json, depth/,
   pose/, config.json, params/) that is not earlier pitta-jax weights: a dataset's depth/
@@ -62,9 +64,10 @@ def check_output_replaceable(out: str) -> None:
 
   def is_description(p: Path) -> bool:
     try:
-      return p.is_file() and "architecture" in json.loads(p.read_text())
-    except (OSError, ValueError, TypeError):
+      meta = json.loads(p.read_text()) if p.is_file() else None
+    except (OSError, ValueError):
       return False
+    return isinstance(meta, dict) and "architecture" in meta
 
   def is_checkpoint(p: Path) -> bool:
     return p.is_dir() and any((p / m).is_file() for m in ("_METADATA", "_CHECKPOINT_METADATA"))
