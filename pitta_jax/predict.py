@@ -211,6 +211,6 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
         f"{path.stem}{DISP_NPY}": npy_bytes(disp.astype(np.float32)),
         f"{path.stem}_depth.npy": npy_bytes(depth.astype(np.float32)),
         f"{path.stem}{DISP_PNG}": image_bytes(
-            viz.colorize(resize_map(shown, size_in, align_corners=False)))})
+            DISP_PNG, viz.colorize(resize_map(shown, size_in, align_corners=False)))})
     written.append(out / f"{path.stem}{DISP_PNG}")
   return written

@@ -67,6 +67,23 @@ def test_write_panoptic_json_and_read_back(tmp_path):
   assert back_segments == segments[:2]  # the absent segment 11 is dropped
 
 
+def test_an_interrupted_write_leaves_neither_file(tmp_path, monkeypatch):
+  """A Ctrl-C while a map's files are made leaves neither the PNG nor its JSON (the JSON was
+  written first and stayed alone, and `segment` then refused to rerun over it); no temporary
+  file stays either. The same write then goes through."""
+  ids = np.full((2, 3), 5, np.int32)
+
+  def interrupted(*args, **kwargs):
+    raise KeyboardInterrupt
+  monkeypatch.setattr(panoptic_io, "id_to_rgb", interrupted)  # encoding the PNG
+  with pytest.raises(KeyboardInterrupt):
+    panoptic_io.write_panoptic(tmp_path / "f.png", ids, (Segment(5, 3, True),))
+  assert list(tmp_path.iterdir()) == []
+  monkeypatch.undo()
+  panoptic_io.write_panoptic(tmp_path / "f.png", ids, (Segment(5, 3, True),))
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["f.json", "f.png"]
+
+
 def test_isthing_defaults_from_coco_table(tmp_path):
   path = tmp_path / "s.json"
   path.write_text(json.dumps({"segments_info": [

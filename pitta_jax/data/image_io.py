@@ -59,17 +59,25 @@ def decode_file(path: Path, what: str) -> np.ndarray:
   return array
 
 
+def encode_bytes(path: PathLike, array: np.ndarray, what: str = "file") -> bytes:
+  """The bytes of `array` encoded as the file `path` (by its suffix) holds it; DataError for a
+  suffix OpenCV cannot write. For files written in a group (`outputs.atomic_write_files`)."""
+  path = Path(path)
+  ok, data = cv2.imencode(path.suffix, array) if path.suffix else (False, None)
+  if not ok:
+    raise DataError(path, f"cannot encode {what} (unknown suffix {path.suffix!r})")
+  return data.tobytes()
+
+
 def encode_file(path: PathLike, array: np.ndarray, what: str = "file") -> None:
   """Encodes `array` by the path's suffix and writes it atomically (temp file + rename), from
   bytes (any file name works)."""
+  data = encode_bytes(path, array, what)
   path = Path(path)
-  ok, data = cv2.imencode(path.suffix or ".png", array) if path.suffix else (False, None)
-  if not ok:
-    raise DataError(path, f"cannot encode {what} (unknown suffix {path.suffix!r})")
   try:
     path.parent.mkdir(parents=True, exist_ok=True)
     from pitta_jax.outputs import atomic_write_bytes
-    atomic_write_bytes(path, data.tobytes())
+    atomic_write_bytes(path, data)
   except OSError as e:
     raise DataError(path, f"cannot write {what} ({e.strerror or e})") from None
 
@@ -147,13 +155,10 @@ def write_image(path: PathLike, image: np.ndarray) -> None:
   _imwrite(path, _bgr8(image))
 
 
-def image_bytes(image: np.ndarray, suffix: str = ".png") -> bytes:
-  """The file `write_image` writes for `image`, as bytes (for a group of files written at
-  once, `outputs.atomic_write_files`)."""
-  ok, data = cv2.imencode(suffix, _bgr8(image))
-  if not ok:
-    raise ValueError(f"cannot encode an image as {suffix!r}")
-  return data.tobytes()
+def image_bytes(path: PathLike, image: np.ndarray) -> bytes:
+  """The bytes `write_image(path, image)` writes (for a group of files written at once,
+  `outputs.atomic_write_files`)."""
+  return encode_bytes(path, _bgr8(image), "image")
 
 
 def _bgr8(image: np.ndarray) -> np.ndarray:

@@ -35,7 +35,8 @@ import numpy as np
 from pitta_jax.data import coco
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Segment
-from pitta_jax.data.image_io import PathLike, decode_file, encode_file, require_dir, require_file
+from pitta_jax.data.image_io import (PathLike, decode_file, encode_bytes, encode_file,
+                                     require_dir, require_file)
 
 MAX_ID = 256**3 - 1  # the largest id an RGB PNG can encode
 
@@ -90,14 +91,23 @@ def segments_info(ids: np.ndarray, segments: Sequence[Segment]) -> list[dict[str
 
 
 def write_panoptic(png_path: PathLike, ids: np.ndarray, segments: Sequence[Segment]) -> Path:
-  """Writes `<stem>.png` and the per-image `<stem>.json` beside it; returns the JSON path."""
-  from pitta_jax.outputs import atomic_write_text
+  """Writes `<stem>.png` and the per-image `<stem>.json` beside it; returns the JSON path.
+
+  Both at once (`outputs.atomic_write_files`: both written, then renamed, the JSON first): an
+  interrupted run leaves an image with both files or neither, never a PNG without its
+  segments (readers pair by PNG) nor a JSON without its PNG (`segment` would refuse to rerun)."""
+  from pitta_jax.outputs import atomic_write_files
   png_path = Path(png_path)
   json_path = png_path.with_suffix(".json")
-  # both atomic, the JSON first: a kill leaves no PNG without its segments (readers pair by PNG)
-  json_path.parent.mkdir(parents=True, exist_ok=True)
-  atomic_write_text(json_path, json.dumps({"segments_info": segments_info(ids, segments)}))
-  write_panoptic_png(png_path, ids)
+  png = encode_bytes(png_path, id_to_rgb(ids)[..., ::-1], "panoptic PNG")
+  try:
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_files(png_path.parent, {
+        json_path.name: json.dumps({"segments_info": segments_info(ids, segments)}),
+        png_path.name: png})
+  except OSError as e:
+    raise DataError(png_path, f"cannot write the panoptic PNG and its JSON "
+                              f"({e.strerror or e})") from None
   return json_path
 
 
