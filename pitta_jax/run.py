@@ -334,10 +334,18 @@ def _clear_checkpoints(directory: Path) -> int:
   if not directory.is_dir():
     return 0
   complete = len(complete_checkpoints(directory))
-  for path in (*directory.glob(CHECKPOINT_PATTERN), *directory.glob(UNFINISHED_PATTERN)):
+  for path in directory.glob(CHECKPOINT_PATTERN):
+    _remove_checkpoint(path)
+  _remove_leftovers(directory)
+  return complete
+
+
+def _remove_leftovers(directory: Path) -> None:
+  """What kills left under `directory`: saves cut short (orbax's temporary directories, in the
+  way of the next save of their step) and half-written sidecars."""
+  for path in directory.glob(UNFINISHED_PATTERN):
     _remove_checkpoint(path)
   remove_stale_temps(directory)
-  return complete
 
 
 def _save_checkpoint(directory: Path, state, record: dict) -> None:
@@ -350,10 +358,9 @@ def _save_checkpoint(directory: Path, state, record: dict) -> None:
   atomic_write_text(directory / f"{path.name}.json", json.dumps(json_safe(record)[0]))
   # the newest KEEP_CHECKPOINTS stay (a full carry each: hundreds of MB for a whole network),
   # and saves a kill interrupted go
-  for old in (*sorted(directory.glob(CHECKPOINT_PATTERN))[:-KEEP_CHECKPOINTS],
-              *directory.glob(UNFINISHED_PATTERN)):
+  for old in sorted(directory.glob(CHECKPOINT_PATTERN))[:-KEEP_CHECKPOINTS]:
     _remove_checkpoint(old)
-  remove_stale_temps(directory)  # a sidecar a kill left half-written
+  _remove_leftovers(directory)
 
 
 def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
@@ -429,8 +436,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     elif resume != RESUME_OWN:  # the user asked to resume: say that there was nothing to resume
       print(f"note: --resume: no checkpoint in {directory}; the run starts at its first frame",
             file=sys.stderr)
-    for unfinished in directory.glob(UNFINISHED_PATTERN):  # a save a kill cut short: its
-      _remove_checkpoint(unfinished)                        # temporary directory is in the way
+    _remove_leftovers(directory)
   elif directory is not None and _clear_checkpoints(directory):
     print(f"warning: {directory}: removed an earlier run's checkpoints (without --resume / "
           f"resume=True a run starts afresh)", file=sys.stderr)

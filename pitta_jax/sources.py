@@ -27,25 +27,26 @@ from pitta_jax.data.sequence import FrameSequence
 SEGMENTATIONS = ("gt", "png", "mask2former")
 
 
-def split_options(items: Sequence[str]) -> dict[str, str]:
-  """["weather=foggy", "num_frames=100"] -> {"weather": "foggy", "num_frames": "100"} (text)."""
+def split_options(items: Sequence[str], unique: bool = False) -> dict[str, str]:
+  """["weather=foggy", "num_frames=100"] -> {"weather": "foggy", "num_frames": "100"} (text).
+  A later KEY overrides an earlier one (a test case's options, appended to the user's), unless
+  `unique`: then a DataError says it was given twice."""
   options: dict[str, str] = {}
   for item in items:
     key, sep, value = item.partition("=")
     if not sep or not key:
       raise DataError(None, f"--option {item!r} is not KEY=VALUE")
-    options[key.strip()] = value.strip()
+    key, value = key.strip(), value.strip()
+    if unique and key in options:
+      raise DataError(None, f"--option {key} given twice ({options[key]}, {value}): give it once")
+    options[key] = value
   return options
 
 
 def check_unique_options(items: Sequence[str]) -> None:
   """DataError when a user's `--option` KEY is given more than once (the last would win
-  silently). Internally, a test case's options are appended to the user's, and override them."""
-  seen: dict[str, str] = {}
-  for key, value in ((k.strip(), v.strip()) for k, _, v in (i.partition("=") for i in items)):
-    if key in seen:
-      raise DataError(None, f"--option {key} given twice ({seen[key]}, {value}): give it once")
-    seen[key] = value
+  silently), or an item is not KEY=VALUE."""
+  split_options(items, unique=True)
 
 
 def _coerce(key: str, text: str, annotation: Any) -> Any:

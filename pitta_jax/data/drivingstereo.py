@@ -186,8 +186,8 @@ def frame_spacing_note(weather: str, stems: list[str]) -> str | None:
   if not gaps.size or float(np.median(gaps)) <= SPARSE_FRAMES_S:
     return None
   return (f"DrivingStereo {weather}: consecutive frames are {float(np.median(gaps)):.2f} s apart "
-          f"(median; largest {float(gaps.max()):.1f} s), a subsample of the drive rather than video-rate "
-          f"frames: methods that pair consecutive frames (CoMoDa, Ada-Depth) see that interval's "
+          f"(median; largest {float(gaps.max()):.1f} s), a subsample of the drive rather than "
+          f"video-rate frames: methods that pair consecutive frames (CoMoDa, Ada-Depth) see that interval's "
           f"motion")
 
 

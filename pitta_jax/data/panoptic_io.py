@@ -19,8 +19,8 @@ taxonomy, e.g. cityscapesScripts' `createPanopticImgs.py`, where 24 is "person" 
 COCO's "zebra" and no class) has its ids mapped to COCO's by name (`coco_ids_by_name`), with a
 note; a category COCO does not name keeps its id where COCO has no such id, else gets 0 (no
 COCO class: never dynamic). Segments listed in the JSON but absent from the PNG are dropped (a
-`Frame` holds the segments present in its map); ids in the PNG without a JSON entry are an error, as in
-panopticapi's own checks.
+`Frame` holds the segments present in its map); ids in the PNG without a JSON entry are an
+error, as in panopticapi's own checks.
 """
 
 from __future__ import annotations
