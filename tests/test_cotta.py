@@ -8,9 +8,10 @@ ops on the PyTorch MonoDepth2 of torch_monodepth2 (random weights, converted wit
 weights_convert.monodepth2). float64 on both sides, 64x96, N = 4 views. The random draws are
 the JAX run's own (`sample_augment` and `restore_masks` from the step's keys), passed
 explicitly to PyTorch. The teacher starts away from the source (its BN parameters perturbed on
-both sides). Checked after one step, with the default gate (the views' mean everywhere) and
-with gate 'spread' at a threshold between two of the frame's spread values (so that it picks
-both branches): the loss, CoTTA's own term, L_d, the gate fraction, the evaluated depth (the
+both sides). Checked after one step, with the default gate (the views' mean everywhere) on the
+encoder's BatchNorm parameters, and with gate 'spread' at a threshold between two of the frame's
+spread values (so that it picks both branches) on every weight and bias as upstream adapts
+them (selector all): the loss, CoTTA's own term, L_d, the gate fraction, the evaluated depth (the
 pseudo label's), the student after Adam + restore and the EMA teacher; with ld_weight 0 the
 loss and the student equal plain CoTTA's. And from the source itself, on a frame under a
 shift, the default pseudo label is the augmented mean from the first step (a gate on the
@@ -38,17 +39,37 @@ from pitta_jax.methods import build
 from pitta_jax.methods.cotta import CottaConfig, restore_masks, sample_augment
 from pitta_jax.methods.depth_refining import DepthRefiningConfig
 from pitta_jax.models.registry import network
-from weights_convert.monodepth2 import convert_monodepth2
+from weights_convert.monodepth2 import convert_monodepth2, depth_decoder_rules, encoder_rules
 
 H, W = adapt_frames.H, adapt_frames.W
 IDS = [11, 12, 13]
 LR, N_AUG, RESTORE_P, EMA, WINDOW = 1e-3, 4, 0.2, 0.9, 3
 CFG = AdaptConfig(bn_stats="running", seed=3)
+CFG_ALL = dataclasses.replace(CFG, selector="all")  # upstream's: every weight and bias
 
 
-def _reference(enc, dec, threshold, ld_weight):
+# Flax leaf path ("encoder/layer1_0/bn1/scale") -> (the PyTorch parameter of the reference's
+# ModuleDict, "enc.encoder.layer1.0.bn1.weight"; whether it is a conv kernel), from the
+# converter's key tables (their own parity tests check them).
+TORCH_NAMES = {"/".join(r.flax[1:]): (("enc." if r.flax[1] == "encoder" else "dec.") + r.sources[0],
+                                      r.kind == "conv")
+               for r in encoder_rules(18) + depth_decoder_rules() if r.flax[0] == "params"}
+
+
+def _torch_tree(model: torch.nn.ModuleDict, paths) -> dict[str, np.ndarray]:
+  """The reference model's parameters at the Flax leaf `paths`, conv kernels as HWIO."""
+  params = dict(model.named_parameters())
+  out = {}
+  for path in paths:
+    name, conv = TORCH_NAMES[path]
+    a = params[name].detach().double().numpy()
+    out[path] = a.transpose(2, 3, 1, 0) if conv else a
+  return out
+
+
+def _reference(enc, dec, threshold, ld_weight, every_param=False):
   ref = torch_tta.CoTTA(copy.deepcopy(enc), copy.deepcopy(dec), LR, EMA, threshold, ld_weight,
-                        WINDOW)
+                        WINDOW, every_param)
   g = torch.Generator().manual_seed(5)
   with torch.no_grad():  # a teacher away from the source
     for m in ref.ema_model.modules():
@@ -78,9 +99,7 @@ def case(tmp_path_factory):
   _, variables, _ = convert_monodepth2(root / "encoder.pth", root / "depth.pth")
   enc, dec = enc.double(), dec.double()
   frames = adapt_frames.make_frames(1, seed=4)
-  ref = _reference(enc, dec, None, 1.0)
-  teacher = torch_tta.encoder_params(ref.ema_model["enc"], bn_only=True)
-  return enc, dec, variables, frames, teacher
+  return enc, dec, variables, frames, _reference(enc, dec, None, 1.0).ema_model
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +121,7 @@ def _draws(init, mcfg: CottaConfig):
   rng = jax.random.fold_in(init.rng, init.step)
   draws = jax.tree_util.tree_map(np.asarray, sample_augment(rng, N_AUG, H, W, mcfg, jnp.float64))
   masks = restore_masks(jax.random.fold_in(rng, 0), init.trainable, RESTORE_P)
-  return draws, {k: np.asarray(v) for k, v in flatten_dict(masks["encoder"], sep="/").items()}
+  return draws, {k: np.asarray(v) for k, v in flatten_dict(masks, sep="/").items()}
 
 
 def _run(case, step64, ld_weights):
@@ -115,7 +134,7 @@ def _run(case, step64, ld_weights):
     for w in ld_weights:
       s0 = init.replace(method_state={**init.method_state, "ld_weight": jnp.asarray(w, jnp.float64)})
       state, out = step(s0, _frame(case[3]), consts)
-      flat = lambda t: {k: np.asarray(v) for k, v in flatten_dict(t["encoder"], sep="/").items()}
+      flat = lambda t: {k: np.asarray(v) for k, v in flatten_dict(t, sep="/").items()}
       runs.append((jax.tree_util.tree_map(np.asarray, out), flat(state.trainable),
                    flat(state.method_state["teacher"])))
   return draws, masks, runs
@@ -130,7 +149,9 @@ def jax_run(case, step64):
 @pytest.fixture(scope="module")
 def spread_run(case):
   """gate 'spread' at a threshold halfway between the two middle values of the frame's spread
-  (the PyTorch teacher's views from the step's draws): (threshold, draws, masks, runs)."""
+  (the PyTorch teacher's views from the step's draws), adapting every parameter as upstream
+  (selector all: Adam, EMA and restore over the encoder's and decoder's weights and biases):
+  (threshold, draws, masks, runs)."""
   enc, dec, _, frames, _ = case
   with jax.enable_x64(True):
     draws = _draws(_float64_step(case, CFG, RESTORE_P)[1], _mcfg(RESTORE_P))[0]
@@ -139,17 +160,25 @@ def spread_run(case):
   rel = np.sort((outs.std(0) / outs.mean(0)).numpy().ravel())
   threshold = float(rel[rel.size // 2 - 1] + rel[rel.size // 2]) / 2
   with jax.enable_x64(True):
-    step64 = _float64_step(case, CFG, RESTORE_P, gate="spread", threshold=threshold)
+    step64 = _float64_step(case, CFG_ALL, RESTORE_P, gate="spread", threshold=threshold)
   return (threshold, *_run(case, step64, (1.0,)))
 
 
 def _torch_step(case, draws, masks, ld_weight, threshold=None):
+  """The reference's step with the JAX step's draws and restore `masks` ({Flax path: mask});
+  it adapts what the masks cover (every parameter when they reach the decoder)."""
   enc, dec, _, frames, _ = case
-  ref = _reference(enc, dec, threshold, ld_weight)
-  by_name = {n: masks[torch_tta.flax_path(n[len("enc."):])] for n in ref.trainable}
+  every_param = any(k.startswith("decoder/") for k in masks)
+  ref = _reference(enc, dec, threshold, ld_weight, every_param)
+  by_name = {TORCH_NAMES[k][0]: m.transpose(3, 2, 0, 1) if TORCH_NAMES[k][1] else m
+             for k, m in masks.items()}  # kernels' masks HWIO -> OIHW
+  assert set(by_name) == set(ref.trainable)
   result = ref.step(frames.image[0], frames.panoptic[0], IDS, _aug(draws), by_name)
-  return (result, torch_tta.encoder_params(ref.model["enc"], bn_only=True),
-          torch_tta.encoder_params(ref.ema_model["enc"], bn_only=True))
+  return result, _torch_tree(ref.model, masks), _torch_tree(ref.ema_model, masks)
+
+
+def _source(case, paths) -> dict[str, np.ndarray]:
+  return _torch_tree(torch.nn.ModuleDict({"enc": case[0], "dec": case[1]}), paths)
 
 
 def _worst_rel(a: dict, b: dict, ref: dict) -> float:
@@ -177,7 +206,7 @@ def _check_step(case, draws, masks, run, threshold, gate_range):
   np.testing.assert_allclose(float(out.loss), total, rtol=1e-9)
   depth = np.asarray(torch_tta.disp_to_depth(torch.from_numpy(pseudo)))
   d = float(np.max(np.abs(out.depth - depth) / depth))
-  src = torch_tta.encoder_params(case[0], bn_only=True)
+  src = _source(case, masks)
   rs, rt = _worst_rel(student, t_student, src), _worst_rel(teacher, t_teacher, src)
   print(f"evaluated depth (pseudo label) max rel diff {d:.1e}; student after Adam + restore, "
         f"worst max diff / max change {rs:.1e}; EMA teacher {rt:.1e}")
@@ -222,24 +251,25 @@ def test_ld_weight_zero_is_plain_cotta(case, jax_run):
   np.testing.assert_allclose(float(out0.loss), own, rtol=1e-9)
   np.testing.assert_allclose(float(runs[0][0].loss) - float(out0.loss),
                              float(runs[0][0].logs["loss_d"]), rtol=1e-9)
-  rs = _worst_rel(student0, t_student, torch_tta.encoder_params(case[0], bn_only=True))
+  rs = _worst_rel(student0, t_student, _source(case, masks))
   print(f"student after one ld_weight-0 step: worst max diff / max change {rs:.1e}")
   assert rs < 1e-6
 
 
 def _float64_step(case, cfg: AdaptConfig, restore_p: float, **mcfg_kw):
   """(a jitted float64 engine step of CoTTA under `cfg` with `restore_p` and the CottaConfig
-  fields `mcfg_kw`, its initial state, its constants, the case's perturbed BN tree as a
-  trainable tree, the CottaConfig); call it under `jax.enable_x64(True)`."""
-  _, _, variables, _, teacher = case
+  fields `mcfg_kw`, its initial state, its constants, the reference's teacher (BN perturbed)
+  as a tree of the adapted parameters, the CottaConfig); call it under `jax.enable_x64(True)`."""
+  _, _, variables, _, ema = case
   mcfg = _mcfg(restore_p, **mcfg_kw)
   v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
   model, method = network("monodepth2", {"num_layers": 18}), build("cotta", mcfg)
   tx = make_optimizer(cfg, method)
   step = jax.jit(make_step(model, method, cfg, tx), compiler_options=QUICK_COMPILE)
   init, consts = init_state(v64, method, cfg, tx, model)
-  perturbed = {"encoder": unflatten_dict({k: jnp.asarray(v) for k, v in teacher.items()},
-                                         sep="/")}
+  paths = flatten_dict(init.trainable, sep="/")
+  perturbed = unflatten_dict({k: jnp.asarray(v) for k, v in _torch_tree(ema, paths).items()},
+                             sep="/")
   return step, init, consts, perturbed, mcfg
 
 

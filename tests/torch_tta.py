@@ -46,15 +46,13 @@ def flax_path(torch_name: str) -> str:
   return "/".join(parts + [kind])
 
 
-def encoder_params(enc, bn_only: bool = False) -> dict[str, np.ndarray]:
+def encoder_params(enc) -> dict[str, np.ndarray]:
   """The encoder's parameters (fc excluded) keyed by Flax leaf path, conv kernels as HWIO."""
   out = {}
   for name, p in enc.named_parameters():
     if name.startswith("encoder.fc"):
       continue
     key = flax_path(name)
-    if bn_only and key.endswith("kernel"):
-      continue
     a = p.detach().double().numpy()
     out[key] = a.transpose(2, 3, 1, 0) if a.ndim == 4 else a
   return out
@@ -204,15 +202,22 @@ def t_augment(img: torch.Tensor, order, factors, sigma, flip, noise) -> torch.Te
 
 class CoTTA:
   """threshold None: the pseudo label is the views' mean (upstream under a shift, where the
-  anchor is not confident); else per pixel where the views' `std / mean` exceeds it."""
-  def __init__(self, enc, dec, lr, ema, threshold, ld_weight, s):
+  anchor is not confident); else per pixel where the views' `std / mean` exceeds it.
+  every_param: Adam and the restore over every weight and bias of the encoder and the decoder,
+  as upstream's `collect_params` and `restore` (its ResNet `fc` left out: no forward pass uses
+  it); else over the encoder's BatchNorm parameters."""
+  def __init__(self, enc, dec, lr, ema, threshold, ld_weight, s, every_param=False):
     self.model = nn.ModuleDict({"enc": enc, "dec": dec})
     self.ema_model = copy.deepcopy(self.model)
     for p in self.ema_model.parameters():
       p.detach_()
     self.source = copy.deepcopy(self.model.state_dict())
-    self.trainable = {f"enc.{mn}.{pn}": p for mn, m in enc.named_modules()
-                      if isinstance(m, nn.BatchNorm2d) for pn, p in m.named_parameters()}
+    if every_param:
+      self.trainable = {n: p for n, p in self.model.named_parameters()
+                        if not n.startswith("enc.encoder.fc.")}
+    else:
+      self.trainable = {f"enc.{mn}.{pn}": p for mn, m in enc.named_modules()
+                        if isinstance(m, nn.BatchNorm2d) for pn, p in m.named_parameters()}
     self.opt = torch.optim.Adam(self.trainable.values(), lr=lr)
     self.ema, self.threshold, self.ld_weight, self.s = ema, threshold, ld_weight, s
 
