@@ -28,7 +28,7 @@ from pitta_jax.configs import check, option
 from pitta_jax.methods import Method, build as build_method
 from pitta_jax.methods.base import INPUT_SIZE, METRIC_FACTOR
 from pitta_jax.data.errors import DataError
-from pitta_jax.data.frame import Frame
+from pitta_jax.data.frame import Frame, aspect_mismatch
 from pitta_jax.outputs import remove_stale_temps
 
 
@@ -208,15 +208,15 @@ def input_size(weights: Weights, frames: Sequence[Frame]) -> tuple[int, int]:
   return weights.spec.inference_size(frames[0].image.shape[:2], trained)
 
 
-def check_aspect(frame: Frame, tolerance: float = 0.01) -> None:
-  """The prediction is resized onto the ground truth: their aspect ratios must agree (1%)."""
+def check_aspect(frame: Frame) -> None:
+  """The prediction is resized onto the ground truth: their aspect ratios must agree (1%).
+  A reader's frames were checked as they were read (naming the image file); this covers
+  frames built in memory."""
   if frame.depth is None:
     return
-  (h, w), (gh, gw) = frame.image.shape[:2], np.shape(frame.depth)[:2]
-  if abs(gw / gh - w / h) > tolerance * (w / h):
-    raise DataError(frame.name or "frame", f"ground truth is {gw}x{gh} but the image is {w}x{h} "
-                                           f"(W x H): another aspect ratio, so the prediction "
-                                           f"cannot be resized onto it")
+  why = aspect_mismatch(frame.image.shape, np.shape(frame.depth))
+  if why is not None:
+    raise DataError(frame.name or "frame", why)
 
 
 CHECKPOINT_PATTERN = "state_[0-9][0-9][0-9][0-9][0-9][0-9]"

@@ -48,3 +48,16 @@ class Frame:
   name: str = ""
   intrinsics: np.ndarray | None = None
   starts_recording: bool = False
+
+
+ASPECT_TOLERANCE = 0.01  # relative difference of W / H a prediction can be resized across
+
+
+def aspect_mismatch(image_hw: tuple[int, ...], depth_hw: tuple[int, ...]) -> str | None:
+  """Why a prediction for an image of `image_hw` (H, W, ...) cannot be resized onto ground
+  truth of `depth_hw`: their aspect ratios differ by more than 1%; None when they agree."""
+  (h, w), (gh, gw) = image_hw[:2], depth_hw[:2]
+  if abs(gw / gh - w / h) <= ASPECT_TOLERANCE * (w / h):
+    return None
+  return (f"ground truth is {gw}x{gh} but the image is {w}x{h} (W x H): another aspect ratio, "
+          f"so the prediction cannot be resized onto it")
