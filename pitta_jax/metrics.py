@@ -10,7 +10,11 @@ Protocol (MonoDepth2 `evaluate_depth.py`): the predicted disparity is resized to
 truth's size with `cv2.resize(..., interpolation=cv2.INTER_LINEAR)` and inverted; the valid pixels are
 `min_depth < gt < max_depth` (and the Garg crop when asked); per-image median scaling
 `pred *= median(gt_valid) / median(pred_valid)` (monocular models); then pred is clamped to
-[min_depth, max_depth]. Frames are averaged with `mean_metrics`.
+[min_depth, max_depth]. Frames are averaged with `mean_metrics`. The valid-pixel range is
+MonoDepth2's rule for its Eigen split; on its other splits it scores every pixel with gt > 0
+(`valid_gt="positive"`), the 80 m then capping the prediction only. Ours applies the range
+everywhere unless told (DrivingStereo and Waymo included, whose protocol the paper leaves to
+an appendix we do not have); far ground truth beyond `max_depth` is then not scored.
 
 `depth_metrics` takes a depth (or, with `pred_is_disparity`, a disparity) and by default
 interpolates in disparity as MonoDepth2 does (`resize="disparity"`: a depth is inverted, resized

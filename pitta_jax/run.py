@@ -34,7 +34,9 @@ from pitta_jax.outputs import remove_stale_temps
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
-  """The evaluation protocol (MonoDepth2's, paper Sec. 4.1 and its Appendix D)."""
+  """The evaluation protocol (paper Sec. 4.1; its Appendix D is not public): MonoDepth2's
+  `evaluate_depth.py` as it scores its Eigen split, without the crop unless asked (`valid_gt`
+  positive is its rule on other splits; `metrics` says where they differ)."""
   min_depth: float = option(metrics_lib.MIN_DEPTH, "ground truth below this is invalid (metres)")
   max_depth: float = option(metrics_lib.MAX_DEPTH, "cap of ground truth and prediction (metres)")
   alignment: str = option("model", "per-frame alignment of the prediction: model (the "
