@@ -1,9 +1,9 @@
 """Depth prediction with a converted (or trained) depth network: `pitta-jax predict`.
 
 Each image is read, resized to the network's input size (`resize_image`, as the readers do),
-run in eval mode (running BN statistics), and written as `<stem>_disp.npy` (the network's own
-scale-0 output, e.g. MonoDepth2's sigmoid disparity), `<stem>_depth.npy` (its depth, e.g.
-`disp_to_depth(disp, 0.1, 100)`), and `<stem>_disp.png` (magma, MonoDepth2's convention) at the
+run in eval mode (running BN statistics), and written as `<stem>_disp.npy` (the network's
+scale-0 output, a sigmoid disparity scaled as MonoDepth2's `disp_to_depth` scales it:
+`ModelSpec.saved_disparity`), `<stem>_depth.npy` (its depth, e.g. the inverse of that), and `<stem>_disp.png` (magma, MonoDepth2's convention) at the
 image's own size, as each upstream writes them: MonoDepth2's `test_simple.py` saves the arrays
 at the network's resolution and colours the disparity resized to the image (bilinear,
 align_corners=False); Depth Anything V2's `infer_image` returns its output resized to the image
@@ -208,7 +208,8 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
     # the image's three files at once (all written, then renamed): an interrupted run leaves
     # an image with all of them or none, so its rerun takes them as its own
     atomic_write_files(out, {
-        f"{path.stem}{DISP_NPY}": npy_bytes(disp.astype(np.float32)),
+        f"{path.stem}{DISP_NPY}": npy_bytes(
+            np.asarray(weights.spec.saved_disparity(disp)).astype(np.float32)),
         f"{path.stem}_depth.npy": npy_bytes(depth.astype(np.float32)),
         f"{path.stem}{DISP_PNG}": image_bytes(
             DISP_PNG, viz.colorize(resize_map(shown, size_in, align_corners=False)))})

@@ -89,15 +89,22 @@ def check_input_size(height: int, width: int) -> None:
         f"that are positive multiples of 32 (e.g. 640x192, 320x96); resize the images first")
 
 
+def scaled_disparity(disp: jax.Array, min_depth: float = MIN_DEPTH,
+                     max_depth: float = MAX_DEPTH) -> jax.Array:
+  """Sigmoid disparity -> MonoDepth2's scaled disparity in [1 / max_depth, 1 / min_depth] (the
+  first value of its `disp_to_depth`, what `test_simple.py` saves as `_disp.npy`)."""
+  min_disp, max_disp = 1.0 / max_depth, 1.0 / min_depth
+  return min_disp + (max_disp - min_disp) * disp
+
+
 def disp_to_depth(disp: jax.Array, min_depth: float = MIN_DEPTH,
                   max_depth: float = MAX_DEPTH) -> jax.Array:
   """Sigmoid disparity -> depth, MonoDepth2's `disp_to_depth`.
 
   depth = 1 / (1 / max_depth + (1 / min_depth - 1 / max_depth) * disp).
   """
-  min_disp, max_disp = 1.0 / max_depth, 1.0 / min_depth
-  return 1.0 / (min_disp + (max_disp - min_disp) * disp)
+  return 1.0 / scaled_disparity(disp, min_depth, max_depth)
 
 
-__all__ = ["DepthNet", "DepthDecoder", "disp_to_depth", "check_input_size", "encoder_channels",
-           "DECODER_CHANNELS", "SCALES"]
+__all__ = ["DepthNet", "DepthDecoder", "disp_to_depth", "scaled_disparity", "check_input_size",
+           "encoder_channels", "DECODER_CHANNELS", "SCALES"]

@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pitta_jax.models.depth_decoder import MAX_DEPTH, MIN_DEPTH, disp_to_depth
+from pitta_jax.models.depth_decoder import (MAX_DEPTH, MIN_DEPTH, disp_to_depth,
+                                            scaled_disparity)
 
 OUTPUTS = ("sigmoid_disparity", "relative_inverse_depth", "metric_depth")
 ALIGNMENTS = ("median", "scale_shift", "none")
@@ -113,6 +114,14 @@ class ModelSpec:
     if self.output == "metric_depth":
       return jnp.maximum(out, RELATIVE_EPS)
     return 1.0 / jnp.maximum(out, RELATIVE_EPS)
+
+  def saved_disparity(self, out: jax.Array) -> jax.Array:
+    """The network's scale-0 output as `predict` saves it in `_disp.npy`: a sigmoid disparity
+    scaled to [1 / max_depth, 1 / min_depth], as MonoDepth2's `test_simple.py` saves it (the
+    inverse of `to_depth`'s depth); other outputs as they are."""
+    if self.output == "sigmoid_disparity":
+      return scaled_disparity(out, *self.depth_range)
+    return out
 
 
 def field_builder(module_cls: type, fields: tuple[str, ...]) -> Callable[[Mapping[str, Any]], Any]:
