@@ -171,8 +171,9 @@ def method_configs(name: str, instances: int, window: int, frames: int):
   if any(f.name == "ld" for f in dataclasses.fields(cls)):
     ld = DepthRefiningConfig(window=window, max_instances=max(mcfg.ld.max_instances, instances))
     mcfg = dataclasses.replace(mcfg, ld=ld)
-  cfg = AdaptConfig(**{**method_setting(name), "chunk_size": frames,
-                       "max_segments": max(AdaptConfig().max_segments, instances + 2)})
+  cfg = AdaptConfig(method=name, **{**method_setting(name), "chunk_size": frames,
+                                    "max_segments": max(AdaptConfig().max_segments,
+                                                        instances + 2)})
   return cfg, mcfg
 
 

@@ -9,10 +9,12 @@ the four weather shifts of the demo); nothing is cached at module level.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import sys
 import time
+import types
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -146,13 +148,56 @@ class Runners:
     return self._cache[("custom", key)]
 
   def get(self, weights: Weights, method: Method, cfg: AdaptConfig):
-    key = (weights.spec.name, tuple(sorted((k, str(v)) for k, v in weights.config.items()
-                                           if k != "source")), method.name, method.config, cfg)
+    """The (model, optimiser, runner) of this network, method and config, compiled once.
+
+    The network and the method are keyed by what they compute (`code_key`: their functions'
+    code and captured values, their configs), not by their names: methods rebuilt from the
+    same config share a compile, while two methods of one name whose functions differ (an
+    ablation's variants, a notebook's redefined loss) do not."""
+    key = (code_key(weights.spec), tuple(sorted((k, str(v)) for k, v in weights.config.items()
+                                                if k != "source")), code_key(method), cfg)
     if key not in self._cache:
       model = weights.network()
       tx = make_optimizer(cfg, method)
-      self._cache[key] = (model, tx, make_method_runner(model, method, cfg, tx))
-    return self._cache[key]
+      # the entry keeps `method` alive: ids in its key stay unique while the entry exists
+      self._cache[key] = (model, tx, make_method_runner(model, method, cfg, tx), method)
+    return self._cache[key][:3]
+
+
+def code_key(obj: Any, _path: frozenset = frozenset()) -> Any:
+  """A hashable key equal for objects that compute the same thing: a function by its code,
+  captured values and defaults (two closures of one `def` capturing equal values are equal,
+  capturing different ones are not), a `functools.partial` by its function and arguments, a
+  dataclass by its type and fields, tuples/lists/dicts by their items; any other hashable
+  value by its type and value, an unhashable one by identity."""
+  if id(obj) in _path:  # a cycle (a closure that refers to itself)
+    return ("cycle", id(obj))
+  path = _path | {id(obj)}
+  if isinstance(obj, functools.partial):
+    return ("partial", code_key(obj.func, path), code_key(obj.args, path),
+            code_key(obj.keywords, path))
+  code = getattr(obj, "__code__", None)
+  if isinstance(code, types.CodeType):
+    cells = []
+    for cell in getattr(obj, "__closure__", None) or ():
+      try:
+        cells.append(code_key(cell.cell_contents, path))
+      except ValueError:  # a cell not yet filled
+        cells.append(("empty",))
+    return ("function", code, tuple(cells), code_key(getattr(obj, "__defaults__", None), path),
+            code_key(getattr(obj, "__kwdefaults__", None), path))
+  if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+    return (type(obj), tuple(code_key(getattr(obj, f.name), path)
+                             for f in dataclasses.fields(obj)))
+  if isinstance(obj, (tuple, list)):
+    return (type(obj), tuple(code_key(v, path) for v in obj))
+  if isinstance(obj, dict):
+    return (dict, tuple((code_key(k, path), code_key(v, path)) for k, v in obj.items()))
+  try:
+    hash(obj)
+  except TypeError:
+    return ("id", id(obj))
+  return (type(obj), obj)
 
 
 def model_alignment(weights: Weights) -> str:
@@ -386,7 +431,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     weights: the network to adapt (`input_size`: its config's, or for a network that keeps the
       aspect ratio the first frame's).
     frames: the sequence, any length; read lazily chunk by chunk.
-    cfg: the run's config; method: the method (default: `cfg.method` with its paper defaults).
+    cfg: the run's config; method: the method (default: `cfg.method` with its paper defaults;
+      a method given here is what runs, and `cfg.method` is set to its name).
     keep: frame indices whose predicted depth is returned (for figures).
     checkpoint_dir, checkpoint_every: save the state and the results so far after every K
       frames (exactly: the chunk size becomes a divisor of K), and on Ctrl-C.
@@ -404,7 +450,10 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   from pitta_jax.sources import check_frame_needs, check_needs
   if len(frames) == 0:
     raise DataError(name or "sequence", "no frames to adapt on")
-  method = method if method is not None else build_method(cfg.method)
+  if method is None:
+    method = build_method(cfg.method)
+  elif cfg.method != method.name:  # the run, its progress bar and its records name what runs
+    cfg = dataclasses.replace(cfg, method=method.name)
   check_needs(method, frames, f"sequence {name!r}" if name else "the sequence")  # before compiling
   cfg = dataclasses.replace(cfg, chunk_size=checkpoint_chunk_size(cfg.chunk_size,
                                                                   checkpoint_every))

@@ -317,3 +317,32 @@ def test_each_inner_step_draws_its_own_randomness():
   np.testing.assert_array_equal(moved[1], -first)
   second = -moved[2] - first                 # the second inner step's draw
   assert np.all(np.abs(second - first) > 1e-3)
+
+
+def test_runners_share_a_compile_by_what_a_method_computes(monkeypatch):
+  """`run.Runners` reuses a compiled runner for a method rebuilt from the same config (the
+  tables rebuild each row's method per test case), and not for a method of the same name and
+  config whose loss differs (a variant in a closure, a redefined loss): it ran the first one's
+  compiled step before, with the other's losses."""
+  from types import SimpleNamespace
+
+  from pitta_jax import run
+  from pitta_jax.adapt import engine
+  from pitta_jax.methods.base import Aux, Method
+
+  built = []
+  monkeypatch.setattr(engine, "make_chunk_runner",
+                      lambda step, options=None: built.append(step) or (lambda *a: None))
+  weights = SimpleNamespace(spec=SimpleNamespace(name="net"), config={}, network=lambda: None)
+
+  def scaled(scale: float) -> Method:
+    def loss(trainable, **_):
+      return scale * jnp.float32(0), Aux(jnp.zeros((1,)), {})
+    return Method("mine", PittaConfig(), init=lambda *a: {}, loss=loss)
+
+  runners, cfg = run.Runners(), AdaptConfig()
+  first = runners.get(weights, build("pitta"), cfg)[2]
+  assert runners.get(weights, build("pitta"), cfg)[2] is first and len(built) == 1
+  assert runners.get(weights, build("pitta", PittaConfig(lam=0.3)), cfg)[2] is not first
+  a, b = runners.get(weights, scaled(1.0), cfg)[2], runners.get(weights, scaled(1000.0), cfg)[2]
+  assert a is not b and runners.get(weights, scaled(1.0), cfg)[2] is a and len(built) == 4

@@ -41,7 +41,8 @@ def build(name: str, config: Any | None = None) -> Method:
 
 def method_setting(name: str) -> dict[str, Any]:
   """The AdaptConfig values of method `name`'s own setting: its `requires` and its `setting`
-  (e.g. ActMAD: BN in eval mode, every encoder conv and BN adapts)."""
+  (e.g. ActMAD: BN in eval mode, every encoder conv and BN adapts); `method` itself is not
+  among them: `AdaptConfig(method=name, **method_setting(name))`."""
   method = build(name)
   return {**{field: value for field, value, _ in method.requires}, **dict(method.setting)}
 
