@@ -168,3 +168,17 @@ def test_jit_init_draws_bitwise_what_the_default_compile_draws():
   proc = subprocess.run([sys.executable, "-c", JIT_INIT_SCRIPT], env=env, capture_output=True,
                         text=True, timeout=300)
   assert proc.returncode == 0 and proc.stdout.strip() == "bitwise", proc.stderr[-4000:]
+
+
+def test_networks_refuse_integer_and_channels_first_images():
+  """An 8-bit image made the normalisation constants 8-bit too ((x - 0) / 0: every depth NaN,
+  silently); an NCHW batch was reported as an unsupported input size ('96x3')."""
+  from pitta_jax.models.registry import network
+  net = network("monodepth2", {"num_layers": 18})
+  with pytest.raises(TypeError, match="images must be floating RGB in \\[0, 1\\], got uint8"):
+    net.depth({}, np.zeros((1, 64, 96, 3), np.uint8), False)
+  with pytest.raises(ValueError, match=r"\(B, H, W, 3\) NHWC batch, got shape \(1, 3, 64, 96\) "
+                                       r"\(NCHW\? move the channels last\)"):
+    net.outputs({}, np.zeros((1, 3, 64, 96), np.float32), False)
+  with pytest.raises(ValueError, match=r"got shape \(64, 96, 3\)"):
+    net.capture({}, np.zeros((64, 96, 3), np.float32), False, "encoder/.*")

@@ -12,6 +12,7 @@ import re
 from typing import Any, Mapping
 
 import jax
+import jax.numpy as jnp
 import flax.linen as nn
 from flax.traverse_util import flatten_dict
 
@@ -36,6 +37,21 @@ def get_spec(name: str) -> ModelSpec:
   return MODELS[name]
 
 
+def checked_images(images: Any) -> jax.Array:
+  """`images` as an array, refused unless (B, H, W, 3) NHWC and floating (RGB in [0, 1]): an
+  integer image made the networks' normalisation constants integers too (0.45 -> 0), and
+  every depth NaN; an NCHW batch was reported as an unsupported input size."""
+  images = jnp.asarray(images)
+  if images.ndim != 4 or images.shape[-1] != 3:
+    hint = " (NCHW? move the channels last)" if images.ndim == 4 and images.shape[1] == 3 else ""
+    raise ValueError(f"images must be a (B, H, W, 3) NHWC batch, got shape "
+                     f"{tuple(images.shape)}{hint}")
+  if not jnp.issubdtype(images.dtype, jnp.floating):
+    raise TypeError(f"images must be floating RGB in [0, 1], got {images.dtype} "
+                    f"(divide 8-bit images by 255)")
+  return images
+
+
 @dataclasses.dataclass(frozen=True)
 class Network:
   """A depth network as the engine sees it: its spec and its Flax module.
@@ -48,7 +64,7 @@ class Network:
   module: nn.Module
 
   def outputs(self, variables: Any, images: jax.Array, use_batch_stats: bool) -> tuple:
-    return self.module.apply(variables, images, train=use_batch_stats)
+    return self.module.apply(variables, checked_images(images), train=use_batch_stats)
 
   def depth(self, variables: Any, images: jax.Array, use_batch_stats: bool) -> jax.Array:
     """images (B, H, W, 3) in [0, 1] -> depth (B, H, W) (relative for affine-invariant nets)."""
@@ -65,7 +81,7 @@ class Network:
     def keep(module: nn.Module, method_name: str) -> bool:
       return method_name == "__call__" and bool(rx.fullmatch("/".join(module.path)))
 
-    out, state = self.module.apply(variables, images, train=use_batch_stats,
+    out, state = self.module.apply(variables, checked_images(images), train=use_batch_stats,
                                    capture_intermediates=keep, mutable=["intermediates"])
     flat = flatten_dict(state.get("intermediates", {}), sep="/")
     return out, {k[: -len("/__call__")]: v[0] for k, v in flat.items()
