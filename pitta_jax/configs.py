@@ -9,7 +9,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+import types
+import typing
 from typing import Any
+
+import numpy as np
 
 
 def option(default: Any, help: str) -> Any:  # noqa: A002 (argparse's word)
@@ -31,5 +36,39 @@ def check(ok: bool, message: str) -> None:
 
 def finite(value: float, name: str, low: float = -math.inf) -> None:
   """`value` must be a finite number >= low."""
-  check(isinstance(value, (int, float)) and math.isfinite(value) and value >= low,
+  check(is_number(value) and math.isfinite(value) and value >= low,
         f"{name} must be a finite number >= {low:g}, got {value!r}")
+
+
+def is_int(value: Any) -> bool:
+  return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+
+def is_number(value: Any) -> bool:
+  return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+
+
+# annotation -> (does a value fit it, what the message asks for)
+_SIMPLE_TYPES = {int: (is_int, "an integer"), float: (is_number, "a number"),
+                 bool: (lambda v: isinstance(v, (bool, np.bool_)), "true or false"),
+                 str: (lambda v: isinstance(v, str), "a string")}
+
+
+def check_types(config: Any) -> None:
+  """Each field annotated with a simple type (int, float, bool, str, or one of them | None)
+  holds one (ValueError naming the field): `chunk_size=2.5` or `skip_nonfinite="no"` (truthy:
+  the guard stayed on) were taken before. A float field takes an int; a bool is not a
+  number here. Other annotations are the config's own to check."""
+  hints = typing.get_type_hints(type(config))
+  for field in dataclasses.fields(config):
+    want, value = hints.get(field.name), getattr(config, field.name)
+    union = isinstance(want, types.UnionType) or typing.get_origin(want) is typing.Union
+    allowed = typing.get_args(want) if union else (want,)
+    if value is None and type(None) in allowed:
+      continue
+    kinds = [a for a in allowed if a is not type(None)]
+    if not kinds or any(a not in _SIMPLE_TYPES for a in kinds):
+      continue
+    check(any(_SIMPLE_TYPES[a][0](value) for a in kinds),
+          f"{field.name} must be {' or '.join(_SIMPLE_TYPES[a][1] for a in kinds)}"
+          f"{' or unset' if type(None) in allowed else ''}, got {value!r}")

@@ -277,7 +277,7 @@ def combine(l_d: Array, l_e: Array, lam: float | Array) -> Array:
   """
   if isinstance(lam, (int, float)):
     return l_e if math.isinf(lam) else l_d + lam * l_e
-  lam = jnp.asarray(lam, jnp.float32)
+  lam = as_float(lam)  # float64 stays float64 (x64 gradient checks)
   is_inf = jnp.isinf(lam)
   return jnp.where(is_inf, l_e, l_d + jnp.where(is_inf, 0.0, lam) * l_e)
 

@@ -178,12 +178,12 @@ def median_filter(x: Array, s: int = WINDOW) -> Array:
   stop-gradient), but min/max have gradients if needed.
 
   Args:
-    x: (H, W) float map (cast to float32). NaN: unspecified. Subnormal values may be
+    x: (H, W) float map (float32, or float64 kept: `dtypes.as_float`). NaN: unspecified. Subnormal values may be
       flushed to zero (XLA's CPU and GPU backends do), unlike NumPy.
     s: odd window size (static), r = s // 2; s = 1 is the identity.
 
   Returns:
-    (H, W) float32 filtered map.
+    (H, W) filtered map of x's float type.
   """
   _check_window(s)
   x = as_float(x)

@@ -26,7 +26,7 @@ from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, load_state,
                              make_method_runner, make_optimizer, save_state)
 from pitta_jax.adapt.inputs import chunks
 from pitta_jax.checkpoint import Weights
-from pitta_jax.configs import check, option
+from pitta_jax.configs import check, check_types, option
 from pitta_jax.methods import Method, build as build_method
 from pitta_jax.methods.base import INPUT_SIZE, METRIC_FACTOR
 from pitta_jax.data.errors import DataError
@@ -58,6 +58,7 @@ class EvalConfig:
                                   "MonoDepth2's evaluate_depth.py)")
 
   def __post_init__(self):
+    check_types(self)
     check(isinstance(self.min_depth, (int, float)) and isinstance(self.max_depth, (int, float))
           and 0 <= self.min_depth < self.max_depth < float("inf"),
           f"need 0 <= min_depth < max_depth < inf, got min_depth={self.min_depth} "

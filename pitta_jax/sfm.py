@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pitta_jax import prng
-from pitta_jax.configs import check, finite, option
+from pitta_jax.configs import check, check_types, finite, option
 from pitta_jax.models.depth_decoder import MAX_DEPTH, MIN_DEPTH, disp_to_depth
 from pitta_jax.models.interpolate import resize_bilinear
 from pitta_jax.models.pose import transformation_from_parameters
@@ -69,6 +69,7 @@ class SfmLossConfig:
                                       "True = MonoDepth2's training (PyTorch < 1.3)")
 
   def __post_init__(self):
+    check_types(self)
     finite(self.min_depth, "min_depth", 0.0)
     check(self.min_depth > 0, f"min_depth must be > 0, got {self.min_depth!r}")
     finite(self.max_depth, "max_depth", 0.0)

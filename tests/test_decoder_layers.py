@@ -93,6 +93,22 @@ def test_upconv_equals_upsample_concat_reflect_conv(h, w, skip_channels, phase_f
       np.testing.assert_allclose(np.asarray(a), np.asarray(r), rtol=1e-5, atol=1e-5)
 
 
+def test_upconv_promotes_float32_weights_on_float64_features():
+  """Under x64, float32 weights (shipped, converted) on float64 features compute in float64,
+  as flax's Conv promotes; the layer handed float32 kernels to the convolution with float64
+  inputs, which lax refuses."""
+  rng = np.random.default_rng(5)
+  with jax.enable_x64(True):
+    x = jnp.asarray(rng.standard_normal((1, 3, 4, 2)))                       # float64
+    skip = jnp.asarray(rng.standard_normal((1, 6, 8, 3)))
+    k = jnp.asarray(rng.standard_normal((3, 3, 5, 4)).astype(np.float32))
+    b = jnp.asarray(rng.standard_normal((4,)).astype(np.float32))
+    got = layers.UpConv3x3(4).apply({"params": {"kernel": k, "bias": b}}, x, skip)
+    want = upstream_upconv(x, skip, k.astype(jnp.float64), b.astype(jnp.float64))
+    assert got.dtype == jnp.float64
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-12, atol=1e-12)
+
+
 def test_monodepth2_decoder_takes_the_phase_form_from_320x96():
   """Every upconv_i_1 of MonoDepth2's decoder (x: 2 ** -(i + 1) of the input, C = O = its
   channels) does the same work, so one side of the threshold per input size."""

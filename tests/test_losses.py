@@ -247,3 +247,12 @@ def test_pitta_loss_total_and_parts(total):
   assert np.isfinite(g_inf).all()
   g_e = np.asarray(jax.jit(jax.grad(lambda d: losses.edge_guided_loss(image, d)))(depth))
   np.testing.assert_allclose(g_inf, g_e, rtol=1e-6)
+
+
+def test_combine_keeps_a_float64_lambda():
+  """Eq. 10 with a traced lambda under x64: lambda stays float64 (it was cast to float32, so
+  0.1 became 0.10000000149 and a float64 check of the lambda sweep was off by 1e-9)."""
+  with jax.enable_x64(True):
+    l_d, l_e = jnp.float64(2.0), jnp.float64(3.0)
+    got = jax.jit(losses.combine)(l_d, l_e, jnp.float64(0.1))
+    assert got.dtype == jnp.float64 and float(got) == 2.0 + 0.1 * 3.0

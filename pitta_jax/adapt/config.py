@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 
 from pitta_jax.adapt.xla_cpu import check_library
-from pitta_jax.configs import check, finite, option
+from pitta_jax.configs import check, check_types, finite, option
 from pitta_jax.trainable import parse_selector
 
 
@@ -40,6 +40,7 @@ class AdaptConfig:
                                      "backends ignore it")
 
   def __post_init__(self):
+    check_types(self)
     check(self.optimizer in ("adam", "sgd"), f"optimizer must be adam or sgd, got {self.optimizer!r}")
     finite(self.lr, "lr", 0.0)
     finite(self.momentum, "momentum", 0.0)

@@ -70,13 +70,15 @@ def num_streams(states: AdaptState) -> int:
 
 def init_streams(variables: Tree, method: Method, cfg: AdaptConfig, num: int,
                  tx: optax.GradientTransformation | None = None,
-                 seeds: Sequence[int] | None = None, model: Any = None
-                 ) -> tuple[AdaptState, Consts]:
+                 seeds: Sequence[int] | None = None, model: Any = None,
+                 resources: dict | None = None) -> tuple[AdaptState, Consts]:
   """K streams starting from the same network, each with its own optimiser state and PRNG seed.
 
   Args:
     variables: Flax variables {"params", "batch_stats"} of the source network.
-    method, cfg, tx, model: as `engine.init_state` (tx defaults to `make_optimizer(cfg, method)`).
+    method, cfg, tx, model, resources: as `engine.init_state` (tx defaults to
+      `make_optimizer(cfg, method)`; resources: what `method.needs`, e.g. Ada-Depth's pose
+      network, shared by the streams).
     num: number of streams K.
     seeds: K seeds (default cfg.seed + k); only methods that draw random numbers see them.
 
@@ -87,7 +89,7 @@ def init_streams(variables: Tree, method: Method, cfg: AdaptConfig, num: int,
   seeds = list(seeds) if seeds is not None else [cfg.seed + k for k in range(num)]
   if len(seeds) != num:
     raise ValueError(f"{len(seeds)} seeds for {num} streams")
-  base, consts = init_state(variables, method, cfg, tx, model)
+  base, consts = init_state(variables, method, cfg, tx, model, resources)
   return stack_streams([base.replace(rng=jax.random.PRNGKey(s)) for s in seeds]), consts
 
 
@@ -133,11 +135,12 @@ def init_lambda_sweep(variables: Tree, lams: Sequence[float], cfg: AdaptConfig,
   """One PITTA stream per lambda, all from the same network and seed.
 
   Returns:
-    (multi-stream AdaptState with method_state {"lam": (K,) float32}, the shared Consts).
+    (multi-stream AdaptState with method_state {"lam": (K,)}, the shared Consts).
   """
   tx = tx or make_optimizer(cfg)
   base, consts = init_state(variables, build_method("pitta", pitta), cfg, tx, model)
-  states = [base.replace(method_state={"lam": jnp.asarray(lam, jnp.float32)}) for lam in lams]
+  dtype = base.method_state["lam"].dtype  # the parameters' float type
+  states = [base.replace(method_state={"lam": jnp.asarray(lam, dtype)}) for lam in lams]
   return stack_streams(states), consts
 
 

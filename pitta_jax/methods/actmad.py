@@ -46,7 +46,7 @@ import numpy as np
 import optax
 
 from pitta_jax import nonsmooth
-from pitta_jax.configs import check, finite, option
+from pitta_jax.configs import check, check_types, finite, option
 from pitta_jax.methods.base import (Aux, Method, ring_init, ring_push, ring_valid,
                                     variables_of)
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
@@ -70,6 +70,7 @@ class ActmadConfig:
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):
+    check_types(self)
     try:
       re.compile(self.layers)
     except re.error as e:

@@ -68,7 +68,7 @@ import optax
 from flax import struct
 
 from pitta_jax import trainable as trainable_lib
-from pitta_jax.configs import check, finite, option
+from pitta_jax.configs import check, check_types, finite, option
 from pitta_jax.methods.base import (INPUT_SIZE, METRIC_FACTOR, POSE, Aux, Method, ring_init,
                                     ring_push, ring_restart, variables_of)
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
@@ -105,6 +105,7 @@ class AdadepthConfig:
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):
+    check_types(self)
     finite(self.lr, "lr", 0.0)
     check(0.0 <= self.ema_decay <= 1.0, f"ema_decay must be in [0, 1], got {self.ema_decay}")
     finite(self.threshold, "threshold", 0.0)

@@ -74,7 +74,7 @@ from flax import struct
 
 from pitta_jax import prng
 from pitta_jax import trainable as trainable_lib
-from pitta_jax.configs import check, finite, option
+from pitta_jax.configs import check, check_types, finite, option
 from pitta_jax.flat_optim import flat, flat_step
 from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, ring_restart,
                                     ring_valid, variables_of)
@@ -105,6 +105,7 @@ class ComodaConfig:
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):
+    check_types(self)
     finite(self.lr, "lr", 0.0)
     check(self.replay >= 0, f"replay must be >= 0, got {self.replay}")
     check(self.replay_size >= 1, f"replay_size must be >= 1, got {self.replay_size}")

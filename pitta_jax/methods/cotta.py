@@ -54,7 +54,7 @@ import optax
 
 from pitta_jax import nonsmooth, prng
 from pitta_jax import trainable as trainable_lib
-from pitta_jax.configs import check, finite, option
+from pitta_jax.configs import check, check_types, finite, option
 from pitta_jax.methods.base import Aux, Method, variables_of
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
 
@@ -87,6 +87,7 @@ class CottaConfig:
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):
+    check_types(self)
     check(self.n_augment >= 1, f"n_augment must be >= 1, got {self.n_augment}")
     check(self.gate in GATES, f"gate must be one of {', '.join(GATES)}, got {self.gate!r}")
     check(self.gate != "spread" or self.n_augment >= 2,

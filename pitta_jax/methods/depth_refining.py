@@ -11,10 +11,9 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from pitta_jax import losses, masks
-from pitta_jax.configs import check, option
+from pitta_jax.configs import check, check_types, is_int, option
 from pitta_jax.median import WINDOW
 
 
@@ -31,13 +30,14 @@ class DepthRefiningConfig:
                                   "O(N_max))")
 
   def __post_init__(self):
-    check(_is_int(self.window) and self.window >= 1 and self.window % 2 == 1,
+    check_types(self)
+    check(is_int(self.window) and self.window >= 1 and self.window % 2 == 1,
           f"window must be odd and >= 1 (an int), got {self.window!r}")
     check(self.mask_mode in masks.MASK_MODES,
           f"mask_mode must be one of {', '.join(masks.MASK_MODES)}, got {self.mask_mode!r}")
     check(self.loss_impl in losses.IMPLS,
           f"loss_impl must be one of {', '.join(losses.IMPLS)}, got {self.loss_impl!r}")
-    check(_is_int(self.max_instances) and self.max_instances >= 1,
+    check(is_int(self.max_instances) and self.max_instances >= 1,
           f"max_instances must be an int >= 1, got {self.max_instances!r}")
     check(len(self.dynamic_classes) > 0, "dynamic_classes must name at least one class")
     from pitta_jax.data import coco
@@ -48,17 +48,13 @@ class DepthRefiningConfig:
           c = coco.name_to_id(c)
         except KeyError as e:
           check(False, f"dynamic_classes: {e.args[0]}")
-      check(_is_int(c), f"dynamic_classes: {c!r} is neither a COCO id (int) nor a COCO name")
+      check(is_int(c), f"dynamic_classes: {c!r} is neither a COCO id (int) nor a COCO name")
       ids.append(int(c))
     object.__setattr__(self, "dynamic_classes", tuple(ids))
     unknown = [c for c in self.dynamic_classes if c not in coco.CATEGORY_IDS]
     check(not unknown, f"dynamic_classes: not COCO panoptic category ids: "
                        f"{', '.join(map(str, unknown))} (ids 1-200, 133 of them; names such as "
                        f"car work too)")
-
-
-def _is_int(x) -> bool:
-  return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 
 
 def frame_instances(frame, cfg: DepthRefiningConfig) -> tuple[jax.Array, jax.Array, jax.Array]:

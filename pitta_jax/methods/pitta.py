@@ -13,7 +13,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from pitta_jax.configs import check, option
+from pitta_jax.configs import check, check_types, option
 from pitta_jax.losses import LAMBDA
 from pitta_jax.methods.base import Aux, Method, predict
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, frame_loss
@@ -26,6 +26,7 @@ class PittaConfig:
   ld: DepthRefiningConfig = DepthRefiningConfig()
 
   def __post_init__(self):
+    check_types(self)
     check(isinstance(self.lam, (int, float)) and not math.isnan(self.lam) and self.lam >= 0,
           f"lam must be >= 0 (inf allowed), got {self.lam!r}")
 
@@ -40,8 +41,10 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: PittaConfig)
 
 
 def build(config: PittaConfig = PittaConfig()) -> Method:
-  """PITTA with `config` bound; method_state = {"lam": () float32}."""
+  """PITTA with `config` bound; method_state = {"lam": () of the parameters' float type}."""
   def init(model, parts, cfg, resources):
-    del model, parts, cfg, resources
-    return {"lam": jnp.asarray(config.lam, jnp.float32)}
+    del model, cfg, resources
+    # the parameters' float type: float64 runs (x64 gradient checks) keep lambda exact
+    leaves = jax.tree_util.tree_leaves(parts.trainable)
+    return {"lam": jnp.asarray(config.lam, leaves[0].dtype if leaves else jnp.float32)}
   return Method("pitta", config, init=init, loss=loss)

@@ -328,6 +328,10 @@ class UpConv3x3(nn.Module):
                         jnp.float32)
     bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
     fn = conv_function(self.conv)
+    # one dtype, as flax's Conv promotes (float32 weights on float64 features under x64)
+    dtype = jnp.result_type(x, kernel, *(() if skip is None else (skip,)))
+    x, kernel, bias = x.astype(dtype), kernel.astype(dtype), bias.astype(dtype)
+    skip = None if skip is None else skip.astype(dtype)
     y = upsample_reflect_conv3x3(x, kernel[:, :, :c], fn)
     if skip is not None:
       y = y + reflect_conv3x3(skip, kernel[:, :, c:], fn)
