@@ -124,9 +124,13 @@ class Context:
   # each model's weights identity (`weights_identity`), hashed once per command, not per row
   identities: dict[str, dict] = dataclasses.field(default_factory=dict)
 
-  def wants(self, *labels: str) -> bool:
-    """Whether --rows selects a row known by any of `labels` (no --rows: every row)."""
-    return not self.rows or any(r.lower() in x.lower() for r in self.rows for x in labels)
+  def wants(self, label: str, *names: str) -> bool:
+    """Whether --rows selects the row `label` (no --rows: every row): a --rows entry that is a
+    part of the label, or the whole of one of its other `names` (its method, network, group);
+    only a label is matched by parts ('depth' once selected every MonoDepth2 row)."""
+    return not self.rows or any(r.lower() in label.lower()
+                                or any(r.lower() == n.lower() for n in names)
+                                for r in self.rows)
 
   def cases(self, names: Sequence[str]) -> list[tuple[str, tuple[dict, ...]]]:
     table = SYNTHETIC if self.dataset == "synthetic" else REAL[self.dataset]
@@ -267,6 +271,54 @@ def check_flags_used(ctx: Context, rows: Sequence[RowSpec]) -> None:
   if given and not any(method_of(row).prepare is not None for row in rows):
     raise DataError(None, f"{' and '.join(given)}: no row of this table uses source-domain data "
                           f"(only CoMoDa's and ActMAD's rows do)")
+
+
+def check_rows(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSpec]]) -> None:
+  """Before the first row runs, what the selected (test case, parts, row)s need: weights for at
+  least one of them (a table of 'needs weights' only is not a result), each method's pose
+  network and source-domain data, a --replay-root that is a KITTI raw root, each test case's
+  frames as its methods need them (K, capture order), and no --option that a test case sets
+  itself. Without this a missing need stopped the table at its row, after the rows before."""
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.sources import check_needs, open_reader
+  own = {k for _, parts, _ in selected for part in parts for k in part}
+  for item in ctx.options:
+    if item.split("=", 1)[0] in own:
+      raise DataError(None, f"--option {item}: each test case sets {item.split('=', 1)[0]} "
+                            f"itself")
+  models = list(dict.fromkeys(row.model for _, _, row in selected))
+  if all(weights_for(ctx, model) is None for model in models):
+    raise DataError(None, f"no weights for the selected rows: --weights "
+                          f"{models[0]}=DIR (on {ctx.dataset} no network is trained for you)")
+  methods: dict[tuple[str, str], Any] = {}
+  for _, _, row in selected:
+    if weights_for(ctx, row.model) is not None and (row.method, row.model) not in methods:
+      methods[(row.method, row.model)] = (row, method_of(row))
+  for (_, model), (row, method) in methods.items():
+    if "pose" in method.needs and weights_for(ctx, model).pose is None:
+      raise DataError(ctx.weights.get(model), f"row {row.label}: {method.name} needs a pose "
+                                              f"network, and these weights have none (convert "
+                                              f"with --pose-encoder/--pose, or train-source)")
+    if (method.prepare is not None and ctx.dataset != "synthetic"
+            and not (ctx.source_images or ctx.replay_root)):
+      raise DataError(None, f"row {row.label}: {method.name} needs source-domain data: "
+                            f"--source-images PATH or --replay-root DIR")
+  if ctx.replay_root and any(m.prepare is not None for _, m in methods.values()):
+    from pitta_jax.data.kitti import open_raw_sequences
+    for seq in open_raw_sequences(ctx.replay_root):
+      for _, method in methods.values():
+        if method.prepare is not None:
+          check_needs(method, seq, f"--replay-root {ctx.replay_root}")
+  if ctx.dataset == "synthetic":
+    return  # every synthetic frame has K, in capture order
+  for case, parts, row in selected:
+    entry = methods.get((row.method, row.model))
+    if entry is None or not entry[1].needs:
+      continue
+    for part in parts:
+      options = [*ctx.options, *(f"{k}={v}" for k, v in part.items())]
+      check_needs(entry[1], open_reader(ctx.dataset, ctx.root, options, ctx.segmentation),
+                  f"test case {case} ({', '.join(options)})")
 
 
 def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str]) -> None:
@@ -430,9 +482,9 @@ def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthe
                       f"random {QUICK_SIZE[1]}x{QUICK_SIZE[0]} networks on synthetic")
   if rows:
     p.add_argument("--rows", default="",
-                   help="comma-separated row names (or parts of them, case-insensitive): "
-                        "compute only these rows, e.g. --rows 'No adaptation,PITTA' (default: "
-                        "all)")
+                   help="comma-separated row names (or parts of them, case-insensitive), "
+                        "or whole method, network or group names: compute only these rows, "
+                        "e.g. --rows 'No adaptation,PITTA' (default: all)")
   p.add_argument("--out", default=None, help="output directory (default experiments_out/NAME)")
   p.add_argument("--quiet", action="store_true", help="no progress bars")
   p.add_argument("--debug", action="store_true", help="full tracebacks")

@@ -45,7 +45,7 @@ def rows() -> list[tuple[str, str, RowSpec]]:
 def selected(ctx) -> list[tuple[str, str, RowSpec]]:
   """The rows --rows selects, by network (label or name), row label (No adaptation, Sunny,
   All) or method."""
-  return [(g, c, r) for g, c, r in rows() if ctx.wants(g, r.model, r.label, r.method)]
+  return [(g, c, r) for g, c, r in rows() if ctx.wants(f"{g}: {r.label}", r.model, r.method)]
 
 
 def _aligned_for_figures(entries: list[Entry]) -> list[Entry]:
@@ -77,6 +77,7 @@ def run(args, runners=None) -> int:
   todo = selected(ctx)
   common.check_selection(ctx, todo, [x for g, _, r in rows() for x in (g, r.label)])
   common.check_cases(ctx, [(c, cases[c]) for c in dict.fromkeys(c for _, c, _ in todo)])
+  common.check_rows(ctx, [(c, cases[c], r) for _, c, r in todo])
   for group, case, row in tqdm(todo, desc="rows", unit="row", disable=ctx.quiet):
     entry = common.run_row(ctx, row, case, cases[case], shared, resources)
     entry.group = group

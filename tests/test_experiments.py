@@ -194,6 +194,40 @@ def _raise(error):
   raise error
 
 
+def test_rows_needs_are_checked_before_the_first_row(tmp_path, monkeypatch):
+  """common.check_rows, before any row runs: a method's source data, its pose network, weights
+  for at least one row, and an --option the test cases set; it was found at the row, after the
+  rows before it had run (an exit 0 with only 'needs weights' rows, for the weights)."""
+  from types import SimpleNamespace
+  from experiments.table1 import ROWS
+  from pitta_jax.data.errors import DataError
+  by_label = {row.label: row for row in ROWS}
+  foggy = ({"weather": "foggy"},)
+  monkeypatch.setattr("pitta_jax.sources.open_reader", lambda *a: [0])
+
+  def ctx(weights=True, **kw):
+    c = common.Context("drivingstereo", str(tmp_path), kw.pop("options", []), "gt",
+                       {"monodepth2": "w"} if weights else {}, tmp_path, False, 2, True, **kw)
+    if weights:
+      c.loaded["monodepth2"] = SimpleNamespace(pose=None)
+    return c
+
+  def refused(c, labels, message):
+    with pytest.raises(DataError, match=message):
+      common.check_rows(c, [("Foggy", foggy, by_label[label]) for label in labels])
+
+  refused(ctx(), ["No adaptation", "ActMAD + L_d"],
+          r"row ActMAD \+ L_d: actmad needs source-domain data: --source-images PATH or "
+          r"--replay-root DIR")
+  refused(ctx(source_images="src"), ["CoMoDa + L_d"],
+          r"row CoMoDa \+ L_d: comoda needs a pose network, and these weights have none")
+  refused(ctx(weights=False), ["No adaptation", "PITTA"],
+          r"no weights for the selected rows: --weights monodepth2=DIR")
+  refused(ctx(options=["weather=rainy"]), ["PITTA"],
+          r"--option weather=rainy: each test case sets weather itself")
+  common.check_rows(ctx(), [("Foggy", foggy, by_label["PITTA"])])
+
+
 @pytest.fixture(scope="module")
 def quick_out(tmp_path_factory):
   """One output directory for the quick tables, and one compile cache: a row that two tables
@@ -226,7 +260,7 @@ def _finite(entry):
 # a table's rows are many settings of one method (the baselines' engine runs have their own
 # tests); `pitta-jax experiment NAME --quick` computes every row.
 QUICK_ROWS = {"table1": "No adaptation,PITTA,Depth Anything", "table2": "No adaptation,PITTA,"
-              "Depth Anything", "table3": "SGDepth,depth_anything", "table5": "CNN 0% + BN 100%"}
+              "Depth Anything", "table3": "SGDepth,depth_anything_v2", "table5": "CNN 0% + BN 100%"}
 
 
 @pytest.mark.parametrize("name", ["table1", "table2"])
