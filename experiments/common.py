@@ -123,6 +123,7 @@ class Context:
   loaded: dict[str, Any] = dataclasses.field(default_factory=dict)
   # each model's weights identity (`weights_identity`), hashed once per command, not per row
   identities: dict[str, dict] = dataclasses.field(default_factory=dict)
+  files_id: str | None = None   # `files_identity`, once per command
 
   def wants(self, label: str, *names: str) -> bool:
     """Whether --rows selects the row `label` (no --rows: every row): a --rows entry that is a
@@ -347,9 +348,39 @@ def row_key(ctx: Context, row: RowSpec, case: str, parts, weights_id: dict) -> s
                      "parts": parts, "dataset": ctx.dataset,
                      "root": str(Path(ctx.root).resolve()) if ctx.root else None,
                      "options": sorted(ctx.options), "segmentation": ctx.segmentation,
-                     "weights": weights_id, "frames": ctx.frames, "resolved": resolved},
+                     "files": files_identity(ctx), "weights": weights_id, "frames": ctx.frames,
+                     "resolved": resolved},
                     sort_keys=True, default=str)
   return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def files_identity(ctx: Context) -> str:
+  """What the rows read besides the depth weights, as a digest of every file's path, size and
+  modification time under --root and the --segmentation directory (png:DIR's maps,
+  mask2former:DIR's weights; --out left out): re-segmented maps, re-exported ground truth or
+  added images under the same paths are not served the old rows. Once per command."""
+  if ctx.files_id is None:
+    from pitta_jax.sources import parse_segmentation
+    kind, arg = parse_segmentation(ctx.segmentation)
+    roots = [r for r in (ctx.root if ctx.dataset != "synthetic" else None,
+                         arg if kind != "gt" else None) if r]
+    out = ctx.out.resolve() if ctx.out else None
+    digest = hashlib.sha256()
+    for root in roots:
+      root = Path(root).resolve()
+      for directory, dirs, files in os.walk(root):
+        here = Path(directory)
+        dirs[:] = sorted(d for d in dirs if out is None or (here / d).resolve() != out)
+        for name in sorted(files):
+          try:
+            st = (here / name).stat()
+          except OSError:  # a dangling link: its name is all there is
+            st = None
+          digest.update(f"{(here / name).relative_to(root)}\0"
+                        f"{st and st.st_size}\0{st and st.st_mtime_ns}\n".encode())
+      digest.update(f"{root}\n".encode())
+    ctx.files_id = digest.hexdigest()[:16]
+  return ctx.files_id
 
 
 def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "metrics") -> dict:
@@ -388,11 +419,10 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
     if res_key not in resources:
       resources[res_key] = method_resources(method, weights, ctx.dataset, ctx.source_images,
                                             ctx.replay_root, quiet=ctx.quiet)
-    ckpt = ctx.out / "rows" / f"{key}.ckpt"
+    ckpt = checkpoints(ctx, key)
     res = run_sequence(weights, frames, cfg, method, name=f"{case}: {row.label}",
                        quiet=ctx.quiet, runners=runners, resources=resources[res_key],
-                       checkpoint_dir=None if ctx.quick else ckpt,
-                       checkpoint_every=0 if ctx.quick else CHECKPOINT_EVERY,
+                       checkpoint_dir=ckpt, checkpoint_every=CHECKPOINT_EVERY if ckpt else 0,
                        resume=RESUME_OWN)
     return {"metrics": res.mean if res.status == "ok" else {}, "status": res.status,
             "metrics_before_divergence": res.mean if res.status != "ok" else None,
@@ -402,15 +432,23 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
             "adapt": dataclasses.asdict(cfg), "method_config": dataclasses.asdict(method.config)}
 
   result = cached(ctx, key, compute)
-  _remove_checkpoints(ctx.out / "rows" / f"{key}.ckpt")
+  remove_checkpoints(ctx, key)
   return Entry(case, row.label, result["metrics"], spec=row, status=result.get("status", "ok"),
                extra={**{k: result.get(k) for k in (
                    "frames", "seconds", "fps", "n_skipped", "abs_rel_per_frame",
                    "metrics_before_divergence", "adapt", "method_config")}, "row_key": key})
 
 
-def _remove_checkpoints(directory: Path) -> None:
+def checkpoints(ctx: Context, key: str) -> Path | None:
+  """Where the row (or sweep) `key` keeps its checkpoints while it runs (None with --quick:
+  none)."""
+  return None if ctx.quick else ctx.out / "rows" / f"{key}.ckpt"
+
+
+def remove_checkpoints(ctx: Context, key: str) -> None:
+  """The row's checkpoints, once its result is stored."""
   import shutil
+  directory = ctx.out / "rows" / f"{key}.ckpt"
   if directory.is_dir():
     shutil.rmtree(directory, ignore_errors=True)
 

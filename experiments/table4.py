@@ -27,38 +27,79 @@ def label(lam: float) -> str:
 
 
 def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
-                 quick: bool = False, runners=None) -> list[dict]:
+                 quick: bool = False, runners=None, checkpoint_dir=None) -> list[dict]:
   """PITTA with each lambda of `lams` over `frames`, as one vmapped run; per lambda
   {"metrics": mean of the 7, "abs_rel_per_frame": [...], "frames": n}. runners: a
-  `run.Runners` that keeps the compiled sweep for later calls."""
+  `run.Runners` that keeps the compiled sweep for later calls. checkpoint_dir: the sweep's
+  states and results so far are saved there every `common.CHECKPOINT_EVERY` frames (and on
+  Ctrl-C), and a sweep interrupted before resumes from its newest checkpoint (one of another
+  sweep is removed, with a warning), with the result of an uninterrupted one."""
+  from pathlib import Path
   from tqdm import tqdm
   from pitta_jax import metrics as metrics_lib
   from pitta_jax.adapt import streams
   from pitta_jax.adapt.inputs import chunks
-  from pitta_jax.run import EvalConfig, frame_metrics, input_size, model_alignment
-  from pitta_jax.run import Runners
+  from pitta_jax.methods import build
+  from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, frame_metrics,
+                             input_size, load_resume_point, model_alignment, run_fingerprint,
+                             save_checkpoint)
   cfg = common.adapt_config("pitta", quick=quick)
+  every = common.CHECKPOINT_EVERY if checkpoint_dir is not None else 0
+  cfg = dataclasses.replace(cfg, chunk_size=checkpoint_chunk_size(cfg.chunk_size, every))
   key = ("lambda_sweep", weights.spec.name, json.dumps(weights.config, sort_keys=True,
                                                        default=str), cfg, len(lams))
   model, tx, runner = (runners or Runners()).custom(key, lambda: _sweep_runner(weights, cfg))
   states, consts = streams.init_lambda_sweep(weights.depth, lams, cfg, tx, model=model)
   ev = EvalConfig()
-  per_frame: list[list[dict]] = [[] for _ in lams]
+  names = [frame.name for frame in frames]
+  record = {"names": [], "per_frame": [[] for _ in lams], "fingerprint": None}
+  directory = Path(checkpoint_dir) if checkpoint_dir is not None else None
+  if directory is not None:
+    record["fingerprint"] = run_fingerprint(weights, build("pitta"), cfg, ev,
+                                            [*names, f"lambdas {list(lams)}"])
+    found = load_resume_point(directory, record["fingerprint"], names, states, strict=False)
+    if found is not None:
+      states, record = found
+  start = len(record["names"])
   h, w = input_size(weights, frames)
-  bar = tqdm(total=len(frames), desc="lambda sweep", unit="frame", disable=quiet)
-  for chunk, originals in chunks(frames, h, w, min(cfg.chunk_size, len(frames)),
-                                 cfg.max_segments, weights.spec.image_resize):
-    states, out = runner(states, chunk, consts)
-    depth = np.asarray(out.depth)                                     # (T, K, H, W)
-    for t, frame in enumerate(originals):
-      for k in range(len(lams)):
-        try:
-          per_frame[k].append(frame_metrics(depth[t, k], frame.depth, ev,
-                                            model_alignment(weights)))
-        except metrics_lib.NoValidPixels:
-          pass
-    bar.update(len(originals))
-  bar.close()
+  bar = tqdm(total=len(frames), initial=start, desc="lambda sweep", unit="frame",
+             disable=quiet)
+  def marks() -> tuple[int, list[int]]:
+    return len(record["names"]), [len(p) for p in record["per_frame"]]
+
+  done = (states, marks())  # the newest states whose frames are all scored in `record`
+  try:
+    for chunk, originals in chunks(frames[start:], h, w,
+                                   min(cfg.chunk_size, max(len(frames) - start, 1)),
+                                   cfg.max_segments, weights.spec.image_resize):
+      states, out = runner(states, chunk, consts)
+      depth = np.asarray(out.depth)                                     # (T, K, H, W)
+      for t, frame in enumerate(originals):
+        for k in range(len(lams)):
+          try:
+            record["per_frame"][k].append(frame_metrics(depth[t, k], frame.depth, ev,
+                                                        model_alignment(weights)))
+          except metrics_lib.NoValidPixels:
+            pass
+        record["names"].append(frame.name)
+      n = len(record["names"])
+      done = (states, marks())
+      if every and n < len(frames) and n % every == 0:
+        save_checkpoint(directory, states, record)
+      bar.update(len(originals))
+  except KeyboardInterrupt:
+    done_states, (n, scored) = done
+    if every and n > start and n % every:  # the last whole chunk is not lost
+      del record["names"][n:]
+      for p, m in zip(record["per_frame"], scored):
+        del p[m:]
+      save_checkpoint(directory, done_states, record)
+    raise
+  finally:
+    bar.close()
+  # a checkpoint's JSON holds NaN as null
+  per_frame = [[{k: float("nan") if v is None else v for k, v in m.items()} for m in p]
+               for p in record["per_frame"]]
   return [{"metrics": metrics_lib.mean_metrics(p), "frames": len(frames),
            "abs_rel_per_frame": [m["abs_rel"] for m in p]} for p in per_frame]
 
@@ -94,9 +135,11 @@ def run(args, runners=None) -> int:
     def compute():
       frames = common.case_frames(ctx, parts, weights.height, weights.width)
       took = common.timer()
-      sweep = lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick, common.runners(ctx))
+      sweep = lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick, common.runners(ctx),
+                           common.checkpoints(ctx, key))
       return {"sweep": sweep, "seconds": round(took(), 2)}
     cached = common.cached(ctx, key, compute, field="sweep")
+    common.remove_checkpoints(ctx, key)
     # one vmapped run computes every lambda: each row's seconds are the whole sweep's
     # what each stream ran with (lambda_sweep's AdaptConfig, PITTA's config at that lambda)
     adapt = dataclasses.asdict(common.adapt_config("pitta", quick=ctx.quick))

@@ -396,12 +396,30 @@ def _remove_leftovers(directory: Path) -> None:
   remove_stale_temps(directory)
 
 
-def _save_checkpoint(directory: Path, state, record: dict) -> None:
+def load_resume_point(directory: Path, fingerprint: str, names: Sequence[str], like,
+                      strict: bool) -> tuple[Any, dict] | None:
+  """(state, sidecar) of this run's newest checkpoint under `directory` that reads back
+  (`fingerprint`, and `names` of the frames from the first: its sidecar's "names" are the
+  frames it has done), None when there is none. Checkpoints that are not this run's (or none
+  that reads back): DataError when `strict`, else removed with a warning (None)."""
+  try:
+    return _load_newest(_resume_points(directory, fingerprint, names), like)
+  except DataError:
+    if strict:
+      raise
+    print(f"warning: {directory}: its checkpoints are not this run's (other weights, "
+          f"settings or frames, or unreadable); starting afresh", file=sys.stderr)
+    _clear_checkpoints(directory)
+    return None
+
+
+def save_checkpoint(directory: Path, state, record: dict) -> None:
   """The carry (orbax) and every per-frame result so far (JSON sidecar, written last and
-  atomically: a state without its sidecar is never used)."""
+  atomically: a state without its sidecar is never used); the record's "names" are the frames
+  done, which name the checkpoint (`state_NNNNNN`)."""
   from pitta_jax.outputs import atomic_write_text, json_safe
   directory.mkdir(parents=True, exist_ok=True)
-  path = directory / f"state_{int(state.step):06d}"
+  path = directory / f"state_{len(record['names']):06d}"
   save_state(path, state)
   atomic_write_text(directory / f"{path.name}.json", json.dumps(json_safe(record)[0]))
   # the newest KEEP_CHECKPOINTS stay (a full carry each: hundreds of MB for a whole network),
@@ -472,15 +490,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
             "logs": {}, "fingerprint": fingerprint, "seconds": 0.0}
   if directory is not None and resume:
-    try:
-      found = _load_newest(_resume_points(directory, fingerprint, names), state)
-    except DataError:
-      if resume != RESUME_OWN:
-        raise
-      print(f"warning: {directory}: its checkpoints are not this run's (other weights, "
-            f"settings or frames, or unreadable); starting afresh", file=sys.stderr)
-      _clear_checkpoints(directory)
-      found = None
+    found = load_resume_point(directory, fingerprint, names, state, strict=resume != RESUME_OWN)
     if found is not None:
       state, sidecar = found
       record = {"nonfinite_indices": [], "seconds": 0.0, **sidecar}
@@ -505,7 +515,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   def save(state, elapsed: float) -> None:
     """A checkpoint of `state` with the record, whose time is `elapsed` s of this call."""
     record["seconds"] = seconds_before + elapsed
-    _save_checkpoint(directory, state, record)
+    save_checkpoint(directory, state, record)
 
   # a sequence shorter than a chunk is one chunk of its own length (no padded steps)
   stream = chunks(frames, h, w, min(cfg.chunk_size, max(len(frames), 1)), cfg.max_segments,

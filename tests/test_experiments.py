@@ -194,6 +194,32 @@ def _raise(error):
   raise error
 
 
+def test_row_cache_sees_the_files_it_reads(tmp_path):
+  """A row's cache key holds the files under --root and the --segmentation directory (their
+  sizes and times), not only their paths: re-segmented maps were served the old rows. The
+  table's own --out under the root is left out (its row files would change every key)."""
+  import os
+  (tmp_path / "ds" / "foggy").mkdir(parents=True)
+  (tmp_path / "pan").mkdir()
+  (tmp_path / "ds" / "foggy" / "a.png").write_bytes(b"1")
+  (tmp_path / "pan" / "a.png").write_bytes(b"2")
+
+  def identity(segmentation="png:" + str(tmp_path / "pan")):
+    return common.files_identity(common.Context("drivingstereo", str(tmp_path / "ds"), [],
+                                                segmentation, {}, tmp_path / "ds" / "out",
+                                                False, 2, True))
+  first = identity()
+  assert identity() == first and identity("gt") != first
+  (tmp_path / "ds" / "out" / "rows").mkdir(parents=True)
+  (tmp_path / "ds" / "out" / "rows" / "k.json").write_text("{}")
+  assert identity() == first
+  (tmp_path / "pan" / "a.png").write_bytes(b"22")  # re-segmented
+  second = identity()
+  assert second != first
+  os.utime(tmp_path / "ds" / "foggy" / "a.png", ns=(1, 1))  # re-exported ground truth, say
+  assert identity() != second
+
+
 def test_rows_needs_are_checked_before_the_first_row(tmp_path, monkeypatch):
   """common.check_rows, before any row runs: a method's source data, its pose network, weights
   for at least one row, and an --option the test cases set; it was found at the row, after the
@@ -439,3 +465,41 @@ def test_table3_figures_draw_sunny_under_alls_sunny_part():
   np.testing.assert_array_equal(drawn[1].extra["abs_rel_per_frame"], [np.nan] * 6 + [0.1, 0.2])
   assert drawn[0] is entries[0] and drawn[2] is entries[2]
   assert entries[1].extra["abs_rel_per_frame"] == [0.1, 0.2]  # the table's own entry unchanged
+
+
+def test_lambda_sweep_resumes_after_an_interrupt(tmp_path, monkeypatch):
+  """Table 4's sweep checkpoints its vmapped states and per-frame results: interrupted while
+  scoring frame 4 of 6 (checkpoints every 2 frames), a rerun starts at frame 2 and ends with
+  an uninterrupted sweep's numbers (it started again from frame 0, losing the work)."""
+  from tiny_net import SPEC, tiny_variables
+  from experiments import table4
+  from pitta_jax import run
+  from pitta_jax.checkpoint import Weights
+  from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  monkeypatch.setattr(common, "CHECKPOINT_EVERY", 2)
+  weights = Weights(SPEC, {"height": 64, "width": 96}, tiny_variables(0))
+  frames = list(generate_sequence(SyntheticConfig(height=64, width=96, num_frames=6,
+                                                  domain="fog")))
+  lams = (0.0, 0.5)
+  shared = run.Runners()
+  whole = table4.lambda_sweep(weights, frames, lams, runners=shared)
+  scored, real = [], run.frame_metrics
+
+  def interrupting(depth, *a):
+    scored.append(1)
+    if len(scored) == 7:  # frame 3's first lambda: frames 0-1 saved, 2-3 the cut chunk
+      raise KeyboardInterrupt
+    return real(depth, *a)
+  ckpt = tmp_path / "sweep.ckpt"
+  monkeypatch.setattr(run, "frame_metrics", interrupting)
+  with pytest.raises(KeyboardInterrupt):
+    table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=ckpt)
+  assert [p.name for p in run.complete_checkpoints(ckpt)] == ["state_000002.json"]
+  monkeypatch.setattr(run, "frame_metrics", real)
+  from pitta_jax.adapt import inputs
+  starts, real_chunks = [], inputs.chunks
+  monkeypatch.setattr(inputs, "chunks", lambda frames, *a: starts.append(frames[0].name)
+                      or real_chunks(frames, *a))
+  resumed = table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=ckpt)
+  assert starts == [frames[2].name]
+  assert resumed == whole
