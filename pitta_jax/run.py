@@ -258,13 +258,12 @@ def input_size(weights: Weights, frames: Sequence[Frame]) -> tuple[int, int]:
 
 def check_aspect(frame: Frame) -> None:
   """The prediction is resized onto the ground truth: their aspect ratios must agree (1%).
-  A reader's frames were checked as they were read (naming the image file); this covers
-  frames built in memory."""
+  DataError naming the frame's image file (a reader's frame), else the frame."""
   if frame.depth is None:
     return
   why = aspect_mismatch(frame.image.shape, np.shape(frame.depth))
   if why is not None:
-    raise DataError(frame.name or "frame", why)
+    raise DataError(frame.image_file or frame.name or "frame", why)
 
 
 CHECKPOINT_PATTERN = "state_[0-9][0-9][0-9][0-9][0-9][0-9]"

@@ -534,9 +534,10 @@ def test_folder_with_depth_and_panoptic(tmp_path):
   np.testing.assert_array_equal(frames[0].depth, np.full((H, W), 2.5, np.float32))
   assert frames[1].segments == (Segment(3, 8, True),)
   write_depth_png(tmp_path / "depth" / "a.png", np.full((H, H), 1.5))  # another aspect ratio
+  from pitta_jax.run import check_aspect  # what a run checks of each frame, naming its image
   with pytest.raises(DataError, match=rf"img/a\.png: ground truth is {H}x{H} but the image is "
                                       rf"{W}x{H} \(W x H\): another aspect ratio"):
-    readers.open_dataset("folder", tmp_path / "img", depth_dir=tmp_path / "depth")[0]
+    check_aspect(readers.open_dataset("folder", tmp_path / "img", depth_dir=tmp_path / "depth")[0])
   (tmp_path / "depth" / "a.png").unlink()
   with pytest.raises(DataError, match=r"depth/a\.png: depth map for image a\.png not found"):
     readers.open_dataset("folder", tmp_path / "img", depth_dir=tmp_path / "depth")

@@ -40,6 +40,8 @@ class Frame:
             in the same stream (a new drive or sequence): methods that use the previous frame
             (Ada-Depth, CoMoDa) treat it as a first frame. Readers set it
             (`FrameSequence`); a stream's very first frame has no previous frame either way.
+  image_file: the file the image was read from ("" for a frame built in memory), named in
+            errors about the frame's data.
   """
   image: np.ndarray
   depth: np.ndarray | None = None
@@ -48,6 +50,7 @@ class Frame:
   name: str = ""
   intrinsics: np.ndarray | None = None
   starts_recording: bool = False
+  image_file: str = ""
 
 
 ASPECT_TOLERANCE = 0.01  # relative difference of W / H a prediction can be resized across

@@ -24,7 +24,7 @@ from typing import overload
 import numpy as np
 
 from pitta_jax.data.errors import DataError
-from pitta_jax.data.frame import Frame, aspect_mismatch
+from pitta_jax.data.frame import Frame
 from pitta_jax.data.image_io import read_image
 from pitta_jax.data.panoptic_io import PanopticRef
 
@@ -66,9 +66,6 @@ class FrameFiles:
       raise DataError(self.image, f"image is {_wh(image.shape)} but {self.size_source} says "
                                   f"{_wh(self.size)} (W x H)")
     depth = None if self.depth is None else self.depth()
-    why = None if depth is None else aspect_mismatch(image.shape, depth.shape)
-    if why is not None:
-      raise DataError(self.image, why)
     panoptic, segments = None, ()
     if self.panoptic is not None:
       panoptic, segments = self.panoptic.load()
@@ -76,7 +73,7 @@ class FrameFiles:
         raise DataError(self.panoptic.png, f"panoptic map is {_wh(panoptic.shape)} but its image "
                                            f"{self.image.name} is {_wh(image.shape)} (W x H)")
     return Frame(image=image, depth=depth, panoptic=panoptic, segments=segments, name=self.name,
-                 intrinsics=self._intrinsics_for(image.shape[:2]))
+                 intrinsics=self._intrinsics_for(image.shape[:2]), image_file=str(self.image))
 
   def _intrinsics_for(self, size: tuple[int, int]) -> np.ndarray | None:
     """K of an image of `size` (H, W): `intrinsics` scaled from `intrinsics_size`."""
