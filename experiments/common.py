@@ -664,11 +664,36 @@ def caption_notes(ctx: Context) -> str:
   return " ".join(notes)
 
 
+# how every table scores a frame (run.EvalConfig's defaults, model alignment), for its caption
+EVALUATION_NOTE = ("Scored per frame on ground truth in [1e-3, 80] m, no crop, the prediction "
+                   "aligned as its network needs: median scaling (x5.4 instead for weights "
+                   "trained with stereo pairs); for Depth Anything V2 a least-squares scale and "
+                   "shift in inverse depth (two numbers fitted per frame, against the median's "
+                   "one).")
+
+
+def units_note(ctx: Context, entries: Sequence[Entry]) -> str:
+  """Ada-Depth's thresholds are in metres: on weights up to scale (monocular training, no
+  factor to metres: `run.metric_factor`) its rows take the depth as metres, which the caption
+  must say (`pitta-jax adapt` prints the same as a note)."""
+  from pitta_jax.run import metric_factor
+  models = {e.spec.model for e in entries if e.spec is not None and e.spec.method == "adadepth"
+            and e.status == "ok"}
+  scaled = sorted(m for m in models if (w := weights_for(ctx, m)) is not None
+                  and metric_factor(w.spec, w.config) is None)
+  if not scaled:
+    return ""
+  return (f"Ada-Depth's thresholds are in metres, and the {', '.join(scaled)} weights are up to "
+          f"scale (monocular training): its rows take their depth as metres.")
+
+
 def meta(ctx: Context) -> dict:
   """What results.json records about the command besides the rows."""
   import platform
+  from pitta_jax.run import EvalConfig
   return {"dataset": ctx.dataset, "root": ctx.root, "options": ctx.options,
           "segmentation": ctx.segmentation, "weights": ctx.weights, "quick": ctx.quick,
+          "eval": {**dataclasses.asdict(EvalConfig()), "note": EVALUATION_NOTE},
           "frames_per_part": ctx.frames, "rows_selected": list(ctx.rows),
           "load": f"load average {load_average()}",
           "machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "format": FORMAT}

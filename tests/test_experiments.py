@@ -194,6 +194,24 @@ def _raise(error):
   raise error
 
 
+def test_ada_depth_rows_on_weights_up_to_scale_are_captioned():
+  """Ada-Depth's metre thresholds on monocular weights: the caption says the depth was taken
+  as metres (the rows were printed and ranked with no word of it); not for weights with a
+  factor to metres (our source models, stereo-trained ones)."""
+  from types import SimpleNamespace
+  from pitta_jax.models.registry import get_spec
+  ctx = common.Context("synthetic", None, [], "gt", {}, None, True, 2, True)
+  rows = [common.Entry("Foggy", label, {}, spec=common.RowSpec(label, method))
+          for label, method in (("PITTA", "pitta"), ("Ada-Depth + L_d", "adadepth"))]
+  for config, noted in (({"use_stereo": False}, True), ({"use_stereo": True}, False),
+                        ({"source": {"trained_by": "train-source"}}, False)):
+    ctx.loaded["monodepth2"] = SimpleNamespace(spec=get_spec("monodepth2"), config=config)
+    note = common.units_note(ctx, rows)
+    assert (note == "Ada-Depth's thresholds are in metres, and the monodepth2 weights are up to "
+                    "scale (monocular training): its rows take their depth as metres.") == noted
+    assert common.units_note(ctx, rows[:1]) == ""
+
+
 def test_row_cache_sees_the_files_it_reads(tmp_path):
   """A row's cache key holds the files under --root and the --segmentation directory (their
   sizes and times), not only their paths: re-segmented maps were served the old rows. The
