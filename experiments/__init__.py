@@ -31,7 +31,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"error: unknown experiment {argv[0]!r}; choose from {', '.join(NAMES)}",
           file=sys.stderr)
     return 2
-  if not argv or argv[0] in ("-h", "--help"):
-    print(__doc__)
+  if not argv or argv[0] in ("-h", "--help"):  # asked for: stdout, 0; a usage error: stderr, 2
+    print(__doc__, file=sys.stdout if argv else sys.stderr)
     return 0 if argv else 2
   return importlib.import_module(f"experiments.{argv[0]}").main(argv[1:])

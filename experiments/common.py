@@ -654,7 +654,9 @@ def caption_notes(ctx: Context) -> str:
   the user's weights, a --rows subset (the other rows are not in these files)."""
   notes = []
   if ctx.quick:
-    notes.append(f"--quick: seeded random {QUICK_SIZE[1]}x{QUICK_SIZE[0]} networks, "
+    nets = ("the networks without --weights: seeded random" if ctx.weights
+            else "seeded random")
+    notes.append(f"--quick: {nets} {QUICK_SIZE[1]}x{QUICK_SIZE[0]} networks, "
                  f"{ctx.frames} frames per part: a test of the pipeline, not results.")
   if ctx.weights:
     notes.append("Weights: " + ", ".join(f"{m}={d}" for m, d in sorted(ctx.weights.items()))

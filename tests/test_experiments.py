@@ -67,8 +67,9 @@ def test_captions_say_quick_weights_and_row_subsets():
   ctx = common.Context("synthetic", None, [], "gt", {"monodepth2": "w/md2"}, None, True, 2, True,
                        rows=("PITTA",))
   assert common.caption_notes(ctx) == (
-      "--quick: seeded random 96x64 networks, 2 frames per part: a test of the pipeline, not "
-      "results. Weights: monodepth2=w/md2. Only the rows selected by --rows PITTA.")
+      "--quick: the networks without --weights: seeded random 96x64 networks, 2 frames per "
+      "part: a test of the pipeline, not results. Weights: monodepth2=w/md2. Only the rows "
+      "selected by --rows PITTA.")
   assert common.caption_notes(common.Context("synthetic", None, [], "gt", {}, None, False, 50,
                                              True)) == ""
 
@@ -521,3 +522,15 @@ def test_lambda_sweep_resumes_after_an_interrupt(tmp_path, monkeypatch):
   resumed = table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=ckpt)
   assert starts == [frames[2].name]
   assert resumed == whole
+
+
+def test_experiments_without_a_name_is_a_usage_error_on_stderr(capsys):
+  """No experiment named: the list goes to stderr with exit 2 (it went to stdout); asked for
+  with --help: stdout, 0."""
+  import experiments
+  assert experiments.main([]) == 2
+  out, err = capsys.readouterr()
+  assert out == "" and "table1" in err
+  assert experiments.main(["--help"]) == 0
+  out, err = capsys.readouterr()
+  assert "table1" in out and err == ""
