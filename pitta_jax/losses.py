@@ -169,7 +169,8 @@ def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, 
 
   Args:
     depth: (H, W) float depth.
-    index_map: (H, W) int32, 0 or j in 1..N_max.
+    index_map: (H, W) int32, 0 or j in 1..n (what `masks.instance_index_map` makes; an entry
+      above n is counted by "fast" and ignored by "literal").
     n: scalar int N.
     s: odd median window (static).
     mode: "binary", "segment_id" or "instance_id" (static).
@@ -212,6 +213,8 @@ def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: in
     scalar float32 L_d (0 when no entry is used).
   """
   masks_lib.check_mode(mode)
+  if impl in IMPLS and jnp.shape(dynamic_ids)[0] == 0:  # no instance table: no term (eq. 8)
+    return jnp.zeros((), as_float(depth).dtype)
   inst_ids, inst_valid = masks_lib.table_from_dynamic_ids(dynamic_ids)
   if impl == "literal":
     masks = masks_lib.instance_masks(panoptic, inst_ids, inst_valid, mode)  # (N_max, H, W)

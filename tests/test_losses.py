@@ -256,3 +256,14 @@ def test_combine_keeps_a_float64_lambda():
     l_d, l_e = jnp.float64(2.0), jnp.float64(3.0)
     got = jax.jit(losses.combine)(l_d, l_e, jnp.float64(0.1))
     assert got.dtype == jnp.float64 and float(got) == 2.0 + 0.1 * 3.0
+
+
+def test_depth_refining_loss_of_an_empty_instance_table_is_zero():
+  """A (0,) dynamic-id table (no instance at all): eq. 8 has no term, 0 with a zero gradient,
+  from both forms ('fast' failed on an empty reduction)."""
+  depth = jnp.asarray(np.random.default_rng(0).uniform(1, 5, (8, 9)), jnp.float32)
+  panoptic, ids = jnp.ones((8, 9), jnp.int32), jnp.zeros((0,), jnp.int32)
+  for impl in ("fast", "literal"):
+    value, grad = jax.value_and_grad(
+        lambda d: losses.depth_refining_loss(d, panoptic, ids, 3, "binary", impl))(depth)
+    assert float(value) == 0.0 and not np.any(np.asarray(grad))
