@@ -346,3 +346,17 @@ def test_runners_share_a_compile_by_what_a_method_computes(monkeypatch):
   assert runners.get(weights, build("pitta", PittaConfig(lam=0.3)), cfg)[2] is not first
   a, b = runners.get(weights, scaled(1.0), cfg)[2], runners.get(weights, scaled(1000.0), cfg)[2]
   assert a is not b and runners.get(weights, scaled(1.0), cfg)[2] is a and len(built) == 4
+
+
+def test_a_method_is_checked_when_it_is_built():
+  """A Method without a loss, or whose requires/setting names no AdaptConfig field, is refused
+  at construction (it failed when first traced, or with an AttributeError in `check`)."""
+  from pitta_jax.methods.base import Method
+  with pytest.raises(ValueError, match="method m: loss must be a function, got None"):
+    Method("m", None, init=lambda *a: {}, loss=None)
+  with pytest.raises(ValueError, match="method m: requires/setting name 'bn_stat', which is no "
+                                       "AdaptConfig field"):
+    Method("m", None, init=lambda *a: {}, loss=lambda *a: 0,
+           requires=(("bn_stat", "running", "runs BN in eval mode"),))
+  with pytest.raises(ValueError, match="name 'selecter'"):
+    Method("m", None, init=lambda *a: {}, loss=lambda *a: 0, setting=(("selecter", "all"),))

@@ -141,6 +141,16 @@ class Method:
     unknown = set(self.needs) - set(NEEDS)
     if unknown:
       raise ValueError(f"method {self.name}: unknown needs {sorted(unknown)}; use {NEEDS}")
+    for field in ("init", "loss"):
+      if not callable(getattr(self, field)):
+        raise ValueError(f"method {self.name}: {field} must be a function, got "
+                         f"{getattr(self, field)!r}")
+    from pitta_jax.adapt.config import AdaptConfig  # lazy, as above
+    fields = {f.name for f in dataclasses.fields(AdaptConfig)}
+    for field, _, _ in (*self.requires, *((k, v, "") for k, v in self.setting)):
+      if field not in fields:
+        raise ValueError(f"method {self.name}: requires/setting name {field!r}, which is no "
+                         f"AdaptConfig field")
 
   def check(self, cfg) -> None:
     """ValueError (one line, naming every flag at once) when `cfg` contradicts `requires`."""
