@@ -87,6 +87,9 @@ def window_counts(h: int, w: int, s: int) -> np.ndarray:
 
 
 def _check_window(s: int) -> None:
+  if isinstance(s, jax.core.Tracer):
+    raise ValueError("window size s must be a Python int, not a traced value: pass it as a "
+                     "static argument of jax.jit (static_argnames=('s',)) or close over it")
   if not isinstance(s, (int, np.integer)) or s < 1 or s % 2 == 0:
     raise ValueError(f"window size s must be a positive odd int, got {s!r}")
 

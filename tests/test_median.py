@@ -105,6 +105,13 @@ def test_rejects_bad_window(s):
     median_lib.median_filter(jnp.zeros((4, 4)), s)
 
 
+def test_a_traced_window_is_named_as_such():
+  """s passed to a jitted filter as an ordinary argument: the message says to make it static
+  (it printed the tracer as the bad value)."""
+  with pytest.raises(ValueError, match=r"not a traced value: pass it as a static argument"):
+    jax.jit(median_lib.median_filter)(jnp.zeros((4, 4)), 3)
+
+
 def test_rejects_non_2d():
   with pytest.raises(ValueError, match="H, W"):
     median_lib.median_filter(jnp.zeros((4, 4, 3)), 3)
