@@ -15,6 +15,7 @@ Each problem is a `WeightsError` naming the file.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -24,6 +25,9 @@ from typing import Any
 import numpy as np
 
 MODEL_JSON = "model.json"
+# beside weights being written, from before their description goes until after the new one is
+# written: a directory a kill left half-written says so, and a rerun may replace it
+INCOMPLETE = ".pitta-jax-incomplete"
 
 
 class WeightsError(ValueError):
@@ -102,23 +106,36 @@ def save_weights(out_dir: str | os.PathLike, architecture: str, config: dict[str
   the JSON fields the network's `ModelSpec.build` reads (with "height"/"width", the input size
   the weights were trained at); depth/ (and pose/) are orbax checkpoints of Flax variables.
   """
+  from pitta_jax.outputs import atomic_write_text
+  with writing_weights(out_dir, MODEL_JSON) as out:
+    save_tree(out / "depth", depth)
+    if pose is not None:
+      save_tree(out / "pose", pose)
+    elif (out / "pose").is_dir():  # an earlier conversion's pose network is not these weights'
+      import shutil
+      shutil.rmtree(out / "pose")
+    meta = {"architecture": architecture, **config, "has_pose": pose is not None,
+            "source": source or {}}
+    # last and atomic: a directory with a model.json is complete (a kill leaves none)
+    atomic_write_text(out / MODEL_JSON, json.dumps(meta, indent=2) + "\n")
+  return out
+
+
+@contextlib.contextmanager
+def writing_weights(out_dir: str | os.PathLike, description: str):
+  """Writes weights into `out_dir` (yielded as a Path) that `description` (model.json, or
+  Mask2Former's config.json), written last by the body, completes. Before the body the
+  directory is marked `INCOMPLETE` and the old description removed, so that a kill midway
+  leaves a directory without a description (never the old one beside new arrays) and with the
+  mark, which a rerun of the conversion may replace; the mark goes once the body is done."""
+  from pitta_jax.outputs import atomic_write_text
   out = Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
-  # replacing earlier weights: model.json goes first, so that a kill midway leaves a directory
-  # without one (incomplete), never the old description beside new arrays
-  (out / MODEL_JSON).unlink(missing_ok=True)
-  save_tree(out / "depth", depth)
-  if pose is not None:
-    save_tree(out / "pose", pose)
-  elif (out / "pose").is_dir():  # an earlier conversion's pose network is not these weights'
-    import shutil
-    shutil.rmtree(out / "pose")
-  meta = {"architecture": architecture, **config, "has_pose": pose is not None,
-          "source": source or {}}
-  from pitta_jax.outputs import atomic_write_text
-  # last and atomic: a directory with a model.json is complete (a kill leaves none)
-  atomic_write_text(out / MODEL_JSON, json.dumps(meta, indent=2) + "\n")
-  return out
+  atomic_write_text(out / INCOMPLETE, "weights being written by pitta-jax: a conversion into "
+                                      "this directory replaces them\n")
+  (out / description).unlink(missing_ok=True)
+  yield out
+  (out / INCOMPLETE).unlink(missing_ok=True)
 
 
 def read_json_object(path: Path) -> dict[str, Any]:

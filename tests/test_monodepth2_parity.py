@@ -10,6 +10,7 @@ further from the float64 truth than torch's own float32 gradient.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -348,6 +349,32 @@ def test_convert_never_writes_over_its_inputs_and_replaces_old_weights_whole(r18
   assert main(["convert", "monodepth2", "--encoder", str(enc), "--depth", str(depth), "--out",
                str(out)]) == 0
   assert not (out / "pose").exists() and not load_weights(out).config["has_pose"]
+
+
+def test_an_interrupted_convert_can_be_run_again(r18, tmp_path, monkeypatch, capsys):
+  """A conversion interrupted after depth/ was written (no model.json yet) leaves the
+  directory marked as weights being written; the same command then replaces it (it was
+  refused as 'not earlier pitta-jax weights', and the user told to pick another directory)."""
+  from pitta_jax import checkpoint
+  from pitta_jax.cli import main
+  enc, depth, penc, pose = _paths(r18["root"] / "zip")
+  out = tmp_path / "w"
+  args = ["convert", "monodepth2", "--encoder", str(enc), "--depth", str(depth),
+          "--pose-encoder", str(penc), "--pose", str(pose), "--out", str(out)]
+  real = checkpoint.save_tree
+
+  def interrupted(path, tree):
+    if os.path.basename(path) == "pose":
+      raise KeyboardInterrupt
+    return real(path, tree)
+  monkeypatch.setattr(checkpoint, "save_tree", interrupted)
+  assert main(args) == 130
+  assert (out / "depth").is_dir() and (out / checkpoint.INCOMPLETE).is_file()
+  assert not (out / "model.json").exists()
+  monkeypatch.setattr(checkpoint, "save_tree", real)
+  capsys.readouterr()
+  assert main(args) == 0, capsys.readouterr().err
+  assert load_weights(out).config["has_pose"] and not (out / checkpoint.INCOMPLETE).exists()
 
 
 @pytest.mark.parametrize("layout", ["dataset", "user_json", "user_file_in_depth", "empty_path"])

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pitta_jax.checkpoint import MODEL_JSON
+from pitta_jax.checkpoint import INCOMPLETE, MODEL_JSON
 from pitta_jax.models.mask2former.load import CONFIG_JSON, PARAMS_DIR
 from weights_convert import (depth_anything_v2, hrdepth, litemono, mask2former, monodepth2,
                              monovit, sgdepth)
@@ -75,7 +75,8 @@ def check_output_replaceable(out: str) -> None:
   foreign = [n for n in present
              if not (is_description(path / n) if n in (MODEL_JSON, CONFIG_JSON)
                      else is_checkpoint(path / n))]
-  if foreign or not descriptions:
+  # an interrupted conversion's checkpoints (marked, without their description) are ours too
+  if foreign or not (descriptions or (path / INCOMPLETE).is_file()):
     names = foreign or present
     shown = ", ".join(f"{n}/" if (path / n).is_dir() else n for n in names)
     raise ValueError(f"--out {out}: its {shown} would be replaced and "

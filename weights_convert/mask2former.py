@@ -385,15 +385,13 @@ def save_mask2former(out_dir: str | os.PathLike, cfg, variables: dict, source: d
                      ) -> Path:
   """Writes DIR/config.json ({"architecture": "mask2former", "config": ..., "source": ...})
   and DIR/params (orbax) holding the variables."""
-  from pitta_jax.checkpoint import save_tree
-  out = Path(out_dir)
-  out.mkdir(parents=True, exist_ok=True)
-  (out / CONFIG_JSON).unlink(missing_ok=True)  # replacing: a kill midway leaves no config.json
-  save_tree(out / PARAMS_DIR, variables)
-  meta = {"architecture": "mask2former", "config": cfg.to_dict(), "source": source or {}}
+  from pitta_jax.checkpoint import save_tree, writing_weights
   from pitta_jax.outputs import atomic_write_text
-  # last and atomic: a directory with a config.json is complete
-  atomic_write_text(out / CONFIG_JSON, json.dumps(meta, indent=2) + "\n")
+  with writing_weights(out_dir, CONFIG_JSON) as out:
+    save_tree(out / PARAMS_DIR, variables)
+    meta = {"architecture": "mask2former", "config": cfg.to_dict(), "source": source or {}}
+    # last and atomic: a directory with a config.json is complete
+    atomic_write_text(out / CONFIG_JSON, json.dumps(meta, indent=2) + "\n")
   return out
 
 
