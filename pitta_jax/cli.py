@@ -208,15 +208,28 @@ def _run_demo(args) -> int:
   from pitta_jax.source_model import SourceConfig, enable_compilation_cache, load_or_train_source
   demo = config_from_args(DemoConfig, args, "demo")  # validated before any work
   _route_method_aliases(args, None)
+  from pitta_jax.config_cli import given_fields
+  given = given_fields(AdaptConfig, args, "adapt")
+  if "method" in given:
+    raise ValueError("--method: the demo runs the rows of --demo.methods (e.g. --demo.methods "
+                     "none,bn,pitta,cotta)")
   adapt = config_from_args(AdaptConfig, args, "adapt")
   pitta = config_from_args(PittaConfig, args, "pitta")
   configs = _method_configs_from_args(args)
+  from pitta_jax.demo import ROWS
+  from pitta_jax.methods import build
+  for key in demo.methods:  # a flag given wins over a row's own setting: say so
+    kept = [f"--{k.replace('_', '-')} {getattr(adapt, k)}" for k, v in build(ROWS[key][1]).setting
+            if k in given and getattr(adapt, k) != v]
+    if kept:
+      print(f"note: {ROWS[key][0]} runs with {', '.join(kept)} as given, not its own setting",
+            file=sys.stderr)
   from pitta_jax.outputs import open_output_dir
   with open_output_dir(demo.out):  # checked and locked before any work
     enable_compilation_cache()  # the process's choice, made here, not by the library
     if args.retrain:
       load_or_train_source(SourceConfig(), quiet=args.quiet, retrain=True)
-    run_demo(demo, adapt, pitta, quiet=args.quiet, method_configs=configs)
+    run_demo(demo, adapt, pitta, quiet=args.quiet, method_configs=configs, given=given)
   return 0
 
 

@@ -20,14 +20,14 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Collection, Mapping
 
 import numpy as np
 
 from pitta_jax import viz
 from pitta_jax.adapt import AdaptConfig
 from pitta_jax.configs import check, option
-from pitta_jax.methods import build as build_method, method_setting
+from pitta_jax.methods import build as build_method
 from pitta_jax.methods.pitta import PittaConfig
 from pitta_jax.plots import PlotConfig, per_frame_figure, save_figure
 from pitta_jax.data.image_io import write_image
@@ -87,12 +87,24 @@ class DemoConfig:
       check(not twice, f"{name} {twice} given twice: each once")
 
 
+def row_config(adapt: AdaptConfig, method, changes: Mapping[str, Any],
+               given: Collection[str] = ()) -> AdaptConfig:
+  """A row's AdaptConfig: `adapt`, then what the method requires, its own setting (e.g.
+  CoTTA's selector all) except the fields in `given` (set on the command line: they win, as in
+  `pitta-jax adapt`), then the row's `changes` (BN batch stats: bn_stats batch)."""
+  required = {field: value for field, value, _ in method.requires}
+  own = {k: v for k, v in method.setting if k not in given}
+  return dataclasses.replace(adapt, method=method.name, **{**required, **own, **dict(changes)})
+
+
 def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig(),
              pitta: PittaConfig = PittaConfig(), source: SourceConfig = SourceConfig(),
-             quiet: bool = False, method_configs: Mapping[str, Any] | None = None) -> dict:
+             quiet: bool = False, method_configs: Mapping[str, Any] | None = None,
+             given: Collection[str] = ()) -> dict:
   """Runs the demo; returns the results dict (also written to `demo.out`).
 
-  adapt: the AdaptConfig every row starts from (each method's own setting is applied on top);
+  adapt: the AdaptConfig every row starts from (each method's own setting is applied on top,
+  except for the fields in `given`: `row_config`);
   pitta, method_configs: the methods' configs by name (default: their paper defaults)."""
   configs = {**(method_configs or {}), "pitta": pitta}
   t_start = time.perf_counter()
@@ -112,8 +124,8 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
     results: dict[str, RunResult] = {}
     for key in (("none",) if domain == "clear" else demo.methods):
       row, name, changes = ROWS[key]
-      cfg = dataclasses.replace(adapt, method=name, **{**method_setting(name), **changes})
       method = build_method(name, configs.get(name))
+      cfg = row_config(adapt, method, changes, given)
       if key not in resources:  # e.g. ActMAD's source statistics, from clear training streets
         resources[key] = method_resources(method, weights, "synthetic", quiet=quiet)
       res = run_sequence(weights, frames, cfg, method, EvalConfig(), name=f"{domain}: {row}",

@@ -80,3 +80,20 @@ def test_method_runs_from_the_cli_on_drivingstereo(method, dataset, tmp_path):
   logs = data["logs"]
   assert OWN_LOGS[method] in logs and "loss_d" in logs
   assert all(np.isfinite(v) for v in logs["loss"])
+
+
+def test_demo_rows_keep_the_flags_given_and_refuse_a_method(capsys):
+  """The demo applies each row's own setting (CoTTA: selector all) except where a flag was
+  given (it replaced --selector silently), and --method, which it never used (results.json
+  recorded it), is refused for --demo.methods."""
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.demo import row_config
+  from pitta_jax.methods import build
+  cotta = build("cotta")
+  assert row_config(AdaptConfig(), cotta, {}).selector == "all"
+  kept = row_config(AdaptConfig(selector="encoder_bn"), cotta, {}, given={"selector"})
+  assert kept.selector == "encoder_bn" and kept.bn_stats == "running" and kept.method == "cotta"
+  assert row_config(AdaptConfig(), build("none"), {"bn_stats": "batch"}).bn_stats == "batch"
+  assert main(["demo", "--method", "cotta", "--out", "unused"]) == 2
+  assert capsys.readouterr().err == ("error: --method: the demo runs the rows of --demo.methods "
+                                     "(e.g. --demo.methods none,bn,pitta,cotta)\n")
