@@ -236,6 +236,13 @@ def test_configs_refuse_values_of_another_type():
   assert AdaptConfig(seed=np.int64(3), lr=np.float32(1e-3), chunk_size=4).seed == 3
   with pytest.raises(ValueError, match=r"garg_crop must be true or false, got 1"):
     EvalConfig(garg_crop=1)
+  from pitta_jax.source_model import SourceConfig  # train-source's: refused before any work
+  for kwargs, message in [({"seed": -1}, r"seed must be in \[0, 2\^63\), got -1"),
+                          ({"seed": 2**64}, r"seed must be in \[0, 2\^63\)"),
+                          ({"num_layers": 19}, r"num_layers must be one of \[18, 34, 50\]"),
+                          ({"steps": 2.5}, r"steps must be an integer, got 2\.5")]:
+    with pytest.raises(ValueError, match=message):
+      SourceConfig(**kwargs)
   assert AdadepthConfig(depth_scale=None).depth_scale is None
   with pytest.raises(ValueError, match=r"depth_scale must be a number or unset, got 'x'"):
     AdadepthConfig(depth_scale="x")
