@@ -416,6 +416,9 @@ def _run_adapt(args) -> int:
       notes.append(f"--method {method.name} uses no source-domain data: {', '.join(source_flags)} "
                    f"ignored")
     args.source_images = args.replay_root = args.source_stats = None
+  if args.source_stats and len(source_flags) > 1:  # the statistics file would win, silently
+    raise DataError(None, f"{' and '.join(source_flags)}: --source-stats holds the statistics "
+                          f"the source data would give; give one of them")
   with open_output_dir(args.out):  # checked and locked first; removed again if a check fails
     checkpoints = Path(args.out) / "checkpoints"
     if args.checkpoint_every and checkpoints.exists() and not checkpoints.is_dir():

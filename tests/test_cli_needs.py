@@ -121,6 +121,10 @@ def cli(tmp_path, monkeypatch, capsys):
     (("--method", "actmad", "--bn-stats", "running", "--dataset", "synthetic", "--source-stats",
       "TMP/bogus.npz"),
      "TMP/bogus.npz: not an .npz file (write one with `pitta-jax source-stats`)"),
+    (("--method", "actmad", "--bn-stats", "running", "--dataset", "synthetic", "--source-stats",
+      "TMP/bogus.npz", "--source-images", "TMP/seq"),
+     "--source-images and --source-stats: --source-stats holds the statistics the source data "
+     "would give; give one of them"),
 ])
 def test_unmet_needs_fail_before_work(cli, tmp_path, args, message):
   rc, err = cli(*args)
