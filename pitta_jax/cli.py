@@ -657,6 +657,18 @@ def _quiet_opencv() -> None:
   cv_logging.setLogLevel(cv_logging.LOG_LEVEL_SILENT)
 
 
+def out_of_memory(error: BaseException) -> str | None:
+  """The one line for an XLA out-of-memory error (RESOURCE_EXHAUSTED: a 16384x16384 input
+  ended in a traceback), None for any other error."""
+  if not (type(error).__name__ in ("JaxRuntimeError", "XlaRuntimeError")
+          and "RESOURCE_EXHAUSTED" in str(error)):
+    return None
+  import jax  # imported by the command that ran out
+  return (f"out of {jax.default_backend().upper()} memory: "
+          f"{str(error).splitlines()[0].split(': ', 1)[-1]} (a smaller --height/--width, "
+          f"--chunk-size or image?)")
+
+
 def main(argv: list[str] | None = None) -> int:
   argv = list(sys.argv[1:] if argv is None else argv)
   if "--debug" not in argv:
@@ -679,6 +691,12 @@ def main(argv: list[str] | None = None) -> int:
       raise
     where = f"{e.filename}: " if getattr(e, "filename", None) else ""
     print(f"error: {where}{e.strerror or e}", file=sys.stderr)
+    return 2
+  except Exception as e:  # XLA out of memory (e.g. an input size the device cannot hold)
+    message = out_of_memory(e)
+    if args.debug or message is None:
+      raise
+    print(f"error: {message}", file=sys.stderr)
     return 2
   except KeyboardInterrupt as e:
     from pitta_jax.run import complete_checkpoints

@@ -551,3 +551,17 @@ def test_a_signal_dropped_as_the_command_ends_still_stops_it():
       Finaliser()                 # and the block ends at once
   assert (signal.getsignal(signal.SIGTERM), sys.unraisablehook) == hooks
   time.sleep(0.05)                # nothing fires later
+
+
+def test_out_of_memory_is_one_line():
+  """XLA's RESOURCE_EXHAUSTED (an input size within the flags' limits that the device cannot
+  hold) is one line naming what to shrink; other runtime errors are not taken for it."""
+  import jax
+  from pitta_jax.cli import out_of_memory
+  error = jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 51560967936 "
+                                     "bytes.\nmore")
+  assert out_of_memory(error) == (
+      f"out of {jax.default_backend().upper()} memory: Out of memory allocating 51560967936 "
+      f"bytes. (a smaller --height/--width, --chunk-size or image?)")
+  assert out_of_memory(jax.errors.JaxRuntimeError("INTERNAL: something else")) is None
+  assert out_of_memory(ValueError("RESOURCE_EXHAUSTED")) is None
