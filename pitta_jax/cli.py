@@ -300,15 +300,21 @@ def _add_adapt(sub, name: str) -> None:
                  help="the network (default: the one the weights' model.json names; on synthetic "
                       "without --weights: monodepth2). depth_anything_v2 needs --weights")
   p.add_argument("--segmentation", default="gt",
-                 help="gt (the dataset's own panoptic maps), png:DIR (COCO-panoptic PNG + JSON "
-                      "per frame stem), or mask2former:DIR (converted Mask2Former weights)")
+                 help="gt (the dataset's own panoptic maps; the default), png:DIR "
+                      "(COCO-panoptic PNG + JSON per frame stem), or mask2former:DIR (converted "
+                      "Mask2Former weights)")
   p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                  help="reader option, repeatable (e.g. weather=foggy size=half for "
                       "drivingstereo; domain=fog num_frames=100 seed=3 for synthetic)")
-  p.add_argument("--out", default="pitta_out/" + name, help="output directory")
+  p.add_argument("--out", default="pitta_out/" + name,
+                 help=f"output directory (default: pitta_out/{name}): results.json (every "
+                      f"frame's metrics and logs, the configs), results.csv and table.md, and "
+                      f"checkpoints/ with --checkpoint-every; a run into a directory with an "
+                      f"earlier run's results removes them when it starts (a refused --resume "
+                      f"keeps them)")
   p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
                  help="save the adaptation state and the results so far after every K frames "
-                      "(and on Ctrl-C) under OUT/checkpoints")
+                      "(and on Ctrl-C) under OUT/checkpoints (default 0: none)")
   p.add_argument("--source-images", metavar="PATH",
                  help="source-domain images (a file, a directory or a glob) for methods that "
                       "need source data (ActMAD's statistics); default on synthetic: clear-"
