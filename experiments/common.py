@@ -427,7 +427,8 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
     return {"metrics": res.mean if res.status == "ok" else {}, "status": res.status,
             "metrics_before_divergence": res.mean if res.status != "ok" else None,
             "frames": len(frames), "seconds": round(res.total_seconds, 2),
-            "fps": round(res.total_fps, 3), "n_skipped": res.n_skipped,
+            "fps": round(res.total_fps, 3), "steady_fps": round(res.steady_fps, 3),
+            "compile_seconds": round(res.compile_seconds, 2), "n_skipped": res.n_skipped,
             "abs_rel_per_frame": [m["abs_rel"] for m in res.per_frame],
             "adapt": dataclasses.asdict(cfg), "method_config": dataclasses.asdict(method.config)}
 
@@ -435,7 +436,8 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
   remove_checkpoints(ctx, key)
   return Entry(case, row.label, result["metrics"], spec=row, status=result.get("status", "ok"),
                extra={**{k: result.get(k) for k in (
-                   "frames", "seconds", "fps", "n_skipped", "abs_rel_per_frame",
+                   "frames", "seconds", "fps", "steady_fps", "compile_seconds", "n_skipped",
+                   "abs_rel_per_frame",
                    "metrics_before_divergence", "adapt", "method_config")}, "row_key": key})
 
 

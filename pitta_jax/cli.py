@@ -462,8 +462,12 @@ def _run_adapt(args) -> int:
                        checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
                        checkpoint_every=args.checkpoint_every, resume=args.resume,
                        resources=resources, on_start=lambda: clear_earlier_results(out))
-    # fps over every frame: after --resume, the earlier call's time up to its checkpoint too
+    # fps over every frame: after --resume, the earlier call's time up to its checkpoint too;
+    # steady_fps: this call's chunks after the step compiled; compile_seconds: those that did
     row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.total_fps, 2),
+                                                     "steady_fps": round(res.steady_fps, 2),
+                                                     "compile_seconds": round(
+                                                         res.compile_seconds, 1),
                                                      "frames": len(res.frame_names),
                                                      "n_skipped": res.n_skipped,
                                                      "n_excluded": len(res.excluded)},
@@ -498,7 +502,9 @@ def _run_adapt(args) -> int:
     if not res.per_frame and not res.nonfinite:
       print(f"warning: {res.status}", file=sys.stderr)
     ran = len(res.frame_names) - res.resumed_at
-    speed = f" ({ran} run now at {res.fps:.2f} frames/s)" if ran > 0 else ""
+    steady = (f", {res.steady_fps:.2f} after the {res.compile_seconds:.1f} s of the chunks "
+              f"that compiled" if res.steady_fps == res.steady_fps else "")  # not NaN
+    speed = f" ({ran} run now at {res.fps:.2f} frames/s{steady})" if ran > 0 else ""
     print(f"{len(res.frame_names)} frames{speed}; results in {out}/")
   return 0
 

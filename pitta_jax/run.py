@@ -90,6 +90,10 @@ class RunResult:
   # indices of the frames whose predicted depth has a non-finite value (a diverged method):
   # not scored
   nonfinite_indices: list[int] = dataclasses.field(default_factory=list)
+  # of `seconds`: the chunks during which the step compiled (or loaded from the compilation
+  # cache), and their frames: `steady_fps` leaves them out
+  compile_seconds: float = 0.0
+  compiled_frames: int = 0
 
   @property
   def nonfinite(self) -> list[str]:
@@ -114,9 +118,18 @@ class RunResult:
 
   @property
   def fps(self) -> float:
-    """Frames per second of the frames this call ran (not those taken from a checkpoint)."""
+    """Frames per second of the frames this call ran (not those taken from a checkpoint), in
+    wall time: the step's compile included."""
     ran = len(self.frame_names) - self.resumed_at
     return ran / self.seconds if ran > 0 and self.seconds > 0 else float("nan")
+
+  @property
+  def steady_fps(self) -> float:
+    """Frames per second of the chunks after the step was compiled (what a longer run
+    approaches; NaN when every chunk this call ran compiled, e.g. a one-chunk run)."""
+    ran = len(self.frame_names) - self.resumed_at - self.compiled_frames
+    rest = self.seconds - self.compile_seconds
+    return ran / rest if ran > 0 and rest > 0 else float("nan")
 
   @property
   def total_seconds(self) -> float:
@@ -530,6 +543,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       yield chunk
 
   index, last_saved = start, start
+  compiles, compile_seconds, compiled_frames = _compile_count(runner), 0.0, 0
+  chunk_start = time.perf_counter()
   # the newest state whose frames are all in `record`, with the record's lengths then: a
   # Ctrl-C while a chunk is being scored checkpoints this one, not the chunk's half-scored state
   # (and this call's time then: a resumed run does not count the cut chunk's time twice)
@@ -537,6 +552,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   try:
     for state, out in adapt_stream(state, consts, inputs(), runner):
       originals = chunk_frames.pop(0)
+      compiled, compiles = _compile_count(runner) > compiles, _compile_count(runner)
       for k, frame in enumerate(originals):
         depth = out.depth[k]
         if index in keep:
@@ -561,6 +577,10 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
         last_saved = index
       done = (state, _record_marks(record), index, time.perf_counter() - t0)
       abs_rels = [m["abs_rel"] for m in record["per_frame"]]
+      if compiled:  # this chunk's time (inputs, step, scoring) holds the compile
+        compile_seconds += time.perf_counter() - chunk_start
+        compiled_frames += len(originals)
+      chunk_start = time.perf_counter()
       bar.update(len(originals))
       bar.set_postfix(abs_rel=f"{np.mean(abs_rels) if abs_rels else float('nan'):.4f}",
                       loss=f"{float(np.mean(out.loss)):.3g}")
@@ -582,4 +602,12 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                    frame_names=record["names"], seconds=seconds, kept_depths=kept,
                    n_skipped=int(state.n_skipped), excluded=record["excluded"],
                    resumed_at=start, nonfinite_indices=record["nonfinite_indices"],
-                   seconds_before=seconds_before)
+                   seconds_before=seconds_before, compile_seconds=compile_seconds,
+                   compiled_frames=compiled_frames)
+
+
+def _compile_count(runner) -> int:
+  """How many programs the jitted chunk runner holds (it grows when a call compiles, or loads
+  a program from the compilation cache); 0 for a runner that is not a `jax.jit` function."""
+  size = getattr(runner, "_cache_size", None)
+  return size() if callable(size) else 0
