@@ -377,7 +377,8 @@ def test_an_interrupted_convert_can_be_run_again(r18, tmp_path, monkeypatch, cap
   assert load_weights(out).config["has_pose"] and not (out / checkpoint.INCOMPLETE).exists()
 
 
-@pytest.mark.parametrize("layout", ["dataset", "user_json", "user_file_in_depth", "empty_path"])
+@pytest.mark.parametrize("layout", ["dataset", "user_json", "user_file_in_depth", "empty_path",
+                                    "mask2former"])
 def test_convert_refuses_to_replace_what_is_not_earlier_weights(r18, tmp_path, capsys, layout):
   """What a conversion writes (model.json, depth/, pose/) replaces only earlier weights: a
   dataset's depth/ folder, a user's model.json, or a depth/ beside a foreign model.json are
@@ -398,13 +399,19 @@ def test_convert_refuses_to_replace_what_is_not_earlier_weights(r18, tmp_path, c
   elif layout == "user_file_in_depth":
     (out / "depth" / "notes.txt").write_text("mine")
     (out / "model.json").write_text("not json")
+  elif layout == "mask2former":  # another network's weights: not mixed with these
+    shutil.rmtree(out / "depth")
+    (out / "config.json").write_text(json.dumps({"architecture": "mask2former"}))
+    (out / "params").mkdir()
   before = sorted(p.relative_to(out).as_posix() for p in out.rglob("*"))
   target = "" if layout == "empty_path" else str(out)
   assert main(["convert", "monodepth2", "--encoder", str(enc), "--depth", str(depth), "--out",
                target]) == 2
   err = capsys.readouterr().err
   assert err.count("\n") == 1 and err.startswith(f"error: --out {target}".rstrip())
-  assert ("an empty path" if layout == "empty_path" else "not earlier pitta-jax weights") in err
+  assert {"empty_path": "an empty path", "mask2former": "holds Mask2Former weights (config.json, "
+          "params); the monodepth2 weights need a directory of their own"}.get(
+              layout, "not earlier pitta-jax weights") in err
   assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == before
   # the converted .pth files beside the weights: left alone
   shutil.rmtree(out)

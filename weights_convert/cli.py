@@ -47,7 +47,7 @@ def add_subcommands(parser: argparse.ArgumentParser) -> None:
 WRITTEN = (MODEL_JSON, "depth", "pose", CONFIG_JSON, PARAMS_DIR)
 
 
-def check_output_replaceable(out: str) -> None:
+def check_output_replaceable(out: str, converter: str | None = None) -> None:
   """ValueError when --out holds something a conversion would replace (model.json, depth/,
   pose/, config.json, params/) that is not earlier pitta-jax weights: a dataset's depth/
   folder, a user's own model.json. Earlier weights (a model.json or Mask2Former's config.json
@@ -58,6 +58,12 @@ def check_output_replaceable(out: str) -> None:
   if not out:
     raise ValueError("--out: an empty path (give the weights directory to write)")
   path = Path(out)
+  if converter is not None and path.is_dir():  # one network's weights per directory
+    other = ([MODEL_JSON, "depth"] if converter == "mask2former" else [CONFIG_JSON, PARAMS_DIR])
+    if any((path / name).exists() for name in other):
+      kind = "a depth network's" if converter == "mask2former" else "Mask2Former"
+      raise ValueError(f"--out {out}: holds {kind} weights ({', '.join(other)}); the "
+                       f"{converter} weights need a directory of their own")
   present = [name for name in WRITTEN if (path / name).exists()] if path.is_dir() else []
   if not present:
     return
@@ -105,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
   from pitta_jax.outputs import open_output_dir
   try:
     check_inputs_outside_output(args)  # the more specific message first
-    check_output_replaceable(args.out)
+    check_output_replaceable(args.out, args.converter)
     with open_output_dir(args.out):  # checked and locked before reading any checkpoint
       args.convert_fn(args)
   except (CheckpointError, FileNotFoundError, ValueError) as e:
