@@ -303,7 +303,8 @@ def test_export_drivingstereo_layout_round_trip(domains, tmp_path):
     ("n_cars", -3.0, "n_cars must be finite and >= 0"),
     ("n_cars", float("inf"), "n_cars must be finite"),
     ("truck_fraction", 5.0, "truck_fraction must be in [0, 1]"),
-    ("seed", -1, "seed must be >= 0")])
+    ("seed", -1, "seed must be >= 0"), ("num_frames", -3, "num_frames must be >= 0, got -3"),
+    ("start", -5, "start must be >= 0, got -5"), ("height", 4, "height must be >= 8, got 4")])
 def test_config_refuses_values_that_would_fail_later_or_render_nonsense(field, value, message):
   with pytest.raises(ValueError, match=re.escape(message)):
     SyntheticConfig(**{field: value})

@@ -58,8 +58,9 @@ class SyntheticConfig:
       raise ValueError(f"domain {self.domain!r} not in {DOMAINS}")
     if not 0.0 <= self.severity <= 1.0:
       raise ValueError(f"severity {self.severity} not in [0, 1]")
-    if self.height < 8 or self.width < 8 or self.num_frames < 0 or self.start < 0:
-      raise ValueError("sizes must be >= 8 and frame counts >= 0")
+    for name, low in (("height", 8), ("width", 8), ("num_frames", 0), ("start", 0)):
+      if getattr(self, name) < low:
+        raise ValueError(f"{name} must be >= {low}, got {getattr(self, name)}")
     if not 0 <= self.n_lead_cars <= 2:
       raise ValueError("n_lead_cars must be 0, 1 or 2")
     if self.seed < 0:
