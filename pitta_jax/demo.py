@@ -111,53 +111,59 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
   out = Path(demo.out)
   weights, train_report = load_or_train_source(source, quiet=quiet)
   clear_earlier_results(out, FIGURES)
-  h, w = weights.height, weights.width
-  runners = Runners()  # one compile per row serves every shift
-  resources: dict[str, dict] = {}
-  rows: list[Row] = []
-  per_frame: dict[str, dict[str, list[float]]] = {}
-  domains = ("clear",) + tuple(demo.shifts)
-  for domain in domains:
-    frames = generate_sequence(SyntheticConfig(
-        height=h, width=w, num_frames=demo.num_frames, seed=demo.target_seed, domain=domain,
-        severity=demo.severity))
-    results: dict[str, RunResult] = {}
-    for key in (("none",) if domain == "clear" else demo.methods):
-      row, name, changes = ROWS[key]
-      method = build_method(name, configs.get(name))
-      cfg = row_config(adapt, method, changes, given)
-      if key not in resources:  # e.g. ActMAD's source statistics, from clear training streets
-        resources[key] = method_resources(method, weights, "synthetic", quiet=quiet)
-      res = run_sequence(weights, frames, cfg, method, EvalConfig(), name=f"{domain}: {row}",
-                         quiet=quiet, keep=(len(frames) - 1,), runners=runners,
-                         resources=resources[key])
-      results[row] = res
-      rows.append(Row(domain, row, res.mean if res.status == "ok" else {}, {
-          "fps": round(res.fps, 2), "seconds": round(res.seconds, 2), "frames": len(frames),
-          "compile_seconds": round(res.compile_seconds, 1),
-          "n_skipped": res.n_skipped, "mean_loss": float(np.mean(res.logs["loss"])),
-          # a row's own time per frame: its chunks after the step compiled where it has any
-          "ms_per_frame": round(1000.0 / (res.steady_fps if res.steady_fps == res.steady_fps
-                                          else res.fps), 1),
-          **({"mean_instances": float(np.mean(res.logs["n_instances"]))}
-             if "n_instances" in res.logs else {})}, status=res.status))
-    per_frame[domain] = {r: [m["abs_rel"] for m in res.per_frame] for r, res in results.items()}
-    _figures(out / "figures", domain, frames, results, h, w)
-  seconds = time.perf_counter() - t_start
-  meta = {"demo": dataclasses.asdict(demo), "adapt": dataclasses.asdict(adapt),
-          "pitta": dataclasses.asdict(pitta),
-          "source": train_report, "per_frame_abs_rel": per_frame, "seconds": round(seconds, 1)}
-  table = write_results(out, rows, meta)
-  for domain, series in per_frame.items():
-    figure = per_frame_figure(series, "abs_rel", f"Per-frame AbsRel, {domain}", demo.figures)
-    save_figure(figure, out / "figures" / f"{domain}_abs_rel_per_frame.png", demo.figures)
-  if not quiet:
-    print(f"\nSource model: {train_report.get('weights_dir')} "
-          f"(trained in {train_report.get('train_seconds', '?')} s)")
-    print(table)
-  print(f"demo finished in {seconds:.0f} s; results in {out}/ (results.json, results.csv, "
-        f"table.md, figures/)")
-  return {**meta, "rows": rows, "table": table}
+  try:
+    h, w = weights.height, weights.width
+    runners = Runners()  # one compile per row serves every shift
+    resources: dict[str, dict] = {}
+    rows: list[Row] = []
+    per_frame: dict[str, dict[str, list[float]]] = {}
+    domains = ("clear",) + tuple(demo.shifts)
+    for domain in domains:
+      frames = generate_sequence(SyntheticConfig(
+          height=h, width=w, num_frames=demo.num_frames, seed=demo.target_seed, domain=domain,
+          severity=demo.severity))
+      results: dict[str, RunResult] = {}
+      for key in (("none",) if domain == "clear" else demo.methods):
+        row, name, changes = ROWS[key]
+        method = build_method(name, configs.get(name))
+        cfg = row_config(adapt, method, changes, given)
+        if key not in resources:  # e.g. ActMAD's source statistics, from clear training streets
+          resources[key] = method_resources(method, weights, "synthetic", quiet=quiet)
+        res = run_sequence(weights, frames, cfg, method, EvalConfig(), name=f"{domain}: {row}",
+                           quiet=quiet, keep=(len(frames) - 1,), runners=runners,
+                           resources=resources[key])
+        results[row] = res
+        rows.append(Row(domain, row, res.mean if res.status == "ok" else {}, {
+            "fps": round(res.fps, 2), "seconds": round(res.seconds, 2), "frames": len(frames),
+            "compile_seconds": round(res.compile_seconds, 1),
+            "n_skipped": res.n_skipped, "mean_loss": float(np.mean(res.logs["loss"])),
+            # a row's own time per frame: its chunks after the step compiled where it has any
+            "ms_per_frame": round(1000.0 / (res.steady_fps if res.steady_fps == res.steady_fps
+                                            else res.fps), 1),
+            **({"mean_instances": float(np.mean(res.logs["n_instances"]))}
+               if "n_instances" in res.logs else {})}, status=res.status))
+      per_frame[domain] = {r: [m["abs_rel"] for m in res.per_frame] for r, res in results.items()}
+      _figures(out / "figures", domain, frames, results, h, w)
+    seconds = time.perf_counter() - t_start
+    meta = {"demo": dataclasses.asdict(demo), "adapt": dataclasses.asdict(adapt),
+            "pitta": dataclasses.asdict(pitta),
+            "source": train_report, "per_frame_abs_rel": per_frame, "seconds": round(seconds, 1)}
+    table = write_results(out, rows, meta)
+    for domain, series in per_frame.items():
+      figure = per_frame_figure(series, "abs_rel", f"Per-frame AbsRel, {domain}", demo.figures)
+      save_figure(figure, out / "figures" / f"{domain}_abs_rel_per_frame.png", demo.figures)
+    if not quiet:
+      print(f"\nSource model: {train_report.get('weights_dir')} "
+            f"(trained in {train_report.get('train_seconds', '?')} s)")
+      print(table)
+    print(f"demo finished in {seconds:.0f} s; results in {out}/ (results.json, results.csv, "
+          f"table.md, figures/)")
+    return {**meta, "rows": rows, "table": table}
+  except BaseException:  # interrupted or failed: no figures of this run without its results
+    for pattern in FIGURES:
+      for path in out.glob(pattern):
+        path.unlink(missing_ok=True)
+    raise
 
 
 def _figures(directory: Path, domain: str, frames, results: dict[str, RunResult], h: int,

@@ -43,6 +43,31 @@ def demo_out(tmp_path_factory):
   mp.undo()
 
 
+def test_an_interrupted_demo_leaves_no_figures_without_results(demo_out, tmp_path, monkeypatch):
+  """A demo interrupted after its clear street's figure (during the first shift) removes the
+  figures it wrote: they stayed without any results beside them."""
+  from pitta_jax import demo as demo_lib
+  real = demo_lib.run_sequence
+
+  def interrupted(weights, frames, cfg, method, *a, name="", **k):
+    if name.startswith("fog"):
+      raise KeyboardInterrupt
+    return real(weights, frames, cfg, method, *a, name=name, **k)
+  monkeypatch.setattr(demo_lib, "run_sequence", interrupted)
+  out = tmp_path / "d"
+  (out / "figures").mkdir(parents=True)
+  (out / "figures" / "mine.png").write_text("the user's")
+  from pitta_jax.data import image_io
+  wrote = []
+  monkeypatch.setattr(demo_lib, "write_image",
+                      lambda path, image: wrote.append(path) or image_io.write_image(path, image))
+  with pytest.raises(KeyboardInterrupt):
+    run_demo(DemoConfig(shifts=("fog",), num_frames=3, methods=("none",), out=str(out)),
+             AdaptConfig(), source=TINY, quiet=True)
+  assert [p.name for p in wrote] == ["clear_frame002.png"] and not wrote[0].exists()
+  assert sorted(p.name for p in out.rglob("*")) == ["figures", "mine.png"]
+
+
 def test_demo_writes_results_table_and_figures(demo_out):
   out, result, _ = demo_out
   data = json.loads((out / "results.json").read_text())
