@@ -459,7 +459,7 @@ def test_a_changed_library_default_changes_the_row_key(monkeypatch):
   from experiments.common import RowSpec
   from pitta_jax.methods.adadepth import AdadepthConfig
   ctx = types.SimpleNamespace(quick=False, dataset="synthetic", root=None, options=(),
-                              segmentation="gt", frames=50)
+                              segmentation="gt", frames=50, out=None, files_id=None)
   row = RowSpec("Ada-Depth + L_d", "adadepth")
   key = common.row_key(ctx, row, "Foggy", ("fog",), {"w": 1})
   assert common.row_key(ctx, row, "Foggy", ("fog",), {"w": 1}) == key  # deterministic
