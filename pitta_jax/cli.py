@@ -711,6 +711,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"error: {message}", file=sys.stderr)
     return 2
   except KeyboardInterrupt as e:
+    if not args.debug:  # the process ends now: what the save threads still report is noise
+      _silence_teardown()
     from pitta_jax.run import complete_checkpoints
     checkpointing = getattr(args, "checkpoint_every", 0) and getattr(args, "adapting", False)
     saved = checkpointing and bool(complete_checkpoints(os.path.join(args.out, "checkpoints")))
@@ -719,6 +721,16 @@ def main(argv: list[str] | None = None) -> int:
                            "; no checkpoint was saved yet" if checkpointing else ""),
           file=sys.stderr)
     return 143 if isinstance(e, Terminated) else 130
+
+
+def _silence_teardown() -> None:
+  """An interrupted command's process ends (`exit_with`); until then orbax's save threads,
+  stopped mid-write, may log a missing metadata file and their asyncio loops' finalisers
+  'Exception ignored' tracebacks after the 'interrupted' line. The command owns its process,
+  so it drops them (not with --debug)."""
+  import logging
+  logging.getLogger("absl").setLevel(logging.ERROR)
+  sys.unraisablehook = lambda unraisable: None
 
 
 def exit_with(code: int) -> NoReturn:
