@@ -173,8 +173,9 @@ class Runners:
     if key not in self._cache:
       model = weights.network()
       tx = make_optimizer(cfg, method)
-      # the entry keeps `method` alive: ids in its key stay unique while the entry exists
-      self._cache[key] = (model, tx, make_method_runner(model, method, cfg, tx), method)
+      # the entry keeps `method` and the spec alive: ids in its key stay unique meanwhile
+      self._cache[key] = (model, tx, make_method_runner(model, method, cfg, tx), method,
+                          weights.spec)
     return self._cache[key][:3]
 
 
