@@ -34,7 +34,8 @@ def _fmt(v: float | None, decimals: int = 3) -> str:
 def ranks(entries: Sequence[Entry], metric: str, which: str = "ours",
           marked: bool = True, decimals: int = 3) -> dict[int, int]:
   """{entry index: 1 (best) or 2 (second)} within each group, on the values rounded to the
-  `decimals` shown (ties share);
+  `decimals` shown (ties share; a group whose values all tie is not marked: every cell bold
+  said nothing);
   for the paper's numbers, the marks as the paper prints them.
 
   Ours are ranked among the rows the paper compares (those with a paper label) when the table
@@ -61,6 +62,8 @@ def ranks(entries: Sequence[Entry], metric: str, which: str = "ours",
       if e.group == group and compared[i] and v is not None and math.isfinite(v):
         vals.append((i, round(v, decimals)))
     distinct = sorted({v for _, v in vals}, reverse=metric in HIGHER_IS_BETTER)
+    if len(distinct) < 2:
+      continue
     for i, v in vals:
       r = distinct.index(v) + 1
       if r <= 2 and len(vals) > 1:

@@ -30,6 +30,9 @@ def test_ranks_bold_best_and_underline_second_per_group_with_the_metric_directio
     e.spec = RowSpec(e.label, "pitta", paper=paper)
   assert render.ranks(entries, "abs_rel") == {1: 1, 2: 2}
   assert render.ranks(entries, "abs_rel", marked=False) == {}
+  # values that all tie at the decimals shown (Table 4's 12 lambdas on a short run): no marks
+  tied = [Entry("W", f"{k}", {"abs_rel": 0.2001 + 1e-5 * k}) for k in range(3)]
+  assert render.ranks(tied, "abs_rel") == {} and render.ranks(tied, "abs_rel", decimals=5)
   assert r"$\delta$" in render.latex(entries, "columns", "G", "M", ("a1",), "δ<1.25", "t")
 
 
