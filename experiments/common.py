@@ -258,9 +258,11 @@ def check_cases(ctx: Context, cases: Sequence[tuple[str, Sequence[dict]]]) -> No
         raise DataError(ctx.root, f"test case {case} ({', '.join(options)}): no frames")
 
 
-def check_flags_used(ctx: Context, rows: Sequence[RowSpec]) -> None:
+def check_flags_used(ctx: Context, rows: Sequence[RowSpec],
+                     selected: Sequence[RowSpec] | None = None) -> None:
   """Flags the table's rows cannot use are refused, not ignored: --weights of a network none
-  of `rows` runs, and the source-domain flags when no row's method takes source data."""
+  of `rows` runs, and the source-domain flags when no `selected` row's method (default: no
+  row's) takes source data."""
   from pitta_jax.data.errors import DataError
   models = list(dict.fromkeys(row.model for row in rows))
   for model, directory in ctx.weights.items():
@@ -269,8 +271,10 @@ def check_flags_used(ctx: Context, rows: Sequence[RowSpec]) -> None:
                             f"(its networks: {', '.join(models)})")
   given = [flag for flag, value in (("--source-images", ctx.source_images),
                                     ("--replay-root", ctx.replay_root)) if value]
-  if given and not any(method_of(row).prepare is not None for row in rows):
-    raise DataError(None, f"{' and '.join(given)}: no row of this table uses source-domain data "
+  if given and not any(method_of(row).prepare is not None
+                       for row in (rows if selected is None else selected)):
+    which = "of this table" if selected is None else "selected"
+    raise DataError(None, f"{' and '.join(given)}: no row {which} uses source-domain data "
                           f"(only CoMoDa's and ActMAD's rows do)")
 
 

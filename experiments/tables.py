@@ -20,6 +20,7 @@ def run_grid(ctx: Context, rows: Sequence[RowSpec], cases: Sequence[str],
   todo = [(case, parts, row) for case, parts in ctx.cases(cases) for row in rows
           if (case, row.label) not in skip and ctx.wants(row.label, row.method, row.model)]
   check_selection(ctx, todo, [row.label for row in rows])
+  check_flags_used(ctx, rows, [row for _, _, row in todo])
   check_cases(ctx, [(case, parts) for case, parts in ctx.cases(cases)
                     if any(c == case for c, _, _ in todo)])
   check_rows(ctx, todo)

@@ -164,6 +164,8 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
                                       r"source-domain data"):
     common.check_flags_used(ctx, table5.ROWS)
   common.check_flags_used(ctx, table1.ROWS)  # CoMoDa's and ActMAD's rows take it
+  with pytest.raises(Exception, match=r"--source-images: no row selected uses source-domain"):
+    common.check_flags_used(ctx, table1.ROWS, [r for r in table1.ROWS if r.method == "none"])
   # a second command on the same --out is refused while the first holds it
   from pitta_jax.outputs import open_output_dir
   with open_output_dir(tmp_path / "busy"):
