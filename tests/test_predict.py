@@ -220,4 +220,18 @@ def test_an_undecodable_image_is_one_line_without_opencvs_logs(converted, tmp_pa
   assert main(["predict", "--weights", str(converted[0]), "--images", str(d), "--quiet",
                "--out", str(tmp_path / "o")]) == 2
   err = capfd.readouterr().err
-  assert err == f"error: {d / 'a.png'}: cannot decode image (not a PNG/JPEG file, or truncated)\n"
+  assert err == f"error: {d / 'a.png'}: cannot decode image (a PNG file cut short: no IEND chunk)\n"
+  # a PNG cut short mid-data: libpng printed its own line ('PNG input buffer is incomplete')
+  _, png = cv2.imencode(".png", np.full((16, 16, 3), 7, np.uint8))
+  (d / "a.png").write_bytes(png.tobytes()[:-20])
+  assert main(["predict", "--weights", str(converted[0]), "--images", str(d), "--quiet",
+               "--out", str(tmp_path / "o")]) == 2
+  err = capfd.readouterr().err
+  assert err == f"error: {d / 'a.png'}: cannot decode image (a PNG file cut short: no IEND chunk)\n"
+  # a JPEG that is not one: OpenCV's logs are silenced, the reader's line is all
+  (d / "a.png").unlink()
+  (d / "b.jpg").write_bytes(b"\xff\xd8\xff not a jpeg")
+  assert main(["predict", "--weights", str(converted[0]), "--images", str(d), "--quiet",
+               "--out", str(tmp_path / "o")]) == 2
+  err = capfd.readouterr().err
+  assert err == f"error: {d / 'b.jpg'}: cannot decode image (not a PNG/JPEG file, or truncated)\n"

@@ -53,10 +53,16 @@ def decode_file(path: Path, what: str) -> np.ndarray:
     data = np.fromfile(path, np.uint8)
   except OSError as e:
     raise DataError(path, f"cannot read {what} ({e.strerror or e})") from None
+  if data[:8].tobytes() == PNG_SIGNATURE and data[-12:].tobytes().find(b"IEND") < 0 \
+      and data.tobytes().rfind(b"IEND") < 0:  # libpng would print its own line first
+    raise DataError(path, f"cannot decode {what} (a PNG file cut short: no IEND chunk)")
   array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
   if array is None:
     raise DataError(path, f"cannot decode {what} (not a PNG/JPEG file, or truncated)")
   return array
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def encode_bytes(path: PathLike, array: np.ndarray, what: str = "file") -> bytes:
