@@ -244,18 +244,25 @@ def case_frames(ctx: Context, parts: Sequence[dict], height: int, width: int) ->
   return frames
 
 
-def check_cases(ctx: Context, cases: Sequence[tuple[str, Sequence[dict]]]) -> None:
-  """Opens the reader of every part of `cases` (paths only, no frame is read): a missing or
-  empty part of a real dataset fails before the first row is computed, not after it."""
+def check_cases(ctx: Context, cases: Sequence[tuple[str, Sequence[dict]]]
+                ) -> dict[str, list[tuple[str, Any]]]:
+  """Opens the reader of every part of `cases` once (paths only, no frame is read): a missing
+  or empty part of a real dataset fails before the first row is computed, not after it.
+  Returns each case's parts as (how to name it, its reader), for `check_rows`'s needs ({} on
+  the synthetic benchmark, whose frames all have K, in capture order)."""
   if ctx.dataset == "synthetic":
-    return
+    return {}
   from pitta_jax.data.errors import DataError
   from pitta_jax.sources import open_reader
+  readers: dict[str, list[tuple[str, Any]]] = {}
   for case, parts in cases:
     for part in parts:
       options = [*ctx.options, *(f"{k}={v}" for k, v in part.items())]
-      if len(open_reader(ctx.dataset, ctx.root, options, ctx.segmentation)) == 0:
+      reader = open_reader(ctx.dataset, ctx.root, options, ctx.segmentation)
+      if len(reader) == 0:
         raise DataError(ctx.root, f"test case {case} ({', '.join(options)}): no frames")
+      readers.setdefault(case, []).append((f"test case {case} ({', '.join(options)})", reader))
+  return readers
 
 
 def check_flags_used(ctx: Context, rows: Sequence[RowSpec],
@@ -279,23 +286,25 @@ def check_flags_used(ctx: Context, rows: Sequence[RowSpec],
 
 
 def check_rows(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSpec]]) -> None:
-  """Before the first row runs, what the selected (test case, parts, row)s need: weights for at
-  least one of them (a table of 'needs weights' only is not a result), each method's pose
-  network and source-domain data, a --replay-root that is a KITTI raw root, each test case's
-  frames as its methods need them (K, capture order), and no --option that a test case sets
-  itself. Without this a missing need stopped the table at its row, after the rows before."""
+  """Before the first row runs, what the selected (test case, parts, row)s need: no --option
+  that a test case sets itself, each test case's frames (`check_cases`), weights for at least
+  one row (a table of 'needs weights' only is not a result), each method's pose network and
+  source-domain data, a --replay-root that is a KITTI raw root, and each test case's frames as
+  its methods need them (K, capture order; from the readers `check_cases` opened). Without this
+  a missing need stopped the table at its row, after the rows before."""
   from pitta_jax.data.errors import DataError
-  from pitta_jax.sources import check_needs, open_reader
+  from pitta_jax.sources import check_needs
   own = {k for _, parts, _ in selected for part in parts for k in part}
   for item in ctx.options:
     if item.split("=", 1)[0] in own:
       raise DataError(None, f"--option {item}: each test case sets {item.split('=', 1)[0]} "
                             f"itself")
+  readers = check_cases(ctx, list({case: parts for case, parts, _ in selected}.items()))
   models = list(dict.fromkeys(row.model for _, _, row in selected))
   if all(weights_for(ctx, model) is None for model in models):
     raise DataError(None, f"no weights for the selected rows: --weights "
                           f"{models[0]}=DIR (on {ctx.dataset} no network is trained for you)")
-  methods: dict[tuple[str, str], Any] = {}
+  methods: dict[tuple[str, str], Any] = {}  # (method, network) -> (its first row, the Method)
   for _, _, row in selected:
     if weights_for(ctx, row.model) is not None and (row.method, row.model) not in methods:
       methods[(row.method, row.model)] = (row, method_of(row))
@@ -314,16 +323,11 @@ def check_rows(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSp
       for _, method in methods.values():
         if method.prepare is not None:
           check_needs(method, seq, f"--replay-root {ctx.replay_root}")
-  if ctx.dataset == "synthetic":
-    return  # every synthetic frame has K, in capture order
-  for case, parts, row in selected:
+  for case, _, row in selected:  # each test case's frames, as its methods need them
     entry = methods.get((row.method, row.model))
-    if entry is None or not entry[1].needs:
-      continue
-    for part in parts:
-      options = [*ctx.options, *(f"{k}={v}" for k, v in part.items())]
-      check_needs(entry[1], open_reader(ctx.dataset, ctx.root, options, ctx.segmentation),
-                  f"test case {case} ({', '.join(options)})")
+    if entry is not None and entry[1].needs:
+      for what, reader in readers.get(case, ()):
+        check_needs(entry[1], reader, what)
 
 
 def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str]) -> None:
@@ -448,13 +452,17 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
 def checkpoints(ctx: Context, key: str) -> Path | None:
   """Where the row (or sweep) `key` keeps its checkpoints while it runs (None with --quick:
   none)."""
-  return None if ctx.quick else ctx.out / "rows" / f"{key}.ckpt"
+  return None if ctx.quick else _checkpoint_dir(ctx, key)
+
+
+def _checkpoint_dir(ctx: Context, key: str) -> Path:
+  return ctx.out / "rows" / f"{key}.ckpt"
 
 
 def remove_checkpoints(ctx: Context, key: str) -> None:
   """The row's checkpoints, once its result is stored."""
   import shutil
-  directory = ctx.out / "rows" / f"{key}.ckpt"
+  directory = _checkpoint_dir(ctx, key)
   if directory.is_dir():
     shutil.rmtree(directory, ignore_errors=True)
 

@@ -73,11 +73,9 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   cases = dict(ctx.cases(("Sunny", "All")))
   shared, resources, entries = common.runners(ctx), {}, []
-  common.check_flags_used(ctx, [r for _, _, r in rows()])
   todo = selected(ctx)
   common.check_selection(ctx, todo, [x for g, _, r in rows() for x in (g, r.label)])
   common.check_flags_used(ctx, [r for _, _, r in rows()], [r for _, _, r in todo])
-  common.check_cases(ctx, [(c, cases[c]) for c in dict.fromkeys(c for _, c, _ in todo)])
   common.check_rows(ctx, [(c, cases[c], r) for _, c, r in todo])
   for group, case, row in tqdm(todo, desc="rows", unit="row", disable=ctx.quiet):
     entry = common.run_row(ctx, row, case, cases[case], shared, resources)

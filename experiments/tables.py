@@ -15,14 +15,11 @@ def run_grid(ctx: Context, rows: Sequence[RowSpec], cases: Sequence[str],
              skip: Sequence[tuple[str, str]] = ()) -> list[Entry]:
   """Each row on each test case (case-major, the paper's order); (case, label) pairs in `skip`
   are not run. One compile cache serves the whole table."""
-  from experiments.common import check_cases, check_flags_used, check_rows, check_selection
-  check_flags_used(ctx, rows)
+  from experiments.common import check_flags_used, check_rows, check_selection
   todo = [(case, parts, row) for case, parts in ctx.cases(cases) for row in rows
           if (case, row.label) not in skip and ctx.wants(row.label, row.method, row.model)]
   check_selection(ctx, todo, [row.label for row in rows])
   check_flags_used(ctx, rows, [row for _, _, row in todo])
-  check_cases(ctx, [(case, parts) for case, parts in ctx.cases(cases)
-                    if any(c == case for c, _, _ in todo)])
   check_rows(ctx, todo)
   shared = runners(ctx)
   resources: dict = {}
