@@ -40,6 +40,12 @@ def finite(value: float, name: str, low: float = -math.inf) -> None:
         f"{name} must be a finite number >= {low:g}, got {value!r}")
 
 
+def check_seed(seed: int) -> None:
+  """A PRNG seed: `jax.random.PRNGKey` takes a signed 64-bit one; negative ones are refused as
+  the readers do."""
+  check(0 <= seed < 2**63, f"seed must be in [0, 2^63), got {seed}")
+
+
 def is_int(value: Any) -> bool:
   return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
 

@@ -15,3 +15,9 @@ def as_float(x) -> jax.Array:
   """`x` as float32, or as float64 if it is float64 (integers and bools become float32)."""
   x = jnp.asarray(x)
   return x.astype(jnp.float64 if x.dtype == jnp.float64 else jnp.float32)
+
+
+def tree_dtype(tree) -> jnp.dtype:
+  """The float type of a parameter tree (its first leaf's): the method state that mixes with
+  the parameters takes it, so that a float64 run stays float64."""
+  return jax.tree_util.tree_leaves(tree)[0].dtype

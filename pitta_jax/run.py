@@ -553,7 +553,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   try:
     for state, out in adapt_stream(state, consts, inputs(), runner):
       originals = chunk_frames.pop(0)
-      compiled, compiles = _compile_count(runner) > compiles, _compile_count(runner)
+      now = _compile_count(runner)
+      compiled, compiles = now > compiles, now
       for k, frame in enumerate(originals):
         depth = out.depth[k]
         if index in keep:

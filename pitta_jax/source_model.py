@@ -56,7 +56,7 @@ from tqdm import tqdm
 
 from pitta_jax.checkpoint import Weights, load_weights, save_weights
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-from pitta_jax.configs import check, check_types, finite, option
+from pitta_jax.configs import check, check_seed, check_types, finite, option
 from pitta_jax.models.depth_decoder import disp_to_depth
 from pitta_jax.models.pose import transformation_from_parameters
 from pitta_jax.outputs import atomic_write_bytes, atomic_write_text
@@ -100,7 +100,7 @@ class SourceConfig:
     from pitta_jax.models.registry import get_spec
     from pitta_jax.models.resnet import RESNET_SPECS
     check_types(self)
-    check(0 <= self.seed < 2**63, f"seed must be in [0, 2^63), got {self.seed}")
+    check_seed(self.seed)
     check(self.num_layers in RESNET_SPECS,
           f"num_layers must be one of {sorted(RESNET_SPECS)}, got {self.num_layers}")
     spec = get_spec(self.model)

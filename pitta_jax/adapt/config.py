@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 
 from pitta_jax.adapt.xla_cpu import check_library
-from pitta_jax.configs import check, check_types, finite, option
+from pitta_jax.configs import check, check_seed, check_types, finite, option
 from pitta_jax.trainable import parse_selector
 
 
@@ -46,8 +46,7 @@ class AdaptConfig:
     finite(self.momentum, "momentum", 0.0)
     check(self.momentum < 1.0, f"momentum must be < 1, got {self.momentum}")
     check(self.steps_per_frame >= 1, f"steps_per_frame must be >= 1, got {self.steps_per_frame}")
-    # jax.random.PRNGKey takes a signed 64-bit seed; negative ones are refused as the readers do
-    check(0 <= self.seed < 2**63, f"seed must be in [0, 2^63), got {self.seed}")
+    check_seed(self.seed)
     check(self.bn_stats in ("batch", "running"),
           f"bn_stats must be batch or running, got {self.bn_stats!r}")
     parse_selector(self.selector)  # raises ValueError naming the selector

@@ -69,6 +69,7 @@ from flax import struct
 
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, check_types, finite, option
+from pitta_jax.dtypes import tree_dtype
 from pitta_jax.methods.base import (INPUT_SIZE, METRIC_FACTOR, POSE, Aux, Method, ring_init,
                                     ring_push, ring_restart, variables_of)
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
@@ -310,7 +311,7 @@ def build(config: AdadepthConfig = AdadepthConfig()) -> Method:
                     copy({k: v for k, v in pose.variables.items() if k != "params"}),
                     pose.module)
     teacher = copy(parts.trainable)
-    dtype = jax.tree_util.tree_leaves(teacher)[0].dtype
+    dtype = tree_dtype(teacher)
     h, w = resources[INPUT_SIZE]
     return {"teacher": teacher, "u": branch,
             "frames": ring_init(jnp.zeros((h, w, 3), dtype), 1),

@@ -75,6 +75,7 @@ from flax import struct
 from pitta_jax import prng
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, check_types, finite, option
+from pitta_jax.dtypes import tree_dtype
 from pitta_jax.flat_optim import flat, flat_step
 from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, ring_restart,
                                     ring_valid, variables_of)
@@ -351,7 +352,7 @@ def build(config: ComodaConfig = ComodaConfig()) -> Method:
           f"comoda: the {model.spec.name} network's disparity range {model.spec.depth_range} "
           f"differs from --comoda.sfm.min-depth/max-depth "
           f"({config.sfm.min_depth}, {config.sfm.max_depth})")
-    dtype = jax.tree_util.tree_leaves(parts.trainable)[0].dtype
+    dtype = tree_dtype(parts.trainable)
     images = jnp.asarray(resources[REPLAY_IMAGES], dtype)
     check(config.replay == 0 or images.shape[0] > 0, "comoda: the replay set is empty")
     check(images.shape[1] == config.window,

@@ -38,9 +38,9 @@ and the anchor, so all three normalise with the statistics of the test batch, ea
 view with its own; with one frame per step, batch statistics would be those of one image.)
 The restore target (upstream's anchor, the source) is the engine's `state.source` (the
 trainable leaves at the start); the teacher is in the method state. Which leaves adapt is
-`AdaptConfig.selector` (upstream adapts every weight and bias: `--selector all`). With `reset_every`, the engine resets
-the student and its optimiser and the teacher is copied from the source again, as upstream's
-`reset()` does (the anchor is the source throughout).
+`AdaptConfig.selector` (upstream adapts every weight and bias: `--selector all`). With
+`reset_every`, the engine resets the student and its optimiser and the teacher is copied from
+the source again, as upstream's `reset()` does (the anchor is the source throughout).
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ import optax
 from pitta_jax import nonsmooth, prng
 from pitta_jax import trainable as trainable_lib
 from pitta_jax.configs import check, check_types, finite, option
+from pitta_jax.dtypes import tree_dtype
 from pitta_jax.methods.base import Aux, Method, variables_of
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
 
@@ -263,7 +264,7 @@ def build(config: CottaConfig = CottaConfig()) -> Method:
     check(cfg.bn_stats == "running",
           "cotta runs BatchNorm in eval mode: use bn_stats='running' (--bn-stats running)")
     teacher = jax.tree_util.tree_map(lambda x: jnp.array(x, copy=True), parts.trainable)
-    dtype = jax.tree_util.tree_leaves(teacher)[0].dtype
+    dtype = tree_dtype(teacher)
     return {"teacher": teacher, "ld_weight": jnp.asarray(config.ld_weight, dtype)}
 
   def update(state, grads, loss_value, aux, rng, tx, cfg):

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from pitta_jax.configs import check, check_types, option
+from pitta_jax.dtypes import tree_dtype
 from pitta_jax.losses import LAMBDA
 from pitta_jax.methods.base import Aux, Method, predict
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, frame_loss
@@ -45,6 +46,5 @@ def build(config: PittaConfig = PittaConfig()) -> Method:
   def init(model, parts, cfg, resources):
     del model, cfg, resources
     # the parameters' float type: float64 runs (x64 gradient checks) keep lambda exact
-    leaves = jax.tree_util.tree_leaves(parts.trainable)
-    return {"lam": jnp.asarray(config.lam, leaves[0].dtype if leaves else jnp.float32)}
+    return {"lam": jnp.asarray(config.lam, tree_dtype(parts.trainable))}
   return Method("pitta", config, init=init, loss=loss)
