@@ -181,8 +181,8 @@ def median_filter(x: Array, s: int = WINDOW) -> Array:
   stop-gradient), but min/max have gradients if needed.
 
   Args:
-    x: (H, W) float map (float32, or float64 kept: `dtypes.as_float`). NaN: unspecified. Subnormal values may be
-      flushed to zero (XLA's CPU and GPU backends do), unlike NumPy.
+    x: (H, W) float map (float32, or float64 kept: `dtypes.as_float`). NaN: unspecified.
+      Subnormal values may be flushed to zero (XLA's CPU and GPU backends do), unlike NumPy.
     s: odd window size (static), r = s // 2; s = 1 is the identity.
 
   Returns:

@@ -3,12 +3,13 @@
 Each image is read, resized to the network's input size (`resize_image`, as the readers do),
 run in eval mode (running BN statistics), and written as `<stem>_disp.npy` (the network's
 scale-0 output, a sigmoid disparity scaled as MonoDepth2's `disp_to_depth` scales it:
-`ModelSpec.saved_disparity`), `<stem>_depth.npy` (its depth, e.g. the inverse of that), and `<stem>_disp.png` (magma, MonoDepth2's convention) at the
-image's own size, as each upstream writes them: MonoDepth2's `test_simple.py` saves the arrays
-at the network's resolution and colours the disparity resized to the image (bilinear,
-align_corners=False); Depth Anything V2's `infer_image` returns its output resized to the image
-(bilinear, align_corners=True), so a network that keeps the aspect ratio (`ModelSpec.keep_aspect`)
-writes every output at the image's size. This is also how a user checks a conversion by eye.
+`ModelSpec.saved_disparity`), `<stem>_depth.npy` (its depth, e.g. the inverse of that), and
+`<stem>_disp.png` (magma, MonoDepth2's convention) at the image's own size, as each upstream
+writes them: MonoDepth2's `test_simple.py` saves the arrays at the network's resolution and
+colours the disparity resized to the image (bilinear, align_corners=False); Depth Anything
+V2's `infer_image` returns its output resized to the image (bilinear, align_corners=True), so a
+network that keeps the aspect ratio (`ModelSpec.keep_aspect`) writes every output at the
+image's size. This is also how a user checks a conversion by eye.
 """
 
 from __future__ import annotations

@@ -187,8 +187,8 @@ def frame_spacing_note(weather: str, stems: list[str]) -> str | None:
     return None
   return (f"DrivingStereo {weather}: consecutive frames are {float(np.median(gaps)):.2f} s apart "
           f"(median; largest {float(gaps.max()):.1f} s), a subsample of the drive rather than "
-          f"video-rate frames: methods that pair consecutive frames (CoMoDa, Ada-Depth) see that interval's "
-          f"motion")
+          f"video-rate frames: methods that pair consecutive frames (CoMoDa, Ada-Depth) see "
+          f"that interval's motion")
 
 
 def _weather_files(root: Path, weather: str, size: str, depth: bool,
