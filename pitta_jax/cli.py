@@ -13,6 +13,7 @@ import sys
 from typing import NoReturn
 
 from pitta_jax.data.errors import DataError
+from pitta_jax.text import first_and_count
 
 
 def _add_predict(sub) -> None:
@@ -495,7 +496,7 @@ def _run_adapt(args) -> int:
       print(table)
     if res.excluded:
       print(f"{len(res.excluded)} frame(s) without valid ground truth excluded from the means: "
-            f"{', '.join(res.excluded[:5])}{' ...' if len(res.excluded) > 5 else ''}")
+            f"{first_and_count(res.excluded, 5)}")
     if res.nonfinite:
       print(f"warning: {res.status}; the means cover the frames before "
             f"({res.nonfinite[0]} on)", file=sys.stderr)

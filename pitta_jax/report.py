@@ -16,6 +16,7 @@ import numpy as np
 
 from pitta_jax.metrics import METRIC_NAMES
 from pitta_jax.outputs import atomic_write_files, json_safe
+from pitta_jax.text import first_and_count
 
 RESULT_FILES = ("results.json", "results.csv", "table.md")  # what `write_results` writes
 HIGHER_IS_BETTER = ("a1", "a2", "a3")  # threshold accuracies; the errors are lower-is-better
@@ -96,8 +97,7 @@ def clear_earlier_results(out_dir: str | Path, patterns: Sequence[str] = ()) -> 
     path.unlink(missing_ok=True)
   names = [str(p.relative_to(out)) for p in found]
   if names:
-    shown = ", ".join(names[:6]) + (f" and {len(names) - 6} more" if len(names) > 6 else "")
-    print(f"warning: {out}: removed an earlier run's results ({shown}); this run writes its own "
+    print(f"warning: {out}: removed an earlier run's results ({first_and_count(names, 6)}); this run writes its own "
           f"when it ends", file=sys.stderr)
   return names
 

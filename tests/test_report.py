@@ -14,6 +14,7 @@ from pitta_jax.config_cli import add_config_arguments, config_from_args
 from pitta_jax.methods.pitta import PittaConfig
 from pitta_jax.data.errors import DataError
 from pitta_jax.report import Row, markdown_table, write_results
+from pitta_jax.text import first_and_count
 from pitta_jax.sources import (dataclass_annotations, function_annotations, parse_segmentation,
                                split_options, typed_options)
 
@@ -29,6 +30,12 @@ def test_markdown_table_bolds_the_best_per_group():
                       "**0.900** | 0.950 |")
   assert lines[3] == ("| fog | PITTA | **0.100** | 3.000 | **8.000** | **0.200** | **0.800** | "
                       "0.850 | **0.970** |")
+
+
+def test_long_lists_are_named_in_part_and_counted():
+  assert first_and_count(["a", "b", "c", "d"], 2) == "a, b, ... and 2 more"
+  assert first_and_count([3, 1], 2, sep="; ") == "3; 1"
+  assert first_and_count((), 5) == ""
 
 
 def test_write_results_files(tmp_path):

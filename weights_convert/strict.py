@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Callable, Iterable, Sequence
 
+from pitta_jax.text import first_and_count
 from weights_convert.pth import CheckpointError
 
 
@@ -36,8 +37,7 @@ LAYOUTS = (
 
 def shown(items: Sequence[str], sep: str = ", ") -> str:
   """The first `SHOWN_KEYS` of `items` joined by `sep`, then how many more."""
-  more = len(items) - SHOWN_KEYS
-  return sep.join(items[:SHOWN_KEYS]) + (f"{sep}... and {more} more" if more > 0 else "")
+  return first_and_count(items, SHOWN_KEYS, sep)
 
 
 def layout_of(keys: Iterable[str]) -> str | None:

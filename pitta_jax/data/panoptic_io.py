@@ -37,6 +37,7 @@ from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Segment
 from pitta_jax.data.image_io import (PathLike, decode_file, encode_bytes, encode_file,
                                      require_dir, require_file)
+from pitta_jax.text import first_and_count
 
 MAX_ID = 256**3 - 1  # the largest id an RGB PNG can encode
 
@@ -249,8 +250,7 @@ def check_segments(ids: np.ndarray, segments: Sequence[Segment], path: PathLike
   listed = {s.id for s in segments}
   unlisted = sorted(present - listed)
   if unlisted:
-    shown = ", ".join(map(str, unlisted[:5])) + (", ..." if len(unlisted) > 5 else "")
-    raise DataError(path, f"segment ids {shown} appear in the PNG but not in segments_info")
+    raise DataError(path, f"segment ids {first_and_count(unlisted, 5)} appear in the PNG but not in segments_info")
   return tuple(s for s in segments if s.id in present)
 
 
