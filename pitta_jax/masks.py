@@ -13,7 +13,9 @@ the instance's index among the frame's dynamic instances). The masked depth is `
 instance index map (0 = no dynamic instance, j = instance j) carries the same information in
 (H, W), which is what the fast depth-refining loss uses.
 
-Panoptic segment ids are > 0 (0 = void, as in COCO panoptic), so ids <= 0 mean "unused".
+Panoptic segment ids are > 0 (0 = void, as in COCO panoptic), so ids <= 0 mean "unused". They
+are integers below 2**31 (a COCO panoptic PNG holds ids below 2**24) and are compared as int32;
+a float array of ids is refused, since casting it would truncate 3.7 to segment 3.
 """
 
 from __future__ import annotations
@@ -35,6 +37,14 @@ def check_mode(mode: str) -> None:
   """Raises ValueError unless `mode` is one of `MASK_MODES`."""
   if mode not in MASK_MODES:
     raise ValueError(f"mask mode must be one of {MASK_MODES}, got {mode!r}")
+
+
+def segment_id_array(x: Array, name: str) -> Array:
+  """`x` as int32 segment ids; TypeError naming `name` when `x` is not an integer array."""
+  x = jnp.asarray(x)
+  if not jnp.issubdtype(x.dtype, jnp.integer):
+    raise TypeError(f"{name} must be an integer array of segment ids, got {x.dtype}")
+  return x.astype(jnp.int32)
 
 
 def _compact(keys: Array, keep: Array, n_max: int) -> tuple[Array, Array]:
@@ -68,7 +78,7 @@ def instance_table(segment_ids: Array, segment_classes: Array, segment_valid: Ar
     inst_ids: (N_max,) int32, the dynamic segments' ids in their original order, then 0.
     inst_valid: (N_max,) bool, True on the first N rows.
   """
-  segment_ids = jnp.asarray(segment_ids, jnp.int32)
+  segment_ids = segment_id_array(segment_ids, "segment_ids")
   segment_classes = jnp.asarray(segment_classes, jnp.int32)
   dynamic_classes = jnp.asarray(dynamic_classes, jnp.int32).reshape(-1)
   is_dyn = (jnp.asarray(segment_valid, bool) & (segment_ids > 0)
@@ -87,7 +97,7 @@ def table_from_dynamic_ids(dynamic_ids: Array) -> tuple[Array, Array]:
     (inst_ids, inst_valid), (N_max,) each, the used ids first in their order, so instance j
     (g_j = j in "instance_id" mode) is the j-th used entry.
   """
-  dynamic_ids = jnp.asarray(dynamic_ids, jnp.int32).reshape(-1)
+  dynamic_ids = segment_id_array(dynamic_ids, "dynamic_ids").reshape(-1)
   return _compact(dynamic_ids, dynamic_ids > 0, dynamic_ids.shape[0])
 
 
@@ -110,8 +120,8 @@ def instance_index_map(panoptic: Array, inst_ids: Array, inst_valid: Array) -> A
   Returns:
     (H, W) int32 index map.
   """
-  panoptic = jnp.asarray(panoptic, jnp.int32)
-  inst_ids = jnp.asarray(inst_ids, jnp.int32)
+  panoptic = segment_id_array(panoptic, "panoptic")
+  inst_ids = segment_id_array(inst_ids, "inst_ids")
   inst_valid = jnp.asarray(inst_valid, bool)
   usable = inst_valid & (inst_ids > 0)  # (N_max,) invalid rows never match
   n_max = inst_ids.shape[0]

@@ -143,3 +143,19 @@ def test_dynamic_ids_from_segments():
   segs = [Seg(5, 3), Seg(6, 119), Seg(9, 1), Seg(2, 8)]
   np.testing.assert_array_equal(masks.dynamic_ids_from_segments(segs, 4), [5, 9, 2, 0])
   np.testing.assert_array_equal(masks.dynamic_ids_from_segments(segs, 2), [5, 9])
+
+
+def test_float_segment_ids_are_refused():
+  # A float id map would be truncated (segment 3.7 read as 3): refused by name, also under jit.
+  pan = np.array([[3.7, 0.0], [3.0, 1.0]], np.float32)
+  ids, valid = masks.table_from_dynamic_ids(np.array([3, 0], np.int32))
+  with pytest.raises(TypeError, match="panoptic must be an integer array"):
+    masks.instance_index_map(pan, ids, valid)
+  with pytest.raises(TypeError, match="dynamic_ids must be an integer array"):
+    jax.jit(masks.table_from_dynamic_ids)(np.array([3.0, 0.0]))
+  with pytest.raises(TypeError, match="segment_ids must be an integer array"):
+    masks.instance_table(np.array([1.5]), np.array([3]), np.array([True]), np.array([3]), 2)
+  # Every integer width is accepted and gives the int32 map.
+  for dtype in (np.uint8, np.int16, np.int64):
+    got = masks.instance_index_map(pan.astype(dtype), ids, valid)
+    np.testing.assert_array_equal(got, [[1, 0], [1, 0]])
