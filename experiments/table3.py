@@ -1,12 +1,13 @@
 """Table 3: PITTA on the other networks of the paper (SGDepth, HR-Depth, MonoViT, Lite-Mono,
-Depth Anything V2), adapted to DrivingStereo: rows No adaptation, Sunny, All.
+Depth Anything V2), adapted to DrivingStereo: rows No adaptation (Sunny), All.
 
     pitta-jax experiment table3 [--quick] [--dataset drivingstereo --root DIR
                                  --weights sgdepth=DIR --weights hrdepth=DIR ...]
     python -m experiments.table3 ...
 
 The paper's "No adaptation" row does not say on which test case it is measured; ours is on All
-(the case every adapted row is compared with). PITTA adapts the encoder's BatchNorm layers, or
+(the case every adapted row is compared with), and a row the paper does not have, "No adaptation,
+Sunny", measures the source network on the Sunny case, the reference of the Sunny row. PITTA adapts the encoder's BatchNorm layers, or
 its LayerNorms where the encoder has no BatchNorm (Depth Anything V2). Lite-Mono's encoder has
 both (BatchNorm in its stem, downsampling and dilated-convolution blocks, LayerNorm in its
 attention blocks): its BatchNorms, as for the CNNs.
@@ -28,37 +29,42 @@ NETWORKS = {
     "litemono": ("Lite-Mono", "encoder_bn"),
     "depth_anything_v2": ("DepthAnythingV2", "encoder_ln"),
 }
-# (row label, method, test case)
-ROWS = (("No adaptation", "none", "All"), ("Sunny", "pitta", "Sunny"), ("All", "pitta", "All"))
+# (row label, method, test case, the paper's row: "" for ours)
+ROWS = (("No adaptation", "none", "All", "No adaptation"),
+        ("No adaptation (Sunny)", "none", "Sunny", ""),
+        ("Sunny", "pitta", "Sunny", "Sunny"),
+        ("All", "pitta", "All", "All"))
+SUNNY_LABELS = frozenset(label for label, _, case, _ in ROWS if case == "Sunny")
 
 
 def rows() -> list[tuple[str, str, RowSpec]]:
   """(network label, test case, row) in the paper's order."""
   out = []
   for model, (label, selector) in NETWORKS.items():
-    for row_label, method, case in ROWS:
+    for row_label, method, case, paper in ROWS:
       adapt = (("selector", selector),) if method == "pitta" else ()
-      out.append((label, case, RowSpec(row_label, method, model, adapt=adapt, paper=row_label)))
+      out.append((label, case, RowSpec(row_label, method, model, adapt=adapt, paper=paper)))
   return out
 
 
 def selected(ctx) -> list[tuple[str, str, RowSpec]]:
-  """The rows --rows selects, by network (label or name), row label (No adaptation, Sunny,
+  """The rows --rows selects, by network (label or name), row label (No adaptation (Sunny),
   All) or method."""
   return [(g, c, r) for g, c, r in rows() if ctx.wants(f"{g}: {r.label}", r.model, r.method)]
 
 
 def _aligned_for_figures(entries: list[Entry]) -> list[Entry]:
-  """Copies of `entries` whose Sunny series starts where All's sunny part does (All is cloudy,
-  foggy, rainy, sunny in turn, its last part Sunny's frames): Sunny is its own run, drawn under
-  the frames of All it covers instead of from frame 0 (NaN before: a gap)."""
+  """Copies of `entries` whose Sunny series (the Sunny row and No adaptation on Sunny) start
+  where All's sunny part does (All is cloudy, foggy, rainy, sunny in turn, its last part Sunny's
+  frames): each is its own run, drawn under the frames of All it covers instead of from frame 0
+  (NaN before: a gap)."""
   aligned = []
   for e in entries:
     series = e.extra.get("abs_rel_per_frame")
     whole = next((x.extra.get("abs_rel_per_frame") for x in entries
                   if x.group == e.group and x.label == "All"), None)
-    if e.label == "Sunny" and series and whole and len(whole) > len(series):
-      e = dataclasses.replace(e, label="Sunny (its own run, under All's sunny part)", extra={
+    if e.label in SUNNY_LABELS and series and whole and len(whole) > len(series):
+      e = dataclasses.replace(e, label=f"{e.label}, its own run under All's sunny part", extra={
           **e.extra, "abs_rel_per_frame": [float("nan")] * (len(whole) - len(series))
           + list(series)})
     aligned.append(e)
@@ -81,15 +87,15 @@ def run(args, runners=None) -> int:
     entry = common.run_row(ctx, row, case, cases[case], shared, resources)
     entry.group = group
     entries.append(entry)
-  common.attach_paper(entries, 3, lambda e: {"network": e.spec.model, "method": e.spec.method,
-                                                "test_case": None if e.spec.method == "none"
-                                                else e.label.lower()})
+  common.attach_paper(entries, 3, lambda e: None if not e.spec.paper else {
+      "network": e.spec.model, "method": e.spec.method,
+      "test_case": None if e.spec.method == "none" else e.label.lower()})
   caption = ("PITTA adapting other networks. Dataset: "
              + (common.SYNTHETIC_CAPTION["drivingstereo"] + f", {ctx.frames} frames per part; "
                 + ("random networks (--quick)" if ctx.quick else
                    "each network trained on the clear synthetic streets by train-source")
                 if ctx.dataset == "synthetic" else f"DrivingStereo at {ctx.root}")
-             + ". No adaptation is measured on All. Unmarked, as in the paper: a network's rows "
+             + ". No adaptation is measured on All (the paper's row) and on Sunny (ours). Unmarked, as in the paper: a network's rows "
                "are different test cases, not competing methods.")
   per_frame_figures(ctx.out, "table3", _aligned_for_figures(entries))
   return publish(ctx, "table3", entries, elapsed(), layout="rows", caption=caption,

@@ -116,14 +116,15 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   # table3's rows are known by network, row label and method too (the help's example)
   from experiments import table3
   assert table3.main(["--quick", "--rows", "zzz", "--out", str(tmp_path / "o")]) == 2
-  assert ("matches none of this table's rows (SGDepth, No adaptation, Sunny, All, HR-Depth, "
+  assert ("matches none of this table's rows (SGDepth, No adaptation, No adaptation (Sunny), "
+          "Sunny, All, HR-Depth, "
           in capsys.readouterr().err)
   pick = lambda *rows: [(g, r.label) for g, _, r in table3.selected(common.Context(
       "synthetic", None, [], "gt", {}, None, True, 2, True, rows=rows))]
-  assert pick("No adaptation") == [(label, "No adaptation") for label, _ in
-                                   table3.NETWORKS.values()]
-  assert pick("hrdepth") == [("HR-Depth", "No adaptation"), ("HR-Depth", "Sunny"),
-                             ("HR-Depth", "All")]
+  assert pick("No adaptation") == [(label, row) for label, _ in table3.NETWORKS.values()
+                                   for row in ("No adaptation", "No adaptation (Sunny)")]
+  assert pick("hrdepth") == [("HR-Depth", "No adaptation"), ("HR-Depth", "No adaptation (Sunny)"),
+                             ("HR-Depth", "Sunny"), ("HR-Depth", "All")]
   # --rows with separators only (it would have run every row), --root on a synthetic-only table
   assert table1.main(["--quick", "--rows", " , ", "--out", str(tmp_path / "o")]) == 2
   assert capsys.readouterr().err == "error: --rows ' , ': no row name in it (comma-separated labels)\n"
@@ -366,13 +367,14 @@ def test_table3_quick(quick_out):
   assert _quick("table3", quick_out, "--rows", QUICK_ROWS["table3"]) == 0
   payload, _ = _check_files(quick_out[0] / "table3", "table3")
   assert [(r["group"], r["label"]) for r in payload["rows"]] == [
-      (label, row) for label in ("SGDepth", "DepthAnythingV2") for row, _, _ in ROWS]
+      (label, row) for label in ("SGDepth", "DepthAnythingV2") for row, _, _, _ in ROWS]
   assert set(NETWORKS) == {"sgdepth", "hrdepth", "monovit", "litemono", "depth_anything_v2"}
   for r in payload["rows"]:
     if r["spec"]["model"] == "depth_anything_v2":
       assert r["status"].startswith("needs weights")
     else:
-      assert r["status"] == "ok" and _finite(r) and r["paper"] is not None
+      assert r["status"] == "ok" and _finite(r)
+      assert (r["paper"] is None) == (r["label"] == "No adaptation (Sunny)")
 
 
 def test_table4_quick_is_one_vmapped_sweep(quick_out):
@@ -482,13 +484,16 @@ def test_table3_figures_draw_sunny_under_alls_sunny_part():
   All's frame 6 of 8 here (two frames per part), not at frame 0 beside All's cloudy part."""
   from experiments.table3 import _aligned_for_figures
   entries = [Entry("SGDepth", "No adaptation", {}, extra={"abs_rel_per_frame": [0.5] * 8}),
+             Entry("SGDepth", "No adaptation (Sunny)", {}, extra={"abs_rel_per_frame": [0.4] * 2}),
              Entry("SGDepth", "Sunny", {}, extra={"abs_rel_per_frame": [0.1, 0.2]}),
              Entry("SGDepth", "All", {}, extra={"abs_rel_per_frame": [0.3] * 8})]
   drawn = _aligned_for_figures(entries)
-  assert drawn[1].label.startswith("Sunny (its own run")
-  np.testing.assert_array_equal(drawn[1].extra["abs_rel_per_frame"], [np.nan] * 6 + [0.1, 0.2])
-  assert drawn[0] is entries[0] and drawn[2] is entries[2]
-  assert entries[1].extra["abs_rel_per_frame"] == [0.1, 0.2]  # the table's own entry unchanged
+  assert drawn[2].label == "Sunny, its own run under All's sunny part"
+  np.testing.assert_array_equal(drawn[2].extra["abs_rel_per_frame"], [np.nan] * 6 + [0.1, 0.2])
+  assert drawn[1].label == "No adaptation (Sunny), its own run under All's sunny part"
+  np.testing.assert_array_equal(drawn[1].extra["abs_rel_per_frame"], [np.nan] * 6 + [0.4, 0.4])
+  assert drawn[0] is entries[0] and drawn[3] is entries[3]
+  assert entries[2].extra["abs_rel_per_frame"] == [0.1, 0.2]  # the table's own entry unchanged
 
 
 def test_lambda_sweep_resumes_after_an_interrupt(tmp_path, monkeypatch):
