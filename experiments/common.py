@@ -118,6 +118,7 @@ class Context:
   replay_root: str | None = None
   runners: Any = None           # a `run.Runners` compile cache shared by the rows (None: fresh)
   rows: tuple[str, ...] = ()    # --rows: compute only rows whose labels contain one of these
+  eval_cfg: Any = None          # --eval.* flags: the `run.EvalConfig` every row is scored with
   # the weights of each model, read once per command (`weights_for`): reading and checking a
   # directory traces the network's init, ~3 s a row at 64x96 on 2 cores, for every row
   loaded: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -132,6 +133,11 @@ class Context:
     return not self.rows or any(r.lower() in label.lower()
                                 or any(r.lower() == n.lower() for n in names)
                                 for r in self.rows)
+
+  def evaluation(self):
+    """The protocol the rows are scored with (`run.EvalConfig`; its defaults without flags)."""
+    from pitta_jax.run import EvalConfig
+    return self.eval_cfg if self.eval_cfg is not None else EvalConfig()
 
   def cases(self, names: Sequence[str]) -> list[tuple[str, tuple[dict, ...]]]:
     table = SYNTHETIC if self.dataset == "synthetic" else REAL[self.dataset]
@@ -347,11 +353,10 @@ def row_key(ctx: Context, row: RowSpec, case: str, parts, weights_id: dict) -> s
   setting, the method's config, the evaluation protocol), so that a changed library default
   recomputes the rows it changes instead of serving them from the cache."""
   from pitta_jax.methods import method_config_class
-  from pitta_jax.run import EvalConfig
   # the method config's defaults (the row's changes are in `row`; a sweep's are not one config)
   resolved = {"adapt": dataclasses.asdict(adapt_config(row.method, row.adapt, ctx.quick)),
               "method": dataclasses.asdict(method_config_class(row.method)()),
-              "eval": dataclasses.asdict(EvalConfig())}
+              "eval": dataclasses.asdict(ctx.evaluation())}
   text = json.dumps({"format": FORMAT, "row": dataclasses.asdict(row), "case": case,
                      "parts": parts, "dataset": ctx.dataset,
                      "root": str(Path(ctx.root).resolve()) if ctx.root else None,
@@ -428,8 +433,8 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
       resources[res_key] = method_resources(method, weights, ctx.dataset, ctx.source_images,
                                             ctx.replay_root, quiet=ctx.quiet)
     ckpt = checkpoints(ctx, key)
-    res = run_sequence(weights, frames, cfg, method, name=f"{case}: {row.label}",
-                       quiet=ctx.quiet, runners=runners, resources=resources[res_key],
+    res = run_sequence(weights, frames, cfg, method, ctx.evaluation(),
+                       name=f"{case}: {row.label}", quiet=ctx.quiet, runners=runners, resources=resources[res_key],
                        checkpoint_dir=ckpt, checkpoint_every=CHECKPOINT_EVERY if ckpt else 0,
                        resume=RESUME_OWN)
     return {"metrics": res.mean if res.status == "ok" else {}, "status": res.status,
@@ -537,6 +542,9 @@ def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthe
                    help="comma-separated row names (or parts of them, case-insensitive), "
                         "or whole method, network or group names: compute only these rows, "
                         "e.g. --rows 'No adaptation,PITTA' (default: all)")
+  from pitta_jax.config_cli import add_config_arguments
+  from pitta_jax.run import EvalConfig
+  add_config_arguments(p, EvalConfig, "eval", "evaluation (every row of the table)")
   p.add_argument("--out", default=None, help="output directory (default experiments_out/NAME)")
   p.add_argument("--quiet", action="store_true", help="no progress bars")
   p.add_argument("--debug", action="store_true", help="full tracebacks")
@@ -607,6 +615,9 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   out = Path(args.out or Path("experiments_out") / name)
   if out.exists() and not out.is_dir():
     raise DataError(out, "--out: exists and is not a directory")
+  from pitta_jax.config_cli import config_from_args
+  from pitta_jax.run import EvalConfig
+  eval_cfg = config_from_args(EvalConfig, args, "eval")
   from pitta_jax.outputs import open_output_dir
   text = getattr(args, "rows", "")
   rows = tuple(r.strip() for r in text.split(",") if r.strip())
@@ -616,7 +627,7 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   vars(args).setdefault("open_outputs", []).append(open_output_dir(out, "--out"))
   return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
                  args.quick, frames, args.quiet, args.source_images, args.replay_root,
-                 runners, rows)
+                 runners, rows, eval_cfg=eval_cfg)
 
 
 def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
@@ -680,12 +691,28 @@ def caption_notes(ctx: Context) -> str:
   return " ".join(notes)
 
 
-# how every table scores a frame (run.EvalConfig's defaults, model alignment), for its caption
-EVALUATION_NOTE = ("Scored per frame on ground truth in [1e-3, 80] m, no crop, the prediction "
-                   "aligned as its network needs: median scaling (x5.4 instead for weights "
-                   "trained with stereo pairs); for Depth Anything V2 a least-squares scale and "
-                   "shift in inverse depth (two numbers fitted per frame, against the median's "
-                   "one).")
+# how a prediction is aligned to the ground truth, per `run.EvalConfig.alignment`
+ALIGNMENT_NOTES = {
+    "model": ("the prediction aligned as its network needs: median scaling (x5.4 instead for "
+              "weights trained with stereo pairs); for Depth Anything V2 a least-squares scale "
+              "and shift in inverse depth (two numbers fitted per frame, against the median's "
+              "one)"),
+    "median": "every prediction median-scaled (--eval.alignment median)",
+    "scale_shift": ("every prediction aligned by a least-squares scale and shift in inverse "
+                    "depth (--eval.alignment scale_shift)"),
+    "stereo": "every prediction multiplied by 5.4 (--eval.alignment stereo)",
+    "none": "the prediction taken as metres, unaligned (--eval.alignment none)",
+}
+
+
+def evaluation_note(ev) -> str:
+  """How every row of a table scores a frame (`run.EvalConfig` `ev`), for its caption."""
+  span = f"[{ev.min_depth:g}, {ev.max_depth:g}] m"
+  pixels = (f"ground truth in {span}" if ev.valid_gt == "range"
+            else f"ground truth > 0 (--eval.valid-gt positive; predictions capped to {span})")
+  crop = "inside the Garg crop" if ev.garg_crop else "no crop"
+  resize = "" if ev.resize == "disparity" else ", the depth map (not the disparity) resized"
+  return f"Scored per frame on {pixels}, {crop}{resize}, {ALIGNMENT_NOTES[ev.alignment]}."
 
 
 def units_note(ctx: Context, entries: Sequence[Entry]) -> str:
@@ -706,10 +733,10 @@ def units_note(ctx: Context, entries: Sequence[Entry]) -> str:
 def meta(ctx: Context) -> dict:
   """What results.json records about the command besides the rows."""
   import platform
-  from pitta_jax.run import EvalConfig
   return {"dataset": ctx.dataset, "root": ctx.root, "options": ctx.options,
           "segmentation": ctx.segmentation, "weights": ctx.weights, "quick": ctx.quick,
-          "eval": {**dataclasses.asdict(EvalConfig()), "note": EVALUATION_NOTE},
+          "eval": {**dataclasses.asdict(ctx.evaluation()),
+                   "note": evaluation_note(ctx.evaluation())},
           "frames_per_part": ctx.frames, "rows_selected": list(ctx.rows),
           "load": f"load average {load_average()}",
           "machine": f"{platform.machine()}, {os.cpu_count()} CPUs", "format": FORMAT}

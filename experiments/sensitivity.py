@@ -79,7 +79,8 @@ def run(args, runners=None) -> int:
                                                                           weights))
   sweep = common.cached(ctx, key, lambda: {"sweep": lambda_sweep(
       weights, common.case_frames(ctx, (CASE,), weights.height, weights.width), lams,
-      ctx.quiet, ctx.quick, shared, common.checkpoints(ctx, key))}, field="sweep")["sweep"]
+      ctx.quiet, ctx.quick, shared, common.checkpoints(ctx, key), ctx.evaluation())},
+      field="sweep")["sweep"]
   common.remove_checkpoints(ctx, key)
   ref = results[0][2]
   dense_ref = next(e for s, n, e in results if n == "dense: reference")

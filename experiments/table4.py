@@ -27,13 +27,15 @@ def label(lam: float) -> str:
 
 
 def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
-                 quick: bool = False, runners=None, checkpoint_dir=None) -> list[dict]:
+                 quick: bool = False, runners=None, checkpoint_dir=None,
+                 eval_cfg=None) -> list[dict]:
   """PITTA with each lambda of `lams` over `frames`, as one vmapped run; per lambda
   {"metrics": mean of the 7, "abs_rel_per_frame": [...], "frames": n}. runners: a
   `run.Runners` that keeps the compiled sweep for later calls. checkpoint_dir: the sweep's
   states and results so far are saved there every `common.CHECKPOINT_EVERY` frames (and on
   Ctrl-C), and a sweep interrupted before resumes from its newest checkpoint (one of another
-  sweep is removed, with a warning), with the result of an uninterrupted one."""
+  sweep is removed, with a warning), with the result of an uninterrupted one. eval_cfg: the
+  `run.EvalConfig` each frame is scored with (None: its defaults)."""
   from pathlib import Path
   from tqdm import tqdm
   from pitta_jax import metrics as metrics_lib
@@ -50,7 +52,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
                                                        default=str), cfg, len(lams))
   model, tx, runner = (runners or Runners()).custom(key, lambda: _sweep_runner(weights, cfg))
   states, consts = streams.init_lambda_sweep(weights.depth, lams, cfg, tx, model=model)
-  ev = EvalConfig()
+  ev = eval_cfg if eval_cfg is not None else EvalConfig()
   names = [frame.name for frame in frames]
   record = {"names": [], "per_frame": [[] for _ in lams], "fingerprint": None}
   directory = Path(checkpoint_dir) if checkpoint_dir is not None else None
@@ -136,7 +138,7 @@ def run(args, runners=None) -> int:
       frames = common.case_frames(ctx, parts, weights.height, weights.width)
       took = common.timer()
       sweep = lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick, common.runners(ctx),
-                           common.checkpoints(ctx, key))
+                           common.checkpoints(ctx, key), ctx.evaluation())
       return {"sweep": sweep, "seconds": round(took(), 2)}
     cached = common.cached(ctx, key, compute, field="sweep")
     common.remove_checkpoints(ctx, key)

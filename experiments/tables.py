@@ -46,10 +46,10 @@ def publish(ctx: Context, name: str, entries: Sequence[Entry], elapsed: float,
             **layout) -> int:
   """Writes the table's files (`render.write_table`, `layout` its keyword arguments) with the
   run's metadata, prints the markdown unless --quiet; the command's exit status (0)."""
-  from experiments.common import EVALUATION_NOTE, caption_notes, meta, units_note
+  from experiments.common import caption_notes, evaluation_note, meta, units_note
   from experiments.render import write_table
-  notes = " ".join(n for n in (EVALUATION_NOTE, units_note(ctx, entries), caption_notes(ctx))
-                   if n)
+  notes = " ".join(n for n in (evaluation_note(ctx.evaluation()), units_note(ctx, entries),
+                               caption_notes(ctx)) if n)
   layout = {**layout, "caption": f"{layout.get('caption', '')} {notes}".strip()}
   if name.startswith("table") and any(e.paper for e in entries):  # e.g. Table 4's misprint
     from experiments.paper import load_paper_table

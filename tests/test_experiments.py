@@ -362,6 +362,33 @@ def test_rows_are_cached_and_a_rerun_computes_nothing(quick_out, monkeypatch):
   assert [r["metrics"] for r in after["rows"]] == [r["metrics"] for r in json.loads(before)["rows"]]
 
 
+def test_eval_flags_score_every_row(quick_out, monkeypatch, capsys):
+  """--eval.* flags reach every row's scoring, its cache key, results.json's eval and the caption; a bad
+  value is one line before any work. Before, the tables always scored with the defaults."""
+  from pitta_jax import run as run_lib
+  from pitta_jax.run import EvalConfig
+  seen, real = [], run_lib.run_sequence
+  monkeypatch.setattr(run_lib, "run_sequence",
+                      lambda *a, **k: seen.append(a[4]) or real(*a, **k))
+  out = quick_out[0] / "table1_eval"
+  assert _quick("table1", quick_out, "--out", str(out), "--eval.alignment", "bogus") == 2
+  assert "alignment must be model, median, scale_shift, stereo or none, got 'bogus'" in \
+      capsys.readouterr().err and not out.exists()
+  flags = ("--rows", "No adaptation", "--eval.max-depth", "20", "--eval.valid-gt", "positive")
+  assert _quick("table1", quick_out, "--out", str(out), *flags) == 0
+  assert seen == [EvalConfig(max_depth=20.0, valid_gt="positive")] * 3  # Foggy, Rainy, All
+  payload = json.loads((out / "results.json").read_text())
+  assert payload["eval"]["max_depth"] == 20.0
+  assert payload["eval"]["valid_gt"] == "positive"
+  assert "ground truth > 0 (--eval.valid-gt positive; predictions capped to [0.001, 20] m)" in \
+      (out / "table1.md").read_text()
+  default = {(r["group"], r["label"]): r for r in json.loads(
+      (quick_out[0] / "table1" / "results.json").read_text())["rows"]}
+  for r in payload["rows"]:  # other scores under another row key than the default run's
+    assert r["extra"]["row_key"] != default[r["group"], r["label"]]["extra"]["row_key"]
+    assert r["metrics"] != default[r["group"], r["label"]]["metrics"]
+
+
 def test_table3_quick(quick_out):
   from experiments.table3 import NETWORKS, ROWS
   assert _quick("table3", quick_out, "--rows", QUICK_ROWS["table3"]) == 0
