@@ -299,7 +299,7 @@ def check_rows(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSp
   its methods need them (K, capture order; from the readers `check_cases` opened). Without this
   a missing need stopped the table at its row, after the rows before."""
   from pitta_jax.data.errors import DataError
-  from pitta_jax.sources import check_needs
+  from pitta_jax.sources import check_needs, check_replay_root, no_pose_error, no_source_error
   own = {k for _, parts, _ in selected for part in parts for k in part}
   for item in ctx.options:
     if item.split("=", 1)[0] in own:
@@ -315,20 +315,14 @@ def check_rows(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSp
     if weights_for(ctx, row.model) is not None and (row.method, row.model) not in methods:
       methods[(row.method, row.model)] = (row, method_of(row))
   for (_, model), (row, method) in methods.items():
+    who = f"row {row.label}: {method.name}"
     if "pose" in method.needs and weights_for(ctx, model).pose is None:
-      raise DataError(ctx.weights.get(model), f"row {row.label}: {method.name} needs a pose "
-                                              f"network, and these weights have none (convert "
-                                              f"with --pose-encoder/--pose, or train-source)")
+      raise no_pose_error(method, who, ctx.weights.get(model))
     if (method.prepare is not None and ctx.dataset != "synthetic"
             and not (ctx.source_images or ctx.replay_root)):
-      raise DataError(None, f"row {row.label}: {method.name} needs source-domain data: "
-                            f"--source-images PATH or --replay-root DIR")
-  if ctx.replay_root and any(m.prepare is not None for _, m in methods.values()):
-    from pitta_jax.data.kitti import open_raw_sequences
-    for seq in open_raw_sequences(ctx.replay_root):
-      for _, method in methods.values():
-        if method.prepare is not None:
-          check_needs(method, seq, f"--replay-root {ctx.replay_root}")
+      raise no_source_error(method, who, stats_flag=False)
+  if ctx.replay_root:
+    check_replay_root([m for _, m in methods.values()], ctx.replay_root)
   for case, _, row in selected:  # each test case's frames, as its methods need them
     entry = methods.get((row.method, row.model))
     if entry is not None and entry[1].needs:

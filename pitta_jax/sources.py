@@ -233,10 +233,13 @@ def method_resources(method, weights: Weights, dataset: str, source_images: str 
   return resources
 
 
-def no_source_error(method) -> DataError:
-  stats = ", --source-stats FILE" if method.name == "actmad" else ""
-  return DataError(None, f"--method {method.name} needs source-domain data: --source-images "
-                         f"PATH{stats} or --replay-root DIR")
+def no_source_error(method, who: str | None = None, stats_flag: bool = True) -> DataError:
+  """A method with `prepare` on a real dataset and no source flag; `who` names it in the
+  message (default `--method NAME`), `stats_flag` offers --source-stats (ActMAD's; the
+  experiment commands have no such flag)."""
+  stats = ", --source-stats FILE" if method.name == "actmad" and stats_flag else ""
+  return DataError(None, f"{who or f'--method {method.name}'} needs source-domain data: "
+                         f"--source-images PATH{stats} or --replay-root DIR")
 
 
 def check_stats_method(method, source_stats: str) -> None:
@@ -372,9 +375,29 @@ def check_frame_needs(method, frame: Frame) -> None:
     raise _needs_error(method, "intrinsics", f"frame {frame.name or '?'} has none", None)
 
 
-def no_pose_error(method) -> DataError:
-  return DataError(None, f"--method {method.name} needs a pose network, and the weights have "
-                         f"none (convert with --pose-encoder/--pose, or train-source)")
+def no_pose_error(method, who: str | None = None, weights: str | None = None) -> DataError:
+  """A method that needs a pose network on weights without one; `who` names the method in the
+  message (default `--method NAME`), `weights` the weights directory."""
+  return DataError(weights, f"{who or f'--method {method.name}'} needs a pose network, and the "
+                            f"weights have none (convert with --pose-encoder/--pose, or "
+                            f"train-source)")
+
+
+def check_replay_root(methods: Sequence, replay_root: str, notes: list[str] | None = None
+                      ) -> None:
+  """Each drive of the KITTI raw root `replay_root` as the `methods` with `prepare` need their
+  source frames (`check_needs`); the drives' notes (e.g. a drive split at missing frames) are
+  appended to `notes`, once each, when given."""
+  from pitta_jax.data.kitti import open_raw_sequences
+  replaying = [m for m in methods if m.prepare is not None]
+  if not replaying:
+    return
+  for seq in open_raw_sequences(replay_root):
+    for method in replaying:
+      check_needs(method, seq, f"--replay-root {replay_root}")
+    if notes is not None:
+      notes += [f"--replay-root: {n}" for n in seq.notes
+                if f"--replay-root: {n}" not in notes]  # once per drive, not per run
 
 
 def check_run_needs(method, dataset: str, root: str | None, option_items: Sequence[str],
@@ -407,11 +430,6 @@ def check_run_needs(method, dataset: str, root: str | None, option_items: Sequen
       raise DataError(root, f"dataset {dataset} with {' '.join(option_items) or 'no options'}: "
                             "no frames to adapt on")
     check_needs(method, reader, f"dataset {dataset}")
-  if replay_root and method.prepare is not None:
-    from pitta_jax.data.kitti import open_raw_sequences
-    for seq in open_raw_sequences(replay_root):
-      check_needs(method, seq, f"--replay-root {replay_root}")
-      if notes is not None:
-        notes += [f"--replay-root: {n}" for n in seq.notes
-                  if f"--replay-root: {n}" not in notes]  # once per drive, not per run
+  if replay_root:
+    check_replay_root([method], replay_root, notes)
   return reader

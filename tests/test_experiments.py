@@ -271,7 +271,7 @@ def test_rows_needs_are_checked_before_the_first_row(tmp_path, monkeypatch):
           r"row ActMAD \+ L_d: actmad needs source-domain data: --source-images PATH or "
           r"--replay-root DIR")
   refused(ctx(source_images="src"), ["CoMoDa + L_d"],
-          r"row CoMoDa \+ L_d: comoda needs a pose network, and these weights have none")
+          r"row CoMoDa \+ L_d: comoda needs a pose network, and the weights have none")
   refused(ctx(weights=False), ["No adaptation", "PITTA"],
           r"no weights for the selected rows: --weights monodepth2=DIR")
   refused(ctx(options=["weather=rainy"]), ["PITTA"],
