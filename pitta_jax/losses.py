@@ -112,7 +112,10 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
 
   Same value (up to float summation order) and the same gradient w.r.t. depth as
   `depth_refining_loss_literal`, including the constant terms |0 - D~'_j| just outside each
-  instance.
+  instance, for a finite depth map. With a non-finite depth pixel anywhere and N >= 1 the value
+  is NaN (eq. 8 taken literally gives NaN or inf: the pixel's D * 0 is NaN in every other
+  instance's masked map), so a logged L_d never looks finite for a rejected step; the gradient
+  is then unspecified.
 
   Args:
     depth: (H, W) float depth D.
@@ -130,7 +133,10 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
   index_map = jnp.asarray(index_map, jnp.int32)
   if depth.ndim != 2 or depth.shape != index_map.shape:
     raise ValueError(f"depth {depth.shape} and index_map {index_map.shape} must be the same (H, W)")
-  own_masked = depth * masks_lib.pixel_gain(index_map, mode, inst_ids)  # D~_k0 at each pixel's own k0
+  # D~_k0 at each pixel's own k0; a select, not a product with 0, outside the instances, so
+  # that a non-finite depth there (inf * 0 = NaN) does not reach its neighbours' pseudo labels
+  gain = masks_lib.pixel_gain(index_map, mode, inst_ids)  # (H, W)
+  own_masked = jnp.where(index_map > 0, depth * gain, 0.0)  # (H, W)
 
   # Majority candidates: the window's sorted instance indices at slots (c-1)//2 and c//2.
   idx_views = window_views(index_map, s, INT_PAD)  # s*s x (H, W), INT_PAD outside the image
@@ -158,7 +164,8 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
 
   own_term = jnp.where(index_map > 0, absolute(own_masked - pseudo_own), 0.0)
   extra_term = jnp.where(extra > 0, absolute(pseudo_extra), 0.0)  # |0 - D~'_e|
-  return _mean_over_instances(jnp.sum(own_term + extra_term), n)
+  l_d = _mean_over_instances(jnp.sum(own_term + extra_term), n)
+  return jnp.where(jnp.all(jnp.isfinite(depth)) | (jnp.asarray(n) <= 0), l_d, jnp.nan)
 
 
 def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, s: int = WINDOW,

@@ -121,6 +121,32 @@ def test_no_instances_gives_zero_without_nan(ld):
       assert np.all(np.asarray(g) == 0.0)
 
 
+def test_a_non_finite_depth_is_not_hidden_by_the_fast_loss(ld):
+  """Eq. 8 taken literally on a depth with NaN or inf anywhere is not finite (D * 0 is NaN in
+  every other instance's masked map): both implementations say so; 'fast' returned a finite
+  L_d for a NaN outside the instances. A finite pixel outside every instance keeps a finite
+  gradient in 'fast' (inf * 0 had leaked NaN into its neighbours')."""
+  rng = np.random.default_rng(3)
+  pan = random_panoptic(rng, SHAPE, 6, 3)
+  outside = tuple(np.argwhere(~np.isin(pan, DYNAMIC_IDS[DYNAMIC_IDS > 0]))[0])
+  inside = tuple(np.argwhere(pan == 3)[0])
+  for where in (outside, inside):
+    for bad in (np.nan, np.inf):
+      depth = rng.uniform(1, 5, SHAPE).astype(np.float32)
+      depth[where] = bad
+      for impl in losses.IMPLS:
+        assert not np.isfinite(float(ld(depth, pan, DYNAMIC_IDS, 3, "binary", impl)[0])), impl
+      assert math.isnan(float(ld(depth, pan, DYNAMIC_IDS, 3, "binary", "fast")[0]))
+  depth = rng.uniform(1, 5, SHAPE).astype(np.float32)
+  depth[outside] = np.nan
+  g = np.asarray(ld(depth, pan, DYNAMIC_IDS, 3, "binary", "fast")[1])
+  finite_outside = ~np.isin(pan, DYNAMIC_IDS[DYNAMIC_IDS > 0]) & np.isfinite(depth)
+  assert np.all(np.isfinite(g[finite_outside]))
+  # no instance: no term, whatever the depth (the literal sum over no instance is 0)
+  for impl in losses.IMPLS:
+    assert float(ld(depth, pan, np.zeros(8, np.int32), 3, "binary", impl)[0]) == 0.0
+
+
 def test_from_index_matches_public_api(ld):
   # Reference: the public entry point from the panoptic map (same table, same numbers).
   rng = np.random.default_rng(5)
