@@ -20,7 +20,8 @@ an appendix we do not have); far ground truth beyond `max_depth` is then not sco
 interpolates in disparity as MonoDepth2 does (`resize="disparity"`: a depth is inverted, resized
 and inverted back); `resize="depth"` interpolates the depth itself, which mixes the two
 surfaces at a depth edge differently (on KITTI-like sparse ground truth abs_rel grows by a few
-thousandths). Metrics are computed in float64.
+thousandths). Metrics are computed in float64; which pixels are valid is decided in the
+ground truth's own float type, as upstream compares its float32 maps.
 """
 
 from __future__ import annotations
@@ -148,13 +149,17 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
   if pred_is_disparity:
     with np.errstate(divide="ignore"):
       pred = 1.0 / pred
-  gt = gt.astype(np.float64)
-  pred = pred.astype(np.float64)
-
+  # The valid pixels are found in the ground truth's own float type, as evaluate_depth.py's
+  # `gt_depth > MIN_DEPTH` on its float32 maps compares (float32(1e-3) is not above 1e-3 there,
+  # and is above it in float64); the metrics are then computed in float64.
+  native = gt if np.issubdtype(gt.dtype, np.floating) else gt.astype(np.float64)
+  lo, hi = native.dtype.type(min_depth), native.dtype.type(max_depth)
   with np.errstate(invalid="ignore"):  # (H, W); NaN gt is invalid
     # an infinite depth is no measurement ("range" excludes it by its upper bound)
-    valid = ((gt > 0) & np.isfinite(gt) if valid_gt == "positive"
-             else (gt > min_depth) & (gt < max_depth))
+    valid = ((native > 0) & np.isfinite(native) if valid_gt == "positive"
+             else (native > lo) & (native < hi))
+  gt = gt.astype(np.float64)
+  pred = pred.astype(np.float64)
   if garg_crop:
     valid &= garg_crop_mask(gt_h, gt_w)
   if not valid.any():

@@ -116,6 +116,19 @@ def test_positive_ground_truth_scores_beyond_the_cap():
   assert with_inf == positive
 
 
+def test_valid_pixels_are_found_in_the_ground_truths_float_type():
+  """evaluate_depth.py compares its float32 ground truth with MIN_DEPTH in float32: a pixel of
+  exactly float32(1e-3) is not above 1e-3 there (it is in float64: 1.0000000475e-3). Hand
+  value: that pixel is not scored, so a perfect prediction elsewhere gives abs_rel 0; a float64
+  map of the same values scores it (|1 - 1e-3| / 1e-3 halved by the other, exact pixel)."""
+  gt = np.array([[1.0, 0.001]], np.float32)
+  pred = np.ones((1, 2), np.float32)
+  assert not (gt > 1e-3)[0, 1]  # NumPy's own float32 comparison, as upstream's mask
+  assert metrics.depth_metrics(pred, gt, median_scaling=False)["abs_rel"] == 0.0
+  f64 = metrics.depth_metrics(pred, gt.astype(np.float64), median_scaling=False)["abs_rel"]
+  assert f64 == pytest.approx((1.0 - 0.001) / float(np.float32(0.001)) / 2)
+
+
 def test_garg_crop():
   # Hand values for KITTI's 375x1242: rows int(0.40810811*375) = 153 .. int(0.99189189*375) =
   # 371, cols int(0.03594771*1242) = 44 .. int(0.96405229*1242) = 1197.
