@@ -58,11 +58,15 @@ def _clamp_jvp(primals, tangents):
   tx, tlo, thi = tangents
   y = jnp.minimum(jnp.maximum(x, lo), hi)
   inside = (x >= lo) & (x <= hi)
-  # torch routes the gradient to a tensor bound only where x is strictly past it
+  # torch routes the gradient to a tensor bound only where x is strictly past it; with lo >= hi
+  # (the result is hi everywhere) hi takes it wherever hi < lo, and lo never (autograd's
+  # clamp_backward_min_max)
   t = jnp.where(inside, tx, 0.0)
-  t = t + jnp.where(x < lo, _as(tlo, x), 0.0) + jnp.where(x > hi, _as(thi, x), 0.0)
+  t = (t + jnp.where((x < lo) & (lo < hi), _as(tlo, x), 0.0)
+       + jnp.where((x > hi) | (hi < lo), _as(thi, x), 0.0))
   return y, t
 
 
 def _as(t, like):
+  like = jnp.asarray(like)
   return jnp.broadcast_to(jnp.asarray(t, like.dtype), like.shape)

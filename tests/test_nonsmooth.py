@@ -59,6 +59,22 @@ def test_clamp_with_array_bounds_routes_gradients_as_torch():
     np.testing.assert_array_equal(np.asarray(g), t.grad.numpy())
 
 
+def test_clamp_with_crossed_or_equal_bounds_routes_gradients_as_torch():
+  """lo >= hi (the result is hi): torch gives the bound gradient to hi where hi < lo and never
+  to lo; lo == hi passes x's own gradient at the tie. A Python float x has a gradient too."""
+  x = np.array([-1.0, 0.5, -1.0, 0.0, 2.0, 0.7], np.float32)
+  lo = np.array([0.0, 1.0, 0.0, 0.0, 1.0, 0.7], np.float32)
+  hi = np.array([0.0, 0.0, -1.0, 0.0, 0.0, 0.7], np.float32)
+  w = np.linspace(0.5, 1.5, x.size).astype(np.float32)
+  got = jax.grad(lambda a, b, c: jnp.sum(clamp(a, b, c) * w), argnums=(0, 1, 2))(
+      jnp.asarray(x), jnp.asarray(lo), jnp.asarray(hi))
+  ts = [torch.from_numpy(v.copy()).requires_grad_(True) for v in (x, lo, hi)]
+  (torch.clamp(ts[0], ts[1], ts[2]) * torch.from_numpy(w)).sum().backward()
+  for g, t in zip(got, ts):
+    np.testing.assert_array_equal(np.asarray(g), t.grad.numpy())
+  assert float(jax.grad(lambda a: clamp(a, 0.0, 1.0))(0.5)) == 1.0
+
+
 def test_jax_natives_already_follow_torch():
   """relu and elu at 0, maximum and max at ties: JAX's own rules equal PyTorch's."""
   np.testing.assert_array_equal(_jax_grad(jax.nn.relu), _torch_grad(F.relu))
