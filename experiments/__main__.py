@@ -1,4 +1,9 @@
-from experiments import main
-from pitta_jax.cli import exit_with
+from pitta_jax.cli import exit_with, interruptible
 
-exit_with(main())
+
+def _main() -> int:
+  from experiments import main  # imported inside: a Ctrl-C while it loads is handled
+  return main()
+
+
+exit_with(interruptible(_main))

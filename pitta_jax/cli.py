@@ -10,7 +10,7 @@ import argparse
 import contextlib
 import os
 import sys
-from typing import NoReturn
+from typing import Callable, NoReturn
 
 from pitta_jax.data.errors import DataError
 from pitta_jax.text import first_and_count
@@ -682,18 +682,36 @@ def out_of_memory(error: BaseException) -> str | None:
           f"--chunk-size or image?)")
 
 
+def interruptible(body: Callable[[], int], debug: bool | None = None) -> int:
+  """A console entry's `body` with Ctrl-C and SIGTERM handled from its first line: while it
+  imports and parses too, a signal stops it with one line and exit 130 / 143 (a traceback
+  before, and a Ctrl-C that landed in JAX's gc callback during the imports was dropped: the run
+  went on and exited 0). The command's own handlers, inside, say more where they can. debug:
+  keep what the process still prints after the signal (default: --debug on the command line)."""
+  try:
+    with terminate_as_interrupt():
+      return body()
+  except KeyboardInterrupt as e:
+    if not (("--debug" in sys.argv) if debug is None else debug):
+      _silence_teardown()
+    print("interrupted", file=sys.stderr)
+    return 143 if isinstance(e, Terminated) else 130
+
+
 def main(argv: list[str] | None = None) -> int:
   argv = list(sys.argv[1:] if argv is None else argv)
+  return interruptible(lambda: _main(argv), "--debug" in argv)
+
+
+def _main(argv: list[str]) -> int:
   if "--debug" not in argv:
     _quiet_opencv()
   if argv[:1] == ["experiment"]:  # its own parsers (flags such as --help belong to the table)
     import experiments
-    with terminate_as_interrupt():
-      return experiments.main(argv[1:])
+    return experiments.main(argv[1:])
   args = build_parser().parse_args(argv)
   try:
-    with terminate_as_interrupt():
-      return args.func(args)
+    return args.func(args)
   except (DataError, FileNotFoundError, ValueError, TypeError) as e:
     if args.debug:
       raise

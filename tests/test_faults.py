@@ -553,6 +553,41 @@ def test_a_signal_dropped_as_the_command_ends_still_stops_it():
   time.sleep(0.05)                # nothing fires later
 
 
+def test_a_signal_while_a_command_starts_stops_it_with_one_line(monkeypatch, capsys):
+  """Ctrl-C or SIGTERM while a command still imports and parses: one line, exit 130 / 143 (a
+  traceback before), also when its exception lands in a gc callback during the imports (JAX
+  frees buffers from one: the signal was dropped and the whole run went on to exit 0)."""
+  from pitta_jax import cli
+
+  def interrupted_parser():
+    raise KeyboardInterrupt
+
+  monkeypatch.setattr(cli, "build_parser", interrupted_parser)
+  assert cli.main(["adapt"]) == 130
+  assert capsys.readouterr().err == "interrupted\n"
+
+  class Finaliser:
+    def __del__(self):
+      os.kill(os.getpid(), signal.SIGTERM)
+      for _ in range(10_000):   # the handler runs here, where Python swallows its exception
+        pass
+
+  def importing():              # a signal dropped in a finaliser, then the imports go on
+    Finaliser()
+    deadline = time.time() + 5
+    while time.time() < deadline:
+      pass
+    raise AssertionError("the command started after the signal")
+
+  monkeypatch.setattr(cli, "build_parser", importing)
+  hooks = (signal.getsignal(signal.SIGTERM), sys.unraisablehook)
+  assert cli.main(["adapt", "--debug"]) == 143
+  assert capsys.readouterr().err.endswith("interrupted\n")
+  assert (signal.getsignal(signal.SIGTERM), sys.unraisablehook) == hooks
+  # python -m weights_convert / experiments run their main the same way
+  assert cli.interruptible(interrupted_parser, debug=True) == 130
+
+
 def test_out_of_memory_is_one_line():
   """XLA's RESOURCE_EXHAUSTED (an input size within the flags' limits that the device cannot
   hold) is one line naming what to shrink; other runtime errors are not taken for it."""
