@@ -43,6 +43,7 @@ import io
 import json
 import math
 import os
+import sys
 import time
 from functools import partial
 from pathlib import Path
@@ -460,12 +461,15 @@ def load_or_train_source(cfg: SourceConfig = SourceConfig(), quiet: bool = False
   package has one (copied into the cache), else trained (and cached). retrain: train anyway."""
   directory = cached_dir(cfg)
   report_path = directory / "train_report.json"
+  shipped = shipped_path(cfg)
   if not retrain and report_path.is_file():
     try:
       return load_weights(directory), json.loads(report_path.read_text())
     except (OSError, ValueError) as e:  # a broken cache is rebuilt, not fatal
-      print(f"warning: cached source model at {directory} unreadable ({e}); retraining")
-  shipped = shipped_path(cfg)
+      # on stderr: train-source's stdout is its JSON report
+      print(f"warning: cached source model at {directory} unreadable ({e}); "
+            + ("copying the shipped model again" if shipped.is_file() else "retraining"),
+            file=sys.stderr)
   if not retrain and shipped.is_file():
     depth, pose, record = _read_shipped(shipped)
     return _save(directory, cfg, depth, pose, {**record["report"], "shipped": str(shipped)},

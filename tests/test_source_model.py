@@ -138,6 +138,23 @@ def shipped(tmp_path_factory):
   return path, json.loads(path.with_suffix(".json").read_text()), first, again, report
 
 
+def test_a_damaged_cache_entry_is_rebuilt_with_a_warning_on_stderr(tmp_path, monkeypatch,
+                                                                   capsys):
+  """A cache entry a killed --retrain left without its model.json: rebuilt from the shipped
+  model, said on stderr (train-source's stdout is its JSON report; the warning went there and
+  said 'retraining' where the shipped model is copied)."""
+  monkeypatch.setenv(source_model.CACHE_ENV, str(tmp_path))
+  cfg = SourceConfig()
+  first, _ = source_model.load_or_train_source(cfg, quiet=True)
+  (source_model.cached_dir(cfg) / "model.json").unlink()
+  again, report = source_model.load_or_train_source(cfg, quiet=True)
+  out, err = capsys.readouterr()
+  assert out == "" and err.startswith("warning: cached source model at ")
+  assert err.rstrip().endswith("copying the shipped model again")
+  assert report["shipped"] == str(source_model.shipped_path(cfg))
+  jax.tree_util.tree_map(np.testing.assert_array_equal, again.depth, first.depth)
+
+
 def test_shipped_model_loads_bitwise(shipped):
   """The default config finds the shipped file; its float16 parameters come back as exactly
   their float32 values (first from the package, then from the cache), BN statistics as stored,
