@@ -144,14 +144,16 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
                if "n_instances" in res.logs else {})}, status=res.status))
       per_frame[domain] = {r: [m["abs_rel"] for m in res.per_frame] for r, res in results.items()}
       _figures(out / "figures", domain, frames, results, h, w)
+    # every figure before the results: an interrupt removes this run's figures, and results
+    # written before them would have stayed, complete-looking, without their figures
+    for domain, series in per_frame.items():
+      figure = per_frame_figure(series, "abs_rel", f"Per-frame AbsRel, {domain}", demo.figures)
+      save_figure(figure, out / "figures" / f"{domain}_abs_rel_per_frame.png", demo.figures)
     seconds = time.perf_counter() - t_start
     meta = {"demo": dataclasses.asdict(demo), "adapt": dataclasses.asdict(adapt),
             "pitta": dataclasses.asdict(pitta),
             "source": train_report, "per_frame_abs_rel": per_frame, "seconds": round(seconds, 1)}
     table = write_results(out, rows, meta)
-    for domain, series in per_frame.items():
-      figure = per_frame_figure(series, "abs_rel", f"Per-frame AbsRel, {domain}", demo.figures)
-      save_figure(figure, out / "figures" / f"{domain}_abs_rel_per_frame.png", demo.figures)
     if not quiet:
       print(f"\nSource model: {train_report.get('weights_dir')} "
             f"(trained in {train_report.get('train_seconds', '?')} s)")

@@ -66,6 +66,22 @@ def test_an_interrupted_demo_leaves_no_figures_without_results(demo_out, tmp_pat
              AdaptConfig(), source=TINY, quiet=True)
   assert [p.name for p in wrote] == ["clear_frame002.png"] and not wrote[0].exists()
   assert sorted(p.name for p in out.rglob("*")) == ["figures", "mine.png"]
+  # interrupted while it draws the per-frame plots, after every row ran: no results either
+  # (they were written before the plots and stayed, complete-looking, without figures)
+  monkeypatch.setattr(demo_lib, "run_sequence", real)
+  plots, real_save = [], demo_lib.save_figure
+
+  def save_figure(figure, path, cfg):
+    plots.append(path)
+    if len(plots) == 2:
+      raise KeyboardInterrupt
+    return real_save(figure, path, cfg)
+  monkeypatch.setattr(demo_lib, "save_figure", save_figure)
+  with pytest.raises(KeyboardInterrupt):
+    run_demo(DemoConfig(shifts=("fog",), num_frames=3, methods=("none",), out=str(out)),
+             AdaptConfig(), source=TINY, quiet=True)
+  assert [p.name for p in plots] == ["clear_abs_rel_per_frame.png", "fog_abs_rel_per_frame.png"]
+  assert sorted(p.name for p in out.rglob("*")) == ["figures", "mine.png"]
 
 
 def test_demo_writes_results_table_and_figures(demo_out):
