@@ -61,19 +61,43 @@ def _checkpointer():
   return ocp.StandardCheckpointer()
 
 
+# orbax's threads of one save (orbax 0.11's names): its commit thread and the threads it starts
+ORBAX_SAVE_THREADS = ("async_save", "write_metadata_after_commits", "np_type_handler")
+
+
+def _wait_for_save_threads(before: set, timeout: float = 60.0) -> None:
+  """Waits until the orbax save threads started since `before` have ended. By their presence
+  in `threading.enumerate()`, not `join()`: on Python 3.11 a Ctrl-C that interrupts
+  `Thread.join` marks the thread stopped while it runs on, so orbax's own wait returned at once
+  and its commit thread re-created the temporary directory removed after it."""
+  import threading
+  import time
+  deadline = time.monotonic() + timeout
+  while time.monotonic() < deadline and any(
+      t.name in ORBAX_SAVE_THREADS for t in threading.enumerate() if t not in before):
+    time.sleep(0.02)
+
+
 def save_tree(path: str | os.PathLike, tree: Any) -> None:
   """Writes a pytree of arrays as an orbax checkpoint at `path` (overwrites)."""
+  import threading
   ckpt = _checkpointer()
+  before = set(threading.enumerate())
   try:
     ckpt.save(os.path.abspath(path), tree, force=True)
     ckpt.wait_until_finished()
   except BaseException as e:  # a full disk, Ctrl-C: no half-written temporary directory stays
     if isinstance(e, KeyboardInterrupt):
       # orbax writes from its own threads: let them end first (deleting their files under
-      # them printed hundreds of lines of their tracebacks); a second Ctrl-C stops the wait
+      # them printed hundreds of lines of their tracebacks, and the commit thread re-created
+      # the directory); a second Ctrl-C stops the wait
       try:
-        ckpt.wait_until_finished()
-      except BaseException:
+        try:
+          ckpt.wait_until_finished()
+        except Exception:  # the interrupted save's own error (e.g. arrays missing)
+          pass
+        _wait_for_save_threads(before)
+      except KeyboardInterrupt:
         pass
     import shutil
     for tmp in Path(path).parent.glob(f"{Path(path).name}.orbax-checkpoint-tmp*"):
