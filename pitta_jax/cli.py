@@ -662,12 +662,16 @@ def terminate_as_interrupt():
     raise late[0]()
 
 
-def _quiet_opencv() -> None:
-  """Silences OpenCV's own log lines (e.g. "[ WARN:0@...] PNG input buffer is incomplete"):
-  the readers raise a one-line error for the same file, which they would precede. The
-  command's choice, unless --debug; the library leaves OpenCV's settings alone."""
+def _quiet_libraries() -> None:
+  """Silences the libraries' own log lines: OpenCV's (e.g. "[ WARN:0@...] PNG input buffer is
+  incomplete": the readers raise a one-line error for the same file, which they would precede)
+  and orbax's through absl (a full disk during a checkpoint save printed hundreds of lines of
+  its threads' tracebacks before the error line; its failures reach the command as
+  exceptions). The command's choice, unless --debug; the library leaves both alone."""
+  import logging
   import cv2.utils.logging as cv_logging
   cv_logging.setLogLevel(cv_logging.LOG_LEVEL_SILENT)
+  logging.getLogger("absl").setLevel(logging.CRITICAL)
 
 
 def out_of_memory(error: BaseException) -> str | None:
@@ -686,13 +690,17 @@ def interruptible(body: Callable[[], int], debug: bool | None = None) -> int:
   """A console entry's `body` with Ctrl-C and SIGTERM handled from its first line: while it
   imports and parses too, a signal stops it with one line and exit 130 / 143 (a traceback
   before, and a Ctrl-C that landed in JAX's gc callback during the imports was dropped: the run
-  went on and exited 0). The command's own handlers, inside, say more where they can. debug:
-  keep what the process still prints after the signal (default: --debug on the command line)."""
+  went on and exited 0). The command's own handlers, inside, say more where they can. Unless
+  `debug` (default: --debug on the command line) the libraries' log lines are silenced
+  (`_quiet_libraries`), and what the process still prints after a signal."""
+  debug = ("--debug" in sys.argv) if debug is None else debug
   try:
     with terminate_as_interrupt():
+      if not debug:
+        _quiet_libraries()
       return body()
   except KeyboardInterrupt as e:
-    if not (("--debug" in sys.argv) if debug is None else debug):
+    if not debug:
       _silence_teardown()
     print("interrupted", file=sys.stderr)
     return 143 if isinstance(e, Terminated) else 130
@@ -704,8 +712,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str]) -> int:
-  if "--debug" not in argv:
-    _quiet_opencv()
   if argv[:1] == ["experiment"]:  # its own parsers (flags such as --help belong to the table)
     import experiments
     return experiments.main(argv[1:])
@@ -748,7 +754,7 @@ def _silence_teardown() -> None:
   'Exception ignored' tracebacks after the 'interrupted' line. The command owns its process,
   so it drops them (not with --debug)."""
   import logging
-  logging.getLogger("absl").setLevel(logging.ERROR)
+  logging.getLogger("absl").setLevel(logging.CRITICAL)
   sys.unraisablehook = lambda unraisable: None
 
 

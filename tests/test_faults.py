@@ -618,6 +618,34 @@ def test_a_signal_while_a_command_starts_stops_it_with_one_line(monkeypatch, cap
   assert cli.interruptible(interrupted_parser, debug=True) == 130
 
 
+def test_a_commands_stderr_holds_no_log_lines_of_orbax_threads(capsys, caplog):
+  """A full disk during a checkpoint save: orbax's threads log their tracebacks through absl
+  (an audit: 778 lines before the command's one-line error); a command silences them unless
+  --debug, and its own error line stays."""
+  import logging
+  from pitta_jax import cli
+  absl = logging.getLogger("absl")
+  level = absl.level
+
+  def failing_save():
+    try:
+      raise OSError(28, "No space left on device")
+    except OSError:
+      absl.error("Failed to run 2 Handler Commit operations", exc_info=True)  # a save thread
+    print("error: No space left on device", file=sys.stderr)
+    return 2
+
+  try:
+    assert cli.interruptible(failing_save, debug=False) == 2
+    assert capsys.readouterr().err == "error: No space left on device\n"
+    assert not [r for r in caplog.records if r.name == "absl"]
+    absl.setLevel(logging.NOTSET)
+    assert cli.interruptible(failing_save, debug=True) == 2
+    assert [r.levelname for r in caplog.records if r.name == "absl"] == ["ERROR"]  # --debug
+  finally:
+    absl.setLevel(level)
+
+
 def test_out_of_memory_is_one_line():
   """XLA's RESOURCE_EXHAUSTED (an input size within the flags' limits that the device cannot
   hold) is one line naming what to shrink; other runtime errors are not taken for it."""
