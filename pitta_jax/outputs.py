@@ -18,7 +18,7 @@ import fcntl
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -109,12 +109,15 @@ def _temp_path(directory: Path, name: str) -> Path:
   return directory / f".{name}.tmp-{os.getpid()}"
 
 
-def remove_stale_temps(directory: str | os.PathLike) -> list[Path]:
+def remove_stale_temps(directory: str | os.PathLike, names: Iterable[str] | None = None
+                       ) -> list[Path]:
   """Removes the temporary files `atomic_write_files` left in `directory` when a kill (SIGKILL)
   stopped its writer before the rename: `.<name>.tmp-<pid>` whose process is gone (a live
-  writer's are kept). Returns the removed paths."""
+  writer's are kept), of every name or of `names` only. Returns the removed paths."""
+  import glob
   removed = []
-  for path in Path(directory).glob(".*.tmp-*"):
+  patterns = [".*.tmp-*"] if names is None else [f".{glob.escape(n)}.tmp-*" for n in names]
+  for path in (p for pattern in patterns for p in Path(directory).glob(pattern)):
     pid = path.name.rsplit(".tmp-", 1)[1]
     if not (pid.isdigit() and path.is_file()) or _alive(int(pid)):
       continue
@@ -162,6 +165,9 @@ def atomic_write_files(directory: str | os.PathLike, contents: dict[str, str | b
     for tmp in temps.values():
       tmp.unlink(missing_ok=True)
     raise
+  # what a killed earlier writer of these files left (a cache entry, `source-stats --out FILE`:
+  # places no locked output directory cleans)
+  remove_stale_temps(directory, contents)
 
 
 def npy_bytes(array: np.ndarray) -> bytes:

@@ -147,6 +147,24 @@ def test_a_killed_writers_temporaries_go_when_the_directory_is_next_opened(tmp_p
   assert not stale.exists() and live.exists() and other.exists()
 
 
+def test_a_killed_writers_temporaries_go_when_the_file_is_next_written(tmp_path):
+  """Outside a locked output directory (a cache entry, `source-stats --out FILE`) nothing else
+  cleans a killed writer's `.<name>.tmp-<pid>`: the next atomic write of that file removes the
+  dead writers' (a 2.4 MB one stayed beside its statistics file); another file's and other
+  dot-files stay (a live writer's: the test above)."""
+  from pitta_jax.outputs import atomic_write_bytes
+  dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                        capture_output=True, text=True, check=True)
+  stale = tmp_path / f".stats[1].npz.tmp-{int(dead.stdout)}"
+  other_file = tmp_path / f".other.npz.tmp-{int(dead.stdout)}"
+  other = tmp_path / ".stats[1].npz.tmp-draft"
+  for path in (stale, other_file, other):
+    path.write_text("x")
+  atomic_write_bytes(tmp_path / "stats[1].npz", b"new")
+  assert (tmp_path / "stats[1].npz").read_bytes() == b"new"
+  assert not stale.exists() and other_file.exists() and other.exists()
+
+
 def test_non_utf8_file_names_are_read(tmp_path):
   from pitta_jax.data.image_io import read_image, write_image
   name = os.fsdecode(b"frame_\xff\xfe.png")  # surrogate-escaped: not valid UTF-8
