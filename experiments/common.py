@@ -119,6 +119,7 @@ class Context:
   runners: Any = None           # a `run.Runners` compile cache shared by the rows (None: fresh)
   rows: tuple[str, ...] = ()    # --rows: compute only rows whose labels contain one of these
   eval_cfg: Any = None          # --eval.* flags: the `run.EvalConfig` every row is scored with
+  name: str = ""                # the table's name (table1, ..., sensitivity): its files' stem
   # the weights of each model, read once per command (`weights_for`): reading and checking a
   # directory traces the network's init, ~3 s a row at 64x96 on 2 cores, for every row
   loaded: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -328,6 +329,18 @@ def check_rows(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSp
     if entry is not None and entry[1].needs:
       for what, reader in readers.get(case, ()):
         check_needs(entry[1], reader, what)
+  clear_earlier_table(ctx)
+
+
+def clear_earlier_table(ctx: Context) -> None:
+  """Once the table's checks passed, before its first row: the earlier NAME.md/.csv/.tex,
+  results.json and figures in --out go (with a warning), so that a rerun interrupted on the way
+  leaves no earlier table that could pass for its own; its cached rows (rows/) stay and are
+  reused."""
+  from pitta_jax.report import clear_earlier_results
+  clear_earlier_results(ctx.out, (f"figures/{ctx.name}_*.png",),
+                        files=tuple(f"{ctx.name}{s}" for s in (".md", ".csv", ".tex"))
+                        + ("results.json",))
 
 
 def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str]) -> None:
@@ -621,7 +634,7 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   vars(args).setdefault("open_outputs", []).append(open_output_dir(out, "--out"))
   return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
                  args.quick, frames, args.quiet, args.source_images, args.replay_root,
-                 runners, rows, eval_cfg=eval_cfg)
+                 runners, rows, eval_cfg=eval_cfg, name=name)
 
 
 def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,

@@ -66,6 +66,7 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   lengths = QUICK["lengths"] if ctx.quick else LENGTHS
   ctx.frames = max(ctx.frames, max(lengths)) if not args.frames else ctx.frames
+  common.clear_earlier_table(ctx)
   shared, resources, results = common.runners(ctx), {}, []
   for study, setting, row, part in tqdm(grid(ctx.quick), desc="runs", unit="run",
                                         disable=ctx.quiet):

@@ -126,6 +126,7 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   (case, parts), = ctx.cases(("Waymo",))
   weights = common.weights_for(ctx, "monodepth2")
+  common.clear_earlier_table(ctx)
   if weights is None:
     entries = [Entry(case, label(lam), {}, status="needs weights: --weights DIR",
                      extra={"lambda": lam}) for lam in LAMBDAS]

@@ -362,6 +362,29 @@ def test_rows_are_cached_and_a_rerun_computes_nothing(quick_out, monkeypatch):
   assert [r["metrics"] for r in after["rows"]] == [r["metrics"] for r in json.loads(before)["rows"]]
 
 
+def test_an_interrupted_rerun_leaves_no_earlier_table(quick_out, monkeypatch, capsys):
+  """table2 rerun on the same --out with another row selected, interrupted at its first new
+  row: the earlier table's files and figures are gone (they stayed, looking current), the
+  cached rows stay, and the earlier command run again reads them back."""
+  from pitta_jax import run as run_lib
+  out = quick_out[0] / "table2"
+  earlier = ["results.json", "table2.csv", "table2.md", "table2.tex"]
+  assert sorted(p.name for p in out.glob("*") if p.is_file()) == earlier
+  assert list(out.glob("figures/table2_*.png")) and list(out.glob("rows/*.json"))
+
+  def interrupted(*a, **k):
+    raise KeyboardInterrupt
+  monkeypatch.setattr(run_lib, "run_sequence", interrupted)
+  assert _quick("table2", quick_out, "--rows", "BN batch stats") == 130
+  assert "removed an earlier run's results" in capsys.readouterr().err
+  assert not [p for p in out.glob("*") if p.is_file()] and not list(out.glob("figures/*.png"))
+  monkeypatch.undo()
+  calls = []
+  monkeypatch.setattr(run_lib, "run_sequence", lambda *a, **k: calls.append(1))
+  assert _quick("table2", quick_out, "--rows", QUICK_ROWS["table2"]) == 0 and calls == []
+  assert sorted(p.name for p in out.glob("*") if p.is_file()) == earlier
+
+
 def test_eval_flags_score_every_row(quick_out, monkeypatch, capsys):
   """--eval.* flags reach every row's scoring, its cache key, results.json's eval and the caption; a bad
   value is one line before any work. Before, the tables always scored with the defaults."""
