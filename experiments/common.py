@@ -423,6 +423,7 @@ def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "me
 
 def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: dict) -> Entry:
   """One row on one test case (cached): the method adapting online over the case's frames."""
+  from pitta_jax.outputs import rounded_or_none
   from pitta_jax.run import RESUME_OWN, run_sequence
   from pitta_jax.sources import method_resources
   weights = weights_for(ctx, row.model)
@@ -441,13 +442,14 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
                                             ctx.replay_root, quiet=ctx.quiet)
     ckpt = checkpoints(ctx, key)
     res = run_sequence(weights, frames, cfg, method, ctx.evaluation(),
-                       name=f"{case}: {row.label}", quiet=ctx.quiet, runners=runners, resources=resources[res_key],
-                       checkpoint_dir=ckpt, checkpoint_every=CHECKPOINT_EVERY if ckpt else 0,
-                       resume=RESUME_OWN)
+                       name=f"{case}: {row.label}", quiet=ctx.quiet, runners=runners,
+                       resources=resources[res_key], checkpoint_dir=ckpt,
+                       checkpoint_every=CHECKPOINT_EVERY if ckpt else 0, resume=RESUME_OWN)
     return {"metrics": res.mean if res.status == "ok" else {}, "status": res.status,
             "metrics_before_divergence": res.mean if res.status != "ok" else None,
             "frames": len(frames), "seconds": round(res.total_seconds, 2),
-            "fps": round(res.total_fps, 3), "steady_fps": round(res.steady_fps, 3),
+            "fps": rounded_or_none(res.total_fps, 3),
+            "steady_fps": rounded_or_none(res.steady_fps, 3),
             "compile_seconds": round(res.compile_seconds, 2), "n_skipped": res.n_skipped,
             "abs_rel_per_frame": [m["abs_rel"] for m in res.per_frame],
             "adapt": dataclasses.asdict(cfg), "method_config": dataclasses.asdict(method.config)}

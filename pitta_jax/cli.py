@@ -382,7 +382,7 @@ def _run_adapt(args) -> int:
   from pitta_jax.adapt import AdaptConfig
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.methods import build
-  from pitta_jax.outputs import open_output_dir
+  from pitta_jax.outputs import open_output_dir, rounded_or_none
   from pitta_jax.report import Row, clear_earlier_results, write_results
   from pitta_jax.run import EvalConfig, checkpoint_chunk_size, metric_factor, run_sequence
   from pitta_jax.checkpoint import read_model_json
@@ -465,8 +465,9 @@ def _run_adapt(args) -> int:
                        resources=resources, on_start=lambda: clear_earlier_results(out))
     # fps over every frame: after --resume, the earlier call's time up to its checkpoint too;
     # steady_fps: this call's chunks after the step compiled; compile_seconds: those that did
-    row = Row(args.dataset, cfg.method, res.mean, {"fps": round(res.total_fps, 2),
-                                                     "steady_fps": round(res.steady_fps, 2),
+    row = Row(args.dataset, cfg.method, res.mean, {"fps": rounded_or_none(res.total_fps, 2),
+                                                     "steady_fps": rounded_or_none(res.steady_fps,
+                                                                                   2),
                                                      "compile_seconds": round(
                                                          res.compile_seconds, 1),
                                                      "frames": len(res.frame_names),

@@ -178,6 +178,12 @@ def npy_bytes(array: np.ndarray) -> bytes:
   return buffer.getvalue()
 
 
+def rounded_or_none(x: float, digits: int) -> float | None:
+  """`round(x, digits)`, or None where `x` is not finite: a rate over no frames (a --resume of a
+  finished run) is no value, and written as NaN it counted as a non-finite result."""
+  return round(x, digits) if math.isfinite(x) else None
+
+
 def json_safe(obj: Any) -> tuple[Any, int]:
   """(obj with every non-finite float replaced by None, how many were replaced)."""
   count = 0

@@ -38,6 +38,17 @@ def test_long_lists_are_named_in_part_and_counted():
   assert first_and_count((), 5) == ""
 
 
+def test_a_rate_over_no_frames_is_written_as_no_value(tmp_path):
+  """A --resume of a finished run runs no frame: its rate is None, not a NaN that results.json
+  counted among non_finite_values as if a metric had diverged."""
+  from pitta_jax.outputs import rounded_or_none
+  assert rounded_or_none(1.23456, 2) == 1.23 and rounded_or_none(float("nan"), 2) is None
+  row = Row("synthetic", "pitta", {"abs_rel": 0.1}, {"steady_fps": rounded_or_none(float("nan"),
+                                                                                  2)})
+  write_results(tmp_path, [row], {})
+  assert json.loads((tmp_path / "results.json").read_text())["non_finite_values"] == 0
+
+
 def test_write_results_files(tmp_path):
   rows = [Row("fog", "PITTA", M2, {"fps": 3.5})]
   write_results(tmp_path, rows, {"adapt": AdaptConfig(), "pitta": PittaConfig()})
