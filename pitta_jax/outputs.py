@@ -70,15 +70,34 @@ def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
     _write_probe(p)
   except OSError as e:
     raise OutputError(f"{what} {p}: cannot write there ({e.strerror or e})") from None
-  fd = os.open(p / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
-  try:
-    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-  except BlockingIOError:
-    os.close(fd)
+  fd = _lock(p / LOCK_NAME)
+  if fd < 0:
     raise OutputError(f"{what} {p}: another pitta-jax run is writing there; wait for it or "
-                      f"choose another directory") from None
+                      f"choose another directory")
   remove_stale_temps(p)  # a killed run's half-written files (its results' temporaries)
   return OutputDir(p, fd, created)
+
+
+def _lock(path: Path) -> int:
+  """An open descriptor of `path` holding its exclusive flock, or -1 when another process holds
+  it. The lock counts only while `path` is still the locked file: a run that ends unlinks the
+  file and then unlocks it, so a run that opened the old file in between would lock a file
+  that is gone while a third locks the new one; such a lock is dropped and taken again."""
+  while True:
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+      fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+      os.close(fd)
+      return -1
+    held = os.fstat(fd)
+    try:
+      now = os.stat(path)
+    except FileNotFoundError:
+      now = None
+    if now is not None and (now.st_ino, now.st_dev) == (held.st_ino, held.st_dev):
+      return fd
+    os.close(fd)  # the file was replaced or removed since it was opened: try again
 
 
 def _write_probe(folder: Path) -> None:

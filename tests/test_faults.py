@@ -24,6 +24,29 @@ from pitta_jax.outputs import (OutputError, atomic_write_files, atomic_write_tex
 from pitta_jax.report import Row, write_results
 
 
+def test_a_lock_taken_as_its_holder_ends_counts_only_on_the_current_file(tmp_path,
+                                                                         monkeypatch):
+  """Run A ends (unlinks its lock file, then unlocks) between run B's open of that file and B's
+  lock, and run C starts on a new lock file: B locked the unlinked file and wrote alongside C.
+  B now finds its file gone, takes the current one, and is refused while C holds it."""
+  import fcntl
+  out = tmp_path / "out"
+  a, real, later = open_output_dir(out), fcntl.flock, {}
+
+  def flock(fd, op):
+    if not later:
+      later["c"] = None
+      a.close()                          # A ends: unlink, unlock
+      later["c"] = open_output_dir(out)  # C starts on a new lock file
+    return real(fd, op)
+
+  monkeypatch.setattr(fcntl, "flock", flock)
+  with pytest.raises(OutputError, match="another pitta-jax run is writing there"):
+    open_output_dir(out)                 # B
+  later["c"].close()
+  open_output_dir(out).close()
+
+
 def test_output_dir_checked_and_locked(tmp_path):
   blocker = tmp_path / "file"
   blocker.write_text("x")
