@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import signal
 import sys
 from typing import Callable, NoReturn
 
@@ -608,31 +609,44 @@ def build_parser() -> argparse.ArgumentParser:
 class Terminated(KeyboardInterrupt):
   """SIGTERM (a job scheduler's stop, `kill`), raised where the command runs so that it stops
   as on Ctrl-C: the last completed chunk checkpointed, the output directory unlocked."""
+  signum = int(signal.SIGTERM)
+
+
+class HungUp(Terminated):
+  """SIGHUP (the terminal or ssh session closed), stopping the command as SIGTERM does (it
+  ended at once, without the last chunk's checkpoint)."""
+  signum = int(signal.SIGHUP)
+
+
+def exit_status(e: KeyboardInterrupt) -> int:
+  """A stopped command's exit status, as a shell reports a process the signal ended: 128 + the
+  signal's number (130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP)."""
+  return 128 + (e.signum if isinstance(e, Terminated) else 2)
 
 
 @contextlib.contextmanager
 def terminate_as_interrupt():
-  """While the command runs, SIGTERM raises `Terminated` (the previous handler is restored
-  after; only the CLI's own process does this, never library code).
+  """While the command runs, SIGTERM raises `Terminated` and SIGHUP `HungUp` (the previous
+  handlers are restored after; only the CLI's own process does this, never library code).
 
   A signal's exception raised while Python runs a finaliser or a gc callback (JAX frees device
   buffers from one) is printed and dropped by Python, and the command would run on: while the
   command runs, `sys.unraisablehook` sends such a Ctrl-C or SIGTERM again, so that it lands
   where the command can stop."""
-  import signal
   import threading
   if threading.current_thread() is not threading.main_thread():
     yield
     return
 
   def stop(signum, frame):
-    raise Terminated()
+    raise HungUp() if signum == signal.SIGHUP else Terminated()
 
   resent: list[tuple[threading.Timer, type[KeyboardInterrupt], list]] = []
 
   def resend(unraisable):
     if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
-      signum = signal.SIGTERM if issubclass(unraisable.exc_type, Terminated) else signal.SIGINT
+      signum = (unraisable.exc_type.signum if issubclass(unraisable.exc_type, Terminated)
+                else signal.SIGINT)
       fired: list = []
 
       def fire():
@@ -648,6 +662,7 @@ def terminate_as_interrupt():
       previous_hook(unraisable)
 
   previous, previous_hook = signal.signal(signal.SIGTERM, stop), sys.unraisablehook
+  previous_hup = signal.signal(signal.SIGHUP, stop)
   sys.unraisablehook = resend
   try:
     yield
@@ -656,6 +671,7 @@ def terminate_as_interrupt():
       timer.cancel()
       timer.join()
     signal.signal(signal.SIGTERM, previous)
+    signal.signal(signal.SIGHUP, previous_hup)
     sys.unraisablehook = previous_hook
   # the command ended before a signal sent again arrived: it stops here, not after main returns
   late = [kind for _, kind, fired in resent if not fired]
@@ -704,7 +720,7 @@ def interruptible(body: Callable[[], int], debug: bool | None = None) -> int:
     if not debug:
       _silence_teardown()
     print("interrupted", file=sys.stderr)
-    return 143 if isinstance(e, Terminated) else 130
+    return exit_status(e)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -746,7 +762,7 @@ def _main(argv: list[str]) -> int:
                            "with --resume to continue" if saved else
                            "; no checkpoint was saved yet" if checkpointing else ""),
           file=sys.stderr)
-    return 143 if isinstance(e, Terminated) else 130
+    return exit_status(e)
 
 
 def _silence_teardown() -> None:

@@ -687,6 +687,31 @@ def test_a_commands_stderr_holds_no_log_lines_of_orbax_threads(capsys, caplog):
     absl.setLevel(level)
 
 
+def test_a_closed_terminal_stops_a_command_as_sigterm_does(capsys):
+  """SIGHUP (the ssh session or terminal closed) ended a run at once, without the last chunk's
+  checkpoint; it now stops the command where it runs, as SIGTERM, with the shell's status
+  128 + 1 (and 143 / 130 for SIGTERM / Ctrl-C)."""
+  from pitta_jax import cli
+
+  def signalled(signum):
+    def body():
+      os.kill(os.getpid(), signum)
+      time.sleep(5)  # the command's work: the signal stops it here
+      raise AssertionError("the command ran on")
+    return body
+
+  hooks = (signal.getsignal(signal.SIGHUP), signal.getsignal(signal.SIGTERM))
+  # a background job (nohup, CI) may start with SIGINT ignored: Python's own handler here
+  previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
+  try:
+    for signum, status in ((signal.SIGHUP, 129), (signal.SIGTERM, 143), (signal.SIGINT, 130)):
+      assert cli.interruptible(signalled(signum), debug=True) == status
+      assert capsys.readouterr().err == "interrupted\n"
+  finally:
+    signal.signal(signal.SIGINT, previous_int)
+  assert (signal.getsignal(signal.SIGHUP), signal.getsignal(signal.SIGTERM)) == hooks
+
+
 def test_out_of_memory_is_one_line():
   """XLA's RESOURCE_EXHAUSTED (an input size within the flags' limits that the device cannot
   hold) is one line naming what to shrink; other runtime errors are not taken for it."""
