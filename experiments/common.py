@@ -645,7 +645,7 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
   --debug). Compiled steps persist under the cache root (`$PITTA_JAX_CACHE`, as `pitta-jax
   demo`), so another table or row at the same shapes loads them instead of compiling again.
   runners: an in-process compile cache shared with other tables of the same process."""
-  from pitta_jax.cli import exit_status, terminate_as_interrupt
+  from pitta_jax.cli import exit_status, say_stopped, terminate_as_interrupt
   from pitta_jax.data.errors import DataError
   from pitta_jax.outputs import OutputError
   from pitta_jax.source_model import enable_compilation_cache
@@ -663,8 +663,7 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
     print(f"error: {e}", file=sys.stderr)
     return 2
   except KeyboardInterrupt as e:
-    print("interrupted: finished rows are cached; run the same command again to resume",
-          file=sys.stderr)
+    say_stopped("interrupted: finished rows are cached; run the same command again to resume")
     return exit_status(e)  # as the pitta-jax commands
   finally:  # the --out lock (`context`); a failed command leaves no directory it created
     for output in vars(args).pop("open_outputs", []):

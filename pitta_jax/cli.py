@@ -618,6 +618,16 @@ class HungUp(Terminated):
   signum = int(signal.SIGHUP)
 
 
+def say_stopped(message: str) -> None:
+  """A stopped command's line on stderr; a terminal that closed (SIGHUP) cannot show it, and
+  the command still ends with its status."""
+  try:
+    print(message, file=sys.stderr)
+    sys.stderr.flush()
+  except OSError:
+    pass
+
+
 def exit_status(e: KeyboardInterrupt) -> int:
   """A stopped command's exit status, as a shell reports a process the signal ended: 128 + the
   signal's number (130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP)."""
@@ -719,7 +729,7 @@ def interruptible(body: Callable[[], int], debug: bool | None = None) -> int:
   except KeyboardInterrupt as e:
     if not debug:
       _silence_teardown()
-    print("interrupted", file=sys.stderr)
+    say_stopped("interrupted")
     return exit_status(e)
 
 
@@ -758,10 +768,9 @@ def _main(argv: list[str]) -> int:
     from pitta_jax.run import complete_checkpoints
     checkpointing = getattr(args, "checkpoint_every", 0) and getattr(args, "adapting", False)
     saved = checkpointing and bool(complete_checkpoints(os.path.join(args.out, "checkpoints")))
-    print("interrupted" + ("; the last completed chunk is checkpointed: run the same command "
-                           "with --resume to continue" if saved else
-                           "; no checkpoint was saved yet" if checkpointing else ""),
-          file=sys.stderr)
+    say_stopped("interrupted" + ("; the last completed chunk is checkpointed: run the same "
+                                 "command with --resume to continue" if saved else
+                                 "; no checkpoint was saved yet" if checkpointing else ""))
     return exit_status(e)
 
 
