@@ -155,13 +155,17 @@ def test_files_of_one_result_are_replaced_together_or_not_at_all(tmp_path):
   assert [(tmp_path / n).read_text() for n in names] == ["new", "new", "old"]
 
 
+def _dead_pid() -> int:
+  """The pid of a process that has ended (a killed writer's)."""
+  return int(subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                            capture_output=True, text=True, check=True).stdout)
+
+
 def test_a_killed_writers_temporaries_go_when_the_directory_is_next_opened(tmp_path):
   """SIGKILL between an atomic write's temporary file and its rename leaves
   `.<name>.tmp-<pid>`: the next command that opens the directory removes it, once its writer is
   gone (a live writer's stays; other dot-files are not touched)."""
-  dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                        capture_output=True, text=True, check=True)
-  stale = tmp_path / f".results.json.tmp-{int(dead.stdout)}"
+  stale = tmp_path / f".results.json.tmp-{_dead_pid()}"
   live = tmp_path / f".results.csv.tmp-{os.getpid()}"
   other = tmp_path / ".notes.tmp-draft"
   for path in (stale, live, other):
@@ -176,10 +180,8 @@ def test_a_killed_writers_temporaries_go_when_the_file_is_next_written(tmp_path)
   dead writers' (a 2.4 MB one stayed beside its statistics file); another file's and other
   dot-files stay (a live writer's: the test above)."""
   from pitta_jax.outputs import atomic_write_bytes
-  dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                        capture_output=True, text=True, check=True)
-  stale = tmp_path / f".stats[1].npz.tmp-{int(dead.stdout)}"
-  other_file = tmp_path / f".other.npz.tmp-{int(dead.stdout)}"
+  dead = _dead_pid()
+  stale, other_file = tmp_path / f".stats[1].npz.tmp-{dead}", tmp_path / f".other.npz.tmp-{dead}"
   other = tmp_path / ".stats[1].npz.tmp-draft"
   for path in (stale, other_file, other):
     path.write_text("x")
