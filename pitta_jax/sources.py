@@ -315,9 +315,9 @@ def open_frames(dataset: str, root: str | None, option_items: Sequence[str], seg
   """
   options = check_dataset_args(dataset, root, option_items, segmentation)
   kind, arg = parse_segmentation(segmentation)
-  if dataset == "synthetic":
-    from pitta_jax.data.synthetic import generate_sequence
-    return generate_sequence(synthetic_config(options, height, width))
+  if dataset == "synthetic":  # rendered as the run reads it, as a dataset's files are
+    from pitta_jax.data.synthetic import SyntheticSequence
+    return SyntheticSequence(synthetic_config(options, height, width))
   frames = reader if reader is not None else open_reader(dataset, root, option_items, segmentation)
   if kind == "mask2former":
     from pitta_jax.segment import segmented_frames

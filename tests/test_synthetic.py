@@ -20,8 +20,8 @@ import pytest
 from pitta_jax.data.frame import Frame
 from pitta_jax.data.synthetic import (COCO_BICYCLE, COCO_CAR, COCO_PERSON, COCO_TRUCK, DOMAINS,
                                       FOG_AIRLIGHT, FOG_BETA_MAX, STUFF_CATEGORY, THING_ID_BASE,
-                                      SyntheticConfig, export_drivingstereo, generate_sequence,
-                                      iter_domains, render_frame)
+                                      SyntheticConfig, SyntheticSequence, export_drivingstereo,
+                                      generate_sequence, iter_domains, render_frame)
 from pitta_jax.data.synthetic import config as C
 from pitta_jax.data.synthetic import scene
 
@@ -72,6 +72,30 @@ def test_random_access_equals_sequential_generation():
   np.testing.assert_array_equal(seq[2].image, single.image)
   np.testing.assert_array_equal(seq[2].depth, single.depth)
   np.testing.assert_array_equal(seq[2].panoptic, single.panoptic)
+
+
+def test_a_long_sequence_is_rendered_as_it_is_read():
+  """SyntheticSequence (what `adapt` runs on) holds the frames of generate_sequence, rendered
+  on access: a sequence of 10^7 frames opens at once (every frame used to be rendered first),
+  its slices (a resumed run) are the same frames, and its names need no render. Beyond what
+  the renderer draws exactly (frame 5e7 had non-finite pixels) the config is refused."""
+  cfg = dataclasses.replace(CFG, domain="rain", num_frames=4, start=3)
+  listed, lazy = generate_sequence(cfg), SyntheticSequence(cfg)
+  assert len(lazy) == 4 and lazy.names == tuple(f.name for f in listed)
+  for want, got in zip(listed[1:], lazy[1:]):
+    assert got.name == want.name
+    for field in ("image", "depth", "panoptic", "intrinsics"):
+      np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+  np.testing.assert_array_equal(lazy[-1].image, listed[-1].image)
+  assert [f.name for f in lazy[::2]] == [listed[0].name, listed[2].name]
+  with pytest.raises(IndexError):
+    lazy[4]
+  huge = SyntheticSequence(dataclasses.replace(cfg, num_frames=10**7 - 3))
+  last = huge[-1]
+  assert len(huge) == 10**7 - 3 and last.name == f"rain/{cfg.seed}/{10**7 - 1:06d}"
+  assert np.isfinite(last.image).all() and np.isfinite(last.depth).all()
+  with pytest.raises(ValueError, match="num_frames: frames up to 1000000000 drive"):
+    dataclasses.replace(cfg, num_frames=10**9 - 3)
 
 
 def test_road_depth_is_the_pinhole_closed_form(domains):

@@ -36,15 +36,15 @@ from pitta_jax.data.synthetic.config import (COCO_BICYCLE, COCO_BUILDING, COCO_C
                                              COCO_TRUCK, DOMAINS, STUFF_CATEGORY, THING_ID_BASE,
                                              SyntheticConfig, intrinsics)
 from pitta_jax.data.synthetic.export import encode_panoptic, export_drivingstereo
-from pitta_jax.data.synthetic.generate import (generate_sequence, ground_truth_depth,
-                                               iter_domains, iter_frames, render_clear,
-                                               render_frame)
+from pitta_jax.data.synthetic.generate import (SyntheticSequence, generate_sequence,
+                                               ground_truth_depth, iter_domains, iter_frames,
+                                               render_clear, render_frame)
 from pitta_jax.data.synthetic.weather import FOG_AIRLIGHT, FOG_BETA_MAX, apply_weather
 
 __all__ = [
     "COCO_BICYCLE", "COCO_BUILDING", "COCO_CAR", "COCO_FENCE", "COCO_PAVEMENT", "COCO_PERSON",
     "COCO_ROAD", "COCO_SKY", "COCO_TRUCK", "DOMAINS", "FOG_AIRLIGHT", "FOG_BETA_MAX",
-    "STUFF_CATEGORY", "THING_ID_BASE", "SyntheticConfig", "apply_weather", "encode_panoptic",
-    "export_drivingstereo", "generate_sequence", "ground_truth_depth", "intrinsics",
-    "iter_domains", "iter_frames", "render_clear", "render_frame",
+    "STUFF_CATEGORY", "THING_ID_BASE", "SyntheticConfig", "SyntheticSequence", "apply_weather",
+    "encode_panoptic", "export_drivingstereo", "generate_sequence", "ground_truth_depth",
+    "intrinsics", "iter_domains", "iter_frames", "render_clear", "render_frame",
 ]

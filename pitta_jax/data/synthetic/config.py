@@ -28,6 +28,13 @@ THING_ID_BASE = 16
 ID_STRIDE = 4096
 
 
+# The longest drive a sequence may cover: the renderer's float arithmetic holds to about 4e7 m
+# and 3e6 s at the default speed (frame 5e7 had non-finite pixels); at the defaults (10 fps,
+# 8 m/s) these allow 1e7 frames, 11.6 days of driving
+MAX_SECONDS = 1e6
+MAX_METRES = 1e7
+
+
 @dataclasses.dataclass(frozen=True)
 class SyntheticConfig:
   """One synthetic sequence.
@@ -73,6 +80,13 @@ class SyntheticConfig:
       if not (math.isfinite(value) and (value > low if strict else value >= low)):
         raise ValueError(f"{name} must be finite and {'>' if strict else '>='} {low:g}, got "
                          f"{value}")
+    end = (self.start + self.num_frames) / self.fps  # seconds of driving to the last frame
+    if end > MAX_SECONDS or end * self.speed > MAX_METRES:
+      raise ValueError(f"num_frames: frames up to {self.start + self.num_frames} drive "
+                       f"{end:.3g} s and {end * self.speed:.3g} m, beyond the street the "
+                       f"renderer draws exactly ({MAX_SECONDS:.0e} s, {MAX_METRES:.0e} m: "
+                       f"{int(min(MAX_SECONDS, MAX_METRES / max(self.speed, 1e-9)) * self.fps)}"
+                       f" frames at fps {self.fps:g} and speed {self.speed:g})")
     if not 0.0 <= self.truck_fraction <= 1.0:
       raise ValueError(f"truck_fraction must be in [0, 1], got {self.truck_fraction}")
 

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Iterator, Sequence
+import dataclasses
+from typing import Iterator, Sequence, overload
 
 import numpy as np
 
@@ -56,6 +57,48 @@ def iter_frames(cfg: C.SyntheticConfig) -> Iterator[Frame]:
 def generate_sequence(cfg: C.SyntheticConfig) -> list[Frame]:
   """All frames of `cfg` (see `iter_frames` to stream long sequences)."""
   return list(iter_frames(cfg))
+
+
+class SyntheticSequence(Sequence[Frame]):
+  """The frames of `cfg`, each rendered when it is read (random access, equal to
+  `generate_sequence(cfg)`'s): a run over a long synthetic sequence streams it as it streams a
+  dataset's files, where rendering every frame first held them all in memory and sat silent
+  (3 million frames: ~2 TB) before the first step. One `Street` serves every read (its block
+  caches)."""
+
+  def __init__(self, cfg: C.SyntheticConfig, street: Street | None = None):
+    self.cfg = cfg
+    self._street = street
+
+  def __len__(self) -> int:
+    return self.cfg.num_frames
+
+  @overload
+  def __getitem__(self, index: int) -> Frame: ...
+
+  @overload
+  def __getitem__(self, index: slice) -> "SyntheticSequence": ...
+
+  def __getitem__(self, index):
+    if isinstance(index, slice):
+      start, stop, step = index.indices(len(self))
+      if step != 1:
+        return [self[i] for i in range(start, stop, step)]
+      return SyntheticSequence(dataclasses.replace(self.cfg, start=self.cfg.start + start,
+                                                   num_frames=max(stop - start, 0)),
+                               self._street)
+    i = index.__index__()
+    if not -len(self) <= i < len(self):
+      raise IndexError(f"frame {index} of a sequence of {len(self)}")
+    if self._street is None:
+      self._street = Street(self.cfg)
+    return render_frame(self.cfg, self.cfg.start + i % len(self), self._street)
+
+  @property
+  def names(self) -> tuple[str, ...]:
+    """The frames' names, without rendering them."""
+    return tuple(frame_name(self.cfg.domain, self.cfg.seed, self.cfg.start + i)
+                 for i in range(len(self)))
 
 
 def iter_domains(cfg: C.SyntheticConfig,
