@@ -526,3 +526,18 @@ def test_load_pickle_rejects_torch_checkpoints_and_garbage(tmp_path):
   truncated.write_bytes(pickle.dumps({"model": {"a": np.ones(100)}}, protocol=4)[:200])
   with pytest.raises(CheckpointError, match="truncated or corrupt"):
     load_pickle(truncated)
+
+
+def test_a_deeper_resnet_encoder_is_named_as_unsupported():
+  """A ResNet-101 / 152 encoder.pth (upstream's ResnetEncoder builds them) was taken for a
+  ResNet-50 and then refused by the key table; it is named by its block count."""
+  from weights_convert.monodepth2 import infer_num_layers
+  bottleneck = lambda n3: {**{"encoder.layer1.0.conv3.weight": 0},
+                           **{f"encoder.layer3.{i}.conv1.weight": 0 for i in range(n3)}}
+  assert infer_num_layers(bottleneck(6), "e.pth") == 50
+  for n3, name in ((23, "ResNet-101"), (36, "ResNet-152")):
+    with pytest.raises(CheckpointError, match=f"e.pth: a {name} encoder .encoder.layer3 has "
+                                              f"{n3} Bottleneck blocks.; ResNet-18, 34 and 50"):
+      infer_num_layers(bottleneck(n3), "e.pth")
+  basic = {f"encoder.layer3.{i}.conv1.weight": 0 for i in range(6)}
+  assert infer_num_layers(basic, "e.pth") == 34

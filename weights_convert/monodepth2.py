@@ -75,9 +75,16 @@ def _is_ignorable(key: str) -> bool:
 
 
 def infer_num_layers(state: dict, path: str) -> int:
-  """ResNet depth from the encoder's keys: Bottleneck blocks have conv3; 18 vs 34 by block count."""
+  """ResNet depth from the encoder's keys: Bottleneck blocks have conv3 (50 vs 101/152 by the
+  block count of layer3: 6, 23, 36); 18 vs 34 by the same count (2, 6)."""
+  n_layer3 = len({k.split(".")[2] for k in state
+                  if isinstance(k, str) and k.startswith("encoder.layer3.")})
   if "encoder.layer1.0.conv3.weight" in state:
-    return 50
+    if n_layer3 == 6:
+      return 50
+    deeper = {23: "ResNet-101", 36: "ResNet-152"}.get(n_layer3, "deeper ResNet")
+    raise CheckpointError(f"{path}: a {deeper} encoder (encoder.layer3 has {n_layer3} "
+                          f"Bottleneck blocks); ResNet-18, 34 and 50 are supported")
   if not any(isinstance(k, str) and k.startswith("encoder.") for k in state):
     found = next((k for k in state if k not in METADATA_KEYS), None)
     other = layout_of(k for k in state if isinstance(k, str))
@@ -86,14 +93,13 @@ def infer_num_layers(state: dict, path: str) -> int:
       guess += "; check that the encoder and decoder files are not swapped"
     raise CheckpointError(f"{path}: holds no ResNet encoder (no `encoder.*` key"
                           + (f"; found e.g. {found!r}" if found else "") + f"): {guess}")
-  n_layer3 = len({k.split(".")[2] for k in state if k.startswith("encoder.layer3.")})
   if n_layer3 == 2:
     return 18
   if n_layer3 == 6:
     return 34
   raise CheckpointError(f"{path}: cannot tell the ResNet depth from its keys "
-                        f"(encoder.layer3 has {n_layer3} blocks; expected 2 (ResNet-18) or 6 (ResNet-34))")
-
+                        f"(encoder.layer3 has {n_layer3} blocks; expected 2 (ResNet-18) or 6 "
+                        f"(ResNet-34))")
 
 
 
