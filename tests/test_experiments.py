@@ -511,12 +511,10 @@ def test_a_changed_library_default_changes_the_row_key(monkeypatch):
   """A cached row is keyed by the configurations it resolves to: a method setting (e.g. the
   selector Ada-Depth's setting gained) or a config default that changes is a new key, so the
   row is computed again instead of read back (the key hashed the row's own changes only)."""
-  import types
   from experiments import common
   from experiments.common import RowSpec
   from pitta_jax.methods.adadepth import AdadepthConfig
-  ctx = types.SimpleNamespace(quick=False, dataset="synthetic", root=None, options=(),
-                              segmentation="gt", frames=50, out=None, files_id=None)
+  ctx = common.Context("synthetic", None, [], "gt", {}, None, False, 50, True)
   row = RowSpec("Ada-Depth + L_d", "adadepth")
   key = common.row_key(ctx, row, "Foggy", ("fog",), {"w": 1})
   assert common.row_key(ctx, row, "Foggy", ("fog",), {"w": 1}) == key  # deterministic
