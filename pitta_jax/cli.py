@@ -775,12 +775,10 @@ def _main(argv: list[str]) -> int:
 
 
 def _silence_teardown() -> None:
-  """An interrupted command's process ends (`exit_with`); until then orbax's save threads,
-  stopped mid-write, may log a missing metadata file and their asyncio loops' finalisers
-  'Exception ignored' tracebacks after the 'interrupted' line. The command owns its process,
-  so it drops them (not with --debug)."""
-  import logging
-  logging.getLogger("absl").setLevel(logging.CRITICAL)
+  """An interrupted command's process ends (`exit_with`); until then the asyncio loops of
+  orbax's save threads, stopped mid-write, may print finalisers' 'Exception ignored' tracebacks
+  after the 'interrupted' line. The command owns its process, so it drops them (not with
+  --debug; their absl log lines are already silenced by `_quiet_libraries`)."""
   sys.unraisablehook = lambda unraisable: None
 
 

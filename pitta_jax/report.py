@@ -99,8 +99,8 @@ def clear_earlier_results(out_dir: str | Path, patterns: Sequence[str] = (),
     path.unlink(missing_ok=True)
   names = [str(p.relative_to(out)) for p in found]
   if names:
-    print(f"warning: {out}: removed an earlier run's results ({first_and_count(names, 6)}); this run writes its own "
-          f"when it ends", file=sys.stderr)
+    print(f"warning: {out}: removed an earlier run's results ({first_and_count(names, 6)}); "
+          f"this run writes its own when it ends", file=sys.stderr)
   return names
 
 

@@ -82,11 +82,12 @@ class SyntheticConfig:
                          f"{value}")
     end = (self.start + self.num_frames) / self.fps  # seconds of driving to the last frame
     if end > MAX_SECONDS or end * self.speed > MAX_METRES:
+      longest = min(MAX_SECONDS, MAX_METRES / self.speed if self.speed > 0 else math.inf)
       raise ValueError(f"num_frames: frames up to {self.start + self.num_frames} drive "
                        f"{end:.3g} s and {end * self.speed:.3g} m, beyond the street the "
                        f"renderer draws exactly ({MAX_SECONDS:.0e} s, {MAX_METRES:.0e} m: "
-                       f"{int(min(MAX_SECONDS, MAX_METRES / max(self.speed, 1e-9)) * self.fps)}"
-                       f" frames at fps {self.fps:g} and speed {self.speed:g})")
+                       f"{int(longest * self.fps)} frames at fps {self.fps:g} and speed "
+                       f"{self.speed:g})")
     if not 0.0 <= self.truck_fraction <= 1.0:
       raise ValueError(f"truck_fraction must be in [0, 1], got {self.truck_fraction}")
 
