@@ -431,10 +431,22 @@ def save_checkpoint(directory: Path, state, record: dict) -> None:
   atomically: a state without its sidecar is never used); the record's "names" are the frames
   done, which name the checkpoint (`state_NNNNNN`)."""
   from pitta_jax.outputs import atomic_write_text, json_safe
+  created = not directory.exists()
   directory.mkdir(parents=True, exist_ok=True)
   path = directory / f"state_{len(record['names']):06d}"
-  save_state(path, state)
-  atomic_write_text(directory / f"{path.name}.json", json.dumps(json_safe(record)[0]))
+  new = not path.exists()
+  try:
+    save_state(path, state)
+    atomic_write_text(directory / f"{path.name}.json", json.dumps(json_safe(record)[0]))
+  except BaseException:  # a full disk, Ctrl-C: the failed save leaves neither a new state
+    try:                 # without its sidecar nor, when it was the first, an empty directory
+      if new and path.exists():
+        _remove_checkpoint(path)
+      if created:
+        directory.rmdir()  # only when empty: whatever else is there stays
+    except OSError:
+      pass
+    raise
   # the newest KEEP_CHECKPOINTS stay (a full carry each: hundreds of MB for a whole network),
   # and saves a kill interrupted go
   for old in sorted(directory.glob(CHECKPOINT_PATTERN))[:-KEEP_CHECKPOINTS]:

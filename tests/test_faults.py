@@ -745,3 +745,27 @@ def test_compile_time_is_reported_apart_from_the_steady_rate(tiny_weights):
   again = run_sequence(load_weights(tiny_weights), frames, cfg, quiet=True, runners=runners)
   assert again.compiled_frames == 0 and again.compile_seconds == 0.0
   assert again.steady_fps == again.fps
+
+
+def test_a_failed_first_checkpoint_leaves_no_empty_directory(tmp_path, monkeypatch):
+  """The disk fills during a run's first checkpoint save: neither an empty OUT/checkpoints/ nor
+  the half-written state stays; a directory that held checkpoints before keeps them."""
+  from pitta_jax import run as run_lib
+
+  def full_disk(path, state):
+    path.mkdir()  # orbax had started the state's directory
+    (path / "part").write_bytes(b"x")
+    raise OSError(28, "No space left on device")
+
+  monkeypatch.setattr(run_lib, "save_state", full_disk)
+  directory = tmp_path / "checkpoints"
+  with pytest.raises(OSError, match="No space"):
+    run_lib.save_checkpoint(directory, None, {"names": ["f0", "f1"]})
+  assert not directory.exists()
+
+  earlier = directory / "state_000001"
+  earlier.mkdir(parents=True)
+  (directory / "state_000001.json").write_text("{}")
+  with pytest.raises(OSError, match="No space"):
+    run_lib.save_checkpoint(directory, None, {"names": ["f0", "f1"]})
+  assert sorted(p.name for p in directory.iterdir()) == ["state_000001", "state_000001.json"]
