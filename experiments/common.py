@@ -515,36 +515,50 @@ def paper_fields(e: Entry, with_case: bool = True) -> dict[str, Any] | None:
 
 def parser(name: str, description: str,
            datasets: Sequence[str] = ("synthetic", "drivingstereo"),
-           rows: bool = True) -> argparse.ArgumentParser:
-  """The table command's parser; `rows`: whether it takes --rows (a table of rows)."""
+           rows: bool = True, frames: int = FRAMES,
+           quick_frames: int = QUICK_FRAMES) -> argparse.ArgumentParser:
+  """The table command's parser; `rows`: whether it takes --rows (a table of rows); `frames`,
+  `quick_frames`: the frames per part it runs on synthetic without --frames (for its --help)."""
   from pitta_jax.config_cli import ArgumentParser
   p = ArgumentParser(prog=f"pitta-jax experiment {name}", description=description)
-  add_arguments(p, datasets, rows)
+  add_arguments(p, datasets, rows, frames, quick_frames)
   return p
 
 
 def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthetic",
                                                                          "drivingstereo"),
-                  rows: bool = True) -> None:
+                  rows: bool = True, frames: int = FRAMES,
+                  quick_frames: int = QUICK_FRAMES) -> None:
+  # a command on the synthetic benchmark alone still parses the real-data flags, to refuse them
+  # in one line (`context`), but does not offer them in its --help
+  real = any(d != "synthetic" for d in datasets)
+
+  def real_only(text: str) -> str:
+    return text if real else argparse.SUPPRESS
+
   p.add_argument("--dataset", default="synthetic", choices=list(datasets),
                  help="synthetic (default: the embedded benchmark, see the caption) or the real "
-                      "dataset at --root")
+                      "dataset at --root" if real else "synthetic: the embedded benchmark (the "
+                      "only dataset of this study)")
   p.set_defaults(dataset_choices=tuple(datasets))
-  p.add_argument("--root", help="dataset root (real datasets)")
+  p.add_argument("--root", help=real_only("dataset root (real datasets)"))
   p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
-                 help="reader option, passed to every part of every test case (repeatable)")
+                 help=real_only("reader option, passed to every part of every test case "
+                                "(repeatable)"))
   p.add_argument("--segmentation", default="gt",
-                 help="panoptic input: gt | png:DIR | mask2former:DIR (as `pitta-jax adapt`)")
+                 help=real_only("panoptic input: gt | png:DIR | mask2former:DIR (as `pitta-jax "
+                                "adapt`)"))
   p.add_argument("--weights", action="append", default=[], metavar="[MODEL=]DIR",
                  help="converted weights; a bare DIR is MonoDepth2's, MODEL=DIR another network's "
                       "(e.g. depth_anything_v2=DIR); repeatable")
-  p.add_argument("--source-images", help="source-domain images for ActMAD's statistics "
-                                         "(real data)")
-  p.add_argument("--replay-root", help="KITTI raw root for CoMoDa's replay (real data)")
+  p.add_argument("--source-images", help=real_only("source-domain images for ActMAD's "
+                                                    "statistics (real data)"))
+  p.add_argument("--replay-root", help=real_only("KITTI raw root for CoMoDa's replay (real data)"))
   p.add_argument("--frames", type=int, default=None,
-                 help=f"frames per part of a test case (synthetic default {FRAMES}; real: all)")
+                 help=f"frames per part of a test case (synthetic default {frames}"
+                      + ("; real: all)" if real else ")"))
   p.add_argument("--quick", action="store_true",
-                 help=f"a tiny run for trying and testing: {QUICK_FRAMES} frames per part, "
+                 help=f"a tiny run for trying and testing: {quick_frames} frames per part, "
                       f"random {QUICK_SIZE[1]}x{QUICK_SIZE[0]} networks on synthetic")
   if rows:
     p.add_argument("--rows", default="",

@@ -141,7 +141,7 @@ def verdict(entries: Sequence[Entry], noise: float = 0.002) -> str:
 
 def main(argv: Sequence[str] | None = None, runners=None) -> int:
   p = common.parser("sensitivity", __doc__.split("\n\n")[0], datasets=("synthetic",),
-                    rows=False)
+                    rows=False, frames=max(LENGTHS), quick_frames=max(QUICK["lengths"]))
   return common.main_wrapper(run, p, argv, runners)
 
 

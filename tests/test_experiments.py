@@ -134,6 +134,7 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
                                      "the synthetic benchmark only\n")
   assert table1.main(["--quick", "--root", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
   assert "add --dataset drivingstereo\n" in capsys.readouterr().err
+
   assert not (tmp_path / "o").exists()
   # flags the synthetic benchmark cannot use are refused, not ignored
   for flags, message in ((["--source-images", "x"], "--source-images: for real datasets only"),
@@ -592,3 +593,15 @@ def test_experiments_without_a_name_is_a_usage_error_on_stderr(capsys):
   assert experiments.main(["--help"]) == 0
   out, err = capsys.readouterr()
   assert "table1" in out and err == ""
+
+
+def test_sensitivity_help_gives_its_own_frames_and_no_real_data_flags(capsys):
+  """The sensitivity study runs 100 frames (its longest sequence-length setting; --quick: 4),
+  not the tables' 50 (2), and offers no flag it always refuses (it runs on synthetic only)."""
+  from experiments import sensitivity
+  with pytest.raises(SystemExit):
+    sensitivity.main(["--help"])
+  text = " ".join(capsys.readouterr().out.split())
+  assert "(synthetic default 100)" in text and "testing: 4 frames per part" in text
+  for flag in ("--root", "--option", "--segmentation", "--source-images", "--replay-root"):
+    assert flag not in text
