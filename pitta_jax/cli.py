@@ -127,16 +127,22 @@ def _method_config_classes() -> list[tuple[type, str]]:
 def _add_method_configs(p, every: bool = False) -> None:
   """`--adapt.*` and, for every registered method with knobs, `--<method>.*`; a name several of
   them share (`--lr`, `--window`, `--ld-weight`) is a shared alias (`_route_method_aliases`;
-  `every`: the demo's, which sets it in every method)."""
-  from pitta_jax.config_cli import add_config_arguments, add_shared_aliases, shared_names
+  `every`: the demo's, which sets it in every method, and whose rows, not --adapt.method, pick
+  the methods). What the demo always refuses (--adapt.method, a shared name that one method has
+  twice) is not shown in its --help."""
+  from pitta_jax.config_cli import (add_config_arguments, add_shared_aliases, ambiguous_names,
+                                    shared_names)
   configs = _method_config_classes()
   shared = shared_names(configs)
   for cls, name in configs:
-    title = ("adaptation (paper defaults)" if name == "adapt"
-             else f"method {name} (used with --method {name})")
-    add_config_arguments(p, cls, name, title, shared=shared)
+    title = ("adaptation (the paper's setting where it states one; docs/method.md)"
+             if name == "adapt" else f"method {name} (" + (
+                 "its rows of --demo.methods)" if every else f"used with --method {name})"))
+    add_config_arguments(p, cls, name, title, shared=shared,
+                         hidden=("method",) if every and name == "adapt" else ())
   add_shared_aliases(p, shared, "flags several methods have (" + (
-      "every method's" if every else "the selected method's") + ")", every, configs[0])
+      "every method's" if every else "the selected method's") + ")", every, configs[0],
+      hidden=ambiguous_names(configs) if every else ())
 
 
 def _route_method_aliases(args, method: str | None) -> None:

@@ -88,9 +88,11 @@ def _fields(cls: type) -> list[tuple[dataclasses.Field, Any]]:
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type, namespace: str,
-                         title: str, _group=None, shared: Collection[str] = ()) -> None:
+                         title: str, _group=None, shared: Collection[str] = (),
+                         hidden: Collection[str] = ()) -> None:
   """Adds `--{namespace}.{field}` (and a short alias, unless another flag has it or the name is
-  in `shared`) for every field of `cls`."""
+  in `shared`) for every field of `cls`; those of the (top-level) fields in `hidden` are parsed
+  but not shown in --help (a command that refuses them, with a one-line pointer)."""
   group = _group or parser.add_argument_group(title)
   for field, annotation in _fields(cls):
     if dataclasses.is_dataclass(annotation):
@@ -107,7 +109,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, namespace: 
       flags.append(alias)
     text = f"{help_of(field)} (default: {shown})".lstrip().replace("%", "%%")  # argparse formats
     group.add_argument(*flags, dest=flag_dest(namespace, field.name), type=kind, default=None,
-                       metavar=meta, help=text)
+                       metavar=meta, help=argparse.SUPPRESS if field.name in hidden else text)
 
 
 def flag_dest(namespace: str, name: str) -> str:
@@ -181,12 +183,25 @@ def shared_names(configs: Sequence[tuple[type, str]]) -> set[str]:
   return {name for name, spaces in owners.items() if len(spaces) > 1}
 
 
+def ambiguous_names(configs: Sequence[tuple[type, str]]) -> set[str]:
+  """Field names that one of `configs` ((class, namespace) pairs) has twice (Ada-Depth's
+  `max_depth` and `sfm.max_depth`): a shared alias that sets every config's (`route_aliases`
+  with `every`) is refused for them whatever is selected."""
+  out = set()
+  for cls, namespace in configs:
+    names = [name for name, _, _ in leaf_fields(cls, namespace)]
+    out |= {name for name in names if names.count(name) > 1}
+  return out
+
+
 def add_shared_aliases(parser: argparse.ArgumentParser, names: Collection[str], title: str,
-                       every: bool = False, fallback: tuple[type, str] | None = None) -> list[str]:
+                       every: bool = False, fallback: tuple[type, str] | None = None,
+                       hidden: Collection[str] = ()) -> list[str]:
   """`--name` for each of `names` no other flag has yet (dest `alias__name`), resolved later by
   `route_aliases`; its help says it sets the selected config's field, else `fallback`'s
-  ((class, namespace), named where it has the field), or with `every` every config's. Returns
-  the names added."""
+  ((class, namespace), named where it has the field), or with `every` every config's; those in
+  `hidden` are parsed (and refused in one line) but not shown in --help. Returns the names
+  added."""
   backup = {n for n, _, _ in leaf_fields(*fallback)} if fallback else set()
   group = parser.add_argument_group(title)
   added = []
@@ -201,7 +216,8 @@ def add_shared_aliases(parser: argparse.ArgumentParser, names: Collection[str], 
       text = f"the selected method's {dashed}, else --{fallback[1]}.{dashed}"
     else:
       text = f"the selected method's {dashed} (refused where it has none)"
-    group.add_argument(flag, dest=f"alias__{name}", default=None, metavar="VALUE", help=text)
+    group.add_argument(flag, dest=f"alias__{name}", default=None, metavar="VALUE",
+                       help=argparse.SUPPRESS if name in hidden else text)
     added.append(name)
   return added
 

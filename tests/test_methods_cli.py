@@ -97,3 +97,26 @@ def test_demo_rows_keep_the_flags_given_and_refuse_a_method(capsys):
   assert main(["demo", "--method", "cotta", "--out", "unused"]) == 2
   assert capsys.readouterr().err == ("error: --method: the demo runs the rows of --demo.methods "
                                      "(e.g. --demo.methods none,bn,pitta,cotta)\n")
+
+
+def test_help_offers_only_flags_the_command_takes(capsys):
+  """adapt's --method help names every registered method; the demo's --help shows neither
+  --method (its rows come from --demo.methods) nor --max-depth / --min-depth, which it would
+  always refuse (Ada-Depth has both its own and its photometric loss's: ambiguous), while both
+  still fail in one line naming what to use."""
+  with pytest.raises(SystemExit):
+    main(["adapt", "--help"])
+  text = " ".join(capsys.readouterr().out.split())
+  listed = text.split("the TTA method: ", 1)[1].split(" (registry", 1)[0].split(" | ")
+  assert sorted(listed) == sorted(METHODS)
+  with pytest.raises(SystemExit):
+    main(["demo", "--help"])
+  text = capsys.readouterr().out
+  import re
+  for flag in ("--method", "--adapt.method", "--max-depth", "--min-depth"):  # offered as options
+    assert not re.search(rf"(\[|^ +|, ){re.escape(flag)}[ ,\]]", text, re.M), flag
+  assert "used with --method" not in text  # the methods' groups say which rows use them
+  assert "--adadepth.max-depth" in text and "--adadepth.sfm.max-depth" in text
+  assert main(["demo", "--max-depth", "50", "--out", "unused"]) == 2
+  assert capsys.readouterr().err == ("error: --max-depth is ambiguous for adadepth: use "
+                                     "--adadepth.max-depth or --adadepth.sfm.max-depth\n")

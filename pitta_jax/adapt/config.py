@@ -17,7 +17,8 @@ from pitta_jax.trainable import parse_selector
 @dataclasses.dataclass(frozen=True)
 class AdaptConfig:
   """Configuration of one adaptation run (one method on one frame sequence)."""
-  method: str = option("pitta", "the TTA method (registry pitta_jax.methods.METHODS)")
+  method: str = option("pitta", "the TTA method: pitta | none | comoda | adadepth | actmad | "
+                                 "cotta (registry pitta_jax.methods.METHODS)")
   optimizer: str = option("adam", "adam | sgd (eq. 11 writes a plain gradient step; the paper "
                                   "does not name the optimiser)")
   lr: float = option(1e-4, "learning rate alpha of eq. 11 (not stated in the paper)")
