@@ -27,15 +27,17 @@ def _add_predict(sub) -> None:
                   "writes <stem>_disp.npy (the MonoDepth2 family: the scaled disparity in "
                   "[0.01, 10] that MonoDepth2's test_simple.py saves, as (H, W); Depth Anything "
                   "V2: its relative inverse depth; its metric models: metres), "
-                  "<stem>_depth.npy (network resolution; "
-                  "MonoDepth2 family: 1 / scaled disparity in [0.1, 100]; Depth Anything V2: "
-                  "1 / max(disparity, 1e-6), so up to 1e6 where it predicts 0, e.g. sky; its "
-                  "metric models: the depth itself) and <stem>_disp.png (near = bright).")
+                  "<stem>_depth.npy (MonoDepth2 family: at the network's resolution, 1 / "
+                  "scaled disparity in [0.1, 100]; Depth Anything V2: at the image's size, as "
+                  "infer_image, 1 / max(disparity, 1e-6), so up to 1e6 where it predicts 0, e.g. "
+                  "sky; its metric models: the depth itself) and <stem>_disp.png (near = "
+                  "bright).")
   p.add_argument("--weights", required=True, help="weights directory (holds model.json)")
   p.add_argument("--images", required=True, help="an image file, a directory, or a glob (quote it)")
   p.add_argument("--out", required=True, help="output directory")
   p.add_argument("--height", type=int, help="input height (default: the weights' training size; "
-                 "must follow the network's size rule, e.g. a multiple of 32 or 14)")
+                 "Depth Anything V2: from each image, its aspect ratio kept; must follow the "
+                 "network's size rule, e.g. a multiple of 32 or 14)")
   p.add_argument("--width", type=int, help="input width (with --height)")
   p.add_argument("--quiet", action="store_true", help="no progress bar")
   p.set_defaults(func=_run_predict)
@@ -243,13 +245,18 @@ def _run_demo(args) -> int:
 
 def _add_train_source(sub) -> None:
   from pitta_jax.config_cli import add_config_arguments
-  from pitta_jax.source_model import SourceConfig
+  from pitta_jax.models.registry import MODELS
+  from pitta_jax.source_model import CACHE_ROOT_TEXT, NETWORK_LR, SourceConfig
+  lrs = ", ".join(f"{name} {lr:g}" for name, lr in sorted(NETWORK_LR.items()))
+  trainable = [name for name, spec in MODELS.items() if spec.output == "sigmoid_disparity"]
   p = sub.add_parser(
-      "train-source", help="train the clear-domain source MonoDepth2 of the synthetic benchmark",
-      description="Train MonoDepth2 ResNet-18 from scratch on clear synthetic frames with a "
-                  "supervised depth loss; cached under $PITTA_JAX_CACHE or ~/.cache/pitta-jax "
-                  "by config hash. Prints a JSON report whose \"weights_dir\" is the weights "
-                  "directory (usable with --weights).")
+      "train-source", help="train a clear-domain source network of the synthetic benchmark",
+      description="Train a depth network from scratch on clear synthetic frames with a "
+                  "supervised depth loss (default MonoDepth2 ResNet-18, the shipped model; "
+                  f"--source.model: {' | '.join(trainable)}; "
+                  f"--source.lr defaults to {SourceConfig.lr:g} except for {lrs}). Cached "
+                  f"under {CACHE_ROOT_TEXT}, by config hash. Prints a JSON report whose "
+                  "\"weights_dir\" is the weights directory (usable with --weights).")
   add_config_arguments(p, SourceConfig, "source", "training")
   p.add_argument("--retrain", action="store_true", help="ignore a cached (or shipped) model")
   p.add_argument("--ship", action="store_true",
@@ -289,6 +296,7 @@ def _model_names() -> list[str]:
 def _add_adapt(sub, name: str) -> None:
   from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.run import EvalConfig
+  from pitta_jax.source_model import CACHE_ROOT_TEXT
   adapting = name == "adapt"
   p = sub.add_parser(
       name, help=("adapt a depth network online with PITTA (or another method) and evaluate"
@@ -296,8 +304,8 @@ def _add_adapt(sub, name: str) -> None:
       description=("Online test-time adaptation over a frame sequence (predict-then-adapt), "
                    "evaluated with the 7 Eigen metrics (MonoDepth2 protocol)." if adapting else
                    "Evaluate the network as it is (running BN statistics, no update).")
-                  + " Compiled steps are kept under $PITTA_JAX_CACHE/xla (default "
-                    "~/.cache/pitta-jax/xla), so a rerun or a --resume skips the compiles.")
+                  + f" Compiled steps are kept under xla/ in the cache root ({CACHE_ROOT_TEXT}),"
+                    " so a rerun or a --resume skips the compiles.")
   p.add_argument("--dataset", choices=DATASETS, required=True,
                  help="synthetic (the embedded benchmark, no --root) or a real dataset at "
                       "--root (layouts: docs/datasets.md)")
@@ -313,7 +321,8 @@ def _add_adapt(sub, name: str) -> None:
                       "Mask2Former weights)")
   p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                  help="reader option, repeatable (e.g. weather=foggy size=half for "
-                      "drivingstereo; domain=fog num_frames=100 seed=3 for synthetic)")
+                      "drivingstereo; domain=fog num_frames=100 seed=3 for synthetic, whose "
+                      "default domain is clear, the source domain: no shift; docs/datasets.md)")
   p.add_argument("--out", default="pitta_out/" + name,
                  help=f"output directory (default: pitta_out/{name}): results.json (every "
                       f"frame's metrics and logs, the configs), results.csv and table.md, and "

@@ -150,6 +150,10 @@ class SourceConfig:
     return config
 
 
+# where `cache_root` is, in the words of the commands' --help
+CACHE_ROOT_TEXT = "$PITTA_JAX_CACHE, else $XDG_CACHE_HOME/pitta-jax, else ~/.cache/pitta-jax"
+
+
 def cache_root() -> Path:
   """$PITTA_JAX_CACHE, else $XDG_CACHE_HOME/pitta-jax, else ~/.cache/pitta-jax."""
   if os.environ.get(CACHE_ENV):
