@@ -657,7 +657,8 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
                  argv: Sequence[str] | None, runners: Any = None) -> int:
   """Parses, runs, and turns an expected error into one line and exit 2 (tracebacks with
   --debug). Compiled steps persist under the cache root (`source_model.cache_root`, as
-  `pitta-jax demo`), so another table or row at the same shapes loads them instead of compiling again.
+  `pitta-jax demo`), so another table or row at the same shapes loads them instead of
+  compiling again.
   runners: an in-process compile cache shared with other tables of the same process."""
   from pitta_jax.cli import exit_status, say_stopped, terminate_as_interrupt
   from pitta_jax.data.errors import DataError
