@@ -709,11 +709,27 @@ def _quiet_libraries() -> None:
   incomplete": the readers raise a one-line error for the same file, which they would precede)
   and orbax's through absl (a full disk during a checkpoint save printed hundreds of lines of
   its threads' tracebacks before the error line; its failures reach the command as
-  exceptions). The command's choice, unless --debug; the library leaves both alone."""
+  exceptions), and tensorstore's "Event loop is closed" (`_quiet_unraisable`). The command's
+  choice, unless --debug; the library leaves them alone."""
   import logging
   import cv2.utils.logging as cv_logging
   cv_logging.setLogLevel(cv_logging.LOG_LEVEL_SILENT)
   logging.getLogger("absl").setLevel(logging.CRITICAL)
+  if not getattr(sys.unraisablehook, "quiets_closed_loops", False):
+    sys.unraisablehook = _quiet_unraisable(sys.unraisablehook)
+
+
+def _quiet_unraisable(hook: Callable) -> Callable:
+  """`hook` (a sys.unraisablehook) without the "RuntimeError: Event loop is closed" tracebacks
+  that tensorstore's write callbacks raise once orbax's save has failed and closed its event
+  loop: a full disk printed ~170 of them, 4 lines each, around the one error line (the
+  save's own error reaches the command). Any other unraisable exception goes to `hook`."""
+  def quiet(unraisable) -> None:
+    error = unraisable.exc_value
+    if not (isinstance(error, RuntimeError) and str(error) == "Event loop is closed"):
+      hook(unraisable)
+  quiet.quiets_closed_loops = True
+  return quiet
 
 
 def out_of_memory(error: BaseException) -> str | None:

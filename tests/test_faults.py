@@ -769,3 +769,69 @@ def test_a_failed_first_checkpoint_leaves_no_empty_directory(tmp_path, monkeypat
   with pytest.raises(OSError, match="No space"):
     run_lib.save_checkpoint(directory, None, {"names": ["f0", "f1"]})
   assert sorted(p.name for p in directory.iterdir()) == ["state_000001", "state_000001.json"]
+
+
+def test_a_commands_stderr_holds_no_closed_event_loop_tracebacks(capsys):
+  """A full disk during a checkpoint save: tensorstore's write callbacks then raise
+  "RuntimeError: Event loop is closed" as unraisable exceptions (an audit: ~170 tracebacks of 4
+  lines around the error line). A command drops those unless --debug; any other unraisable
+  exception is still printed."""
+  from pitta_jax import cli
+
+  class Raises:
+    def __init__(self, error):
+      self.error = error
+
+    def __del__(self):
+      raise self.error
+
+  def failing_save():
+    Raises(RuntimeError("Event loop is closed"))  # dropped at once: an unraisable exception
+    Raises(ValueError("something else"))
+    print("error: No space left on device", file=sys.stderr)
+    return 2
+
+  hook, seen = sys.unraisablehook, []
+  try:
+    sys.unraisablehook = lambda unraisable: seen.append(repr(unraisable.exc_value))
+    assert cli.interruptible(failing_save, debug=False) == 2
+    assert cli.interruptible(failing_save, debug=False) == 2  # a second command, same process
+    assert seen == ["ValueError('something else')"] * 2
+    assert capsys.readouterr().err == "error: No space left on device\n" * 2
+    seen.clear()
+    sys.unraisablehook = lambda unraisable: seen.append(repr(unraisable.exc_value))
+    assert cli.interruptible(failing_save, debug=True) == 2  # --debug: all of it
+    assert seen == ["RuntimeError('Event loop is closed')", "ValueError('something else')"]
+  finally:
+    sys.unraisablehook = hook
+
+
+def test_a_full_disk_during_a_save_is_one_os_error_naming_the_checkpoint(tmp_path, monkeypatch):
+  """tensorstore reports a full disk as a ValueError naming a temporary file the save has just
+  removed; save_tree raises it as OSError(28) naming the checkpoint, which the commands print
+  as one line. Other errors pass unchanged."""
+  from pitta_jax import checkpoint
+
+  class FullDisk:
+    def __init__(self, message):
+      self.message = message
+
+    def save(self, path, tree, force):
+      os.makedirs(f"{path}.orbax-checkpoint-tmp-1/d")
+      raise ValueError(self.message)
+
+    def wait_until_finished(self):
+      pass
+
+  message = ('RESOURCE_EXHAUSTED: Error writing "00054/0" in OCDBT database at local file '
+             '"x.orbax-checkpoint-tmp/ocdbt.process_0/": Failed to write 10326 bytes to file 6: '
+             "No space left on device [os_error_code='28']")
+  monkeypatch.setattr(checkpoint, "_checkpointer", lambda: FullDisk(message))
+  with pytest.raises(OSError) as caught:
+    checkpoint.save_tree(tmp_path / "state_000002", {"a": np.zeros(3)})
+  assert caught.value.errno == 28 and caught.value.filename == str(tmp_path / "state_000002")
+  assert caught.value.strerror == "checkpoint not saved: No space left on device"
+  assert os.listdir(tmp_path) == []  # the temporary directory went
+  monkeypatch.setattr(checkpoint, "_checkpointer", lambda: FullDisk("bad tree"))
+  with pytest.raises(ValueError, match="^bad tree$"):
+    checkpoint.save_tree(tmp_path / "state_000002", {"a": np.zeros(3)})
