@@ -145,6 +145,6 @@ def main(argv: Sequence[str] | None = None, runners=None) -> int:
   return common.main_wrapper(run, p, argv, runners)
 
 
-if __name__ == "__main__":
-  from pitta_jax.cli import exit_with
-  exit_with(main())
+if __name__ == "__main__":  # as python -m experiments: signals and library logs handled
+  from pitta_jax.cli import exit_with, interruptible
+  exit_with(interruptible(main))

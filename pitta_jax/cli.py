@@ -732,6 +732,14 @@ def _quiet_unraisable(hook: Callable) -> Callable:
   return quiet
 
 
+def error_line(error: BaseException) -> str:
+  """What a command prints after "error: " for an expected error: "FILE: reason" for an
+  OSError that names its file (a full disk, a read-only directory), else the error's text."""
+  if isinstance(error, OSError) and error.strerror:
+    return f"{error.filename}: {error.strerror}" if error.filename else error.strerror
+  return str(error)
+
+
 def out_of_memory(error: BaseException) -> str | None:
   """The one line for an XLA out-of-memory error (RESOURCE_EXHAUSTED: a 16384x16384 input
   ended in a traceback), None for any other error."""
@@ -776,16 +784,10 @@ def _main(argv: list[str]) -> int:
   args = build_parser().parse_args(argv)
   try:
     return args.func(args)
-  except (DataError, FileNotFoundError, ValueError, TypeError) as e:
+  except (DataError, ValueError, TypeError, OSError) as e:  # OSError: a full disk, ...
     if args.debug:
       raise
-    print(f"error: {e}", file=sys.stderr)
-    return 2
-  except OSError as e:  # a full disk, a read-only directory, ...
-    if args.debug:
-      raise
-    where = f"{e.filename}: " if getattr(e, "filename", None) else ""
-    print(f"error: {where}{e.strerror or e}", file=sys.stderr)
+    print(f"error: {error_line(e)}", file=sys.stderr)
     return 2
   except Exception as e:  # XLA out of memory (e.g. an input size the device cannot hold)
     message = out_of_memory(e)

@@ -172,6 +172,7 @@ def atomic_write_files(directory: str | os.PathLike, contents: dict[str, str | b
   while a later file is still being written. Text is written as UTF-8."""
   directory = Path(directory)
   temps = {name: _temp_path(directory, name) for name in contents}
+  name = ""
   try:
     for name, data in contents.items():
       with open(temps[name], "wb") as f:
@@ -180,9 +181,12 @@ def atomic_write_files(directory: str | os.PathLike, contents: dict[str, str | b
         os.fsync(f.fileno())
     for name, tmp in temps.items():
       os.replace(tmp, directory / name)
-  except BaseException:
+  except BaseException as e:
     for tmp in temps.values():
       tmp.unlink(missing_ok=True)
+    if isinstance(e, OSError) and e.filename is None and e.errno is not None:
+      # a full disk: name the file (the commands print "error: FILE: No space left on device")
+      raise OSError(e.errno, e.strerror, str(directory / name)) from e
     raise
   # what a killed earlier writer of these files left (a cache entry, `source-stats --out FILE`:
   # places no locked output directory cleans)

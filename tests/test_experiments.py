@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -605,3 +606,46 @@ def test_sensitivity_help_gives_its_own_frames_and_no_real_data_flags(capsys):
   assert "(synthetic default 100)" in text and "testing: 4 frames per part" in text
   for flag in ("--root", "--option", "--segmentation", "--source-images", "--replay-root"):
     assert flag not in text
+
+
+@pytest.mark.parametrize("name", ["table1", "table2", "table3", "table4", "table5",
+                                  "sensitivity"])
+# the package imports its tables, so runpy finds the module loaded: as under python -m
+@pytest.mark.filterwarnings("ignore:.*found in sys.modules after import:RuntimeWarning")
+def test_python_m_a_table_runs_as_the_commands_do(name, tmp_path, monkeypatch, capsys):
+  """`python -m experiments.NAME` goes through the commands' wrapper (signals from the first
+  line, the libraries' log lines and tensorstore's closed-loop tracebacks silenced), as
+  `python -m experiments` and `pitta-jax experiment` do; it called main() bare."""
+  import runpy
+  from pitta_jax import cli
+  wrapped = []
+
+  def interruptible(body, debug=None):
+    wrapped.append(body)
+    return body()
+
+  monkeypatch.setattr(cli, "interruptible", interruptible)
+  monkeypatch.setattr(sys, "argv", [name, "--quick", "--dataset", "nope", "--out",
+                                    str(tmp_path / "o")])
+  with pytest.raises(SystemExit) as e:
+    runpy.run_module(f"experiments.{name}", run_name="__main__")
+  assert e.value.code == 2 and len(wrapped) == 1
+  assert "invalid choice: 'nope'" in capsys.readouterr().err
+
+
+def test_an_os_error_is_one_line_naming_its_file(tmp_path, capsys):
+  """A full disk or a read-only directory under a table: "error: FILE: reason", as the
+  pitta-jax commands print it (the tables printed "[Errno 28] ...: 'FILE'")."""
+  from pitta_jax.cli import error_line
+  from pitta_jax.data.errors import DataError
+
+  def run(args, runners):
+    raise OSError(28, "No space left on device", str(tmp_path / "o" / "table1.md"))
+
+  p = common.parser("table1", "t")
+  assert common.main_wrapper(run, p, ["--quick", "--out", str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err
+  assert err == f"error: {tmp_path / 'o' / 'table1.md'}: No space left on device\n"
+  assert error_line(FileNotFoundError("no such split file: x.txt")) == "no such split file: x.txt"
+  assert error_line(PermissionError(13, "Permission denied")) == "Permission denied"
+  assert error_line(DataError(None, "bad")) == str(DataError(None, "bad"))

@@ -147,8 +147,10 @@ def test_files_of_one_result_are_replaced_together_or_not_at_all(tmp_path):
   class Boom(str):
     def encode(self, *a, **k):
       raise OSError(28, "No space left on device")
-  with pytest.raises(OSError):
+  with pytest.raises(OSError) as caught:
     atomic_write_files(tmp_path, {"t.md": "new", "t.csv": "new", "results.json": Boom("new")})
+  # the error names the file (a command prints "error: DIR/results.json: No space left ...")
+  assert (caught.value.errno, caught.value.filename) == (28, str(tmp_path / "results.json"))
   assert [(tmp_path / n).read_text() for n in names] == ["old"] * 3
   assert not list(tmp_path.glob(".*.tmp-*"))
   atomic_write_files(tmp_path, {"t.md": "new", "t.csv": b"new"})

@@ -10,6 +10,7 @@ import argparse
 import sys
 
 from pitta_jax.checkpoint import INCOMPLETE, MODEL_JSON
+from pitta_jax.cli import error_line
 from pitta_jax.models.mask2former.load import CONFIG_JSON, PARAMS_DIR
 from weights_convert import (depth_anything_v2, hrdepth, litemono, mask2former, monodepth2,
                              monovit, sgdepth)
@@ -114,16 +115,10 @@ def run(args: argparse.Namespace) -> int:
     check_output_replaceable(args.out, args.converter)
     with open_output_dir(args.out):  # checked and locked before reading any checkpoint
       args.convert_fn(args)
-  except (CheckpointError, FileNotFoundError, ValueError) as e:
+  except (CheckpointError, ValueError, OSError) as e:  # OSError: a full disk, ...
     if getattr(args, "debug", False):
       raise
-    print(f"error: {e}", file=sys.stderr)
-    return 2
-  except OSError as e:  # a full disk, a read-only directory, ...
-    if getattr(args, "debug", False):
-      raise
-    where = f"{e.filename}: " if getattr(e, "filename", None) else ""
-    print(f"error: {where}{e.strerror or e}", file=sys.stderr)
+    print(f"error: {error_line(e)}", file=sys.stderr)
     return 2
   return 0
 
