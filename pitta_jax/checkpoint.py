@@ -103,16 +103,19 @@ def save_tree(path: str | os.PathLike, tree: Any) -> None:
     for tmp in Path(path).parent.glob(f"{Path(path).name}.orbax-checkpoint-tmp*"):
       shutil.rmtree(tmp, ignore_errors=True)
     code = _os_error_code(e)
-    if code is not None:  # tensorstore's ValueError naming the temporary file just removed
+    if code is not None:  # named after the checkpoint, not a temporary file just removed
       raise OSError(code, f"checkpoint not saved: {os.strerror(code)}",
                     os.path.abspath(path)) from e
     raise
 
 
 def _os_error_code(error: BaseException) -> int | None:
-  """The errno of a file-system failure that tensorstore reports inside a ValueError
-  ("... No space left on device [os_error_code='28']"), None for any other error."""
+  """The errno of a file-system failure during a save: tensorstore reports it inside a
+  ValueError ("... No space left on device [os_error_code='28']"), orbax's own writes as an
+  OSError; None for any other error."""
   import re
+  if isinstance(error, OSError):
+    return error.errno
   found = re.search(r"\[os_error_code='(\d+)'\]", str(error)) if isinstance(error, ValueError) \
       else None
   return int(found.group(1)) if found else None

@@ -837,3 +837,12 @@ def test_a_full_disk_during_a_save_is_one_os_error_naming_the_checkpoint(tmp_pat
   monkeypatch.setattr(checkpoint, "_checkpointer", lambda: FullDisk("bad tree"))
   with pytest.raises(ValueError, match="^bad tree$"):
     checkpoint.save_tree(tmp_path / "state_000002", {"a": np.zeros(3)})
+
+  class PythonWrite(FullDisk):  # orbax's own file writes: an OSError without the file's name
+    def save(self, path, tree, force):
+      raise OSError(28, "No space left on device")
+
+  monkeypatch.setattr(checkpoint, "_checkpointer", lambda: PythonWrite(""))
+  with pytest.raises(OSError) as caught:
+    checkpoint.save_tree(tmp_path / "state_000004", {"a": np.zeros(3)})
+  assert caught.value.filename == str(tmp_path / "state_000004")
