@@ -97,3 +97,19 @@ def test_nonnegative_and_weight_linear(em, x, a):
   assert (d1 >= 0).all()
   np.testing.assert_allclose(np.asarray(em(x, np.float32(a))), np.float32(a) * d1, rtol=1e-6,
                              atol=float(np.finfo(np.float32).tiny))
+
+
+@settings(max_examples=25, deadline=None)
+@given(image=hnp.arrays(np.float32, (5, 7, 3), elements=st.floats(-50, 50, width=32).filter(
+    lambda v: v == 0 or abs(v) > 1e-30)))  # no subnormal mean (see below)
+def test_channel_mean_is_torchs_bit_for_bit_under_jit(image):
+  """I_bar (eq. 5) is torch.mean(image, -1) exactly, compiled: ties of eq. 9 (dI = dD) stay
+  ties, where PyTorch's |.| has gradient 0. jnp.mean under jit differs in the last bit at
+  about half the pixels (XLA's summation order and reciprocal product). Subnormal results
+  aside: XLA:CPU flushes them to 0, PyTorch does not."""
+  import torch
+  want = torch.from_numpy(image.copy()).mean(-1).numpy()
+  np.testing.assert_array_equal(np.asarray(_jit_channel_mean(jnp.asarray(image))), want)
+
+
+_jit_channel_mean = jax.jit(edges.channel_mean)

@@ -184,6 +184,32 @@ def test_edge_loss_gradient_matches_torch_at_zero_edges_and_equal_edges():
   np.testing.assert_allclose(np.asarray(grad), d.grad.numpy(), rtol=0, atol=1e-12)
 
 
+def test_edge_loss_gradient_matches_torch_jitted_float32():
+  """The same ties in float32 with the image an argument of the jitted gradient, as a step
+  compiles it: I_bar is torch's channel mean bit for bit, so dI = dD stays an exact tie (with
+  jnp.mean, XLA's reciprocal product left residuals of 1e-7 there and gradients of +-1 to +-4
+  per pixel against PyTorch's 0)."""
+  rng = np.random.default_rng(5)
+  h, w = 12, 16
+  depth = (rng.integers(4, 400, (h, w)) * 0.25).astype(np.float32)  # exact in float32
+  image = (rng.integers(0, 256, (h, w, 3)) / 255.0).astype(np.float32)
+  image[:5] = depth[:5, :, None]                                   # rows 0-4: dI = dD exactly
+  image[8:, 6:] = depth[8:, 6:, None] * np.float32(0.5)
+  image[8:, 6:, 0] += np.float32(0.25)
+  image[8:, 6:, 2] -= np.float32(0.25)                             # I_bar = D / 2 there
+  d = torch.from_numpy(depth.copy()).requires_grad_(True)
+  i_bar = torch.from_numpy(image.copy()).mean(-1)
+  l_e = (t_laplacian_edges(i_bar) - t_laplacian_edges(d)).abs().sum()
+  l_e.backward()
+  with torch.no_grad():
+    ties = float((t_laplacian_edges(d) == t_laplacian_edges(i_bar)).double().mean())
+  assert ties > 0.25, ties
+  value, grad = jax.jit(jax.value_and_grad(losses.edge_guided_loss, argnums=1))(
+      jnp.asarray(image), jnp.asarray(depth))
+  np.testing.assert_allclose(float(value), float(l_e.detach()), rtol=1e-6)
+  np.testing.assert_array_equal(np.asarray(grad), d.grad.numpy())  # sign patterns: exact
+
+
 @pytest.fixture(scope="module")
 def network_case(tmp_path_factory):
   h, w = 192, 640
