@@ -50,7 +50,10 @@ def edge_map(x: Array, weight: Array | float | None = None) -> Array:
   mag = absolute(laplacian(x))  # (H, W); d|u|/du = 0 at u = 0, as torch.abs
   if weight is None:
     return mag
-  return jnp.asarray(weight, mag.dtype) * mag
+  weight = jnp.asarray(weight, mag.dtype)
+  if weight.ndim != 0 and weight.shape != mag.shape:
+    raise ValueError(f"weights must be a scalar or the map's {mag.shape}, got {weight.shape}")
+  return weight * mag
 
 
 def image_edge_map(image: Array, weight: Array | float | None = None) -> Array:

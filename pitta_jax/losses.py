@@ -74,6 +74,8 @@ class PittaLoss(NamedTuple):
 def _mean_over_instances(total: Array, n: Array) -> Array:
   """total / N, and 0 when N = 0 (no NaN in the value or the gradient)."""
   n = jnp.asarray(n, jnp.int32)
+  if n.ndim != 0:
+    raise ValueError(f"n (the number of instances N) must be a scalar, got shape {n.shape}")
   safe_n = jnp.maximum(n, 1).astype(total.dtype)
   return jnp.where(n > 0, total / safe_n, jnp.zeros((), total.dtype))
 
@@ -95,6 +97,11 @@ def depth_refining_loss_literal(depth: Array, masks: Array, inst_valid: Array, s
   """
   depth = as_float(depth)
   inst_valid = jnp.asarray(inst_valid, bool)
+  masks = jnp.asarray(masks)
+  if depth.ndim != 2 or masks.ndim != 3 or masks.shape[1:] != depth.shape or \
+      inst_valid.shape != masks.shape[:1]:
+    raise ValueError(f"depth (H, W), masks (N_max, H, W) and inst_valid (N_max,) must agree, got "
+                     f"{depth.shape}, {masks.shape} and {inst_valid.shape}")
 
   def one(m):  # m: (H, W)
     masked = depth * m  # D~_j, eq. 4
@@ -130,7 +137,7 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
     scalar float32 L_d (0 when N = 0).
   """
   depth = as_float(depth)
-  index_map = jnp.asarray(index_map, jnp.int32)
+  index_map = masks_lib.index_array(index_map)
   if depth.ndim != 2 or depth.shape != index_map.shape:
     raise ValueError(f"depth {depth.shape} and index_map {index_map.shape} must be the same (H, W)")
   # D~_k0 at each pixel's own k0; a select, not a product with 0, outside the instances, so
@@ -194,6 +201,7 @@ def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, 
   if impl == "literal":
     if n_max is None:
       raise ValueError("impl='literal' needs the static table size n_max")
+    n_max = masks_lib.table_rows(n_max)
     masks = masks_lib.masks_from_index(index_map, n_max, mode, inst_ids)  # (N_max, H, W)
     valid = jnp.arange(1, n_max + 1) <= jnp.asarray(n)  # (N_max,)
     return depth_refining_loss_literal(depth, masks, valid, s)
@@ -220,7 +228,7 @@ def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: in
     scalar float32 L_d (0 when no entry is used).
   """
   masks_lib.check_mode(mode)
-  if impl in IMPLS and jnp.shape(dynamic_ids)[0] == 0:  # no instance table: no term (eq. 8)
+  if impl in IMPLS and jnp.size(dynamic_ids) == 0:  # no instance table: no term (eq. 8)
     return jnp.zeros((), as_float(depth).dtype)
   inst_ids, inst_valid = masks_lib.table_from_dynamic_ids(dynamic_ids)
   if impl == "literal":

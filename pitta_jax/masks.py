@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pitta_jax.dtypes import static_int
+
 Array = jax.Array
 
 # COCO category ids of the dynamic set O (paper Sec. 3.1: the classes that move in driving
@@ -39,12 +41,37 @@ def check_mode(mode: str) -> None:
     raise ValueError(f"mask mode must be one of {MASK_MODES}, got {mode!r}")
 
 
-def segment_id_array(x: Array, name: str) -> Array:
-  """`x` as int32 segment ids; TypeError naming `name` when `x` is not an integer array."""
+def segment_id_array(x: Array, name: str, what: str = "segment ids") -> Array:
+  """`x` as int32 segment ids (or instance indices, `what`); TypeError naming `name` when `x`
+  is not an integer array (a cast would truncate 3.7 to 3)."""
   x = jnp.asarray(x)
   if not jnp.issubdtype(x.dtype, jnp.integer):
-    raise TypeError(f"{name} must be an integer array of segment ids, got {x.dtype}")
+    raise TypeError(f"{name} must be an integer array of {what}, got {x.dtype}")
   return x.astype(jnp.int32)
+
+
+def table_rows(n_max: int) -> int:
+  """The instance table's static size N_max as a Python int (ValueError when traced or not a
+  nonnegative int: it fixes the shapes of the masks and the table)."""
+  if static_int(n_max, "n_max", "the instance table size", "a nonnegative int") < 0:
+    raise ValueError(f"the instance table size n_max must be >= 0, got {n_max!r}")
+  return int(n_max)
+
+
+def index_array(index_map: Array) -> Array:
+  """An instance index map (0 or j) as int32; TypeError when it is not an integer array."""
+  return segment_id_array(index_map, "index_map", "instance indices")
+
+
+def _table_ids(inst_ids: Array, n_max: int | None = None) -> Array:
+  """The instance table's segment ids (N_max,) as int32: an integer array of `n_max` entries
+  (when given); TypeError / ValueError naming inst_ids otherwise."""
+  inst_ids = segment_id_array(inst_ids, "inst_ids")
+  if inst_ids.ndim != 1 or (n_max is not None and inst_ids.shape[0] != n_max):
+    raise ValueError(f"inst_ids must be the table's (N_max,) segment ids"
+                     + (f" with N_max = {n_max}" if n_max is not None else "")
+                     + f", got shape {inst_ids.shape}")
+  return inst_ids
 
 
 def _compact(keys: Array, keep: Array, n_max: int) -> tuple[Array, Array]:
@@ -83,7 +110,7 @@ def instance_table(segment_ids: Array, segment_classes: Array, segment_valid: Ar
   dynamic_classes = jnp.asarray(dynamic_classes, jnp.int32).reshape(-1)
   is_dyn = (jnp.asarray(segment_valid, bool) & (segment_ids > 0)
             & jnp.any(segment_classes[:, None] == dynamic_classes[None, :], axis=1))  # (S_max,)
-  return _compact(segment_ids, is_dyn, n_max)
+  return _compact(segment_ids, is_dyn, table_rows(n_max))
 
 
 def table_from_dynamic_ids(dynamic_ids: Array) -> tuple[Array, Array]:
@@ -121,6 +148,8 @@ def instance_index_map(panoptic: Array, inst_ids: Array, inst_valid: Array) -> A
     (H, W) int32 index map.
   """
   panoptic = segment_id_array(panoptic, "panoptic")
+  if panoptic.ndim != 2:
+    raise ValueError(f"panoptic must be an (H, W) map of segment ids, got shape {panoptic.shape}")
   inst_ids = segment_id_array(inst_ids, "inst_ids")
   inst_valid = jnp.asarray(inst_valid, bool)
   usable = inst_valid & (inst_ids > 0)  # (N_max,) invalid rows never match
@@ -137,30 +166,37 @@ def instance_gains(n_max: int, mode: str = "binary", inst_ids: Array | None = No
   "binary": 1; "instance_id": j; "segment_id": the row's segment id `inst_ids[j - 1]` (required).
   """
   check_mode(mode)
+  n_max = table_rows(n_max)
   if mode == "binary":
     return jnp.ones((n_max,), jnp.float32)
   if mode == "instance_id":
     return jnp.arange(1, n_max + 1, dtype=jnp.float32)
   if inst_ids is None:
     raise ValueError("mask mode 'segment_id' needs the instance table's segment ids")
-  return jnp.asarray(inst_ids, jnp.int32).reshape(n_max).astype(jnp.float32)
+  return _table_ids(inst_ids, n_max).astype(jnp.float32)
 
 
 def pixel_gain(index_map: Array, mode: str = "binary", inst_ids: Array | None = None) -> Array:
   """g of the instance at each pixel, 0 off the instances: sum_j M_j.  # (H, W) float32
 
-  inst_ids: (N_max,) the table's segment ids, required by mode "segment_id".
+  inst_ids: (N_max,) the table's segment ids, required by mode "segment_id"; an index above
+    N_max is refused while the map is concrete (under jit it reads 0).
   """
   check_mode(mode)
-  index_map = jnp.asarray(index_map, jnp.int32)
+  index_map = index_array(index_map)
   if mode == "binary":
     return (index_map > 0).astype(jnp.float32)
   if mode == "instance_id":
     return index_map.astype(jnp.float32)
   if inst_ids is None:
     raise ValueError("mask mode 'segment_id' needs the instance table's segment ids")
-  table = jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.asarray(inst_ids, jnp.int32)])
-  return table[index_map].astype(jnp.float32)  # index 0 -> 0
+  inst_ids = _table_ids(inst_ids)
+  if not isinstance(index_map, jax.core.Tracer) and int(jnp.max(index_map, initial=0)) > \
+      inst_ids.shape[0]:
+    raise ValueError(f"index_map holds instance {int(jnp.max(index_map))}, beyond the "
+                     f"{inst_ids.shape[0]} rows of inst_ids")
+  table = jnp.concatenate([jnp.zeros((1,), jnp.int32), inst_ids])
+  return table.at[index_map].get(mode="fill", fill_value=0).astype(jnp.float32)  # 0 -> 0
 
 
 def masks_from_index(index_map: Array, n_max: int, mode: str = "binary",
@@ -176,7 +212,8 @@ def masks_from_index(index_map: Array, n_max: int, mode: str = "binary",
   Returns:
     (N_max, H, W) float32, M_j in row j - 1 (all zero for instances without pixels).
   """
-  index_map = jnp.asarray(index_map, jnp.int32)
+  index_map = index_array(index_map)
+  n_max = table_rows(n_max)
   j = jnp.arange(1, n_max + 1, dtype=jnp.int32)[:, None, None]  # (N_max, 1, 1)
   gains = instance_gains(n_max, mode, inst_ids)[:, None, None]  # (N_max, 1, 1)
   return jnp.where(index_map[None] == j, gains, 0.0).astype(jnp.float32)
@@ -196,8 +233,8 @@ def instance_masks(panoptic: Array, inst_ids: Array, inst_valid: Array,
   Returns:
     (N_max, H, W) float32 masks.
   """
-  panoptic = jnp.asarray(panoptic, jnp.int32)
-  inst_ids = jnp.asarray(inst_ids, jnp.int32)
+  panoptic = segment_id_array(panoptic, "panoptic")
+  inst_ids = _table_ids(inst_ids)
   inst_valid = jnp.asarray(inst_valid, bool)
   n_max = inst_ids.shape[0]
   inside = (panoptic[None] == inst_ids[:, None, None]) & inst_valid[:, None, None]  # (N_max, H, W)

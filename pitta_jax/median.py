@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pitta_jax.dtypes import as_float
+from pitta_jax.dtypes import as_float, static_int
 
 Array = jax.Array
 
@@ -87,10 +87,7 @@ def window_counts(h: int, w: int, s: int) -> np.ndarray:
 
 
 def _check_window(s: int) -> None:
-  if isinstance(s, jax.core.Tracer):
-    raise ValueError("window size s must be a Python int, not a traced value: pass it as a "
-                     "static argument of jax.jit (static_argnames=('s',)) or close over it")
-  if not isinstance(s, (int, np.integer)) or s < 1 or s % 2 == 0:
+  if static_int(s, "s", "window size", "a positive odd int") < 1 or s % 2 == 0:
     raise ValueError(f"window size s must be a positive odd int, got {s!r}")
 
 

@@ -293,3 +293,22 @@ def test_depth_refining_loss_of_an_empty_instance_table_is_zero():
     value, grad = jax.value_and_grad(
         lambda d: losses.depth_refining_loss(d, panoptic, ids, 3, "binary", impl))(depth)
     assert float(value) == 0.0 and not np.any(np.asarray(grad))
+
+
+def test_shape_mistakes_are_named():
+  """Wrong shapes fail with a ValueError that names the argument (they were broadcasting
+  TypeErrors, an IndexError, or for a non-scalar n a loss of shape (2,)); one segment id given
+  as a scalar is a table of one."""
+  depth = jnp.asarray(np.random.default_rng(0).random((6, 7)), jnp.float32)
+  pan = np.zeros((6, 7), np.int32)
+  pan[1:4, 2:5] = 5
+  one = losses.depth_refining_loss(depth, pan, np.int32(5))
+  np.testing.assert_allclose(one, losses.depth_refining_loss(depth, pan, np.array([5])))
+  with pytest.raises(ValueError, match=r"masks \(N_max, H, W\) .* must agree"):
+    losses.depth_refining_loss(depth, pan[:, :6], np.array([5]), impl="literal")
+  with pytest.raises(ValueError, match="n .* must be a scalar"):
+    losses.depth_refining_loss_from_index(depth, (pan > 0).astype(np.int32), jnp.array([1, 1]))
+  with pytest.raises(ValueError, match=r"weights must be a scalar or the map's \(6, 7\)"):
+    losses.edge_guided_loss(jnp.ones((6, 7, 3)), depth, u=jnp.ones((3,)))
+  with pytest.raises(ValueError, match="positive odd int, got True"):
+    losses.depth_refining_loss(depth, pan, np.array([5]), s=True)

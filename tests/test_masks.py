@@ -159,3 +159,45 @@ def test_float_segment_ids_are_refused():
   for dtype in (np.uint8, np.int16, np.int64):
     got = masks.instance_index_map(pan.astype(dtype), ids, valid)
     np.testing.assert_array_equal(got, [[1, 0], [1, 0]])
+
+
+def test_every_path_refuses_float_ids_and_indices():
+  """Float ids or instance indices are refused on every path, not truncated on some (the
+  literal L_d read a panoptic 5.7 as segment 5 where the fast one refused it; a float index map
+  was cast everywhere)."""
+  from pitta_jax import losses
+  depth = jnp.ones((4, 5))
+  pan = np.zeros((4, 5), np.float32)
+  pan[1:3, 1:3] = 5.7
+  for impl in ("fast", "literal"):
+    with pytest.raises(TypeError, match="panoptic must be an integer array"):
+      losses.depth_refining_loss(depth, pan, np.array([5], np.int32), impl=impl)
+    with pytest.raises(TypeError, match="index_map must be an integer array of instance indices"):
+      losses.depth_refining_loss_from_index(depth, (pan > 0) * 1.0, 1, impl=impl, n_max=2)
+  with pytest.raises(TypeError, match="panoptic must be an integer array"):
+    masks.instance_masks(pan, np.array([5]), np.array([True]))
+  for call in (lambda m: masks.pixel_gain(m), lambda m: masks.masks_from_index(m, 2)):
+    with pytest.raises(TypeError, match="index_map must be an integer array"):
+      call((pan > 0) + 0.7)
+
+
+def test_table_sizes_and_ids_are_checked_by_name():
+  """A traced n_max says to make it static (it failed inside JAX with four different errors);
+  a segment-id table shorter than the index map's instances is refused (JAX's clamped gather
+  gave instance 2 the id of instance 1); a 1-D panoptic is refused (it became one row)."""
+  index = np.zeros((4, 5), np.int32)
+  index[0, 0], index[2, 3] = 1, 2
+  for call in (lambda n: masks.masks_from_index(index, n), masks.instance_gains,
+               lambda n: masks.instance_table(np.array([5]), np.array([3]), np.array([True]),
+                                              np.array([3]), n)):
+    with pytest.raises(ValueError, match=r"n_max must be a Python int, not a traced value"):
+      jax.jit(call)(2)
+  with pytest.raises(ValueError, match="index_map holds instance 2, beyond the 1 rows of inst_ids"):
+    masks.pixel_gain(index, "segment_id", np.array([5]))
+  np.testing.assert_array_equal(masks.pixel_gain(index, "segment_id", np.array([5, 9])),
+                                np.where(index == 1, 5.0, np.where(index == 2, 9.0, 0.0)))
+  with pytest.raises(ValueError, match=r"inst_ids must be the table's \(N_max,\) segment ids "
+                                       r"with N_max = 3"):
+    masks.instance_gains(3, "segment_id", np.array([5, 9]))
+  with pytest.raises(ValueError, match=r"panoptic must be an \(H, W\) map"):
+    masks.instance_index_map(np.array([5, 0, 5]), np.array([5]), np.array([True]))
