@@ -14,7 +14,14 @@ two middle ones sit at (c-1)//2 and c//2, with c a function of the position. Onl
 comparators that feed the slots needed somewhere are kept (124 of them for s = 5, 352 for
 s = 7), and a select chain picks each pixel's slots. A network is exact: it permutes the values,
 so ties come out as they are. About 2-4 ms at 640x192 with s = 5 on 2 CPU cores, where
-`jnp.sort` along the window axis takes about 300 ms.
+`jnp.sort` along the window axis takes about 250 ms.
+
+From s = `SORT_FROM_WINDOW` on, the windows are sorted with `jnp.sort` instead: the network's
+compile time doubles with every step of s (at 640x192, 2 CPU cores: s = 11 2.1 s, 13 6.6 s, 15
+12.6 s, and minutes beyond), the sort's stays at 1-3 s, while it runs 70x slower (s = 11: 1.3 s
+against 19 ms). The same values either way (both permute the window). The fast L_d
+(`losses.depth_refining_loss_fast`) still takes minutes to compile from s = 17 on (its
+candidates' counts and pseudo labels are s*s-term expressions each).
 """
 
 from __future__ import annotations
@@ -30,6 +37,9 @@ from pitta_jax.dtypes import as_float, static_int
 Array = jax.Array
 
 WINDOW = 5  # the window s of eq. 7; not stated in the paper (see docs/method.md)
+
+# The smallest window sorted with jnp.sort rather than a sorting network (see the docstring).
+SORT_FROM_WINDOW = 17
 
 # Padding for integer maps: sorts after every real value.
 INT_PAD = np.iinfo(np.int32).max
@@ -141,6 +151,13 @@ def middle_order_statistics(views: list[Array], s: int) -> tuple[Array, Array]:
     (lower, upper): the lower and upper middle values, (..., H, W) each (equal when c is odd).
   """
   h, w = views[0].shape[-2:]
+  if s >= SORT_FROM_WINDOW:
+    ordered = jnp.sort(jnp.stack(views, axis=-1), axis=-1)  # (..., H, W, s*s)
+
+    def slot(rank: Array) -> Array:
+      rank = jnp.broadcast_to(rank, ordered.shape[:-1])[..., None]
+      return jnp.take_along_axis(ordered, rank, axis=-1)[..., 0]
+    return tuple(slot(rank) for rank in middle_ranks(h, w, s))
   counts = window_counts(h, w, s)  # static, for the set of slots needed
   ranks = sorted(set(np.unique((counts - 1) // 2).tolist()) | set(np.unique(counts // 2).tolist()))
   wires = list(views)

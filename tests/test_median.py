@@ -68,8 +68,8 @@ def test_window_counts_match_loop():
   np.testing.assert_array_equal(hi, want // 2)
 
 
-@pytest.mark.parametrize("s", [1, 3, 5, 7])
-@pytest.mark.parametrize("shape", [(12, 20), (3, 4), (2, 9), (1, 1)])
+@pytest.mark.parametrize("s", [1, 3, 5, 7, median_lib.SORT_FROM_WINDOW])  # network; jnp.sort
+@pytest.mark.parametrize("shape", [(12, 20), (3, 4), (2, 9), (1, 1), (19, 23)])
 def test_equals_numpy_loop_exactly(mf, s, shape):
   # Reference: literal NumPy loop of eq. 7 (np.median per window); float32 equality, on real
   # values and on small integers (ties, even counts at the border, images smaller than s).
