@@ -116,8 +116,7 @@ def _os_error_code(error: BaseException) -> int | None:
   import re
   if isinstance(error, OSError):
     return error.errno
-  found = re.search(r"\[os_error_code='(\d+)'\]", str(error)) if isinstance(error, ValueError) \
-      else None
+  found = isinstance(error, ValueError) and re.search(r"\[os_error_code='(\d+)'\]", str(error))
   return int(found.group(1)) if found else None
 
 

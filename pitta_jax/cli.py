@@ -709,14 +709,14 @@ def _quiet_libraries() -> None:
   incomplete": the readers raise a one-line error for the same file, which they would precede)
   and orbax's through absl (a full disk during a checkpoint save printed hundreds of lines of
   its threads' tracebacks before the error line; its failures reach the command as
-  exceptions), and tensorstore's "Event loop is closed" (`_quiet_unraisable`). The command's
-  choice, unless --debug; the library leaves them alone."""
+  exceptions), and tensorstore's "Event loop is closed" (`_quiet_unraisable`, while the command
+  runs: `terminate_as_interrupt` restores the hook it found). The command's choice, unless
+  --debug; the library leaves them alone."""
   import logging
   import cv2.utils.logging as cv_logging
   cv_logging.setLogLevel(cv_logging.LOG_LEVEL_SILENT)
   logging.getLogger("absl").setLevel(logging.CRITICAL)
-  if not getattr(sys.unraisablehook, "quiets_closed_loops", False):
-    sys.unraisablehook = _quiet_unraisable(sys.unraisablehook)
+  sys.unraisablehook = _quiet_unraisable(sys.unraisablehook)
 
 
 def _quiet_unraisable(hook: Callable) -> Callable:
@@ -728,7 +728,6 @@ def _quiet_unraisable(hook: Callable) -> Callable:
     error = unraisable.exc_value
     if not (isinstance(error, RuntimeError) and str(error) == "Event loop is closed"):
       hook(unraisable)
-  quiet.quiets_closed_loops = True
   return quiet
 
 

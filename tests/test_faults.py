@@ -795,10 +795,11 @@ def test_a_commands_stderr_holds_no_closed_event_loop_tracebacks(capsys):
 
   hook, seen = sys.unraisablehook, []
   try:
-    sys.unraisablehook = lambda unraisable: seen.append(repr(unraisable.exc_value))
+    record = sys.unraisablehook = lambda unraisable: seen.append(repr(unraisable.exc_value))
     assert cli.interruptible(failing_save, debug=False) == 2
     assert cli.interruptible(failing_save, debug=False) == 2  # a second command, same process
     assert seen == ["ValueError('something else')"] * 2
+    assert sys.unraisablehook is record  # the filter lasts while a command runs
     assert capsys.readouterr().err == "error: No space left on device\n" * 2
     seen.clear()
     sys.unraisablehook = lambda unraisable: seen.append(repr(unraisable.exc_value))
