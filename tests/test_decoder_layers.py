@@ -3,8 +3,9 @@
 - `reflect_pad` equals NumPy's `np.pad(mode="reflect")` (what `nn.ReflectionPad2d` does),
   and on maps of 1 pixel NumPy's rule (our extension: `nn.ReflectionPad2d` raises there, so
   upstream MonoDepth2 cannot run an input whose 1/32 map is 1 pixel, e.g. 32 pixels wide);
-- `reflect_conv3x3` (padded conv with the ring sliced off, or VALID) equals the VALID conv of
-  the reflection-padded map, bit for bit, on both sides of the `padded_conv_is_cheap` rule;
+- `reflect_conv3x3` (the zero-padded conv corrected at the ring, or VALID) equals the VALID conv
+  of the reflection-padded map, values and gradients, in both forms of the `ring_form_pays`
+  rule; `ReflectConv3x3` has `nn.Conv`'s parameter tree;
 - `upsample_reflect_conv3x3` (four 2x2 phase convs at low resolution, or the direct form below
   `phase_form_pays`' threshold) and `UpConv3x3` equal the composition upstream writes (nearest
   2x upsampling with `np.repeat`, concatenation, reflection padding, VALID 3x3 conv, bias),
@@ -39,16 +40,50 @@ def test_reflect_pad_is_numpy_reflect(h, w):
                                 np.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="reflect"))
 
 
-@pytest.mark.parametrize("h, w", [(6, 20), (48, 160)])  # VALID form, padded form
-def test_reflect_conv3x3_is_the_valid_conv_of_the_padded_map(h, w):
-  rng = np.random.default_rng(1)
-  x = jnp.asarray(rng.standard_normal((1, h, w, 8)).astype(np.float32))
+@pytest.mark.parametrize("ring", [True, False])
+@pytest.mark.parametrize("h, w", [(2, 2), (2, 5), (3, 3), (6, 20), (48, 160)])
+def test_reflect_conv3x3_is_the_valid_conv_of_the_padded_map(h, w, ring, monkeypatch):
+  """Both forms (the ring form forced on small maps): value, input and kernel gradients
+  against JAX's own autodiff of the VALID conv of NumPy's reflection padding, batch 2."""
+  monkeypatch.setattr(layers, "RING_FORM_MAX_SHARE", 1e9 if ring else -1.0)
+  assert layers.ring_form_pays(h, w) == ring
+  rng = np.random.default_rng(h * 1000 + w)
+  x = jnp.asarray(rng.standard_normal((2, h, w, 8)).astype(np.float32))
   k = jnp.asarray(rng.standard_normal((3, 3, 8, 5)).astype(np.float32))
-  assert layers.padded_conv_is_cheap(h, w) == (h > 20)
-  got = jax.jit(layers.reflect_conv3x3)(x, k)
-  want = jax.jit(lambda x, k: lax.conv_general_dilated(layers.reflect_pad(x), k, (1, 1), "VALID",
-                                                       dimension_numbers=NHWC))(x, k)
-  np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+  # a fresh function to trace: jit's cache does not see the monkeypatched threshold
+  got, vjp = jax.vjp(jax.jit(lambda x, k: layers.reflect_conv3x3(x, k)), x, k)
+
+  def reference(x, k):
+    xp = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="reflect")
+    return lax.conv_general_dilated(xp, k, (1, 1), "VALID", dimension_numbers=NHWC,
+                                    precision=lax.Precision.HIGHEST)
+  want, ref_vjp = jax.vjp(reference, x, k)
+  np.testing.assert_allclose(np.asarray(got), np.asarray(plain_reflect_conv(x, k)),
+                             rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-5)
+  g = jnp.asarray(rng.standard_normal(got.shape).astype(np.float32))
+  for a, r in zip(vjp(g), ref_vjp(g)):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(r), rtol=1e-5, atol=1e-4)
+
+
+def test_monodepth2_decoder_takes_the_ring_form_from_80x24():
+  """At 640x192 the decoder's maps from 80x24 up take the ring form, 40x12 and 20x6 not."""
+  assert [layers.ring_form_pays(192 >> s, 640 >> s) for s in range(6)] == \
+      [True, True, True, True, False, False]
+
+
+def test_reflect_conv3x3_module_has_nn_conv_parameters():
+  """`ReflectConv3x3`: `nn.Conv(features, (3, 3))`'s tree, and bias added to the conv."""
+  rng = np.random.default_rng(7)
+  x = jnp.asarray(rng.standard_normal((1, 5, 6, 3)).astype(np.float32))
+  variables = layers.ReflectConv3x3(4).init(jax.random.PRNGKey(0), x)
+  ref_vars = nn.Conv(4, (3, 3)).init(jax.random.PRNGKey(0), x)
+  assert jax.tree_util.tree_map(jnp.shape, variables) == jax.tree_util.tree_map(jnp.shape, ref_vars)
+  k = jnp.asarray(rng.standard_normal((3, 3, 3, 4)).astype(np.float32))
+  b = jnp.asarray(rng.standard_normal((4,)).astype(np.float32))
+  got = layers.ReflectConv3x3(4).apply({"params": {"kernel": k, "bias": b}}, x)
+  np.testing.assert_allclose(np.asarray(got), np.asarray(plain_reflect_conv(x, k) + b),
+                             rtol=1e-5, atol=1e-5)
 
 
 def upstream_upconv(x, skip, k, b):

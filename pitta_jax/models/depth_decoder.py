@@ -17,8 +17,7 @@ from __future__ import annotations
 import jax
 import flax.linen as nn
 
-from pitta_jax.models.layers import (Conv, ModuleDef, UpConv3x3, padded_conv_is_cheap,
-                                     reflect_pad)
+from pitta_jax.models.layers import Conv, ModuleDef, ReflectConv3x3, UpConv3x3
 from pitta_jax.models.resnet import ResnetEncoder, encoder_channels
 
 DECODER_CHANNELS = (16, 32, 64, 128, 256)
@@ -28,13 +27,9 @@ MIN_DEPTH, MAX_DEPTH = 0.1, 100.0  # MonoDepth2's defaults
 
 def conv3x3_reflect(x: jax.Array, features: int, name: str, module: ModuleDef = Conv) -> jax.Array:
   """MonoDepth2's `Conv3x3(use_refl=True)`: ReflectionPad2d(1) then a 3x3 conv with bias,
-  (B, H, W, C) -> (B, H, W, features); with its own zero padding of 1 and the output ring
-  sliced off where that is cheap (`layers.reflect_conv3x3` says why)."""
-  h, w = x.shape[1], x.shape[2]
-  if padded_conv_is_cheap(h, w):
-    y = module(features, (3, 3), padding=((1, 1), (1, 1)), use_bias=True, name=name)(reflect_pad(x))
-    return y[:, 1:-1, 1:-1]
-  return module(features, (3, 3), padding="VALID", use_bias=True, name=name)(reflect_pad(x))
+  (B, H, W, C) -> (B, H, W, features), as `layers.ReflectConv3x3` named `name` (parameters of
+  `nn.Conv`); `module` is the network's conv class."""
+  return ReflectConv3x3(features, module, name=name)(x)
 
 
 class DepthDecoder(nn.Module):
