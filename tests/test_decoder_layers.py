@@ -96,13 +96,19 @@ def upstream_upconv(x, skip, k, b):
                                   precision=lax.Precision.HIGHEST) + b
 
 
-@pytest.mark.parametrize("phase_form", [True, False])
+@pytest.mark.parametrize("phase_form, bordered", [(True, True), (True, False), (False, True),
+                                                  (False, False)])
 @pytest.mark.parametrize("h, w, skip_channels", [(1, 1, 0), (1, 3, 2), (3, 5, 0), (4, 6, 3),
                                                  (7, 9, 4)])
-def test_upconv_equals_upsample_concat_reflect_conv(h, w, skip_channels, phase_form, monkeypatch):
-  """Both forms of `upsample_reflect_conv3x3` (the threshold set to take the one asked for)."""
+def test_upconv_equals_upsample_concat_reflect_conv(h, w, skip_channels, phase_form, bordered,
+                                                    monkeypatch):
+  """Every form of `upsample_reflect_conv3x3` and of the skip's `reflect_conv3x3` (the
+  thresholds set to take the ones asked for: phase or direct form; with or without the
+  padding's border as `bordered_conv` terms)."""
   monkeypatch.setattr(layers, "PHASE_FORM_MIN_MACS", 0 if phase_form else 2 ** 62)
+  monkeypatch.setattr(layers, "RING_FORM_MAX_SHARE", 1e9 if bordered else -1.0)
   assert layers.phase_form_pays(h, w, 3, 4) == phase_form
+  assert layers.ring_form_pays(h, w) == bordered
   rng = np.random.default_rng(h * 100 + w)
   c, o = 3, 4
   x = jnp.asarray(rng.standard_normal((2, h, w, c)).astype(np.float32))

@@ -213,15 +213,17 @@ def upsample_nearest2x(x: jax.Array) -> jax.Array:
   return jnp.repeat(jnp.repeat(x, 2, axis=1), 2, axis=2)
 
 
-# At most this share of ring pixels (2H + 2W + 4 of (H + 2)(W + 2)) for `reflect_conv3x3`'s ring form.
+# The border forms (`ring_form_pays`) where the padding's ring, 2H + 2W + 4 pixels, is at most
+# this share of the map's H W.
 RING_FORM_MAX_SHARE = 0.15
 
 
 def ring_form_pays(height: int, width: int) -> bool:
-  """Whether `reflect_conv3x3` of an (H, W) map takes its ring form: when the padding ring adds
-  at most `RING_FORM_MAX_SHARE` to the map's pixels, i.e. the ring's corrections are small next
-  to the convolution. Below that (MonoDepth2's decoder at 40x12 and 20x6 for a 640x192 input)
-  the VALID conv of the reflection-padded map was as fast or faster (see `reflect_conv3x3`)."""
+  """Whether a conv of an (H, W) map skips building its padded map (`bordered_conv`: the ring
+  form of `reflect_conv3x3`, the phases of `upsample_reflect_conv3x3`): when the padding's ring
+  adds at most `RING_FORM_MAX_SHARE` to the map's pixels, i.e. the border terms are small next to
+  the convolution. Below that (MonoDepth2's decoder at 40x12 and 20x6 for a 640x192 input) the
+  conv of the padded map was as fast or faster (`ring_reflect_conv3x3`)."""
   return (height + 2) * (width + 2) <= (1 + RING_FORM_MAX_SHARE) * height * width
 
 
@@ -250,93 +252,121 @@ def reflect_conv3x3(x: jax.Array, kernel: jax.Array,
   return _conv(reflect_pad(x), kernel, ((0, 0), (0, 0)), conv_general_dilated)
 
 
-Strips = tuple[jax.Array, jax.Array, jax.Array, jax.Array]
+# A border term of `bordered_conv`: (axis, src, out, tap). The strip of x at index `src` along
+# `axis` (1 rows, 2 columns; negative from the end) is what the padding puts next to output
+# index `out` along that axis, read by the kernel's tap `tap` along it.
+Border = tuple[int, int, int, int]
 
 
-def _ring_strips(x: jax.Array) -> Strips:
-  """The rows and columns of x (B, H, W, C) that ReflectionPad2d(1) mirrors into the ring:
-  row 1 (B, 1, W, C), row H - 2, column 1 (B, H, 1, C), column W - 2."""
-  h, w = x.shape[1], x.shape[2]
-  return x[:, 1:2], x[:, h - 2:h - 1], x[:, :, 1:2], x[:, :, w - 2:w - 1]
+def _index(i: int, n: int) -> int:
+  """Index i (negative: from the end) of an axis of n."""
+  return i % n
 
 
-def _ring_terms(strips: Strips, kernel: jax.Array, conv_general_dilated: Callable) -> Strips:
-  """What the reflected ring adds to the border outputs of a 3x3 conv with zero padding.
+def _border_strips(x: jax.Array, borders: tuple[Border, ...]) -> tuple[jax.Array, ...]:
+  """The strips of x the border terms read: (B, 1, W, C) rows, (B, H, 1, C) columns."""
+  return tuple(lax.slice_in_dim(x, _index(src, x.shape[ax]), _index(src, x.shape[ax]) + 1,
+                                axis=ax) for ax, src, _, _ in borders)
 
-  Output row 0 reads the ring row -1 (row 1, mirrored at its two ends too) with the kernel's
-  row 0: (B, 1, W, O); row H - 1 reads row H - 2 with kernel row 2; column 0 reads the ring
-  column -1 (column 1) with kernel column 0 at rows 0..H - 1 only, the corners being the rows'
-  share: (B, H, 1, O); column W - 1 reads column W - 2 with kernel column 2.
+
+def _border_terms(strips: tuple[jax.Array, ...], kernel: jax.Array, padding: conv_vjp.Pairs,
+                  borders: tuple[Border, ...], mode: str, conv_general_dilated: Callable
+                  ) -> tuple[jax.Array, ...]:
+  """What the padding's border adds to the outputs of the zero-padded conv next to it.
+
+  A row strip is padded along the width as the map is (`mode`, `padding[1]`: its own ends, the
+  corners, are the row's share) and convolved (VALID) with the kernel's row `tap`: (B, 1, W',
+  O). A column strip is zero padded along the height (`padding[0]`) and convolved with the
+  kernel's column `tap`: (B, H', 1, O).
   """
-  top, bottom, left, right = strips
-  valid, rows = ((0, 0), (0, 0)), ((1, 1), (0, 0))
-  return (_conv(_mirror(top, 2, 1), kernel[0:1], valid, conv_general_dilated),
-          _conv(_mirror(bottom, 2, 1), kernel[2:3], valid, conv_general_dilated),
-          _conv(left, kernel[:, 0:1], rows, conv_general_dilated),
-          _conv(right, kernel[:, 2:3], rows, conv_general_dilated))
+  terms = []
+  for strip, (ax, _, _, tap) in zip(strips, borders):
+    if ax == 1:
+      row = jnp.pad(strip, ((0, 0), (0, 0), padding[1], (0, 0)), mode=mode)
+      terms.append(_conv(row, kernel[tap:tap + 1], ((0, 0), (0, 0)), conv_general_dilated))
+    else:
+      terms.append(_conv(strip, kernel[:, tap:tap + 1], (padding[0], (0, 0)),
+                         conv_general_dilated))
+  return tuple(terms)
 
 
-def _add_at(a: jax.Array, v: jax.Array, row: int, col: int) -> jax.Array:
-  """a with v added to its block at (row, col): a dynamic update slice, which XLA runs in place."""
-  start = (0, row, col, 0)
+def _add_at(a: jax.Array, v: jax.Array, axis: int, index: int) -> jax.Array:
+  """a with v added to its block at `index` along `axis` (1 or 2): a dynamic update slice, which
+  XLA runs in place."""
+  start = [0, 0, 0, 0]
+  start[axis] = _index(index, a.shape[axis])
   return lax.dynamic_update_slice(a, lax.dynamic_slice(a, start, v.shape) + v, start)
 
 
-def _add_ring(a: jax.Array, terms: Strips, rows: tuple[int, int], cols: tuple[int, int]
-              ) -> jax.Array:
-  """a with the top/bottom terms added at rows `rows` and the left/right ones at `cols`."""
-  top, bottom, left, right = terms
-  a = _add_at(_add_at(a, top, rows[0], 0), bottom, rows[1], 0)
-  return _add_at(_add_at(a, left, 0, cols[0]), right, 0, cols[1])
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4, 5))
+def bordered_conv(x: jax.Array, kernel: jax.Array, padding: conv_vjp.Pairs,
+                  borders: tuple[Border, ...], mode: str,
+                  conv_general_dilated: Callable = conv_vjp.conv_general_dilated) -> jax.Array:
+  """The stride-1 conv of x padded with `mode` ("reflect" or "edge") by `padding`, without the
+  padded map: the conv of x with zero padding, plus the border's terms added in place.
+
+  x: (B, H, W, C), kernel: (kh, kw, C, O) -> (B, H', W', O). `padding` is one pixel wide where
+  `borders` (`Border`) name the strips of x that the padding repeats there; where it is zero on
+  a side, no term.
+
+  Why: building the padded map is a full pass over it (two concatenations), and its gradient
+  another. The terms are one-pixel-wide convolutions of the few rows and columns the padding
+  repeats, and the gradient (`_bordered_bwd`) is the zero-padded conv's plus those strips' own,
+  added in place. The interior outputs are the padded map's sums; the border outputs add the
+  border's taps last (float rounding).
+  """
+  y = _conv(x, kernel, padding, conv_general_dilated)
+  terms = _border_terms(_border_strips(x, borders), kernel, padding, borders, mode,
+                        conv_general_dilated)
+  for term, (ax, _, out, _) in zip(terms, borders):
+    y = _add_at(y, term, ax, out)
+  return y
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _bordered_fwd(x, kernel, padding, borders, mode, conv_general_dilated):
+  return bordered_conv(x, kernel, padding, borders, mode, conv_general_dilated), (x, kernel)
+
+
+def _bordered_bwd(padding, borders, mode, conv_general_dilated, residuals, g):
+  """The zero-padded conv's gradients, plus the border terms' (input gradients of the strips,
+  added in place; kernel gradients dropped by XLA where the kernel is not differentiated)."""
+  x, kernel = residuals
+  dx, dk = jax.vjp(lambda x, k: _conv(x, k, padding, conv_general_dilated), x, kernel)[1](g)
+  g_terms = tuple(lax.slice_in_dim(g, _index(out, g.shape[ax]), _index(out, g.shape[ax]) + 1,
+                                   axis=ax) for ax, _, out, _ in borders)
+  d_strips, dk_terms = jax.vjp(
+      lambda s, k: _border_terms(s, k, padding, borders, mode, conv_general_dilated),
+      _border_strips(x, borders), kernel)[1](g_terms)
+  for d, (ax, src, _, _) in zip(d_strips, borders):
+    dx = _add_at(dx, d, ax, src)
+  return dx, dk + dk_terms
+
+
+bordered_conv.defvjp(_bordered_fwd, _bordered_bwd)
+
+# ReflectionPad2d(1): output row 0 reads the ring row -1, i.e. row 1; row H - 1 reads row H - 2;
+# columns likewise (the ring's corners are the rows' share)
+REFLECT_RING: tuple[Border, ...] = ((1, 1, 0, 0), (1, -2, -1, 2), (2, 1, 0, 0), (2, -2, -1, 2))
+
+
 def ring_reflect_conv3x3(x: jax.Array, kernel: jax.Array,
                          conv_general_dilated: Callable = conv_vjp.conv_general_dilated
                          ) -> jax.Array:
   """`reflect_conv3x3` as a 3x3 conv of x itself with zero padding of 1, the reflected ring's
-  contribution then added to the border outputs (`_ring_terms`) in place.
+  contribution then added to the border outputs: `bordered_conv` with `REFLECT_RING`.
 
   x: (B, H, W, C), H, W >= 2; kernel: (3, 3, C, O) -> (B, H, W, O).
 
-  Why: the reflection padding is a full pass over the map (two concatenations), and its
-  gradient another; the VALID conv of the padded map is 1.3-2x slower on XLA:CPU than a conv
-  with its own zero padding, so the form before this one padded, convolved with a zero ring on
-  top and sliced the output ring off, and its gradient padded the cotangent back. Here the
-  padded map is never built: the ring terms are four one-pixel-wide convolutions of the two
-  rows and two columns that the padding mirrors, and the gradient (`_ring_bwd`) is the zero-
-  padded conv's plus those strips' own, added in place. Forward + input gradient inside a
-  scan (eight frames, Eigen's convolutions, 2 vCPUs AMD EPYC Zen 4, best ms): MonoDepth2's
-  decoder at 640x192, 32 -> 16 at 320x96 6.8 -> 5.3, 64 -> 32 at 320x96 20.2 -> 17.0, 16 -> 1
-  at 640x192 12.5 -> 8.4, 128 -> 64 at 80x24 4.3 -> 3.9; 256 -> 128 at 40x12 3.8 -> 3.9 and
-  512 -> 256 at 20x6 4.8 -> 5.4, hence `ring_form_pays`. The interior outputs are the same
-  sums as the padded map's; the border outputs add the ring's taps last (float rounding).
+  Why: the form before this one padded the map, convolved it with a zero ring on top (the
+  VALID conv of the padded map is 1.3-2x slower on XLA:CPU than one with its own zero padding)
+  and sliced the output ring off; its gradient padded the cotangent back. Forward + input
+  gradient inside a scan (eight frames, Eigen's convolutions, 2 vCPUs AMD EPYC Zen 4, best ms),
+  MonoDepth2's decoder at 640x192: 32 -> 16 at 320x96 6.8 -> 5.3, 64 -> 32 at 320x96 20.2 ->
+  17.0, 16 -> 1 at 640x192 12.5 -> 8.4, 128 -> 64 at 80x24 4.3 -> 3.9; 256 -> 128 at 40x12 3.8
+  -> 3.9 and 512 -> 256 at 20x6 4.8 -> 5.4, hence `ring_form_pays`.
   """
-  h, w = x.shape[1], x.shape[2]
-  y = _conv(x, kernel, ((1, 1), (1, 1)), conv_general_dilated)          # (B, H, W, O)
-  return _add_ring(y, _ring_terms(_ring_strips(x), kernel, conv_general_dilated),
-                   (0, h - 1), (0, w - 1))
-
-
-def _ring_fwd(x, kernel, conv_general_dilated):
-  return ring_reflect_conv3x3(x, kernel, conv_general_dilated), (x, kernel)
-
-
-def _ring_bwd(conv_general_dilated, residuals, g):
-  """The zero-padded conv's gradients, plus the ring terms' (input gradients of four strips,
-  added in place at rows 1, H - 2 and columns 1, W - 2; kernel gradients dropped by XLA where
-  the kernel is not differentiated)."""
-  x, kernel = residuals
-  h, w = x.shape[1], x.shape[2]
-  dx, dk = jax.vjp(lambda x, k: _conv(x, k, ((1, 1), (1, 1)), conv_general_dilated),
-                   x, kernel)[1](g)
-  g_ring = (g[:, 0:1], g[:, h - 1:h], g[:, :, 0:1], g[:, :, w - 1:w])
-  d_strips, dk_ring = jax.vjp(lambda s, k: _ring_terms(s, k, conv_general_dilated),
-                              _ring_strips(x), kernel)[1](g_ring)
-  return _add_ring(dx, d_strips, (1, h - 2), (1, w - 2)), dk + dk_ring
-
-
-ring_reflect_conv3x3.defvjp(_ring_fwd, _ring_bwd)
+  return bordered_conv(x, kernel, ((1, 1), (1, 1)), REFLECT_RING, "reflect",
+                       conv_general_dilated)
 
 
 # `upsample_reflect_conv3x3` takes its phase form from this many multiply-adds of the direct form.
@@ -374,14 +404,17 @@ def upsample_reflect_conv3x3(x: jax.Array, kernel: jax.Array,
   (i - 1, i) with taps (k0, k1 + k2), phase 1 reads (i, i + 1) with (k0 + k1, k2). The
   reflection padding of the upsampled map reads, at the border, the pixel itself, i.e. the edge
   (replicate) padding of x. 4 * 4 instead of 9 * 4 multiply-adds per 2x2 output block, and
-  neither the upsampled map nor its padding is built, forward or backward: 2-3x faster on
-  XLA:CPU. The same sums up to float rounding (the pairs of taps are added first).
+  the upsampled map is never built, forward or backward: 2-3x faster on XLA:CPU. Where
+  `ring_form_pays` for x, neither is x's edge padding: each phase is a `bordered_conv` of x.
+  The same sums up to float rounding (the pairs of taps are added first).
   """
   b, h, w, c = x.shape
   o = kernel.shape[-1]
   if not phase_form_pays(h, w, c, o):
     return reflect_conv3x3(upsample_nearest2x(x), kernel, conv_general_dilated)
-  xe = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="edge")  # (B, h + 2, w + 2, C)
+  bordered = ring_form_pays(h, w)
+  if not bordered:
+    xe = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="edge")  # (B, h + 2, w + 2, C)
 
   def taps(k: jax.Array, phase: int) -> jax.Array:
     """The 3 taps of axis 0 of k folded into the 2 that phase `phase` reads."""
@@ -393,10 +426,18 @@ def upsample_reflect_conv3x3(x: jax.Array, kernel: jax.Array,
     cols = []
     for q in (0, 1):
       kab = jnp.moveaxis(taps(jnp.moveaxis(ka, 1, 0), q), 0, 1)  # (2, 2, C, O)
-      cols.append(_conv(xe[:, a:a + h + 1, q:q + w + 1], kab, ((0, 0), (0, 0)),
-                        conv_general_dilated))  # (B, h, w, O)
+      if bordered:  # phase a reads row -1 (a = 0, tap 0) or row h (a = 1, tap 1): edge rows
+        y = bordered_conv(x, kab, (PHASE_PADDING[a], PHASE_PADDING[q]),
+                          ((1, -a, -a, a), (2, -q, -q, q)), "edge", conv_general_dilated)
+      else:
+        y = _conv(xe[:, a:a + h + 1, q:q + w + 1], kab, ((0, 0), (0, 0)), conv_general_dilated)
+      cols.append(y)  # (B, h, w, O)
     rows.append(jnp.stack(cols, axis=3))  # (B, h, w, 2, O)
   return jnp.stack(rows, axis=2).reshape(b, 2 * h, 2 * w, o)  # interleave the phases
+
+
+# the padding of x that phase 0 (pixels i - 1, i) and phase 1 (i, i + 1) read along an axis
+PHASE_PADDING = ((1, 0), (0, 1))
 
 
 def _conv3x3_params(module: nn.Module, in_features: int, features: int
