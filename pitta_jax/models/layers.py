@@ -440,19 +440,9 @@ def upsample_reflect_conv3x3(x: jax.Array, kernel: jax.Array,
 PHASE_PADDING = ((1, 0), (0, 1))
 
 
-def _conv3x3_params(module: nn.Module, in_features: int, features: int
-                    ) -> tuple[jax.Array, jax.Array]:
-  """`nn.Conv(features, (3, 3))`'s parameters in `module`: `kernel` (3, 3, in_features,
-  features) and `bias` (features,), float32, with its initialisers."""
-  kernel = module.param("kernel", nn.initializers.lecun_normal(), (3, 3, in_features, features),
-                        jnp.float32)
-  bias = module.param("bias", nn.initializers.zeros_init(), (features,), jnp.float32)
-  return kernel, bias
-
-
-class ReflectConv3x3(nn.Module):
-  """MonoDepth2's `Conv3x3(use_refl=True)` with bias, (B, H, W, C) -> (B, H, W, features):
-  `reflect_conv3x3` with `nn.Conv(features, (3, 3))`'s parameters (checkpoints unchanged).
+class _Conv3x3Layer(nn.Module):
+  """A decoder layer with `nn.Conv(features, (3, 3))`'s parameters (`kernel` (3, 3, in,
+  features) and `bias`, float32, with its initialisers), so checkpoints are unchanged.
 
   Attributes:
     features: output channels.
@@ -462,37 +452,42 @@ class ReflectConv3x3(nn.Module):
   features: int
   conv: ModuleDef = Conv
 
+  def kernel_and_bias(self, in_features: int) -> tuple[jax.Array, jax.Array]:
+    """The parameters: kernel (3, 3, in_features, features), bias (features,)."""
+    kernel = self.param("kernel", nn.initializers.lecun_normal(),
+                        (3, 3, in_features, self.features), jnp.float32)
+    bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
+    return kernel, bias
+
+
+class ReflectConv3x3(_Conv3x3Layer):
+  """MonoDepth2's `Conv3x3(use_refl=True)` with bias, (B, H, W, C) -> (B, H, W, features):
+  `reflect_conv3x3` plus the bias."""
+
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    kernel, bias = _conv3x3_params(self, x.shape[-1], self.features)
+    kernel, bias = self.kernel_and_bias(x.shape[-1])
     # one dtype, as flax's Conv promotes (float32 weights on float64 features under x64)
     dtype = jnp.result_type(x, kernel)
     return reflect_conv3x3(x.astype(dtype), kernel.astype(dtype),
                            conv_function(self.conv)) + bias.astype(dtype)
 
 
-class UpConv3x3(nn.Module):
+class UpConv3x3(_Conv3x3Layer):
   """MonoDepth2's decoder layer `upconv_i_1` on its two inputs: `Conv3x3(use_refl=True)` with
   bias of concat([upsample_nearest2x(x), skip]).
 
-  x: (B, h, w, C), skip: (B, 2h, 2w, S) or None -> (B, 2h, 2w, features). Parameters as
-  `nn.Conv(features, (3, 3))` over the C + S concatenated channels (`kernel` (3, 3, C + S,
-  features), `bias`), so checkpoints are unchanged; the conv is split along its input channels:
-  `upsample_reflect_conv3x3` on x and `reflect_conv3x3` on the skip.
-
-  Attributes:
-    features: output channels.
-    conv: the network's conv module class (`Conv` or `flax.linen.Conv`), whose
-      `conv_general_dilated` is used.
+  x: (B, h, w, C), skip: (B, 2h, 2w, S) or None -> (B, 2h, 2w, features). The parameters are
+  those of the conv over the C + S concatenated channels (kernel (3, 3, C + S, features)); the
+  conv is split along its input channels: `upsample_reflect_conv3x3` on x and
+  `reflect_conv3x3` on the skip.
   """
-  features: int
-  conv: ModuleDef = Conv
 
   @nn.compact
   def __call__(self, x: jax.Array, skip: jax.Array | None = None) -> jax.Array:
     c = x.shape[-1]
     total = c + (0 if skip is None else skip.shape[-1])
-    kernel, bias = _conv3x3_params(self, total, self.features)
+    kernel, bias = self.kernel_and_bias(total)
     fn = conv_function(self.conv)
     # one dtype, as flax's Conv promotes (float32 weights on float64 features under x64)
     dtype = jnp.result_type(x, kernel, *(() if skip is None else (skip,)))
