@@ -5,7 +5,7 @@
   upstream MonoDepth2 cannot run an input whose 1/32 map is 1 pixel, e.g. 32 pixels wide);
 - `reflect_conv3x3` (the zero-padded conv corrected at the ring, or VALID) equals the VALID conv
   of the reflection-padded map, values and gradients, in both forms of the `ring_form_pays`
-  rule; `ReflectConv3x3` has `nn.Conv`'s parameter tree;
+  rule (forced on small maps); `ReflectConv3x3` has `nn.Conv`'s parameter tree;
 - `upsample_reflect_conv3x3` (four 2x2 phase convs at low resolution, or the direct form below
   `phase_form_pays`' threshold) and `UpConv3x3` equal the composition upstream writes (nearest
   2x upsampling with `np.repeat`, concatenation, reflection padding, VALID 3x3 conv, bias),
@@ -46,7 +46,8 @@ def test_reflect_conv3x3_is_the_valid_conv_of_the_padded_map(h, w, ring, monkeyp
   """Both forms (the ring form forced on small maps): value, input and kernel gradients
   against JAX's own autodiff of the VALID conv of NumPy's reflection padding, batch 2."""
   monkeypatch.setattr(layers, "RING_FORM_MAX_SHARE", 1e9 if ring else -1.0)
-  assert layers.ring_form_pays(h, w) == ring
+  monkeypatch.setattr(layers, "RING_FORM_MIN_ELEMENTS", 0)
+  assert layers.ring_form_pays(h, w, 8) == ring
   rng = np.random.default_rng(h * 1000 + w)
   x = jnp.asarray(rng.standard_normal((2, h, w, 8)).astype(np.float32))
   k = jnp.asarray(rng.standard_normal((3, 3, 8, 5)).astype(np.float32))
@@ -66,10 +67,39 @@ def test_reflect_conv3x3_is_the_valid_conv_of_the_padded_map(h, w, ring, monkeyp
     np.testing.assert_allclose(np.asarray(a), np.asarray(r), rtol=1e-5, atol=1e-4)
 
 
-def test_monodepth2_decoder_takes_the_ring_form_from_80x24():
-  """At 640x192 the decoder's maps from 80x24 up take the ring form, 40x12 and 20x6 not."""
-  assert [layers.ring_form_pays(192 >> s, 640 >> s) for s in range(6)] == \
-      [True, True, True, True, False, False]
+def test_ring_form_under_vmap_and_x64(monkeypatch):
+  """The ring form (forced) batched by vmap (as the engine's streams run it) and in float64:
+  values and input gradients against the VALID conv of np.pad's reflection."""
+  monkeypatch.setattr(layers, "RING_FORM_MIN_ELEMENTS", 0)
+  monkeypatch.setattr(layers, "RING_FORM_MAX_SHARE", 1e9)
+  rng = np.random.default_rng(11)
+  with jax.enable_x64(True):
+    x = jnp.asarray(rng.standard_normal((3, 1, 4, 6, 2)))                    # (streams, B, H, W, C)
+    k = jnp.asarray(rng.standard_normal((3, 3, 2, 3)))
+
+    def loss(f, x):
+      return jnp.sum(jnp.sin(f(x, k)))
+    ours = jax.jit(jax.vmap(jax.value_and_grad(
+        lambda x: loss(lambda x, k: layers.reflect_conv3x3(x, k), x))))(x)
+    ref = jax.vmap(jax.value_and_grad(lambda x: loss(lambda x, k: lax.conv_general_dilated(
+        jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="reflect"), k, (1, 1), "VALID",
+        dimension_numbers=NHWC), x)))(x)
+    for a, r in zip(ours, ref):
+      assert a.dtype == jnp.float64
+      np.testing.assert_allclose(np.asarray(a), np.asarray(r), rtol=1e-12, atol=1e-12)
+
+
+def test_monodepth2_decoder_takes_the_ring_form_on_its_largest_maps():
+  """At 640x192: upconv_0_0 (320x96, 32 features), upconv_1_1's skip (320x96, 64) and the heads
+  at 320x96 and 640x192 take the ring form; the other reflection-padded convs and every phase
+  of the upsample-then-convolve layers (x at most 320x96 with 16 features) do not."""
+  sizes = {"upconv_0_0": (96, 320, 32), "skip_1": (96, 320, 64), "dispconv_0": (192, 640, 16),
+           "dispconv_1": (96, 320, 32), "upconv_1_0": (48, 160, 64), "skip_2": (48, 160, 64),
+           "dispconv_2": (48, 160, 64), "upconv_2_0": (24, 80, 128), "skip_3": (24, 80, 128),
+           "upconv_3_0": (12, 40, 256), "skip_4": (12, 40, 256), "upconv_4_0": (6, 20, 512),
+           "phases_0": (96, 320, 16), "phases_1": (48, 160, 32)}
+  ring = {name for name, hwc in sizes.items() if layers.ring_form_pays(*hwc)}
+  assert ring == {"upconv_0_0", "skip_1", "dispconv_0", "dispconv_1"}
 
 
 def test_reflect_conv3x3_module_has_nn_conv_parameters():
@@ -107,8 +137,9 @@ def test_upconv_equals_upsample_concat_reflect_conv(h, w, skip_channels, phase_f
   padding's border as `bordered_conv` terms)."""
   monkeypatch.setattr(layers, "PHASE_FORM_MIN_MACS", 0 if phase_form else 2 ** 62)
   monkeypatch.setattr(layers, "RING_FORM_MAX_SHARE", 1e9 if bordered else -1.0)
+  monkeypatch.setattr(layers, "RING_FORM_MIN_ELEMENTS", 0)
   assert layers.phase_form_pays(h, w, 3, 4) == phase_form
-  assert layers.ring_form_pays(h, w) == bordered
+  assert layers.ring_form_pays(h, w, 3) == bordered
   rng = np.random.default_rng(h * 100 + w)
   c, o = 3, 4
   x = jnp.asarray(rng.standard_normal((2, h, w, c)).astype(np.float32))

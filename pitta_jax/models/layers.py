@@ -214,17 +214,29 @@ def upsample_nearest2x(x: jax.Array) -> jax.Array:
 
 
 # The border forms (`ring_form_pays`) where the padding's ring, 2H + 2W + 4 pixels, is at most
-# this share of the map's H W.
+# this share of the map's H W, and the map holds at least this many values per image.
 RING_FORM_MAX_SHARE = 0.15
+RING_FORM_MIN_ELEMENTS = 2 ** 19
 
 
-def ring_form_pays(height: int, width: int) -> bool:
-  """Whether a conv of an (H, W) map skips building its padded map (`bordered_conv`: the ring
-  form of `reflect_conv3x3`, the phases of `upsample_reflect_conv3x3`): when the padding's ring
-  adds at most `RING_FORM_MAX_SHARE` to the map's pixels, i.e. the border terms are small next to
-  the convolution. Below that (MonoDepth2's decoder at 40x12 and 20x6 for a 640x192 input) the
-  conv of the padded map was as fast or faster (`ring_reflect_conv3x3`)."""
-  return (height + 2) * (width + 2) <= (1 + RING_FORM_MAX_SHARE) * height * width
+def ring_form_pays(height: int, width: int, channels: int) -> bool:
+  """Whether a conv of an (H, W, C) map skips building its padded map (`bordered_conv`: the
+  ring form of `reflect_conv3x3`, the phases of `upsample_reflect_conv3x3`): when the padding's
+  ring adds at most `RING_FORM_MAX_SHARE` to the map's pixels and the map has at least
+  `RING_FORM_MIN_ELEMENTS` values.
+
+  Why both: the border terms are a fixed number of small kernels (about 20 more loop kernels
+  per layer, forward and backward, for XLA to compile) whose gain, the padding pass, grows with
+  the map. MonoDepth2's decoder at 640x192 (forward + input gradient, best ms; see
+  `ring_reflect_conv3x3`): 3-4 ms saved per layer on the 1-2 M-value maps at 320x96 and
+  640x192, 0.3-0.9 ms on the 0.25-0.5 M-value maps at 160x48 and 80x24, a loss on the small
+  maps at 40x12 and 20x6. The ring form everywhere it saved time made the PITTA step's
+  program 295 loop kernels larger (1014 -> 1309) and its compile 20-25% longer, as for the
+  other methods' steps (CoTTA 22.6 -> 27.5 s); from 2^19 values only the layers on the largest
+  maps take it (at 640x192: upconv_0_0, upconv_1_1's skip and the heads at 320x96 and 640x192).
+  """
+  return ((height + 2) * (width + 2) <= (1 + RING_FORM_MAX_SHARE) * height * width
+          and height * width * channels >= RING_FORM_MIN_ELEMENTS)
 
 
 def conv_function(module: ModuleDef) -> Callable:
@@ -247,7 +259,7 @@ def reflect_conv3x3(x: jax.Array, kernel: jax.Array,
   builds the padded map, forward or backward.
   """
   h, w = x.shape[1], x.shape[2]
-  if ring_form_pays(h, w):
+  if ring_form_pays(h, w, x.shape[3]):
     return ring_reflect_conv3x3(x, kernel, conv_general_dilated)
   return _conv(reflect_pad(x), kernel, ((0, 0), (0, 0)), conv_general_dilated)
 
@@ -412,7 +424,7 @@ def upsample_reflect_conv3x3(x: jax.Array, kernel: jax.Array,
   o = kernel.shape[-1]
   if not phase_form_pays(h, w, c, o):
     return reflect_conv3x3(upsample_nearest2x(x), kernel, conv_general_dilated)
-  bordered = ring_form_pays(h, w)
+  bordered = ring_form_pays(h, w, c)
   if not bordered:
     xe = jnp.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="edge")  # (B, h + 2, w + 2, C)
 
