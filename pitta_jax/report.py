@@ -87,10 +87,11 @@ def clear_earlier_results(out_dir: str | Path, patterns: Sequence[str] = (),
                           files: Sequence[str] = RESULT_FILES) -> list[str]:
   """Removes what an earlier run of the same command left in `out_dir`: its result `files`
   (default `RESULT_FILES`) and the files matching `patterns` (globs relative to `out_dir`, e.g.
-  the demo's figures), with one warning naming them. A run calls it once its inputs are checked and before its first step,
-  so that a run killed (or failing) on the way leaves no earlier results beside its own
-  checkpoints that could pass for its own, and a rerun with fewer shifts keeps no figures of
-  the others. No other file is touched. Returns the removed paths, relative to `out_dir`."""
+  the demo's figures), with one warning naming them. A run calls it once its inputs are checked
+  and before its first step, so that a run killed (or failing) on the way leaves no earlier
+  results beside its own checkpoints that could pass for its own, and a rerun with fewer shifts
+  keeps no figures of the others. No other file is touched. Returns the removed paths, relative
+  to `out_dir`."""
   out = Path(out_dir)
   found = [out / name for name in files if (out / name).is_file()]
   found += sorted(p for pattern in patterns for p in out.glob(pattern) if p.is_file())
