@@ -19,7 +19,9 @@ from typing import Callable, Iterator
 
 import flax.linen as nn
 import jax
+import jax.numpy as jnp
 import numpy as np
+from jax import lax
 
 from pitta_jax.adapt.engine import StepInput
 from pitta_jax.adapt.xla_cpu import conv_library_options
@@ -255,6 +257,77 @@ def per_image_kernel_grad(x: jax.Array, g: jax.Array, *conv_args) -> jax.Array:
   layers at batch >= 2 until 2026-12-05, kept for comparisons."""
   return sum(conv_vjp.kernel_grad_conv(x[i:i + 1], g[i:i + 1], *conv_args)
              for i in range(x.shape[0]))
+
+
+def _column_taps(x: jax.Array, kw: int, stride: int, dilation: int, padding, wo: int
+                 ) -> jax.Array:
+  """x (N, H, W, C) zero-padded, its kw column taps side by side: (N, Hp, Wo, kw C), where
+  [n, r, j, b C + c] = x_pad[n, r, j s + b d, c]: a kw times larger copy of the input."""
+  xp = lax.pad(x, jnp.zeros((), x.dtype),
+               ((0, 0, 0), *((lo, hi, 0) for lo, hi in padding), (0, 0, 0)))  # (N, Hp, Wp, C)
+  return jnp.concatenate(
+      [lax.slice_in_dim(xp, b * dilation, b * dilation + stride * (wo - 1) + 1, stride, axis=2)
+       for b in range(kw)], axis=3)                                     # (N, Hp, Wo, kw C)
+
+
+def kernel_grad_rows(x: jax.Array, g: jax.Array, kernel_size, strides, padding, rhs_dilation,
+                     precision=None) -> jax.Array:
+  """A convolution's kernel gradient (`conv_vjp._kernel_grad`'s arguments) as kh products, one
+  per kernel row a: the column taps (`_column_taps`) read at row offset a with the row stride,
+  (N, Ho, Wo, kw C), contracted with g over (N, Ho, Wo) -> (kw C, O). Each row's view is a
+  (strided) copy of the column taps. Tried in the model on 2026-12-06, not kept (README)."""
+  kh, kw = kernel_size
+  n, ho, wo, o = g.shape
+  cols = _column_taps(x, kw, strides[1], rhs_dilation[1], padding, wo)  # (N, Hp, Wo, kw C)
+  dh, sh = rhs_dilation[0], strides[0]
+  dk = [lax.dot_general(lax.slice_in_dim(cols, a * dh, a * dh + sh * (ho - 1) + 1, sh, axis=1),
+                        g, (((0, 1, 2), (0, 1, 2)), ((), ())), precision=precision)
+        for a in range(kh)]                                             # kh x (kw C, O)
+  return jnp.stack(dk).reshape(kh, kw, x.shape[3], o)
+
+
+def kernel_grad_stacked(x: jax.Array, g: jax.Array, kernel_size, strides, padding,
+                        rhs_dilation, precision=None) -> jax.Array:
+  """The kernel gradient of a convolution with row stride 1 as one product: the column taps
+  (`_column_taps`, (N, Hp, Wo, kw C)) with g shifted down by each row tap's offset a d and
+  zero-filled to Hp rows, the kh shifts side by side ((N, Hp, Wo, kh O)), contracted over
+  (N, Hp, Wo) -> (kw C, kh O): no copy per row as in `kernel_grad_rows`, a kh times larger copy
+  of g instead. Tried in the model on 2026-12-06, not kept (README)."""
+  kh, kw = kernel_size
+  n, ho, wo, o = g.shape
+  if strides[0] != 1:
+    raise ValueError(f"kernel_grad_stacked takes a row stride of 1, not {strides[0]}")
+  cols = _column_taps(x, kw, strides[1], rhs_dilation[1], padding, wo)  # (N, Hp, Wo, kw C)
+  hp, dh = cols.shape[1], rhs_dilation[0]
+  shifted = jnp.concatenate(
+      [lax.pad(g, jnp.zeros((), g.dtype),
+               ((0, 0, 0), (a * dh, hp - ho - a * dh, 0), (0, 0, 0), (0, 0, 0)))
+       for a in range(kh)], axis=3)                                     # (N, Hp, Wo, kh O)
+  dk = lax.dot_general(cols, shifted, (((0, 1, 2), (0, 1, 2)), ((), ())),
+                       precision=precision)                             # (kw C, kh O)
+  return jnp.transpose(dk.reshape(kw, x.shape[3], kh, o), (2, 0, 1, 3))
+
+
+# both sides' features from which `row_tap_kernel_grads` takes the row-tap forms
+ROW_TAPS_MIN_FEATURES = 64
+# the model's choice, held here: `step.JaxImpl` swaps `conv_vjp._kernel_grad` for
+# `row_tap_kernel_grads` while tracing, which falls back to this
+_MODEL_KERNEL_GRAD = conv_vjp._kernel_grad
+
+
+def row_tap_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation, precision):
+  """The rule tried in `conv_vjp._kernel_grad` on 2026-12-06 (`step.py --compare-row-taps`):
+  with >= `ROW_TAPS_MIN_FEATURES` features on both sides, a strided or 1x1 convolution's kernel
+  gradient as `kernel_grad_rows` and a zero-padded single image's as `kernel_grad_stacked`;
+  otherwise the model's forms (ResNet's stages get the row-tap forms, the decoders keep the
+  convolution form)."""
+  args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
+  if min(x.shape[3], g.shape[3]) >= ROW_TAPS_MIN_FEATURES:
+    if strides != (1, 1) or kernel_size == (1, 1):
+      return kernel_grad_rows(*args)
+    if x.shape[0] == 1 and any(p for pair in padding for p in pair):
+      return kernel_grad_stacked(*args)
+  return _MODEL_KERNEL_GRAD(*args)
 
 
 def add_per_layer_args(parser: argparse.ArgumentParser, layers, forms, libraries, *,

@@ -19,6 +19,10 @@ ReLU in the loop as in a network:
   (`conv_vjp.kernel_grad_patches`);
 - `per_image`: `conv` for each image, summed (what `conv_vjp` used for the decoder's wide,
   shallow layers at batch >= 2 until 2026-12-05);
+- `rows`: kh products, one per kernel row, of the input's kw column taps side by side read at
+  that row, (kw C, N Ho Wo) @ (N Ho Wo, O) (`bench_common.kernel_grad_rows`);
+- `stacked`: one product of the column taps with the cotangent shifted to each kernel row,
+  (kw C, N Hp Wo) @ (N Hp Wo, kh O) (`bench_common.kernel_grad_stacked`; `rows` where strided);
 - `torch`: `torch.ops.aten.convolution_backward` with only the weight gradient asked (NCHW, as
   a PyTorch user runs it; oneDNN), same threads.
 `--libraries` compiles every JAX form once per XLA:CPU convolution library (`form@library`):
@@ -54,7 +58,15 @@ LAYERS = {
     "conv1": (192, 640, 3, 64, 7, 2, 3),            # depth encoder, the image
     "pose_conv1": (192, 640, 6, 64, 7, 2, 3),       # pose encoder, two stacked images
     "layer1": (48, 160, 64, 64, 3, 1, 1),
+    "layer2_s2": (48, 160, 64, 128, 3, 2, 1),       # each stage's first, strided conv
+    "layer2_ds": (48, 160, 64, 128, 1, 2, 0),       # and its 1x1 strided shortcut
+    "layer2": (24, 80, 128, 128, 3, 1, 1),
+    "layer3_s2": (24, 80, 128, 256, 3, 2, 1),
     "layer3": (12, 40, 256, 256, 3, 1, 1),
+    "layer4_s2": (12, 40, 256, 512, 3, 2, 1),
+    "layer4": (6, 20, 512, 512, 3, 1, 1),
+    "upconv_4_1": (14, 42, 512, 256, 3, 1, 0),
+    "upconv_2_1": (50, 162, 128, 64, 3, 1, 0),
     "upconv_1_1": (98, 322, 96, 32, 3, 1, 0),
     "upconv_0_0": (98, 322, 32, 16, 3, 1, 0),
     "upconv_0_1": (194, 642, 16, 16, 3, 1, 0),
@@ -77,8 +89,18 @@ def _model_form(x, g, k, s, p):
   return conv_vjp._kernel_grad(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1), None)
 
 
+def _rows_form(x, g, k, s, p):
+  return bc.kernel_grad_rows(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
+
+
+def _stacked_form(x, g, k, s, p):
+  if s != 1:  # the rows' products where the rows are strided (`bc.row_tap_kernel_grads`)
+    return _rows_form(x, g, k, s, p)
+  return bc.kernel_grad_stacked(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
+
+
 FORMS = {"model": _model_form, "conv": _conv_form, "patches": _patches_form,
-         "per_image": _per_image_form}
+         "per_image": _per_image_form, "rows": _rows_form, "stacked": _stacked_form}
 
 # XLA:CPU's oneDNN switches (flags of jaxlib 0.10's XLA; they act only where XLA was built with
 # oneDNN, i.e. with INTEL_MKL)

@@ -91,7 +91,8 @@ def batched_forms_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation
   return conv_vjp.kernel_grad_conv(*args)
 
 
-KERNEL_GRAD_CHOICES = {"model": None, "batched": batched_forms_kernel_grads}
+KERNEL_GRAD_CHOICES = {"model": None, "batched": batched_forms_kernel_grads,
+                       "rows": bc.row_tap_kernel_grads}
 
 
 class JaxImpl:
@@ -447,13 +448,19 @@ def main(argv=None) -> None:
                       "(models.conv_vjp), and XLA's default library with the batched forms "
                       "conv_vjp used until 2026-12-05 (patches products and per-image "
                       "convolutions at batch >= 2)")
+  p.add_argument("--compare-row-taps", action="store_true",
+                 help="also time the method's JAX step four ways, interleaved: XLA's default "
+                      "library and Eigen's, each with the model's kernel-gradient forms "
+                      "(models.conv_vjp) and with products of row taps for ResNet's stages "
+                      "(bench_common.row_tap_kernel_grads, tried 2026-12-06)")
   p.add_argument("--compare-torch-optimizers", action="store_true",
                  help="also time the method's PyTorch eager step with fused optimiser kernels "
                       "(the references' default) and with PyTorch's default for-loop ones, "
                       "interleaved, and print the ratio")
   p.add_argument("--compare-only", action="store_true",
                  help="with --compare-conv-rule/--compare-conv-library/--compare-kernel-grads/"
-                      "--compare-torch-optimizers: skip the JAX vs PyTorch timing")
+                      "--compare-row-taps/--compare-torch-optimizers: skip the JAX vs PyTorch "
+                      "timing")
   args = p.parse_args(argv)
   if args.frames is None:
     args.frames = DEFAULT_FRAMES.get(args.method, 8)
@@ -497,6 +504,11 @@ def main(argv=None) -> None:
         "default+model": {"conv_library": "default"},
         "eigen+model": {"conv_library": "eigen"}},
         "XLA:CPU convolution library and kernel-gradient forms", variables, args, common)
+  if args.compare_row_taps:
+    compare_jax(args.method, {
+        f"{lib}+{grads}": {"conv_library": lib, "kernel_grads": grads}
+        for lib in ("default", "eigen") for grads in ("model", "rows")},
+        "kernel gradients: row-tap products or the convolution form", variables, args, common)
   if args.compare_torch_optimizers:
     compare_torch_optimizers(args.method, variables, args, common)
   if args.profile and args.method == "pitta":
