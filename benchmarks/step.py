@@ -62,7 +62,7 @@ from pitta_jax import trainable as trainable_lib  # noqa: E402
 from pitta_jax.adapt import (AdaptConfig, StepInput, init_state,  # noqa: E402
                              make_method_runner, make_optimizer, make_step)
 from pitta_jax.adapt.xla_cpu import CONV_LIBRARIES, step_compiler_options  # noqa: E402
-from pitta_jax.methods import METHODS, build  # noqa: E402
+from pitta_jax.methods import METHODS, adadepth, build  # noqa: E402
 from pitta_jax.methods.actmad import RESOURCE as ACTMAD_STATS  # noqa: E402
 from pitta_jax.methods.depth_refining import frame_loss  # noqa: E402
 from pitta_jax.models import conv_vjp  # noqa: E402
@@ -174,6 +174,8 @@ def torch_impl(impl: str, method: str, configs, resources: dict, height_width: t
     extra["source_stats"] = {
         name: tuple(torch.from_numpy(np.ascontiguousarray(np.moveaxis(np.asarray(a), -1, 0)))
                     for a in stats[tr.jax_bn_path(name)]) for name, _ in tr.encoder_bns(enc)}
+  if method == "adadepth":  # the factor to metres the JAX step takes
+    extra["depth_scale"] = adadepth.depth_scale(configs[1], resources)
   if method in tr.NEEDS_POSE:  # a random pose net, KITTI's K, consecutive source frames
     h, w = height_width
     extra.update(pose=tr.build_pose(), K=bc.intrinsics_matrix(h, w), height=h, width=w)

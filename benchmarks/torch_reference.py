@@ -402,7 +402,9 @@ class TorchAdadepth:
   teacher E (`augment_pseudo`), + L_d; E follows S; the reported depth is S's after its step."""
 
   def __init__(self, encoder, decoder, pose_encoder, pose_decoder, K, height, width, config,
-               fused: bool = FUSED_OPTIMIZERS):
+               depth_scale: float = 1.0, fused: bool = FUSED_OPTIMIZERS):
+    """depth_scale: the factor from the network's depth to metres, the JAX step's
+    (`methods.adadepth.depth_scale`: `config.depth_scale`, else the weights', else 1)."""
     self.s = {"encoder": encoder, "depth": decoder}
     self.ref = copy.deepcopy(self.s)
     self.ema = copy.deepcopy(self.s)
@@ -410,7 +412,7 @@ class TorchAdadepth:
     for m in (*self.s.values(), *self.ref.values(), *self.ema.values(), *self.u.values(),
               pose_encoder, pose_decoder):
       m.eval()
-    self.cfg = config
+    self.cfg, self.scale = config, depth_scale
     self.opt_s = torch.optim.Adam([p for m in self.s.values() for p in m.parameters()], config.lr,
                                   fused=fused)
     self.opt_u = torch.optim.Adam([p for m in (*self.u.values(), pose_encoder, pose_decoder)
@@ -452,10 +454,10 @@ class TorchAdadepth:
     c = self.cfg
     depth = self.depth(self.s, image)
     with torch.no_grad():
-      p_s, p_u = self.pseudo(c.depth_scale * self.depth(self.ref, image),
-                             c.depth_scale * self.depth(self.u, image),
-                             c.depth_scale * self.depth(self.ema, image))
-    loss = (self.silog(c.depth_scale * depth, p_s) + self.silog(c.depth_scale * depth, p_u)
+      p_s, p_u = self.pseudo(self.scale * self.depth(self.ref, image),
+                             self.scale * self.depth(self.u, image),
+                             self.scale * self.depth(self.ema, image))
+    loss = (self.silog(self.scale * depth, p_s) + self.silog(self.scale * depth, p_u)
             + c.ld_weight * depth_refining(depth[0, 0], instance_masks(panoptic, segments),
                                            c.ld.window))
     self.opt_s.zero_grad(set_to_none=True)
@@ -498,8 +500,8 @@ TORCH_STEPS = {
     fused=FUSED_OPTIMIZERS, **_: TorchComoda(enc, dec, *pose, K, replay_pairs, config,
                                              fused=fused),
     "adadepth": lambda enc, dec, config, pose=None, K=None, height=None, width=None,
-    fused=FUSED_OPTIMIZERS, **_: TorchAdadepth(enc, dec, *pose, K, height, width, config,
-                                               fused=fused),
+    depth_scale=1.0, fused=FUSED_OPTIMIZERS, **_: TorchAdadepth(
+        enc, dec, *pose, K, height, width, config, depth_scale, fused=fused),
 }
 
 # the methods whose PyTorch step also needs a pose network, K and (CoMoDa) source pairs
