@@ -7,7 +7,8 @@
 Runs the engine's compiled chunk (`make_chunk_runner`) after warm-up under `jax.profiler`, reads
 the trace's per-operation times, and sorts every compiled operation into a part of the step by
 the JAX call site XLA keeps in its metadata:
-- network forward / network backward (`jvp(DepthNet)` / `transpose(jvp(DepthNet))`), split into
+- network forward / network backward (`jvp(DepthNet)` / `transpose(jvp(DepthNet))`, and the
+  same for `PoseNet`, the pose network of CoMoDa and Ada-Depth), split into
   convolutions, kernel transposes (the input-gradient kernels of `models.conv_vjp`) and the rest
   (BatchNorm, ReLU/ELU, pads, upsampling, concatenations);
 - everything else: masks, median filter, edges, losses, optimiser update, loop bookkeeping.
@@ -60,10 +61,15 @@ def call_sites(hlo_text: str) -> dict[str, str]:
   return sites
 
 
+# the networks' top-level Flax modules, as call sites name them (a method's depth network and
+# the pose network of CoMoDa's and Ada-Depth's self-supervised losses)
+NETWORKS = ("DepthNet", "PoseNet")
+
+
 def part_of(name: str, site: str) -> str:
   if site and "/while/" not in site:
     return "outside the scan (once per chunk: hoisted constants, chunk in/out)"
-  if "DepthNet" in site:
+  if any(net in site for net in NETWORKS):
     phase = "network backward" if "transpose(" in site else "network forward"
     if name.startswith(("ynn_fusion", "conv_general_dilated", "convolution")):
       return f"{phase}: convolutions"
