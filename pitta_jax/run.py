@@ -31,6 +31,7 @@ from pitta_jax.methods import Method, build as build_method
 from pitta_jax.methods.base import INPUT_SIZE, METRIC_FACTOR
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame, aspect_mismatch
+from pitta_jax.data.sequence import FrameSequence
 from pitta_jax.outputs import remove_stale_temps
 
 
@@ -499,6 +500,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   elif cfg.method != method.name:  # the run, its progress bar and its records name what runs
     cfg = dataclasses.replace(cfg, method=method.name)
   check_needs(method, frames, f"sequence {name!r}" if name else "the sequence")  # before compiling
+  if isinstance(frames, FrameSequence):
+    frames.check_files()  # a missing or cut-short file found now, not when the run reaches it
   cfg = dataclasses.replace(cfg, chunk_size=checkpoint_chunk_size(cfg.chunk_size,
                                                                   checkpoint_every))
   h, w = input_size(weights, frames)

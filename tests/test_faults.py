@@ -506,6 +506,65 @@ def test_method_requirements_are_checked_before_work(tmp_path, capsys):
     assert time.time() - t0 < 5 and not (tmp_path / method).exists()
 
 
+def _png_sequence(directory, n: int) -> list:
+  """n 64x96 PNG frames 000.png.. written with OpenCV (smooth, distinct)."""
+  import cv2
+  directory.mkdir(parents=True)
+  paths = []
+  for k in range(n):
+    ramp = np.linspace(0, 255, W, dtype=np.float32)[None, :, None]
+    image = np.broadcast_to(ramp, (H, W, 3)) * (0.5 + 0.1 * k)
+    paths.append(directory / f"{k:03d}.png")
+    assert cv2.imwrite(str(paths[-1]), np.clip(image, 0, 255).astype(np.uint8))
+  return paths
+
+
+@pytest.mark.parametrize("damage", ["cut short", "empty"])
+def test_a_damaged_frame_deep_in_a_folder_stops_the_run_before_any_work(tiny_weights, tmp_path,
+                                                                       capsys, damage):
+  """A PNG cut short (its IEND chunk lost, as a copy interrupted part-way leaves it) or an
+  empty file at frame 5 of 6 is reported before the run starts: an earlier run's results in
+  --out, which a starting run removes, are still there. The line is the one reading that frame
+  gives (`decode_file`'s)."""
+  paths = _png_sequence(tmp_path / "seq", 6)
+  data = paths[4].read_bytes()
+  paths[4].write_bytes(data[:len(data) // 2] if damage == "cut short" else b"")
+  out = tmp_path / "out"
+  out.mkdir()
+  (out / "results.json").write_text("{}")  # an earlier run's
+  rc = main(["adapt", "--dataset", "folder", "--root", str(tmp_path / "seq"), "--weights",
+             str(tiny_weights), "--method", "none", "--out", str(out), "--quiet"])
+  err = capsys.readouterr().err
+  reason = "a PNG file cut short: no IEND chunk" if damage == "cut short" else \
+      "not a PNG/JPEG file, or truncated"
+  assert rc == 2 and err.count("error") == 1
+  assert err.splitlines()[-1] == f"error: {paths[4]}: cannot decode image ({reason})"
+  assert (out / "results.json").read_text() == "{}"  # the run did not start
+  # the same message as when the frame is read
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.image_io import read_image
+  with pytest.raises(DataError) as info:
+    read_image(paths[4])
+  assert f"error: {info.value}" == err.splitlines()[-1]
+  if damage == "empty":  # the file replaced: the same command runs through
+    paths[4].write_bytes(data)
+    assert main(["adapt", "--dataset", "folder", "--root", str(tmp_path / "seq"), "--weights",
+                 str(tiny_weights), "--method", "none", "--out", str(out), "--quiet"]) == 0
+    assert len(json.loads((out / "results.json").read_text())["logs"]["loss"]) == 6
+
+
+def test_a_png_with_data_after_its_iend_chunk_is_not_damaged(tmp_path):
+  """IEND need not end the file (some writers append data): the check reads the whole file
+  then, and takes it, as decoding does."""
+  from pitta_jax.data.image_io import check_image_file, read_image
+  from pitta_jax.data.readers import open_dataset
+  path = _png_sequence(tmp_path / "seq", 2)[1]
+  path.write_bytes(path.read_bytes() + b"trailing bytes after IEND")
+  assert check_image_file(path) == path
+  assert read_image(path).shape == (H, W, 3)
+  open_dataset("folder", tmp_path / "seq").check_files()  # no error
+
+
 def test_a_binary_split_file_and_a_bad_network_field_name_their_file(tmp_path):
   from pitta_jax.checkpoint import WeightsError, read_model_json
   from pitta_jax.data.errors import DataError

@@ -53,16 +53,51 @@ def decode_file(path: Path, what: str) -> np.ndarray:
     data = np.fromfile(path, np.uint8)
   except OSError as e:
     raise DataError(path, f"cannot read {what} ({e.strerror or e})") from None
-  if data[:8].tobytes() == PNG_SIGNATURE and data[-12:].tobytes().find(b"IEND") < 0 \
-      and data.tobytes().rfind(b"IEND") < 0:  # libpng would print its own line first
-    raise DataError(path, f"cannot decode {what} (a PNG file cut short: no IEND chunk)")
+  if _png_cut_short(data[:8].tobytes(), data[-12:].tobytes(), data.tobytes):
+    raise DataError(path, _cut_short(what))  # (libpng would print its own line first)
   array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
   if array is None:
-    raise DataError(path, f"cannot decode {what} (not a PNG/JPEG file, or truncated)")
+    raise DataError(path, _undecodable(what))
   return array
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _cut_short(what: str) -> str:
+  return f"cannot decode {what} (a PNG file cut short: no IEND chunk)"
+
+
+def _undecodable(what: str) -> str:
+  return f"cannot decode {what} (not a PNG/JPEG file, or truncated)"
+
+
+def _png_cut_short(head: bytes, tail: bytes, whole: Callable[[], bytes]) -> bool:
+  """Whether a file starting with `head` (8 bytes) and ending with `tail` (its last 12) is a
+  PNG without its IEND chunk; `whole()` gives all its bytes, read only when IEND is not at the
+  end (a PNG may carry data after it)."""
+  return head[:8] == PNG_SIGNATURE and tail.find(b"IEND") < 0 and whole().rfind(b"IEND") < 0
+
+
+def check_image_file(path: PathLike, what: str = "image") -> Path:
+  """`path`, checked without decoding for the damage `decode_file` would report when the file
+  is read: missing, not a file, empty, or a PNG cut short (no IEND chunk). Reads 20 bytes of a
+  sound file, so that a long sequence can be checked before any work. DataError (the message
+  `decode_file` gives) otherwise; damage only a decoder sees still shows when it is read."""
+  path = require_file(path, what)
+  try:
+    with open(path, "rb") as f:
+      head = f.read(8)
+      size = f.seek(0, os.SEEK_END)
+      f.seek(max(size - 12, 0))
+      tail = f.read(12)
+  except OSError as e:
+    raise DataError(path, f"cannot read {what} ({e.strerror or e})") from None
+  if size == 0:
+    raise DataError(path, _undecodable(what))
+  if _png_cut_short(head, tail, path.read_bytes):
+    raise DataError(path, _cut_short(what))
+  return path
 
 
 def encode_bytes(path: PathLike, array: np.ndarray, what: str = "file") -> bytes:
@@ -92,7 +127,6 @@ def _imread(path: PathLike, what: str) -> np.ndarray:
   return decode_file(require_file(path, what), what)
 
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 PNG_GRAY_ALPHA = 4  # IHDR colour type of a grayscale + alpha PNG
 
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame
-from pitta_jax.data.image_io import read_image
+from pitta_jax.data.image_io import check_image_file, read_image
 from pitta_jax.data.panoptic_io import PanopticRef
 
 
@@ -155,6 +155,15 @@ class FrameSequence(Sequence[Frame]):
   def __iter__(self) -> Iterator[Frame]:
     for k in range(len(self)):
       yield self[k]
+
+  def check_files(self) -> None:
+    """Every frame's image and panoptic PNG checked without decoding them
+    (`image_io.check_image_file`: missing, empty, or a PNG cut short), so that a run finds such
+    a file before any work rather than when it reaches the frame. DataError naming the first."""
+    for f in self.files:
+      check_image_file(f.image, "image")
+      if f.panoptic is not None:
+        check_image_file(f.panoptic.png, "panoptic PNG")
 
   @property
   def names(self) -> tuple[str, ...]:
