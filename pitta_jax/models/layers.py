@@ -275,10 +275,15 @@ def _index(i: int, n: int) -> int:
   return i % n
 
 
+def _strip(a: jax.Array, axis: int, index: int) -> jax.Array:
+  """a's one-pixel strip at `index` (negative: from the end) along `axis` (1 or 2)."""
+  i = _index(index, a.shape[axis])
+  return lax.slice_in_dim(a, i, i + 1, axis=axis)
+
+
 def _border_strips(x: jax.Array, borders: tuple[Border, ...]) -> tuple[jax.Array, ...]:
   """The strips of x the border terms read: (B, 1, W, C) rows, (B, H, 1, C) columns."""
-  return tuple(lax.slice_in_dim(x, _index(src, x.shape[ax]), _index(src, x.shape[ax]) + 1,
-                                axis=ax) for ax, src, _, _ in borders)
+  return tuple(_strip(x, ax, src) for ax, src, _, _ in borders)
 
 
 def _border_terms(strips: tuple[jax.Array, ...], kernel: jax.Array, padding: conv_vjp.Pairs,
@@ -344,8 +349,7 @@ def _bordered_bwd(padding, borders, mode, conv_general_dilated, residuals, g):
   added in place; kernel gradients dropped by XLA where the kernel is not differentiated)."""
   x, kernel = residuals
   dx, dk = jax.vjp(lambda x, k: _conv(x, k, padding, conv_general_dilated), x, kernel)[1](g)
-  g_terms = tuple(lax.slice_in_dim(g, _index(out, g.shape[ax]), _index(out, g.shape[ax]) + 1,
-                                   axis=ax) for ax, _, out, _ in borders)
+  g_terms = tuple(_strip(g, ax, out) for ax, _, out, _ in borders)
   d_strips, dk_terms = jax.vjp(
       lambda s, k: _border_terms(s, k, padding, borders, mode, conv_general_dilated),
       _border_strips(x, borders), kernel)[1](g_terms)
@@ -464,12 +468,18 @@ class _Conv3x3Layer(nn.Module):
   features: int
   conv: ModuleDef = Conv
 
-  def kernel_and_bias(self, in_features: int) -> tuple[jax.Array, jax.Array]:
-    """The parameters: kernel (3, 3, in_features, features), bias (features,)."""
+  def promoted(self, *inputs: jax.Array | None
+               ) -> tuple[tuple[jax.Array | None, ...], jax.Array, jax.Array]:
+    """The inputs (None: absent) and the parameters, kernel (3, 3, the inputs' channels
+    together, features) and bias (features,), all in one dtype, as flax's Conv promotes
+    (float32 weights on float64 features under x64)."""
+    present = [a for a in inputs if a is not None]
     kernel = self.param("kernel", nn.initializers.lecun_normal(),
-                        (3, 3, in_features, self.features), jnp.float32)
+                        (3, 3, sum(a.shape[-1] for a in present), self.features), jnp.float32)
     bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
-    return kernel, bias
+    dtype = jnp.result_type(*present, kernel)
+    return (tuple(None if a is None else a.astype(dtype) for a in inputs),
+            kernel.astype(dtype), bias.astype(dtype))
 
 
 class ReflectConv3x3(_Conv3x3Layer):
@@ -478,11 +488,8 @@ class ReflectConv3x3(_Conv3x3Layer):
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    kernel, bias = self.kernel_and_bias(x.shape[-1])
-    # one dtype, as flax's Conv promotes (float32 weights on float64 features under x64)
-    dtype = jnp.result_type(x, kernel)
-    return reflect_conv3x3(x.astype(dtype), kernel.astype(dtype),
-                           conv_function(self.conv)) + bias.astype(dtype)
+    (x,), kernel, bias = self.promoted(x)
+    return reflect_conv3x3(x, kernel, conv_function(self.conv)) + bias
 
 
 class UpConv3x3(_Conv3x3Layer):
@@ -498,13 +505,8 @@ class UpConv3x3(_Conv3x3Layer):
   @nn.compact
   def __call__(self, x: jax.Array, skip: jax.Array | None = None) -> jax.Array:
     c = x.shape[-1]
-    total = c + (0 if skip is None else skip.shape[-1])
-    kernel, bias = self.kernel_and_bias(total)
+    (x, skip), kernel, bias = self.promoted(x, skip)
     fn = conv_function(self.conv)
-    # one dtype, as flax's Conv promotes (float32 weights on float64 features under x64)
-    dtype = jnp.result_type(x, kernel, *(() if skip is None else (skip,)))
-    x, kernel, bias = x.astype(dtype), kernel.astype(dtype), bias.astype(dtype)
-    skip = None if skip is None else skip.astype(dtype)
     y = upsample_reflect_conv3x3(x, kernel[:, :, :c], fn)
     if skip is not None:
       y = y + reflect_conv3x3(skip, kernel[:, :, c:], fn)
