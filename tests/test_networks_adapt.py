@@ -8,6 +8,7 @@ selected leaves. Random weights at the smallest input each network accepts.
 
 from __future__ import annotations
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,7 +21,8 @@ from pitta_jax.methods import build
 from pitta_jax.methods.depth_refining import DepthRefiningConfig
 from pitta_jax.methods.pitta import PittaConfig
 from pitta_jax.models.random_init import init_variables
-from pitta_jax.models.registry import MODELS, network
+from pitta_jax.models.registry import MODELS, Network, network
+from pitta_jax.models.spec import ModelSpec
 
 import adapt_frames
 from xla_options import QUICK_COMPILE
@@ -124,3 +126,81 @@ def test_pitta_and_none_run_on_other_networks(name):
   np.testing.assert_allclose(inv(depths["none"]), inv(ref), rtol=1e-5, atol=tol)
   # predict-then-adapt: PITTA's first frame is the unadapted network
   np.testing.assert_allclose(inv(depths["pitta"][0]), inv(ref[0]), rtol=1e-5, atol=tol)
+
+
+class _FlaxBnEncoder(nn.Module):
+  """conv 3x3 -> flax.linen.BatchNorm -> ReLU: a user's own Flax layers, not `layers.BatchNorm`."""
+
+  @nn.compact
+  def __call__(self, x: jax.Array, train: bool) -> jax.Array:
+    x = nn.Conv(8, (3, 3), padding=((1, 1), (1, 1)), use_bias=False, name="conv1")(x)
+    return nn.relu(nn.BatchNorm(use_running_average=not train, momentum=0.9, epsilon=1e-5,
+                                name="bn1")(x))
+
+
+class _FlaxBnNet(nn.Module):
+  @nn.compact
+  def __call__(self, images: jax.Array, train: bool = False) -> tuple[jax.Array]:
+    return (nn.sigmoid(nn.Conv(1, (1, 1), name="head")(_FlaxBnEncoder(name="encoder")(images,
+                                                                                      train))),)
+
+
+def _torch_flax_bn_net(variables, images: np.ndarray, train: bool) -> np.ndarray:
+  """`_FlaxBnNet` as a PyTorch user writes it (Conv2d, BatchNorm2d in train or eval mode)."""
+  import torch
+  p, s = variables["params"], variables["batch_stats"]["encoder"]["bn1"]
+  t = lambda a: torch.tensor(np.asarray(a, np.float32))
+  conv1 = torch.nn.Conv2d(3, 8, 3, padding=1, bias=False)
+  bn = torch.nn.BatchNorm2d(8, eps=1e-5, momentum=0.1)
+  head = torch.nn.Conv2d(8, 1, 1)
+  with torch.no_grad():
+    conv1.weight.copy_(t(p["encoder"]["conv1"]["kernel"]).permute(3, 2, 0, 1))
+    bn.weight.copy_(t(p["encoder"]["bn1"]["scale"]))
+    bn.bias.copy_(t(p["encoder"]["bn1"]["bias"]))
+    bn.running_mean.copy_(t(s["mean"]))
+    bn.running_var.copy_(t(s["var"]))
+    head.weight.copy_(t(p["head"]["kernel"]).permute(3, 2, 0, 1))
+    head.bias.copy_(t(p["head"]["bias"]))
+    net = torch.nn.Sequential(conv1, bn, torch.nn.ReLU(), head, torch.nn.Sigmoid())
+    net.train(train)
+    out = net(t(images).permute(0, 3, 1, 2))
+  return out.permute(0, 2, 3, 1).numpy()
+
+
+def test_a_flax_linen_batchnorm_network_adapts_with_batch_statistics():
+  """A network built on flax.linen.BatchNorm runs under bn_stats='batch' (PITTA's default):
+  its disparities are PyTorch's train-mode ones (the frame's statistics), PITTA moves its
+  encoder BN scale/bias, and its running statistics stay as they were."""
+  net = Network(ModelSpec(name="flax_bn", build=lambda config: _FlaxBnNet(),
+                          output="sigmoid_disparity", size_multiple=1, default_size=(64, 96)),
+                _FlaxBnNet())
+  variables = net.module.init(jax.random.PRNGKey(0), jnp.zeros((1, 64, 96, 3)))
+  rng = np.random.default_rng(0)
+  variables = {"params": variables["params"],
+               "batch_stats": {"encoder": {"bn1": {"mean": rng.normal(size=8).astype(np.float32),
+                                                   "var": rng.uniform(0.5, 2, 8).astype(np.float32)}}}}
+  frames = _frames(64, 96)
+  for train in (True, False):
+    got = np.asarray(jax.jit(lambda v, x, train=train: net.outputs(v, x, train)[0])(
+        variables, frames.image))
+    np.testing.assert_allclose(got, _torch_flax_bn_net(variables, frames.image, train),
+                               rtol=1e-5, atol=1e-6)
+  _, acts = net.capture(variables, frames.image[:1], True, r"encoder/bn1")
+  assert acts["encoder/bn1"].shape == (1, 64, 96, 8)
+
+  cfg = AdaptConfig(chunk_size=2, lr=1e-2)
+  assert cfg.bn_stats == "batch" and cfg.selector == "encoder_bn"
+  method = build("pitta", PittaConfig(ld=DepthRefiningConfig(max_instances=4, window=3)))
+  tx = make_optimizer(cfg)
+  state, consts = init_state(variables, method, cfg, tx, net)
+  runner = make_chunk_runner(make_step(net, method, cfg, tx), QUICK_COMPILE)
+  (state, out), = adapt_stream(state, consts, [frames], runner)
+  assert np.isfinite(out.loss).all() and not np.any(out.skipped)
+  assert sorted(flatten_dict(state.trainable, sep="/")) == ["encoder/bn1/bias", "encoder/bn1/scale"]
+  assert not np.array_equal(np.asarray(state.trainable["encoder"]["bn1"]["scale"]),
+                            np.asarray(variables["params"]["encoder"]["bn1"]["scale"]))
+  # predict-then-adapt: the first frame's depth is the unadapted network's, batch statistics
+  want = net.spec.to_depth(_torch_flax_bn_net(variables, frames.image[:1], True)[0, ..., 0])
+  np.testing.assert_allclose(np.asarray(out.depth[0]), np.asarray(want), rtol=1e-5)
+  for k, v in flatten_dict(consts.batch_stats, sep="/").items():
+    np.testing.assert_array_equal(np.asarray(v), flatten_dict(variables["batch_stats"], sep="/")[k])

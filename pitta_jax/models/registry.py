@@ -63,8 +63,24 @@ class Network:
   spec: ModelSpec
   module: nn.Module
 
+  def _apply(self, variables: Any, images: jax.Array, use_batch_stats: bool,
+             mutable: list[str], **kwargs) -> tuple[Any, Any]:
+    """`module.apply(variables, images, train=use_batch_stats)` with `mutable` collections,
+    -> (outputs, their new state). With batch statistics, `batch_stats` is mutable too and its
+    new values are dropped: a network built on `flax.linen.BatchNorm` (which refuses to run in
+    train mode with the collection immutable) normalises with the frame's statistics and its
+    running ones stay as they were, as with `layers.BatchNorm` (whose running update, never
+    read, XLA removes)."""
+    if use_batch_stats and "batch_stats" in variables:
+      mutable = [*mutable, "batch_stats"]
+    if not mutable:
+      return self.module.apply(variables, checked_images(images), train=use_batch_stats,
+                               **kwargs), {}
+    return self.module.apply(variables, checked_images(images), train=use_batch_stats,
+                             mutable=mutable, **kwargs)
+
   def outputs(self, variables: Any, images: jax.Array, use_batch_stats: bool) -> tuple:
-    return self.module.apply(variables, checked_images(images), train=use_batch_stats)
+    return self._apply(variables, images, use_batch_stats, [])[0]
 
   def depth(self, variables: Any, images: jax.Array, use_batch_stats: bool) -> jax.Array:
     """images (B, H, W, 3) in [0, 1] -> depth (B, H, W) (relative for affine-invariant nets)."""
@@ -81,8 +97,8 @@ class Network:
     def keep(module: nn.Module, method_name: str) -> bool:
       return method_name == "__call__" and bool(rx.fullmatch("/".join(module.path)))
 
-    out, state = self.module.apply(variables, checked_images(images), train=use_batch_stats,
-                                   capture_intermediates=keep, mutable=["intermediates"])
+    out, state = self._apply(variables, images, use_batch_stats, ["intermediates"],
+                             capture_intermediates=keep)
     flat = flatten_dict(state.get("intermediates", {}), sep="/")
     return out, {k[: -len("/__call__")]: v[0] for k, v in flat.items()
                  if isinstance(v[0], jax.Array)}
