@@ -58,6 +58,7 @@ import torch  # noqa: E402
 
 import bench_common as bc  # noqa: E402
 import torch_reference as tr  # noqa: E402
+from pitta_jax import flat_optim  # noqa: E402
 from pitta_jax import trainable as trainable_lib  # noqa: E402
 from pitta_jax.adapt import (AdaptConfig, StepInput, init_state,  # noqa: E402
                              make_method_runner, make_optimizer, make_step)
@@ -99,12 +100,15 @@ class JaxImpl:
   """The engine's compiled chunk runner for one method and config; state carried over chunks."""
 
   def __init__(self, name: str, variables, configs, resources, conv_rule: str = "loop_friendly",
-               conv_library: str | None = None, kernel_grads: str = "model"):
+               conv_library: str | None = None, kernel_grads: str = "model",
+               flat_optimizer: bool = False):
     self.cfg, mcfg = configs
     if conv_library is not None:
       self.cfg = dataclasses.replace(self.cfg, conv_library=conv_library)
     self.model, self.method = bc.depth_network(conv_rule), build(name, mcfg)
     self.tx = make_optimizer(self.cfg, self.method)
+    if flat_optimizer:  # the engine's optimiser stepped on the raveled trainable tree
+      self.tx = flat_optim.flat(self.tx)
     self.compiler_options = step_compiler_options(self.cfg, self.method)
     self.runner = make_method_runner(self.model, self.method, self.cfg, self.tx)
     self.state, self.consts = init_state(variables, self.method, self.cfg, self.tx, self.model,
@@ -357,6 +361,7 @@ def compare_jax(method: str, variants: dict[str, dict], what: str, variables, ar
            "ms_per_frame": med, "min_ms_per_frame": {n: float(np.min(t)) for n, t in times.items()},
            **{f"ratio_{n}_vs_{first}": med[n] / med[first] for n in rest},
            "compile_s": compile_s,
+           "loop_kernels": {n: impls[n].compiled.as_text().count("kind=kLoop") for n in variants},
            # relative to the largest loss (`none` computes no loss: 0)
            "max_rel_loss_diff": {n: float(np.max(np.abs(losses[n] - losses[first]))
                                           / max(np.max(np.abs(losses[first])), 1e-30))
@@ -394,22 +399,39 @@ def compare_torch_optimizers(method: str, variables, args, common) -> None:
 
 
 def compile_parts(method: str, n: int, variables, args, common) -> None:
-  """Where a step's compile goes: JAX's trace and lowering, then XLA's compile."""
+  """Where a step's compile goes: JAX's trace and lowering, then XLA's compile; then XLA's
+  compile again with each `--xla-option` added to the step's options."""
   _, configs, resources, chunk = method_inputs(method, n, variables, args)
   impl = JaxImpl(method, variables, configs, resources)
-  load = bc.load()
   t0 = time.perf_counter()
   lowered = impl.runner.lower(impl.state, chunk, impl.consts)
-  t1, c1 = time.perf_counter(), time.process_time()
-  compiled = lowered.compile()
-  t2, c2 = time.perf_counter(), time.process_time()
-  text = compiled.as_text()
-  # XLA:CPU's compile time grows with the number of generated loop kernels (fusions): a count
-  # that, unlike the seconds, does not move with the machine's load
-  bc.emit({"compile": "jax", "method": method, **common, "instances": n,
-           "trace_lower_s": round(t1 - t0, 2), "xla_compile_s": round(t2 - t1, 2),
-           "xla_compile_cpu_s": round(c2 - c1, 2), "loop_kernels": text.count("kind=kLoop"),
-           "load": load})
+  trace_lower_s = round(time.perf_counter() - t0, 2)
+  for option in [None, *args.xla_option]:
+    extra = {} if option is None else dict([option])
+    load = bc.load()
+    t1, c1 = time.perf_counter(), time.process_time()
+    compiled = lowered.compile(compiler_options={**(impl.compiler_options or {}), **extra})
+    t2, c2 = time.perf_counter(), time.process_time()
+    text = compiled.as_text()
+    # XLA:CPU's compile time grows with the number of generated loop kernels (fusions): a count
+    # that, unlike the seconds, does not move with the machine's load
+    bc.emit({"compile": "jax", "method": method, **common, "instances": n, "xla_option": extra,
+             "trace_lower_s": trace_lower_s, "xla_compile_s": round(t2 - t1, 2),
+             "xla_compile_cpu_s": round(c2 - c1, 2), "loop_kernels": text.count("kind=kLoop"),
+             "load": load})
+
+
+def xla_option(text: str) -> tuple[str, bool | int | str]:
+  """`KEY=VALUE` -> (KEY, VALUE as a bool, an int or the string)."""
+  key, sep, value = text.partition("=")
+  if not sep or not key:
+    raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+  if value.lower() in ("true", "false"):
+    return key, value.lower() == "true"
+  try:
+    return key, int(value)
+  except ValueError:
+    return key, value
 
 
 def main(argv=None) -> None:
@@ -435,6 +457,10 @@ def main(argv=None) -> None:
   p.add_argument("--compile-only", action="store_true",
                  help="only trace, lower and compile the JAX chunk runner and print the seconds "
                       "of each part (no timing of steps)")
+  p.add_argument("--xla-option", type=xla_option, action="append", default=[],
+                 metavar="KEY=VALUE",
+                 help="with --compile-only: compile the step again with this XLA option added "
+                      "(repeatable, one compile each), e.g. xla_llvm_disable_expensive_passes=true")
   p.add_argument("--compare-conv-rule", action="store_true",
                  help="also time the PITTA step with JAX's own convolution input-gradient rule "
                       "(what pitta_jax.models.conv_vjp replaces) and print the ratio")
@@ -455,14 +481,18 @@ def main(argv=None) -> None:
                       "library and Eigen's, each with the model's kernel-gradient forms "
                       "(models.conv_vjp) and with products of row taps for ResNet's stages "
                       "(bench_common.row_tap_kernel_grads, tried 2026-12-06)")
+  p.add_argument("--compare-flat-optimizer", action="store_true",
+                 help="also time the method's JAX step with the engine's optimiser stepped leaf "
+                      "by leaf (the default) and on the raveled trainable tree "
+                      "(pitta_jax.flat_optim.flat), interleaved, with each compile")
   p.add_argument("--compare-torch-optimizers", action="store_true",
                  help="also time the method's PyTorch eager step with fused optimiser kernels "
                       "(the references' default) and with PyTorch's default for-loop ones, "
                       "interleaved, and print the ratio")
   p.add_argument("--compare-only", action="store_true",
                  help="with --compare-conv-rule/--compare-conv-library/--compare-kernel-grads/"
-                      "--compare-row-taps/--compare-torch-optimizers: skip the JAX vs PyTorch "
-                      "timing")
+                      "--compare-row-taps/--compare-flat-optimizer/--compare-torch-optimizers: "
+                      "skip the JAX vs PyTorch timing")
   args = p.parse_args(argv)
   if args.frames is None:
     args.frames = DEFAULT_FRAMES.get(args.method, 8)
@@ -511,6 +541,9 @@ def main(argv=None) -> None:
         f"{lib}+{grads}": {"conv_library": lib, "kernel_grads": grads}
         for lib in ("default", "eigen") for grads in ("model", "rows")},
         "kernel gradients: row-tap products or the convolution form", variables, args, common)
+  if args.compare_flat_optimizer:
+    compare_jax(args.method, {"per-leaf": {}, "raveled": {"flat_optimizer": True}},
+                "the engine's optimiser per leaf or on the raveled tree", variables, args, common)
   if args.compare_torch_optimizers:
     compare_torch_optimizers(args.method, variables, args, common)
   if args.profile and args.method == "pitta":
