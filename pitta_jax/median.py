@@ -26,7 +26,6 @@ candidates' counts and pseudo labels are s*s-term expressions each).
 
 from __future__ import annotations
 
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -45,7 +44,6 @@ SORT_FROM_WINDOW = 17
 INT_PAD = np.iinfo(np.int32).max
 
 
-@functools.lru_cache(maxsize=None)
 def _batcher_pairs(n: int) -> tuple[tuple[int, int], ...]:
   """Comparators (i, j), i < j, of Batcher's odd-even merge sort on 2**k >= n wires.
 
@@ -71,7 +69,6 @@ def _batcher_pairs(n: int) -> tuple[tuple[int, int], ...]:
   return tuple(pairs)
 
 
-@functools.lru_cache(maxsize=None)
 def _selection_network(n: int, ranks: tuple[int, ...]) -> tuple[tuple[int, int, bool, bool], ...]:
   """The sorting network on n wires pruned to the comparators that the output `ranks` need.
 

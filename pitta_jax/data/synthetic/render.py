@@ -13,7 +13,6 @@ darkening under vehicles, a slight aerial haze; textures from `textures`.
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import cv2
 import numpy as np
@@ -285,7 +284,6 @@ def contact_darkening(feet, cam, hgt, xw, zw, intr, height, width) -> np.ndarray
   return ao
 
 
-@functools.cache
 def _rays(height: int, width: int) -> tuple[np.ndarray, ...]:
   """Ray slopes a (W,), b (H,) in float64, their flat per-pixel float32 copies and the ray
   lengths per unit z-depth (H * W,) float32."""

@@ -22,7 +22,6 @@ Images are planar (3, H, W) float32 until `apply_weather` returns (H, W, 3).
 
 from __future__ import annotations
 
-import functools
 
 import cv2
 import numpy as np
@@ -46,7 +45,6 @@ def _col(*rgb: float) -> np.ndarray:
   return np.array(rgb, np.float32)[:, None, None]
 
 
-@functools.cache
 def _grid(intr: tuple[float, float, float, float], height: int, width: int):
   """Ray slopes a (1, W), b (H, 1) and ray length per unit depth (H, W), float32."""
   fx, fy, cx, cy = intr
@@ -55,7 +53,6 @@ def _grid(intr: tuple[float, float, float, float], height: int, width: int):
   return a, b, np.sqrt(1 + a * a + b * b)
 
 
-@functools.cache
 def _gauss_bank(n: int) -> np.ndarray:
   """A fixed bank of n + 65536 standard normal float32 samples (sensor noise)."""
   return np.random.default_rng(4242).standard_normal(n + 65536, np.float32)

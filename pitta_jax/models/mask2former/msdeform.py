@@ -24,7 +24,6 @@ Numerics as PyTorch: LayerNorm and GroupNorm(32) with eps 1e-5 and the two-pass 
 
 from __future__ import annotations
 
-import functools
 import math
 
 import flax.linen as nn
@@ -40,7 +39,6 @@ def group_norm(name: str, groups: int = 32) -> nn.GroupNorm:
   return nn.GroupNorm(num_groups=groups, epsilon=1e-5, use_fast_variance=False, name=name)
 
 
-@functools.lru_cache(maxsize=None)
 def position_embedding_sine(height: int, width: int, num_pos_feats: int = 128,
                             temperature: float = 10000.0) -> np.ndarray:
   """(H, W, 2 * num_pos_feats) float32: [y features, x features], each sin/cos interleaved.
@@ -64,7 +62,6 @@ def position_embedding_sine(height: int, width: int, num_pos_feats: int = 128,
   return np.concatenate([pos_y, pos_x], axis=-1).astype(f32)
 
 
-@functools.lru_cache(maxsize=None)
 def _linear_taps(in_size: int, out_size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """Indices i0, i1 (out,) int32 and weight of i1 (out,) float32 of PyTorch's bilinear resize.
 

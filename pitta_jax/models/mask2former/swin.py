@@ -17,7 +17,6 @@ Parameter names follow upstream with `layers.i.blocks.j` -> `stage{i}_block{j}`,
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import flax.linen as nn
 import jax
@@ -46,7 +45,6 @@ def layer_norm(name: str) -> nn.LayerNorm:
   return nn.LayerNorm(epsilon=1e-5, use_fast_variance=False, name=name)
 
 
-@functools.lru_cache(maxsize=None)
 def relative_position_index(window: int) -> np.ndarray:
   """(window^2, window^2) int32 index into the ((2w-1)^2, heads) bias table, as upstream."""
   coords = np.stack(np.meshgrid(np.arange(window), np.arange(window), indexing="ij"))  # (2, w, w)
@@ -55,7 +53,6 @@ def relative_position_index(window: int) -> np.ndarray:
   return (rel[..., 0] * (2 * window - 1) + rel[..., 1]).astype(np.int32)
 
 
-@functools.lru_cache(maxsize=None)
 def shifted_window_mask(height: int, width: int, window: int, shift: int) -> np.ndarray:
   """(num_windows, window^2, window^2) float32 additive mask, 0 or -100, for padded (H, W).
 
