@@ -24,7 +24,6 @@ import dataclasses
 import hashlib
 import json
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -660,8 +659,7 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
   `pitta-jax demo`), so another table or row at the same shapes loads them instead of
   compiling again.
   runners: an in-process compile cache shared with other tables of the same process."""
-  from pitta_jax.cli import error_line, exit_status, say_stopped, terminate_as_interrupt
-  from pitta_jax.data.errors import DataError
+  from pitta_jax.cli import exit_status, report_error, say_stopped, terminate_as_interrupt
   from pitta_jax.outputs import OutputError
   from pitta_jax.source_model import enable_compilation_cache
   args = p.parse_args(argv)
@@ -672,11 +670,8 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
       status = run(args, runners)
     failed = False
     return status
-  except (DataError, OutputError, ValueError, TypeError, OSError) as e:
-    if args.debug:
-      raise
-    print(f"error: {error_line(e)}", file=sys.stderr)
-    return 2
+  except Exception as e:
+    return report_error(e, args.debug, (OutputError,))
   except KeyboardInterrupt as e:
     say_stopped("interrupted: finished rows are cached; run the same command again to resume")
     return exit_status(e)  # as the pitta-jax commands

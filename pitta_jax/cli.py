@@ -751,6 +751,22 @@ def out_of_memory(error: BaseException) -> str | None:
           f"--chunk-size or image?)")
 
 
+# errors a user can act on (a bad flag, input or file; a full disk): one line and exit 2
+USER_ERRORS: tuple[type[Exception], ...] = (DataError, ValueError, TypeError, OSError)
+
+
+def report_error(error: Exception, debug: bool, also: tuple[type[Exception], ...] = ()) -> int:
+  """A command's handler of its errors (call it from `except Exception`): prints "error: " and
+  one line on stderr and returns the exit status 2 for an error the user can act on
+  (`USER_ERRORS` and the command's own `also`; XLA running out of memory); re-raises any other
+  error, and every error under --debug (`debug`), with its traceback."""
+  message = error_line(error) if isinstance(error, USER_ERRORS + also) else out_of_memory(error)
+  if debug or message is None:
+    raise error
+  print(f"error: {message}", file=sys.stderr)
+  return 2
+
+
 def interruptible(body: Callable[[], int], debug: bool | None = None) -> int:
   """A console entry's `body` with Ctrl-C and SIGTERM handled from its first line: while it
   imports and parses too, a signal stops it with one line and exit 130 / 143 (a traceback
@@ -783,17 +799,8 @@ def _main(argv: list[str]) -> int:
   args = build_parser().parse_args(argv)
   try:
     return args.func(args)
-  except (DataError, ValueError, TypeError, OSError) as e:  # OSError: a full disk, ...
-    if args.debug:
-      raise
-    print(f"error: {error_line(e)}", file=sys.stderr)
-    return 2
-  except Exception as e:  # XLA out of memory (e.g. an input size the device cannot hold)
-    message = out_of_memory(e)
-    if args.debug or message is None:
-      raise
-    print(f"error: {message}", file=sys.stderr)
-    return 2
+  except Exception as e:
+    return report_error(e, args.debug)
   except KeyboardInterrupt as e:
     if not args.debug:  # the process ends now: what the save threads still report is noise
       _silence_teardown()

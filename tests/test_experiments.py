@@ -633,6 +633,29 @@ def test_python_m_a_table_runs_as_the_commands_do(name, tmp_path, monkeypatch, c
   assert "invalid choice: 'nope'" in capsys.readouterr().err
 
 
+def test_out_of_memory_is_one_line_and_other_runtime_errors_raise(tmp_path, capsys):
+  """XLA running out of memory under a table is one line and exit 2, as under the pitta-jax
+  commands (the tables printed its traceback); any other runtime error keeps its traceback."""
+  import jax
+
+  def failing(error):
+    def run(args, runners):
+      raise error
+    return run
+
+  p = common.parser("table1", "t")
+  oom = jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 9 bytes.")
+  assert common.main_wrapper(failing(oom), p, ["--quick", "--out", str(tmp_path / "o")]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("error: out of ") and "Out of memory allocating 9 bytes." in err
+  assert err.count("\n") == 1
+  other = jax.errors.JaxRuntimeError("INTERNAL: something else")
+  with pytest.raises(jax.errors.JaxRuntimeError, match="INTERNAL"):
+    common.main_wrapper(failing(other), p, ["--quick", "--out", str(tmp_path / "o2")])
+  with pytest.raises(jax.errors.JaxRuntimeError, match="RESOURCE_EXHAUSTED"):  # --debug: raised
+    common.main_wrapper(failing(oom), p, ["--quick", "--debug", "--out", str(tmp_path / "o3")])
+
+
 def test_an_os_error_is_one_line_naming_its_file(tmp_path, capsys):
   """A full disk or a read-only directory under a table: "error: FILE: reason", as the
   pitta-jax commands print it (the tables printed "[Errno 28] ...: 'FILE'")."""

@@ -789,6 +789,40 @@ def test_out_of_memory_is_one_line():
   assert out_of_memory(ValueError("RESOURCE_EXHAUSTED")) is None
 
 
+def test_report_error_is_one_line_for_what_a_user_can_act_on(capsys):
+  """The commands' shared handler (pitta-jax, the tables, the converters): one line and exit 2
+  for a bad input, flag or file, the command's own kinds and XLA out of memory; anything else
+  and everything under --debug raised as it came."""
+  import jax
+  from pitta_jax.cli import report_error
+  from pitta_jax.data.errors import DataError
+  from weights_convert.pth import CheckpointError
+
+  def status(error, debug=False, also=()):
+    try:
+      raise error
+    except Exception as e:
+      return report_error(e, debug, also)
+
+  for error, line in ((DataError("a.png", "cut short"), str(DataError("a.png", "cut short"))),
+                      (ValueError("--lr must be >= 0"), "--lr must be >= 0"),
+                      (OSError(28, "No space left on device", "o/x.json"),
+                       "o/x.json: No space left on device")):
+    assert status(error) == 2 and capsys.readouterr().err == f"error: {line}\n"
+  assert status(CheckpointError("enc.pth: not a checkpoint"), also=(CheckpointError,)) == 2
+  assert capsys.readouterr().err == "error: enc.pth: not a checkpoint\n"
+  with pytest.raises(CheckpointError):  # not a user error unless the command says so
+    status(CheckpointError("enc.pth: not a checkpoint"))
+  assert status(jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory")) == 2
+  assert capsys.readouterr().err.startswith("error: out of ")
+  for error in (jax.errors.JaxRuntimeError("INTERNAL: boom"), KeyError("bug")):
+    with pytest.raises(type(error)):
+      status(error)
+  with pytest.raises(ValueError, match="--lr"):
+    status(ValueError("--lr must be >= 0"), debug=True)
+  assert capsys.readouterr().err == ""
+
+
 def test_compile_time_is_reported_apart_from_the_steady_rate(tiny_weights):
   """A run's compiling chunks are timed apart (`compile_seconds`, `compiled_frames`) and
   `steady_fps` leaves them out: the demo's ms/frame was the compile's for a method's first

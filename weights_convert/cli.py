@@ -7,10 +7,9 @@ shapes) prints one line and exits with status 2, without a traceback.
 from __future__ import annotations
 
 import argparse
-import sys
 
 from pitta_jax.checkpoint import INCOMPLETE, MODEL_JSON
-from pitta_jax.cli import error_line
+from pitta_jax.cli import report_error
 from pitta_jax.models.mask2former.load import CONFIG_JSON, PARAMS_DIR
 from weights_convert import (depth_anything_v2, hrdepth, litemono, mask2former, monodepth2,
                              monovit, sgdepth)
@@ -115,11 +114,8 @@ def run(args: argparse.Namespace) -> int:
     check_output_replaceable(args.out, args.converter)
     with open_output_dir(args.out):  # checked and locked before reading any checkpoint
       args.convert_fn(args)
-  except (CheckpointError, ValueError, OSError) as e:  # OSError: a full disk, ...
-    if getattr(args, "debug", False):
-      raise
-    print(f"error: {error_line(e)}", file=sys.stderr)
-    return 2
+  except Exception as e:
+    return report_error(e, getattr(args, "debug", False), (CheckpointError,))
   return 0
 
 
