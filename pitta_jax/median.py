@@ -26,7 +26,6 @@ candidates' counts and pseudo labels are s*s-term expressions each).
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np

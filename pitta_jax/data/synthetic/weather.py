@@ -22,7 +22,6 @@ Images are planar (3, H, W) float32 until `apply_weather` returns (H, W, 3).
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 
