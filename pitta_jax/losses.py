@@ -33,7 +33,9 @@ Depth-refining loss, two implementations with the same value and the same gradie
   with e the instance != k0 found at slot (c-1)//2 or c//2 of the window's sorted indices whose
   count reaches ceil(c/2) (two such instances fill the whole window, so one of them is k0).
   Work, whatever N is: one sorting-network pass over the window's instance indices (candidates
-  and their counts), then one pass over each of the two masked maps D~_k0 and D~_e.
+  and their counts), then one pass over each of the two masked maps D~_k0 and D~_e. From
+  s = `STACKED_FROM_WINDOW` on, the same with the windows stacked on an array axis and sorted:
+  seconds to compile instead of minutes, and slower to run.
 """
 
 from __future__ import annotations
@@ -48,10 +50,19 @@ from pitta_jax import masks as masks_lib
 from pitta_jax.edges import edge_map, image_edge_map
 from pitta_jax.dtypes import as_float
 from pitta_jax.nonsmooth import absolute
-from pitta_jax.median import (INT_PAD, WINDOW, median_filter, median_of_views, middle_order_statistics,
-                              middle_ranks, window_views)
+from pitta_jax.median import (INT_PAD, WINDOW, check_window, median_filter, median_of_middles,
+                              median_of_views, middle_order_statistics, middle_ranks,
+                              stacked_order_statistics, window_stack, window_views)
 
 Array = jax.Array
+
+# The smallest window s for which the fast L_d keeps its windows stacked on an array axis and
+# sorts them (`median.stacked_order_statistics`) instead of unrolling them into s*s-term
+# expressions and sorting networks. Unrolled, its value and gradient at 640x192 compile in 5.5 s
+# at s = 9 and 8.7 s at s = 11, but s = 13 did not compile in 400 s (64x96; 11 GB at s = 17);
+# stacked they compile in 4-12 s for s = 11-17 and run slower (640x192: 2.0 s at s = 11 against
+# 0.24 s unrolled, 2.8 s at s = 13, 5.4 s at s = 17). 2 CPU cores.
+STACKED_FROM_WINDOW = 13
 
 __all__ = [
     "PittaLoss", "median_filter", "edge_map", "image_edge_map", "depth_refining_loss",
@@ -113,6 +124,12 @@ def depth_refining_loss_literal(depth: Array, masks: Array, inst_valid: Array, s
   return _mean_over_instances(total, jnp.sum(inst_valid))
 
 
+def _window_of_instance(index: Array, value: Array, key: Array) -> Array:
+  """The window of D~_key: the values of instance `key`, 0 at the other pixels, +inf outside
+  the image (`index` holds INT_PAD there). Elementwise: views or a stack, key broadcast."""
+  return jnp.where(index == key, value, jnp.where(index == INT_PAD, jnp.inf, 0.0))
+
+
 def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
                              mode: str = "binary", inst_ids: Array | None = None) -> Array:
   """Depth-refining loss, eq. 8, at a cost independent of N (see the module docstring).
@@ -145,25 +162,37 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
   gain = masks_lib.pixel_gain(index_map, mode, inst_ids)  # (H, W)
   own_masked = jnp.where(index_map > 0, depth * gain, 0.0)  # (H, W)
 
-  # Majority candidates: the window's sorted instance indices at slots (c-1)//2 and c//2.
-  idx_views = window_views(index_map, s, INT_PAD)  # s*s x (H, W), INT_PAD outside the image
-  cand_lo, cand_hi = middle_order_statistics(idx_views, s)
+  # Majority candidates: the window's sorted instance indices at slots (c-1)//2 and c//2, and
+  # pseudo labels D~'_k at each pixel: the median of the window of D~_k (stop-gradient).
+  masked_values = jax.lax.stop_gradient(own_masked)
+  check_window(s)
+  if s >= STACKED_FROM_WINDOW:
+    idx_stack = window_stack(index_map, s, INT_PAD)  # (H, W, s*s), INT_PAD outside the image
+    val_stack = window_stack(masked_values, s, jnp.inf)  # (H, W, s*s)
+    cand_lo, cand_hi = stacked_order_statistics(idx_stack, s)
+
+    def count(key: Array) -> Array:
+      return jnp.sum((idx_stack == key[..., None]).astype(jnp.int32), axis=-1)  # (H, W)
+
+    def pseudo(key: Array) -> Array:
+      window = _window_of_instance(idx_stack, val_stack, key[..., None])  # (H, W, s*s)
+      return median_of_middles(*stacked_order_statistics(window, s), s)
+  else:
+    idx_views = window_views(index_map, s, INT_PAD)  # s*s x (H, W), INT_PAD outside the image
+    val_views = window_views(masked_values, s, jnp.inf)  # s*s x (H, W)
+    cand_lo, cand_hi = middle_order_statistics(idx_views, s)
+
+    def count(key: Array) -> Array:
+      return sum((v == key).astype(jnp.int32) for v in idx_views)  # (H, W)
+
+    def pseudo(key: Array) -> Array:
+      return median_of_views([_window_of_instance(iv, vv, key)
+                              for iv, vv in zip(idx_views, val_views)], s)
   lo_rank, _ = middle_ranks(*index_map.shape, s)
   need = lo_rank + 1  # ceil(c / 2) = (c - 1) // 2 + 1
-  count_lo = sum((v == cand_lo).astype(jnp.int32) for v in idx_views)
-  count_hi = sum((v == cand_hi).astype(jnp.int32) for v in idx_views)
-  ok_lo = (cand_lo > 0) & (cand_lo != index_map) & (count_lo >= need)
-  ok_hi = (cand_hi > 0) & (cand_hi != index_map) & (count_hi >= need)
+  ok_lo = (cand_lo > 0) & (cand_lo != index_map) & (count(cand_lo) >= need)
+  ok_hi = (cand_hi > 0) & (cand_hi != index_map) & (count(cand_hi) >= need)
   extra = jnp.where(ok_lo, cand_lo, jnp.where(ok_hi, cand_hi, 0))  # (H, W), 0 = none
-
-  # Pseudo labels D~'_k at each pixel for k = own instance and k = extra (stop-gradient).
-  val_views = window_views(jax.lax.stop_gradient(own_masked), s, jnp.inf)
-
-  def pseudo(key: Array) -> Array:
-    """D~'_k at each pixel for k = key (H, W): the median of the window of D~_k."""
-    views = [jnp.where(iv == key, vv, jnp.where(iv == INT_PAD, jnp.inf, 0.0))
-             for iv, vv in zip(idx_views, val_views)]  # s*s x (H, W)
-    return median_of_views(views, s)
 
   # One pass per map (D~_k0, then D~_extra): a single pass over the two stacked as (2, H, W)
   # makes XLA:CPU emit a concatenate fusion that takes twice as long as the whole loss.

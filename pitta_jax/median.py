@@ -19,9 +19,9 @@ so ties come out as they are. About 2-4 ms at 640x192 with s = 5 on 2 CPU cores,
 From s = `SORT_FROM_WINDOW` on, the windows are sorted with `jnp.sort` instead: the network's
 compile time doubles with every step of s (at 640x192, 2 CPU cores: s = 11 2.1 s, 13 6.6 s, 15
 12.6 s, and minutes beyond), the sort's stays at 1-3 s, while it runs 70x slower (s = 11: 1.3 s
-against 19 ms). The same values either way (both permute the window). The fast L_d
-(`losses.depth_refining_loss_fast`) still takes minutes to compile from s = 17 on (its
-candidates' counts and pseudo labels are s*s-term expressions each).
+against 19 ms). The same values either way (both permute the window). `window_stack` and
+`stacked_order_statistics` are that sorted form for callers that keep the windows stacked on an
+array axis (the fast L_d from `losses.STACKED_FROM_WINDOW` on).
 """
 
 from __future__ import annotations
@@ -92,7 +92,8 @@ def window_counts(h: int, w: int, s: int) -> np.ndarray:
   return (rows[:, None] * cols[None, :]).astype(np.int32)
 
 
-def _check_window(s: int) -> None:
+def check_window(s: int) -> None:
+  """Refuse a window size s that is not a positive odd int (a static argument)."""
   if static_int(s, "s", "window size", "a positive odd int") < 1 or s % 2 == 0:
     raise ValueError(f"window size s must be a positive odd int, got {s!r}")
 
@@ -110,11 +111,20 @@ def window_views(x: Array, s: int, pad_value) -> list[Array]:
   Returns:
     s*s arrays of shape (H, W).
   """
-  _check_window(s)
+  check_window(s)
   h, w = x.shape
   r = s // 2
   padded = jnp.pad(x, r, constant_values=pad_value)  # (H + 2r, W + 2r)
   return [padded[dy:dy + h, dx:dx + w] for dy in range(s) for dx in range(s)]
+
+
+def window_stack(x: Array, s: int, pad_value) -> Array:
+  """The views of `window_views` stacked on a last axis, view dy * s + dx at [..., dy * s + dx].
+
+  One array instead of s*s: what `stacked_order_statistics` sorts, and what elementwise work over
+  the window (a count, a mask) stays one broadcast expression on, whatever s.  # (H, W, s*s)
+  """
+  return jnp.stack(window_views(x, s, pad_value), axis=-1)
 
 
 def middle_ranks(h: int, w: int, s: int) -> tuple[Array, Array]:
@@ -148,12 +158,7 @@ def middle_order_statistics(views: list[Array], s: int) -> tuple[Array, Array]:
   """
   h, w = views[0].shape[-2:]
   if s >= SORT_FROM_WINDOW:
-    ordered = jnp.sort(jnp.stack(views, axis=-1), axis=-1)  # (..., H, W, s*s)
-
-    def slot(rank: Array) -> Array:
-      rank = jnp.broadcast_to(rank, ordered.shape[:-1])[..., None]
-      return jnp.take_along_axis(ordered, rank, axis=-1)[..., 0]
-    return tuple(slot(rank) for rank in middle_ranks(h, w, s))
+    return stacked_order_statistics(jnp.stack(views, axis=-1), s)
   counts = window_counts(h, w, s)  # static, for the set of slots needed
   ranks = sorted(set(np.unique((counts - 1) // 2).tolist()) | set(np.unique(counts // 2).tolist()))
   wires = list(views)
@@ -173,13 +178,33 @@ def middle_order_statistics(views: list[Array], s: int) -> tuple[Array, Array]:
   return lower, upper
 
 
+def stacked_order_statistics(stack: Array, s: int) -> tuple[Array, Array]:
+  """`middle_order_statistics` of windows stacked on the last axis (`window_stack`), by sorting.
+
+  stack: (..., H, W, s*s), the out-of-image slots sorting last. jnp.sort along the window axis:
+  its compile time does not grow with s (a sorting network's does), its run time is that of a
+  sort of every window. Returns (lower, upper), (..., H, W) each.
+  """
+  h, w = stack.shape[-3:-1]
+  ordered = jnp.sort(stack, axis=-1)  # (..., H, W, s*s)
+
+  def slot(rank: Array) -> Array:
+    rank = jnp.broadcast_to(rank, ordered.shape[:-1])[..., None]
+    return jnp.take_along_axis(ordered, rank, axis=-1)[..., 0]
+  lower, upper = (slot(rank) for rank in middle_ranks(h, w, s))
+  return lower, upper
+
+
+def median_of_middles(lower: Array, upper: Array, s: int) -> Array:
+  """The median (eq. 7) from a window's two middle values (..., H, W): NumPy's convention, the
+  mean of the two in the input's float type for an even count, the value itself for an odd one."""
+  lo_rank, hi_rank = middle_ranks(*lower.shape[-2:], s)
+  return jnp.where(lo_rank != hi_rank, (lower + upper) / 2, lower)  # (..., H, W)
+
+
 def median_of_views(views: list[Array], s: int) -> Array:
   """Median (eq. 7) of the border-shrunk windows given as +inf-padded views (`window_views`)."""
-  lower, upper = middle_order_statistics(views, s)
-  lo_rank, hi_rank = middle_ranks(*views[0].shape[-2:], s)
-  even = lo_rank != hi_rank  # (H, W)
-  # NumPy: the mean of the two middle values in the input's float type; odd: the value itself.
-  return jnp.where(even, (lower + upper) / 2, lower)
+  return median_of_middles(*middle_order_statistics(views, s), s)
 
 
 def median_filter(x: Array, s: int = WINDOW) -> Array:
@@ -198,7 +223,7 @@ def median_filter(x: Array, s: int = WINDOW) -> Array:
   Returns:
     (H, W) filtered map of x's float type.
   """
-  _check_window(s)
+  check_window(s)
   x = as_float(x)
   if x.ndim != 2:
     raise ValueError(f"median_filter expects an (H, W) map, got shape {x.shape}")

@@ -81,6 +81,27 @@ def test_fast_and_literal_match_loop(ld, s, mode):
     assert value > 0 or s == 1
 
 
+@pytest.mark.parametrize("mode", ["binary", "segment_id"])
+def test_fast_loss_of_a_large_window_matches_loop(ld, mode):
+  # Reference: literal NumPy loops, as above. From losses.STACKED_FROM_WINDOW on the fast L_d
+  # sorts windows stacked on an array axis instead of unrolling them (which took minutes to
+  # compile); 16x24 holds interior windows and windows clipped on one or both axes. Instance 3
+  # fills the left half but for a patch of instance 1, so that it fills more than half of the
+  # windows of pixels outside it (the |0 - D~'_e| terms); the rest is random ids.
+  s = losses.STACKED_FROM_WINDOW
+  rng = np.random.default_rng(s)
+  for block in (1, 2):
+    pan = random_panoptic(rng, (16, 24), 6, block)
+    pan[:, :13], pan[4:9, 2:6] = 3, 1
+    depth = rng.uniform(0.5, 80.0, (16, 24)).astype(np.float32)
+    value, grad = ld(depth, pan, DYNAMIC_IDS, s, mode, "fast")
+    np.testing.assert_allclose(float(value), depth_refining_loss_loop(depth, pan, DYNAMIC_IDS, s, mode),
+                               rtol=RTOL)
+    np.testing.assert_allclose(np.asarray(grad),
+                               depth_refining_grad_loop(depth, pan, DYNAMIC_IDS, s, mode),
+                               rtol=RTOL, atol=1e-7)
+
+
 def test_image_smaller_than_window(ld):
   # Reference: NumPy loops; a 3x4 image with s = 5 (every window is clipped on both axes).
   rng = np.random.default_rng(3)
