@@ -143,7 +143,8 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
 
   Args:
     depth: (H, W) float depth D.
-    index_map: (H, W) int32 instance index, 0 = none, j = instance j (`masks.instance_index_map`).
+    index_map: (H, W) int32 instance index, 0 = none, j = instance j (`masks.instance_index_map`);
+      an entry above n counts as none.
     n: scalar int, the number of instances N (table rows, with or without pixels).
     s: odd median window (static).
     mode: "binary" (g_j = 1), "segment_id" (g_j = the segment id, `inst_ids` required) or
@@ -157,6 +158,8 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
   index_map = masks_lib.index_array(index_map)
   if depth.ndim != 2 or depth.shape != index_map.shape:
     raise ValueError(f"depth {depth.shape} and index_map {index_map.shape} must be the same (H, W)")
+  # Eq. 8 sums over j = 1..N: a pixel of a row above n is no instance's, as in the literal loss.
+  index_map = jnp.where(index_map <= jnp.asarray(n, jnp.int32), index_map, 0)  # (H, W)
   # D~_k0 at each pixel's own k0; a select, not a product with 0, outside the instances, so
   # that a non-finite depth there (inf * 0 = NaN) does not reach its neighbours' pseudo labels
   gain = masks_lib.pixel_gain(index_map, mode, inst_ids)  # (H, W)
@@ -213,7 +216,7 @@ def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, 
   Args:
     depth: (H, W) float depth.
     index_map: (H, W) int32, 0 or j in 1..n (what `masks.instance_index_map` makes; an entry
-      above n is counted by "fast" and ignored by "literal").
+      above n is no instance, as a row j > n of the table is invalid).
     n: scalar int N.
     s: odd median window (static).
     mode: "binary", "segment_id" or "instance_id" (static).

@@ -188,6 +188,29 @@ def test_from_index_matches_public_api(ld):
     np.testing.assert_allclose(float(got), float(want), rtol=RTOL)
 
 
+@pytest.mark.parametrize("s", [3, losses.STACKED_FROM_WINDOW])
+def test_index_entries_above_n_are_no_instance(s):
+  # Reference: the NumPy loops of eq. 8 with the instances 1..n only (an index map is a panoptic
+  # map whose ids are the rows; rows above n are not in the sum). Both implementations, an index
+  # map that also holds rows n + 1 and n + 2 (binary masks, and g = j).
+  rng = np.random.default_rng(11)
+  shape = (16, 24)
+  index = random_panoptic(rng, shape, 5, 2)
+  index[:, :12] = np.where(index[:, :12] > 0, 2, 0)  # an instance that fills windows
+  depth = rng.uniform(0.5, 80.0, shape).astype(np.float32)
+  n = 3
+  rows = np.arange(1, n + 1, dtype=np.int32)
+  for mode in ("binary", "instance_id"):
+    want_v = depth_refining_loss_loop(depth, index, rows, s, mode)
+    want_g = depth_refining_grad_loop(depth, index, rows, s, mode)
+    for impl in losses.IMPLS:
+      f = lambda d: losses.depth_refining_loss_from_index(d, jnp.asarray(index), jnp.int32(n), s=s,
+                                                          mode=mode, impl=impl, n_max=5)
+      v, g = jax.value_and_grad(f)(jnp.asarray(depth))
+      np.testing.assert_allclose(float(v), want_v, rtol=RTOL, err_msg=impl)
+      np.testing.assert_allclose(np.asarray(g), want_g, rtol=RTOL, atol=1e-7, err_msg=impl)
+
+
 def test_bad_arguments():
   d, i = jnp.ones((4, 4)), jnp.zeros((4, 4), jnp.int32)
   with pytest.raises(ValueError, match="n_max"):
