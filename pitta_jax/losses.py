@@ -82,11 +82,17 @@ class PittaLoss(NamedTuple):
   n: Array  # number of dynamic instances N (int32)
 
 
-def _mean_over_instances(total: Array, n: Array) -> Array:
-  """total / N, and 0 when N = 0 (no NaN in the value or the gradient)."""
+def _instance_count(n: Array) -> Array:
+  """The number of instances N as an int32 scalar; ValueError for any other shape."""
   n = jnp.asarray(n, jnp.int32)
   if n.ndim != 0:
     raise ValueError(f"n (the number of instances N) must be a scalar, got shape {n.shape}")
+  return n
+
+
+def _mean_over_instances(total: Array, n: Array) -> Array:
+  """total / N, and 0 when N = 0 (no NaN in the value or the gradient)."""
+  n = _instance_count(n)
   safe_n = jnp.maximum(n, 1).astype(total.dtype)
   return jnp.where(n > 0, total / safe_n, jnp.zeros((), total.dtype))
 
@@ -159,7 +165,7 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
   if depth.ndim != 2 or depth.shape != index_map.shape:
     raise ValueError(f"depth {depth.shape} and index_map {index_map.shape} must be the same (H, W)")
   # Eq. 8 sums over j = 1..N: a pixel of a row above n is no instance's, as in the literal loss.
-  index_map = jnp.where(index_map <= jnp.asarray(n, jnp.int32), index_map, 0)  # (H, W)
+  index_map = jnp.where(index_map <= _instance_count(n), index_map, 0)  # (H, W)
   # D~_k0 at each pixel's own k0; a select, not a product with 0, outside the instances, so
   # that a non-finite depth there (inf * 0 = NaN) does not reach its neighbours' pseudo labels
   gain = masks_lib.pixel_gain(index_map, mode, inst_ids)  # (H, W)
