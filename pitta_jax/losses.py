@@ -34,8 +34,8 @@ Depth-refining loss, two implementations with the same value and the same gradie
   count reaches ceil(c/2) (two such instances fill the whole window, so one of them is k0).
   Work, whatever N is: one sorting-network pass over the window's instance indices (candidates
   and their counts), then one pass over each of the two masked maps D~_k0 and D~_e. From
-  s = `STACKED_FROM_WINDOW` on, the same with the windows stacked on an array axis and sorted:
-  seconds to compile instead of minutes, and slower to run.
+  s = `STACKED_FROM_WINDOW` on, the same with the windows stacked on an array axis: seconds to
+  compile instead of minutes, and slower to run.
 """
 
 from __future__ import annotations
@@ -57,11 +57,11 @@ from pitta_jax.median import (INT_PAD, WINDOW, check_window, median_filter, medi
 Array = jax.Array
 
 # The smallest window s for which the fast L_d keeps its windows stacked on an array axis and
-# sorts them (`median.stacked_order_statistics`) instead of unrolling them into s*s-term
-# expressions and sorting networks. Unrolled, its value and gradient at 640x192 compile in 5.5 s
-# at s = 9 and 8.7 s at s = 11, but s = 13 did not compile in 400 s (64x96; 11 GB at s = 17);
-# stacked they compile in 4-12 s for s = 11-17 and run slower (640x192: 2.0 s at s = 11 against
-# 0.24 s unrolled, 2.8 s at s = 13, 5.4 s at s = 17). 2 CPU cores.
+# selects their middle values there (`median.stacked_order_statistics`) instead of unrolling
+# them into s*s-term expressions and sorting networks. Unrolled, its value and gradient at
+# 640x192 compile in 5.5 s at s = 9 and 8.7 s at s = 11, but s = 13 did not compile in 400 s
+# (64x96; 11 GB at s = 17); stacked they compile in 7-12 s for s = 13-17 and run slower (640x192:
+# 1.4 s at s = 13 and 2.5 s at s = 17 per frame, against 0.24 s unrolled at s = 11). 2 CPU cores.
 STACKED_FROM_WINDOW = 13
 
 __all__ = [

@@ -68,7 +68,7 @@ def test_window_counts_match_loop():
   np.testing.assert_array_equal(hi, want // 2)
 
 
-@pytest.mark.parametrize("s", [1, 3, 5, 7, median_lib.SORT_FROM_WINDOW])  # network; jnp.sort
+@pytest.mark.parametrize("s", [1, 3, 5, 7, median_lib.SORT_FROM_WINDOW])  # network; stacked
 @pytest.mark.parametrize("shape", [(12, 20), (3, 4), (2, 9), (1, 1), (19, 23)])
 def test_equals_numpy_loop_exactly(mf, s, shape):
   # Reference: literal NumPy loop of eq. 7 (np.median per window); float32 equality, on real
@@ -159,3 +159,26 @@ def test_constant_map_is_fixed(mf, c, s):
   # flushes them to zero.)
   x = np.full(SHAPE, c, np.float32)
   np.testing.assert_array_equal(np.asarray(mf(x, s)), x)
+
+
+@pytest.fixture(scope="module")
+def stacked():
+  return jax.jit(median_lib.stacked_order_statistics, static_argnums=1)
+
+
+@settings(max_examples=25, deadline=None)
+@given(x=hnp.arrays(np.float32, (4, 5, 9), elements=st.one_of(
+    st.sampled_from([0.0, -0.0, np.inf, -np.inf, 1.0, -1.0]),
+    st.floats(width=32, allow_nan=False))))
+def test_stacked_order_statistics_pick_the_sorted_slots(stacked, x):
+  # Reference: np.sort along the window axis and the border-shrunk window's middle slots
+  # (c - 1) // 2 and c // 2 counted by a loop; any float32 but NaN (ties, signed zeros,
+  # infinities, subnormals, both signs), which the bisection over order keys must place as a
+  # sort does. Values compare with == (-0.0 == 0.0).
+  s = 3
+  ordered = np.sort(x, axis=-1)
+  lower, upper = (np.asarray(a) for a in stacked(jnp.asarray(x), s))
+  for i in range(4):
+    for j in range(5):
+      c = (min(i + 1, 3) - max(i - 1, 0) + 1) * (min(j + 1, 4) - max(j - 1, 0) + 1)
+      assert lower[i, j] == ordered[i, j, (c - 1) // 2] and upper[i, j] == ordered[i, j, c // 2]
