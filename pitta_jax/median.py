@@ -19,10 +19,10 @@ so ties come out as they are. About 2-4 ms at 640x192 with s = 5 on 2 CPU cores,
 From s = `SORT_FROM_WINDOW` on, the windows are stacked on an array axis instead and their two
 middle values selected there (`stacked_order_statistics`: by bisection over the values' order
 keys, exact): the network's compile time doubles with every step of s (at 640x192, 2 CPU cores:
-s = 11 2.1 s, 13 6.6 s, 15 12.6 s, and minutes beyond), the stacked form's stays at 2-9 s
-(s = 11-21), while it runs far slower (s = 11: 28 ms as a network; s = 17: 1.1-1.2 s, against
-4.4-4.8 s for `jnp.sort` of the stacked windows, interleaved). The same values either way (both
-return elements of the window). `window_stack` and `stacked_order_statistics` serve callers that
+s = 11 2.1 s, 13 6.6 s, 15 12.6 s, and minutes beyond), the stacked form's stays near 1 s
+(s = 17-31; `window_stack` takes 2s slices of the map), while it runs far slower (s = 11: 28 ms
+as a network; s = 17: 1.1-1.2 s, against 4.4-4.8 s for `jnp.sort` of the stacked windows,
+interleaved). The same values either way (both return elements of the window). `window_stack` and `stacked_order_statistics` serve callers that
 keep the windows stacked (the fast L_d from `losses.STACKED_FROM_WINDOW` on).
 """
 
@@ -124,10 +124,18 @@ def window_views(x: Array, s: int, pad_value) -> list[Array]:
 def window_stack(x: Array, s: int, pad_value) -> Array:
   """The views of `window_views` stacked on a last axis, view dy * s + dx at [..., dy * s + dx].
 
-  One array instead of s*s: what `stacked_order_statistics` sorts, and what elementwise work over
-  the window (a count, a mask) stays one broadcast expression on, whatever s.  # (H, W, s*s)
+  One array instead of s*s: what `stacked_order_statistics` selects from, and what elementwise
+  work over the window (a count, a mask) stays one broadcast expression on, whatever s. Built
+  from s row slices and s column slices of the padded map (2s slices, not s*s: the program
+  grows with s, not s*s).  # (H, W, s*s)
   """
-  return jnp.stack(window_views(x, s, pad_value), axis=-1)
+  check_window(s)
+  h, w = x.shape
+  r = s // 2
+  padded = jnp.pad(x, r, constant_values=pad_value)  # (H + 2r, W + 2r)
+  rows = jnp.stack([padded[dy:dy + h] for dy in range(s)], axis=1)  # (H, s, W + 2r)
+  cells = jnp.stack([rows[..., dx:dx + w] for dx in range(s)], axis=-1)  # (H, s, W, s)
+  return jnp.moveaxis(cells, 1, 2).reshape(h, w, s * s)  # [i, j, dy * s + dx]
 
 
 def middle_ranks(h: int, w: int, s: int) -> tuple[Array, Array]:
@@ -265,4 +273,6 @@ def median_filter(x: Array, s: int = WINDOW) -> Array:
   x = as_float(x)
   if x.ndim != 2:
     raise ValueError(f"median_filter expects an (H, W) map, got shape {x.shape}")
+  if s >= SORT_FROM_WINDOW:  # one stacked array of the windows, built from 2s slices
+    return median_of_middles(*stacked_order_statistics(window_stack(x, s, jnp.inf), s), s)
   return median_of_views(window_views(x, s, jnp.inf), s)

@@ -182,3 +182,20 @@ def test_stacked_order_statistics_pick_the_sorted_slots(stacked, x):
     for j in range(5):
       c = (min(i + 1, 3) - max(i - 1, 0) + 1) * (min(j + 1, 4) - max(j - 1, 0) + 1)
       assert lower[i, j] == ordered[i, j, (c - 1) // 2] and upper[i, j] == ordered[i, j, c // 2]
+
+
+@pytest.mark.parametrize("s", [1, 3, 7])
+def test_window_stack_holds_each_view_in_order(s):
+  # Reference: a NumPy loop over the pixels and offsets of the padded map (slot dy * s + dx holds
+  # x(i + dy - r, j + dx - r), the pad value outside), on an integer map (INT_PAD outside).
+  x = np.arange(5 * 6, dtype=np.int32).reshape(5, 6) * 7 % 11
+  r = s // 2
+  padded = np.pad(x, r, constant_values=median_lib.INT_PAD)
+  want = np.zeros((5, 6, s * s), np.int32)
+  for i in range(5):
+    for j in range(6):
+      for dy in range(s):
+        for dx in range(s):
+          want[i, j, dy * s + dx] = padded[i + dy, j + dx]
+  np.testing.assert_array_equal(np.asarray(median_lib.window_stack(jnp.asarray(x), s,
+                                                                   median_lib.INT_PAD)), want)
