@@ -61,7 +61,7 @@ Array = jax.Array
 # them into s*s-term expressions and sorting networks. Unrolled, its value and gradient at
 # 640x192 compile in 5.5 s at s = 9 and 8.7 s at s = 11, but s = 13 did not compile in 400 s
 # (64x96; 11 GB at s = 17); stacked they compile in 1.1-1.5 s for s = 13-17 and run slower
-# (640x192: 1.3-1.4 s at s = 13 and 2.4-2.5 s at s = 17 per frame, against 0.24 s unrolled at
+# (640x192: 1.3-1.6 s at s = 13 and 2.4-2.9 s at s = 17 per frame, against 0.24 s unrolled at
 # s = 11). 2 CPU cores.
 STACKED_FROM_WINDOW = 13
 

@@ -21,9 +21,10 @@ middle values selected there (`stacked_order_statistics`: by bisection over the 
 keys, exact): the network's compile time doubles with every step of s (at 640x192, 2 CPU cores:
 s = 11 2.1 s, 13 6.6 s, 15 12.6 s, and minutes beyond), the stacked form's stays near 1 s
 (s = 17-31; `window_stack` takes 2s slices of the map), while it runs far slower (s = 11: 28 ms
-as a network; s = 17: 1.1-1.2 s, against 4.4-4.8 s for `jnp.sort` of the stacked windows,
-interleaved). The same values either way (both return elements of the window). `window_stack` and `stacked_order_statistics` serve callers that
-keep the windows stacked (the fast L_d from `losses.STACKED_FROM_WINDOW` on).
+as a network; s = 17: 1.4-1.6 s, against 3.8-4.7 s for `jnp.sort` of the stacked windows,
+interleaved). The same values either way (both return elements of the window), and the same
+gradient as through a stable sort. `window_stack` and `stacked_order_statistics` serve callers
+that keep the windows stacked (the fast L_d from `losses.STACKED_FROM_WINDOW` on).
 """
 
 from __future__ import annotations
@@ -122,7 +123,7 @@ def window_views(x: Array, s: int, pad_value) -> list[Array]:
 
 
 def window_stack(x: Array, s: int, pad_value) -> Array:
-  """The views of `window_views` stacked on a last axis, view dy * s + dx at [..., dy * s + dx].
+  """The views of `window_views` stacked on a last axis: view dy * s + dx at [i, j, dy * s + dx].
 
   One array instead of s*s: what `stacked_order_statistics` selects from, and what elementwise
   work over the window (a count, a mask) stays one broadcast expression on, whatever s. Built
@@ -194,10 +195,11 @@ def stacked_order_statistics(stack: Array, s: int) -> tuple[Array, Array]:
 
   stack: (..., H, W, s*s), the out-of-image slots sorting last. Compile time does not grow with
   s (a sorting network's does). A float window's two middle values are found by bisection
-  (`_select_pair`: 3x faster than sorting at s = 13, 640x192, 2 CPU cores: 0.62 against 1.9-2.1
-  s for random values), an integer window's by jnp.sort along the window axis (0.37 s against
-  0.60 for the bisection's 32 steps on a few distinct indices). Both return elements of the
-  window: the same values. Returns (lower, upper), (..., H, W) each.
+  (`_select_pair`: the median filter at s = 17, 640x192, 2 CPU cores, 2.5-3x faster than with
+  a sort), an integer window's by jnp.sort along the window axis (at s = 13, 0.37 s against 0.60
+  for the bisection's 32 steps on a few distinct indices). Both return the elements a stable
+  sort puts at the two slots: the same values and gradients. Returns (lower, upper),
+  (..., H, W) each.
   """
   h, w = stack.shape[-3:-1]
   lo_rank, hi_rank = (jnp.broadcast_to(r, stack.shape[:-1]) for r in middle_ranks(h, w, s))
@@ -210,19 +212,22 @@ def stacked_order_statistics(stack: Array, s: int) -> tuple[Array, Array]:
 
 
 def _order_keys(x: Array) -> Array:
-  """Floats as integers of the same width in the same order (-0.0 just below +0.0): the sign
-  bit set flips the magnitude bits, so that a larger negative float is a smaller integer."""
+  """Floats as integers of the same width in the same order, as `jnp.sort` orders them but NaN
+  (-0.0 and +0.0 equal): the sign bit set flips the magnitude bits, so that a larger negative
+  float is a smaller integer."""
   kind = jnp.int32 if x.dtype.itemsize == 4 else jnp.int64
-  bits = jax.lax.bitcast_convert_type(x, kind)
+  bits = jax.lax.bitcast_convert_type(jnp.where(x == 0, jnp.zeros_like(x), x), kind)
   return jnp.where(bits < 0, bits ^ jnp.iinfo(kind).max, bits)
 
 
 def _select_pair(stack: Array, rank_a: Array, rank_b: Array) -> tuple[Array, Array]:
-  """The values of 0-based sorted slots rank_a and rank_b (..., H, W) of each float window
+  """The elements at 0-based sorted slots rank_a and rank_b (..., H, W) of each float window
   (..., H, W, n), by bisection over the windows' order keys: the smallest key K whose count of
   window keys <= K exceeds the rank is that slot's key, exactly. One pass over the windows per
-  bit (32 for float32), counting for both slots, instead of a sort of every window."""
-  keys = _order_keys(stack)  # (..., H, W, n)
+  bit (32 for float32), counting for both slots, instead of a sort of every window. The
+  element itself is then taken from `stack` (`_element_at_slot`), so a gradient reaches it as
+  through a sort."""
+  keys = _order_keys(jax.lax.stop_gradient(stack))  # (..., H, W, n)
   kind = jnp.iinfo(keys.dtype)
   low = jnp.full(stack.shape[:-1], kind.min, keys.dtype)
   high = jnp.full(stack.shape[:-1], kind.max, keys.dtype)
@@ -235,10 +240,20 @@ def _select_pair(stack: Array, rank_a: Array, rank_b: Array) -> tuple[Array, Arr
   def step(_, bounds):
     low_a, high_a, low_b, high_b = bounds
     return (*narrow(low_a, high_a, rank_a), *narrow(low_b, high_b, rank_b))
-  low_a, _, low_b, _ = jax.lax.fori_loop(0, kind.bits, step, (low, high, low, high))
-  back = lambda key: jax.lax.bitcast_convert_type(  # noqa: E731 (the involution of _order_keys)
-      jnp.where(key < 0, key ^ kind.max, key), stack.dtype)
-  return back(low_a), back(low_b)
+  key_a, _, key_b, _ = jax.lax.fori_loop(0, kind.bits, step, (low, high, low, high))
+  return (_element_at_slot(stack, keys, key_a, rank_a),
+          _element_at_slot(stack, keys, key_b, rank_b))
+
+
+def _element_at_slot(stack: Array, keys: Array, key: Array, rank: Array) -> Array:
+  """The element of each window that a stable sort puts at slot `rank`, whose key is `key`:
+  among the window's elements of that key, the (rank - #smaller keys)-th in window order.
+  Taken from `stack`, so differentiable as a sort's slot.  # (..., H, W)"""
+  equal = keys == key[..., None]  # (..., H, W, n)
+  nth = rank - jnp.sum((keys < key[..., None]).astype(jnp.int32), axis=-1)  # (..., H, W)
+  seen = jnp.cumsum(equal.astype(jnp.int32), axis=-1)
+  at = jnp.argmax(equal & (seen == (nth + 1)[..., None]), axis=-1)  # (..., H, W)
+  return jnp.take_along_axis(stack, at[..., None], axis=-1)[..., 0]
 
 
 def median_of_middles(lower: Array, upper: Array, s: int) -> Array:

@@ -199,3 +199,24 @@ def test_window_stack_holds_each_view_in_order(s):
           want[i, j, dy * s + dx] = padded[i + dy, j + dx]
   np.testing.assert_array_equal(np.asarray(median_lib.window_stack(jnp.asarray(x), s,
                                                                    median_lib.INT_PAD)), want)
+
+
+def test_stacked_order_statistics_gradient_is_a_stable_sorts():
+  # Reference: NumPy's stable argsort per window; the gradient of sum(w_lo * lower + w_hi *
+  # upper) reaches the element a stable sort puts at each middle slot. Half-integer values:
+  # ties everywhere, signed zeros among them.
+  rng = np.random.default_rng(4)
+  x = (rng.integers(-3, 4, (4, 5, 9)) * 0.5).astype(np.float32)
+  x[x == 0] *= rng.choice([-1.0, 1.0], size=int((x == 0).sum())).astype(np.float32)
+  w_lo, w_hi = rng.standard_normal((2, 4, 5)).astype(np.float32)
+  f = lambda v: sum(jnp.sum(a * b) for a, b in  # noqa: E731
+                    zip(median_lib.stacked_order_statistics(v, 3), (w_lo, w_hi)))
+  got = np.asarray(jax.grad(f)(jnp.asarray(x)))
+  want = np.zeros_like(x)
+  for i in range(4):
+    for j in range(5):
+      c = (min(i + 1, 3) - max(i - 1, 0) + 1) * (min(j + 1, 4) - max(j - 1, 0) + 1)
+      order = np.argsort(x[i, j], kind="stable")
+      want[i, j, order[(c - 1) // 2]] += w_lo[i, j]
+      want[i, j, order[c // 2]] += w_hi[i, j]
+  np.testing.assert_array_equal(got, want)
