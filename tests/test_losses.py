@@ -84,8 +84,8 @@ def test_fast_and_literal_match_loop(ld, s, mode):
 @pytest.mark.parametrize("mode", ["binary", "segment_id"])
 def test_fast_loss_of_a_large_window_matches_loop(ld, mode):
   # Reference: literal NumPy loops, as above. From losses.STACKED_FROM_WINDOW on the fast L_d
-  # sorts windows stacked on an array axis instead of unrolling them (which took minutes to
-  # compile); 16x24 holds interior windows and windows clipped on one or both axes. Instance 3
+  # selects from windows stacked on an array axis instead of unrolling them (which took minutes
+  # to compile); 16x24 holds interior windows and windows clipped on one or both axes. Instance 3
   # fills the left half but for a patch of instance 1, so that it fills more than half of the
   # windows of pixels outside it (the |0 - D~'_e| terms); the rest is random ids.
   s = losses.STACKED_FROM_WINDOW
@@ -95,8 +95,8 @@ def test_fast_loss_of_a_large_window_matches_loop(ld, mode):
     pan[:, :13], pan[4:9, 2:6] = 3, 1
     depth = rng.uniform(0.5, 80.0, (16, 24)).astype(np.float32)
     value, grad = ld(depth, pan, DYNAMIC_IDS, s, mode, "fast")
-    np.testing.assert_allclose(float(value), depth_refining_loss_loop(depth, pan, DYNAMIC_IDS, s, mode),
-                               rtol=RTOL)
+    want = depth_refining_loss_loop(depth, pan, DYNAMIC_IDS, s, mode)
+    np.testing.assert_allclose(float(value), want, rtol=RTOL)
     np.testing.assert_allclose(np.asarray(grad),
                                depth_refining_grad_loop(depth, pan, DYNAMIC_IDS, s, mode),
                                rtol=RTOL, atol=1e-7)
