@@ -67,7 +67,7 @@ def assert_ld_matches_loop(ld, depth, pan, dyn, s, mode):
 
 
 @pytest.mark.parametrize("s,mode", [(1, "binary"), (3, "binary"), (5, "binary"), (7, "binary"),
-                                    (3, "instance_id"), (5, "instance_id"),
+                                    (9, "binary"), (3, "instance_id"), (5, "instance_id"),
                                     (3, "segment_id"), (5, "segment_id")])
 def test_fast_and_literal_match_loop(ld, s, mode):
   # Reference: literal NumPy loops of eqs. 3, 4, 7, 8 (value) and of the sign formula for the

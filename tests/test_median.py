@@ -41,9 +41,10 @@ def test_network_sorts_all_binary_inputs(n):
     assert v == sorted(v), bits
 
 
-@pytest.mark.parametrize("n", [25, 49])
+@pytest.mark.parametrize("n", [25, 49, 81, 121, 169, 225])
 def test_network_sorts_random_inputs(n):
-  # Reference: Python's sorted() on random inputs with ties, for the 5x5 and 7x7 windows.
+  # Reference: Python's sorted() on random inputs with ties, for the 5x5 to 15x15 windows (the
+  # networks on 81 wires and more pad to 128 and 256 wires).
   rng = np.random.default_rng(n)
   pairs = median_lib._batcher_pairs(n)
   for _ in range(300):
@@ -53,6 +54,26 @@ def test_network_sorts_random_inputs(n):
       if v[i] > v[j]:
         v[i], v[j] = v[j], v[i]
     assert v == want
+
+
+@pytest.mark.parametrize("n", [9, 25, 49, 81, 121, 169, 225])
+def test_selection_network_gives_the_needed_slots(n):
+  # Reference: Python's sorted() on random inputs with ties. The pruned network (min-only and
+  # max-only comparators) must leave the sorted values on the slots it was asked for: the middle
+  # slots of every window count a filter of n = s * s wires meets, at the border and inside.
+  rng = np.random.default_rng(n)
+  s = int(round(n ** 0.5))
+  counts = median_lib.window_counts(s + 3, s + 4, s)
+  ranks = tuple(sorted(set(((counts - 1) // 2).ravel().tolist()) | set((counts // 2).ravel().tolist())))
+  network = median_lib._selection_network(n, ranks)
+  for _ in range(100):
+    v = rng.integers(0, 6, n).tolist()
+    want = sorted(v)
+    for i, j, need_min, need_max in network:
+      lo, hi = min(v[i], v[j]), max(v[i], v[j])
+      v[i] = lo if need_min else v[i]
+      v[j] = hi if need_max else v[j]
+    assert [v[k] for k in ranks] == [want[k] for k in ranks]
 
 
 def test_window_counts_match_loop():
@@ -81,6 +102,17 @@ def test_equals_numpy_loop_exactly(mf, s, shape):
     want = median_filter_loop(x, s)
     assert got.dtype == np.float32
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("s", [9, 11])
+def test_larger_networks_equal_numpy_loop(mf, s):
+  # Reference: the NumPy loop, as above, for the selection networks between the 7x7 and the
+  # stacked form (81 and 121 wires); 19x23 holds interior windows and windows clipped on both
+  # axes. (13 and 15 take 6-11 s to compile; their networks are checked in pure Python above.)
+  rng = np.random.default_rng(s)
+  for x in (rng.standard_normal((19, 23)).astype(np.float32),
+            rng.integers(-2, 3, (19, 23)).astype(np.float32) * np.float32(0.1)):
+    np.testing.assert_array_equal(np.asarray(mf(x, s)), median_filter_loop(x, s))
 
 
 def test_hand_computed_even_counts(mf):
