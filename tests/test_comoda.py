@@ -26,6 +26,7 @@ and the non-finite guard over both networks.
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -289,6 +290,30 @@ def test_replay_set_windows():
   assert triplets[REPLAY_IMAGES].shape == (2, 3, 32, 32, 3)
   with pytest.raises(ValueError, match="--replay-root"):
     replay_set(SourceData(images=(seq_a[0].image,)), ComodaConfig())
+
+
+def test_step_draws_follow_their_laws():
+  """The draws the parity tests replay, by their law. Replay: `replay` distinct windows of the
+  set when it holds enough (each window in a given step's batch with probability replay / R,
+  within 5 standard errors over 4000 steps), with repetition only from a smaller set. Tie-break
+  noise: one standard-normal draw per step (upstream's `torch.randn` of the identity losses),
+  the same at every scale (upstream repeats it over the scales)."""
+  cfg = ComodaConfig(replay=3, sfm=dataclasses.replace(ComodaConfig().sfm, scales=(0, 1, 2)))
+  draw = jax.jit(jax.vmap(lambda k: step_draws(k, 10, cfg, 4, 6)))
+  steps = 4000
+  idx, noise = (np.asarray(a) for a in draw(jax.random.split(jax.random.PRNGKey(7), steps)))
+  assert idx.shape == (steps, 3) and noise.shape == (steps, 3, 4, 1, 4, 6)
+  assert idx.min() >= 0 and idx.max() < 10
+  assert np.all(np.sort(idx, axis=1)[:, 1:] != np.sort(idx, axis=1)[:, :-1])  # no repetition
+  p = 0.3
+  counts = np.bincount(idx.ravel(), minlength=10)
+  assert np.all(np.abs(counts - steps * p) < 5 * np.sqrt(steps * p * (1 - p))), counts
+  np.testing.assert_array_equal(noise, np.broadcast_to(noise[:, :1], noise.shape))
+  z = noise[:, 0].astype(np.float64).ravel()
+  assert abs(z.mean()) < 5 / np.sqrt(z.size)
+  assert abs((z ** 2).mean() - 1.0) < 5 * np.sqrt(2.0 / z.size)
+  small, _ = step_draws(jax.random.PRNGKey(1), 2, cfg, 4, 6)  # 3 from a set of 2: repeats
+  assert small.shape == (3,) and set(np.asarray(small).tolist()) <= {0, 1}
 
 
 def test_requires_bn_eval_and_no_bn_selector():

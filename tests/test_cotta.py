@@ -325,3 +325,55 @@ def test_nonfinite_step_keeps_the_student_but_not_the_teacher_or_the_restore(cas
   for a, b in zip(jax.tree_util.tree_leaves(state.opt_state),
                   jax.tree_util.tree_leaves(init.opt_state)):
     np.testing.assert_array_equal(a, b)
+
+
+def _near(value: float, want: float, sd: float, n: int, what: str) -> None:
+  """`value`, a mean of n i.i.d. samples of standard deviation sd, within 5 standard errors."""
+  se = sd / np.sqrt(n)
+  assert abs(value - want) < 5 * se, f"{what}: {value} against {want} (standard error {se:.2g})"
+
+
+def test_augmentation_draws_follow_upstream_laws():
+  # Reference: the laws of upstream's draws (get_tta_transforms with soft=False; torchvision's
+  # samplers): each jitter factor uniform in [1 - b, 1 + b] with its own b, the four jitters in a
+  # uniformly random order per view (each of the 24 orders equally likely), blur sigma uniform in
+  # [min, max], a flip with probability flip_p, noise N(0, noise_std^2) per value. Moments
+  # within 5 standard errors over 20000 views. Every jitter gets a different b, so that a spread
+  # in the wrong column fails; the parity tests replay these draws and cannot see their law.
+  cfg = CottaConfig(brightness=0.1, contrast=0.2, saturation=0.35, gamma=0.5, flip_p=0.3,
+                    noise_std=0.02, blur_sigma_min=0.1, blur_sigma_max=0.4)
+  n = 20000
+  d = jax.tree_util.tree_map(np.asarray, sample_augment(jax.random.PRNGKey(3), n, 2, 3, cfg))
+  for k, (name, b) in enumerate(zip(("brightness", "contrast", "saturation", "gamma"),
+                                    (cfg.brightness, cfg.contrast, cfg.saturation, cfg.gamma))):
+    x = d.factors[:, k].astype(np.float64) - 1.0  # uniform in [-b, b]
+    assert -b <= x.min() < -0.99 * b and 0.99 * b < x.max() <= b, name
+    _near(x.mean(), 0.0, b / np.sqrt(3), n, f"{name} mean")
+    _near((x ** 2).mean(), b ** 2 / 3, b ** 2 * np.sqrt(4 / 45), n, f"{name} variance")
+  np.testing.assert_array_equal(np.sort(d.order, axis=1), np.tile(np.arange(4), (n, 1)))
+  orders, counts = np.unique(d.order, axis=0, return_counts=True)
+  assert len(orders) == 24
+  p = 1 / 24
+  assert np.all(np.abs(counts - n * p) < 5 * np.sqrt(n * p * (1 - p))), counts
+  s = d.sigma.astype(np.float64)
+  assert cfg.blur_sigma_min <= s.min() and s.max() <= cfg.blur_sigma_max
+  _near(s.mean(), 0.25, 0.3 / np.sqrt(12), n, "blur sigma mean")
+  _near(d.flip.mean(), cfg.flip_p, np.sqrt(cfg.flip_p * (1 - cfg.flip_p)), n, "flip rate")
+  z = d.noise.astype(np.float64).ravel() / cfg.noise_std  # N(0, 1) if the std is noise_std
+  _near(z.mean(), 0.0, 1.0, z.size, "noise mean")
+  _near((z ** 2).mean(), 1.0, np.sqrt(2.0), z.size, "noise variance")
+
+
+def test_restore_masks_are_bernoulli_p_per_element():
+  # Reference: upstream's restore, `torch.rand(p.shape) < rst` per parameter tensor: each
+  # element restored with probability p, independently, in every leaf. p = 0.2 (a draw of
+  # Bernoulli(1 - p) fails), two leaves of one shape (one pattern repeated across leaves fails).
+  tree = {"a": jnp.zeros((40, 250)), "b": {"c": jnp.zeros((40, 250)), "d": jnp.zeros((7,))}}
+  masks = jax.tree_util.tree_map(np.asarray, restore_masks(jax.random.PRNGKey(0), tree, 0.2))
+  assert jax.tree_util.tree_structure(masks) == jax.tree_util.tree_structure(tree)
+  for leaf in (masks["a"], masks["b"]["c"]):
+    assert leaf.dtype == bool and leaf.shape == (40, 250)
+    _near(leaf.mean(), 0.2, 0.4, leaf.size, "restore fraction")
+  assert masks["b"]["d"].shape == (7,)
+  both = (masks["a"] & masks["b"]["c"]).mean()  # independent leaves: 0.2 * 0.2
+  _near(both, 0.04, np.sqrt(0.04 * 0.96), masks["a"].size, "joint restore fraction")

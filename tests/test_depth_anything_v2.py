@@ -268,7 +268,8 @@ def test_train_flag_changes_nothing(small):
 def test_vits_converts_from_either_format_with_upstream_sizes(tmp_path):
   """The real ViT-S/14 + DPT widths: sizes inferred from the weights without overrides (no
   config.json) and both formats give bitwise the same variables. (Its forward parity at full
-  size runs in `test_full_size_vits_matches_torch`, opt-in for time.)"""
+  size is `full_size_vits_matches_torch`, not collected for time: `python
+  benchmarks/dav2_full_parity.py` runs it.)"""
   _write_checkpoints(tmp_path, VITS, seed=1)
   cfg_o, var_o = conv.convert_depth_anything_v2(tmp_path / "official" / "depth_anything_v2.pth")
   cfg_h, var_h = conv.convert_depth_anything_v2(tmp_path / "hf" / "model.safetensors", "hf")

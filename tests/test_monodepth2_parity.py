@@ -149,8 +149,11 @@ def test_pose_net_matches_torch(r18):
   aa, tr = jax.jit(lambda v, x: PoseNet(18).apply(v, x))(pose_vars, x)
   d = max(float(np.max(np.abs(np.asarray(aa) - aa_t.numpy()))),
           float(np.max(np.abs(np.asarray(tr) - tr_t.numpy()))))
-  print(f"pose axisangle/translation max abs diff {d:.2e}")
-  assert d < 1e-5
+  scale = max(float(np.max(np.abs(aa_t.numpy()))), float(np.max(np.abs(tr_t.numpy()))))
+  print(f"pose axisangle/translation max abs diff {d:.2e} of values up to {scale:.2e}")
+  # relative to the outputs, which the decoder scales by 0.01 (~2e-3 here): float32 agreement
+  # is ~1e-7 of them, and an error of a fraction of a percent must fail
+  assert d < 1e-5 * scale
   # 4x4 matrix helper against a literal Rodrigues formula (hand-written in NumPy)
   m = np.asarray(transformation_from_parameters(aa[:, 0] * 50, tr[:, 0] * 50))
   for b in range(2):
