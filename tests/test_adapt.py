@@ -317,6 +317,17 @@ def test_each_inner_step_draws_its_own_randomness():
   np.testing.assert_array_equal(moved[1], -first)
   second = -moved[2] - first                 # the second inner step's draw
   assert np.all(np.abs(second - first) > 1e-3)
+  # CoTTA's setting (upstream's forward returns its last `steps` pass): the outputs are the last
+  # inner step's, its draw and its loss <w_1, draw_2> with w_1 = -draw_1 after the first step
+  last = dataclasses.replace(method, report_last_step=True)
+  new, out = adapt_step(state, frame, Consts({}, {}), model=None, method=last,
+                        cfg=AdaptConfig(steps_per_frame=2), tx=tx)
+  np.testing.assert_array_equal(np.asarray(new.trainable["w"]), moved[2])
+  np.testing.assert_allclose(np.asarray(out.logs["draw"]), second, rtol=1e-6)  # w: -(d1 + d2)
+  np.testing.assert_allclose(float(out.loss), float(np.dot(-first, second)), rtol=1e-6)
+  _, out = adapt_step(state, frame, Consts({}, {}), model=None, method=last,
+                      cfg=AdaptConfig(steps_per_frame=1), tx=tx)
+  np.testing.assert_array_equal(np.asarray(out.logs["draw"]), first)
 
 
 def test_runners_share_a_compile_by_what_a_method_computes(monkeypatch):

@@ -44,6 +44,10 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
   report_after_update: the frame's evaluated depth is the adapted network's prediction *after*
       the frame's update (`predict` with the new trainable leaves, one more forward pass) instead
       of `Aux.depth` (e.g. Ada-Depth, whose official code evaluates the student after its step).
+  report_last_step: with `AdaptConfig.steps_per_frame` > 1, the frame's outputs (Aux.depth,
+      loss, logs) are those of the last inner step instead of the first (CoTTA, whose official
+      `forward` returns what its last pass of the `steps` loop computed); False keeps the first
+      forward pass, before any update of the frame (predict-then-adapt: PITTA).
 
 The engine (`pitta_jax.adapt.engine`) knows only this interface, never a method's name.
 """
@@ -129,6 +133,8 @@ class Method:
   setting: tuple[tuple[str, Any], ...] = ()
   # evaluate the depth predicted after the frame's update instead of Aux.depth
   report_after_update: bool = False
+  # with several steps per frame, report the last inner step's outputs instead of the first's
+  report_last_step: bool = False
   metres: bool = False
   # `AdaptConfig.conv_library = "auto"` for this method on a CPU (see the module docstring)
   cpu_conv_library: str = "auto"

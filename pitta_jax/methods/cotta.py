@@ -29,7 +29,9 @@ For depth (our choices, the paper gives none):
   Gaussian noise, clipping to [0, 1]; no affine warp (a warped disparity map would need warping
   back and its border filled). The N views (with gate 'spread' also the plain image) go
   through the teacher as one batch;
-- the evaluated depth is the depth of the pseudo label (what upstream's forward returns).
+- the evaluated depth is the depth of the pseudo label (what upstream's forward returns); with
+  `AdaptConfig.steps_per_frame` > 1 that of the last inner step, drawn after the steps before it
+  (`Method.report_last_step`: upstream's `steps` loop returns its last pass's output).
 
 BatchNorm is in eval mode (running statistics) for all three networks, so a view's prediction
 does not depend on the other views: the method requires `AdaptConfig.bn_stats == "running"`.
@@ -290,6 +292,8 @@ def build(config: CottaConfig = CottaConfig()) -> Method:
     return {**method_state, "teacher": source}
 
   return Method("cotta", config, init=init, loss=loss, update=update, reset=reset,
+                # upstream's forward returns its last `steps` pass's teacher output
+                report_last_step=True,
                 optimizer=lambda cfg: optax.adam(config.lr),
                 requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),),
                 setting=(("selector", "all"),),
