@@ -31,10 +31,13 @@ Deviations (ours; docs/method.md):
 - disparity -> depth by `disp_to_depth(0.1, 100)`, as the MonoDepth2 weights were trained
   (upstream warps with 1 / disp);
 - `latency` 0 (default, causal): the update at frame t uses (t-1 -> t); `latency` 1: the update
-  at frame t uses (t-2, t -> t-1), upstream's frame_ids (0, -1, 1) one frame late. The evaluated
-  depth is frame t's: with latency 0 before frame t's update (predict-then-adapt), with latency 1
-  after it, as upstream, whose depth of frame t comes from the network already updated on the
-  window (t-2, t-1, t) (`Method.report_after_update`);
+  at frame t uses (t-2, t -> t-1), upstream's frame_ids (0, -1, 1) one frame late. The replay
+  samples take the same window (one batch, one window shape): with latency 0 they are pairs,
+  one warped source and one identity loss in the minimum, where upstream replays triplets (its
+  frame_ids for every sample), as latency 1 does here. The evaluated depth is frame t's: with
+  latency 0 before frame t's update (predict-then-adapt), with latency 1 after it, as upstream,
+  whose depth of frame t comes from the network already updated on the window (t-2, t-1, t)
+  (`Method.report_after_update`);
 - the first frame (latency 0), the first two (latency 1), and a frame whose K is unknown make
   no update (loss 0; parameters and both Adam states untouched), as upstream starts at the
   second frame of a video; so does each recording's first frame (first two) where recordings
