@@ -46,7 +46,9 @@ class StepInput(NamedTuple):
   intrinsics:   (3, 3) float32 camera matrix K at the network's input size (zeros if unknown).
   has_intrinsics: () bool, whether the dataset gave K for this frame.
   starts_recording: () bool, True for the first frame of a recording that follows another
-                (`Frame.starts_recording`): methods forget the frames before it.
+                (`Frame.starts_recording`): methods that pair a frame with the frames before it
+                (CoMoDa, Ada-Depth) forget those; ActMAD's ring keeps them (its stand-in for a
+                batch of images, which upstream draws independently).
   """
   image: jax.Array
   panoptic: jax.Array

@@ -16,7 +16,9 @@ the same forward pass.
 Online, batch 1 has no variance, so the batch is the current frame (with gradient) plus the
 last K frames' activations (a FIFO in the method state, stop-gradient; `base.ring_*`). On the
 very first frame (n = 1) the variance is 0 (divisor max(n - 1, 1)), so only the mean term moves
-the parameters. The ring holds the activations of each frame as computed before its update.
+the parameters. The ring holds the activations of each frame as computed before its update,
+and keeps them across a recording's start (`StepInput.starts_recording`): the ring stands in for
+a batch, whose images upstream draws independently, not for a frame's neighbours.
 
 BatchNorm runs in eval mode (running statistics) as upstream: the method requires
 `AdaptConfig.bn_stats == "running"` and fails at init otherwise. As upstream, the frame's depth

@@ -74,9 +74,10 @@ class CottaConfig:
                                "'spread' (per pixel, where the views' std / mean > threshold)")
   threshold: float = option(0.1, "gate='spread': the views' relative spread above which a pixel "
                                  "takes the augmented mean")
-  ema_decay: float = option(0.999, "teacher EMA decay (upstream mt_alpha 0.999 on ImageNet-C)")
+  ema_decay: float = option(0.999, "teacher EMA decay (upstream: 0.999 on CIFAR and ImageNet-C)")
   restore_p: float = option(0.01, "probability of restoring each trainable element to the source "
-                                  "per step (upstream rst_m 0.01)")
+                                  "per step (upstream: 0.01 on CIFAR-10, 0.001 in its ImageNet-C "
+                                  "code)")
   lr: float = option(1e-4 / 12, "Adam learning rate (CoTTA's rule for dense prediction)")
   brightness: float = option(0.4, "brightness factor uniform in [1 - b, 1 + b] (upstream)")
   contrast: float = option(0.3, "contrast factor uniform in [1 - c, 1 + c] (upstream)")
