@@ -317,6 +317,9 @@ def test_detectron2_pkl_through_the_cli(tmp_path, converted, capsys):
       state[f"backbone.layers.{i}.blocks.{j}.attn.relative_position_index"] = np.zeros(
           (49, 49), np.int64)
   state["criterion.empty_weight"] = np.ones(134, np.float32)
+  # detectron2's buffers, (3, 1, 1): the Swin configs' RGB normalisation (checked, not used)
+  state["pixel_mean"] = np.array([123.675, 116.28, 103.53], np.float32).reshape(3, 1, 1)
+  state["pixel_std"] = np.array([58.395, 57.12, 57.375], np.float32).reshape(3, 1, 1)
   path = tmp_path / "model_final.pkl"
   with open(path, "wb") as f:
     pickle.dump({"model": state, "__author__": "test", "matching_heuristics": True}, f)
@@ -329,6 +332,14 @@ def test_detectron2_pkl_through_the_cli(tmp_path, converted, capsys):
   assert wc.main(["--from", "detectron2", str(tmp_path / "missing.pkl"), "--out",
                   str(tmp_path / "x")]) == 2
   assert "missing.pkl" in capsys.readouterr().err
+  # BGR order (detectron2's default for its ResNet configs): refused, naming the file and buffer
+  state["pixel_mean"] = state["pixel_mean"][::-1].copy()
+  with open(tmp_path / "bgr.pkl", "wb") as f:
+    pickle.dump({"model": state}, f)
+  assert wc.main(["--from", "detectron2", str(tmp_path / "bgr.pkl"), "--out",
+                  str(tmp_path / "y")]) == 2
+  err = capsys.readouterr().err
+  assert "bgr.pkl" in err and "pixel_mean" in err and not (tmp_path / "y").exists()
 
 
 def test_detectron2_reader_tells_pickles_from_torch_files_by_content(tmp_path, converted):

@@ -2,7 +2,9 @@
 
 encoder.pth is MonoDepth2's: the torchvision ResNet as `encoder.*` (MonoDepth2's key table;
 `encoder.fc.*` and `num_batches_tracked` unused) plus the entries `height`, `width` (the training
-input size, which becomes the config's) and `use_stereo`.
+input size, which becomes the config's) and `use_stereo`, which is not carried over: HR-Depth's
+predictions are median-scaled per frame whatever the training, its MS releases too
+(`--eval.alignment stereo` scores them x5.4, as MonoDepth2's stereo weights are).
 
 depth.pth is the state dict of upstream's `HRDepthDecoder`, whose layers live in an
 `nn.ModuleDict` `convs` that is *also* registered as `decoder = nn.ModuleList(convs.values())`;

@@ -179,7 +179,8 @@ def hf_rules(cfg) -> R.Rules:
   return r
 
 
-# Buffers and unused tensors the checkpoints carry (not parameters of the network).
+# Buffers and unused tensors the checkpoints carry (not parameters of the network; pixel_mean
+# and pixel_std are checked first, `_check_pixel_statistics`).
 _IGNORED_D2 = re.compile(r"(.*\.relative_position_index|criterion\.empty_weight|pixel_(mean|std))$")
 _IGNORED_HF = re.compile(
     r"(.*\.relative_position_index|criterion\.empty_weight|"
@@ -356,6 +357,19 @@ def read_checkpoint(path: str | os.PathLike, source: str) -> dict[str, np.ndarra
   return {k: (np.asarray(v) if np.isscalar(v) else v) for k, v in obj.items()}
 
 
+def _check_pixel_statistics(state: dict[str, np.ndarray], path: str) -> None:
+  """A detectron2 checkpoint may carry the input normalisation it was trained with (buffers
+  `pixel_mean` / `pixel_std`, 0-255 RGB); the network normalises with the Swin configs' values
+  (`model.PIXEL_MEAN` / `PIXEL_STD`), so other values are refused rather than ignored."""
+  from pitta_jax.models.mask2former.model import PIXEL_MEAN, PIXEL_STD
+  for name, want in (("pixel_mean", PIXEL_MEAN), ("pixel_std", PIXEL_STD)):
+    if name in state:
+      got = np.asarray(state[name], np.float64).ravel()
+      if got.shape != (3,) or not np.allclose(got, want, rtol=0, atol=1e-3):
+        raise CheckpointError(f"{path}: {name} {np.round(got, 3).tolist()} differs from the "
+                              f"{list(want)} (RGB, 0-255) this network normalises with")
+
+
 def convert_mask2former(path: str | os.PathLike, source: str, cfg=None):
   """Converts a Mask2Former checkpoint file.
 
@@ -369,6 +383,7 @@ def convert_mask2former(path: str | os.PathLike, source: str, cfg=None):
   """
   from flax.traverse_util import unflatten_dict
   state = read_checkpoint(path, source)
+  _check_pixel_statistics(state, str(path))
   state = normalize_keys(state, source, str(path))
   cfg = cfg or infer_config(state, source, str(path))
   rules = detectron2_rules(cfg) if source == "detectron2" else hf_rules(cfg)

@@ -16,7 +16,9 @@ align_corners=False, no antialiasing) exactly as each upstream does it:
   `scale_factor = ((gh + 0.1) / g, (gw + 0.1) / g)`; PyTorch then maps output index i to the
   source coordinate (i + 0.5) * g / (gh + 0.1) - 0.5 (the scale factor, not the size ratio);
 * Hugging Face `Dinov2Embeddings.interpolate_pos_encoding`: `size=(gh, gw)`, i.e. the source
-  coordinate (i + 0.5) * g / gh - 0.5, which is the formula above with offset 0.
+  coordinate (i + 0.5) * g / gh - 0.5, which is the formula above with offset 0. That is
+  current transformers (the tests' reference); its older releases added 0.1 and passed a scale
+  factor, as upstream does, so a model run there matches `pos_offset` 0.1 instead.
 
 Both skip the interpolation when the grid is the stored g x g one. `pos_offset` selects the rule.
 
