@@ -101,7 +101,7 @@ class JaxImpl:
 
   def __init__(self, name: str, variables, configs, resources, conv_rule: str = "loop_friendly",
                conv_library: str | None = None, kernel_grads: str = "model",
-               flat_optimizer: bool = False):
+               flat_optimizer: bool = False, xla_options: dict | None = None):
     self.cfg, mcfg = configs
     if conv_library is not None:
       self.cfg = dataclasses.replace(self.cfg, conv_library=conv_library)
@@ -110,6 +110,7 @@ class JaxImpl:
     if flat_optimizer:  # the engine's optimiser stepped on the raveled trainable tree
       self.tx = flat_optim.flat(self.tx)
     self.compiler_options = step_compiler_options(self.cfg, self.method)
+    self.xla_options = xla_options or {}  # added to the step's own options for this compile
     self.runner = make_method_runner(self.model, self.method, self.cfg, self.tx)
     self.state, self.consts = init_state(variables, self.method, self.cfg, self.tx, self.model,
                                          resources)
@@ -124,7 +125,10 @@ class JaxImpl:
     if self.kernel_grads is not None:  # read while the step is traced (a benchmark's swap)
       conv_vjp._kernel_grad = self.kernel_grads
     try:
-      self.compiled = self.runner.lower(self.state, chunk, self.consts).compile()
+      lowered = self.runner.lower(self.state, chunk, self.consts)
+      self.compiled = (lowered.compile(compiler_options={**(self.compiler_options or {}),
+                                                         **self.xla_options})
+                       if self.xla_options else lowered.compile())
     finally:
       conv_vjp._kernel_grad = model_choice
     self.compile_s = time.perf_counter() - t0
@@ -461,6 +465,11 @@ def main(argv=None) -> None:
                  metavar="KEY=VALUE",
                  help="with --compile-only: compile the step again with this XLA option added "
                       "(repeatable, one compile each), e.g. xla_llvm_disable_expensive_passes=true")
+  p.add_argument("--compare-xla-option", type=xla_option, action="append", default=[],
+                 metavar="KEY=VALUE",
+                 help="also time the method's JAX step with this XLA option added to its own "
+                      "(repeatable, one variant each) against the step as it is, interleaved, "
+                      "with each compile, e.g. xla_backend_optimization_level=2")
   p.add_argument("--compare-conv-rule", action="store_true",
                  help="also time the PITTA step with JAX's own convolution input-gradient rule "
                       "(what pitta_jax.models.conv_vjp replaces) and print the ratio")
@@ -490,7 +499,8 @@ def main(argv=None) -> None:
                       "(the references' default) and with PyTorch's default for-loop ones, "
                       "interleaved, and print the ratio")
   p.add_argument("--compare-only", action="store_true",
-                 help="with --compare-conv-rule/--compare-conv-library/--compare-kernel-grads/"
+                 help="with --compare-xla-option/--compare-conv-rule/--compare-conv-library/"
+                      "--compare-kernel-grads/"
                       "--compare-row-taps/--compare-flat-optimizer/--compare-torch-optimizers: "
                       "skip the JAX vs PyTorch timing")
   args = p.parse_args(argv)
@@ -544,6 +554,10 @@ def main(argv=None) -> None:
   if args.compare_flat_optimizer:
     compare_jax(args.method, {"per-leaf": {}, "raveled": {"flat_optimizer": True}},
                 "the engine's optimiser per leaf or on the raveled tree", variables, args, common)
+  if args.compare_xla_option:
+    compare_jax(args.method, {"as is": {}, **{f"{k}={v}": {"xla_options": {k: v}}
+                                            for k, v in args.compare_xla_option}},
+                "XLA options added to the step's", variables, args, common)
   if args.compare_torch_optimizers:
     compare_torch_optimizers(args.method, variables, args, common)
   if args.profile and args.method == "pitta":
