@@ -246,7 +246,7 @@ def adapt_step(state: AdaptState, frame: StepInput, consts: Consts, *, model: An
       loss, aux = loss_fn(state.trainable)
       gnorm = unorm = jnp.zeros(())
       skipped = jnp.array(False)
-    if k == 0 or method.report_last_step:  # predict-then-adapt: the first forward pass
+    if k == 0 or method.report_last_step:  # the first pass (predict-then-adapt), or the last
       outputs = StepOutput(aux.depth, loss, aux.logs, skipped, gnorm, unorm)
   if method.report_after_update:  # adapt-then-predict: the depth after the last update
     outputs = outputs._replace(depth=predict(state.trainable, consts, frame, model, cfg))
