@@ -64,7 +64,8 @@ def test_selection_network_gives_the_needed_slots(n):
   rng = np.random.default_rng(n)
   s = int(round(n ** 0.5))
   counts = median_lib.window_counts(s + 3, s + 4, s)
-  ranks = tuple(sorted(set(((counts - 1) // 2).ravel().tolist()) | set((counts // 2).ravel().tolist())))
+  ranks = tuple(sorted(set(((counts - 1) // 2).ravel().tolist())
+                      | set((counts // 2).ravel().tolist())))
   network = median_lib._selection_network(n, ranks)
   for _ in range(100):
     v = rng.integers(0, 6, n).tolist()
