@@ -102,6 +102,13 @@ def check_window(s: int) -> None:
     raise ValueError(f"window size s must be a positive odd int, got {s!r}")
 
 
+def _padded(x: Array, s: int, pad_value) -> Array:
+  """x padded by r = s // 2 on every side with `pad_value`, after checking s: the map both
+  window forms slice.  # (H + 2r, W + 2r)"""
+  check_window(s)
+  return jnp.pad(x, s // 2, constant_values=pad_value)
+
+
 def window_views(x: Array, s: int, pad_value) -> list[Array]:
   """The s*s shifted views of x, padded with `pad_value` outside the image.
 
@@ -115,10 +122,8 @@ def window_views(x: Array, s: int, pad_value) -> list[Array]:
   Returns:
     s*s arrays of shape (H, W).
   """
-  check_window(s)
+  padded = _padded(x, s, pad_value)
   h, w = x.shape
-  r = s // 2
-  padded = jnp.pad(x, r, constant_values=pad_value)  # (H + 2r, W + 2r)
   return [padded[dy:dy + h, dx:dx + w] for dy in range(s) for dx in range(s)]
 
 
@@ -130,10 +135,8 @@ def window_stack(x: Array, s: int, pad_value) -> Array:
   from s row slices and s column slices of the padded map (2s slices, not s*s: the program
   grows with s, not s*s).  # (H, W, s*s)
   """
-  check_window(s)
+  padded = _padded(x, s, pad_value)
   h, w = x.shape
-  r = s // 2
-  padded = jnp.pad(x, r, constant_values=pad_value)  # (H + 2r, W + 2r)
   rows = jnp.stack([padded[dy:dy + h] for dy in range(s)], axis=1)  # (H, s, W + 2r)
   cells = jnp.stack([rows[..., dx:dx + w] for dx in range(s)], axis=-1)  # (H, s, W, s)
   return jnp.moveaxis(cells, 1, 2).reshape(h, w, s * s)  # [i, j, dy * s + dx]
