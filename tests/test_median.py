@@ -199,21 +199,30 @@ def stacked():
   return jax.jit(median_lib.stacked_order_statistics, static_argnums=1)
 
 
+def _count_3x3(i: int, j: int, h: int, w: int) -> int:
+  """Pixels of the border-shrunk 3x3 window at (i, j) of an h x w map, counted by hand."""
+  return (min(i + 1, h - 1) - max(i - 1, 0) + 1) * (min(j + 1, w - 1) - max(j - 1, 0) + 1)
+
+
 @settings(max_examples=25, deadline=None)
 @given(x=hnp.arrays(np.float32, (4, 5, 9), elements=st.one_of(
     st.sampled_from([0.0, -0.0, np.inf, -np.inf, 1.0, -1.0]),
     st.floats(width=32, allow_nan=False))))
 def test_stacked_order_statistics_pick_the_sorted_slots(stacked, x):
-  # Reference: np.sort along the window axis and the border-shrunk window's middle slots
-  # (c - 1) // 2 and c // 2 counted by a loop; any float32 but NaN (ties, signed zeros,
-  # infinities, subnormals, both signs), which the bisection over order keys must place as a
-  # sort does. Values compare with == (-0.0 == 0.0).
+  # Reference: NumPy's stable argsort along the window axis and the border-shrunk window's
+  # middle slots (c - 1) // 2 and c // 2 counted by hand; any float32 but NaN (ties, signed
+  # zeros, infinities, subnormals, both signs), which the bisection over order keys must place
+  # as jnp.sort does. XLA:CPU compares subnormals as zeros (its jnp.sort leaves them tied with
+  # 0.0 and -0.0), so the reference orders them as zeros too; the element expected at a slot is
+  # the one a stable sort puts there, compared with == (-0.0 == 0.0, a subnormal != 0.0).
   s = 3
-  ordered = np.sort(x, axis=-1)
+  as_xla_compares = np.where(np.abs(x) < np.finfo(np.float32).tiny, np.float32(0), x)
+  order = np.argsort(as_xla_compares, axis=-1, kind="stable")
+  ordered = np.take_along_axis(x, order, axis=-1)
   lower, upper = (np.asarray(a) for a in stacked(jnp.asarray(x), s))
   for i in range(4):
     for j in range(5):
-      c = (min(i + 1, 3) - max(i - 1, 0) + 1) * (min(j + 1, 4) - max(j - 1, 0) + 1)
+      c = _count_3x3(i, j, 4, 5)
       assert lower[i, j] == ordered[i, j, (c - 1) // 2] and upper[i, j] == ordered[i, j, c // 2]
 
 
@@ -248,7 +257,7 @@ def test_stacked_order_statistics_gradient_is_a_stable_sorts():
   want = np.zeros_like(x)
   for i in range(4):
     for j in range(5):
-      c = (min(i + 1, 3) - max(i - 1, 0) + 1) * (min(j + 1, 4) - max(j - 1, 0) + 1)
+      c = _count_3x3(i, j, 4, 5)
       order = np.argsort(x[i, j], kind="stable")
       want[i, j, order[(c - 1) // 2]] += w_lo[i, j]
       want[i, j, order[c // 2]] += w_hi[i, j]
