@@ -50,9 +50,9 @@ from pitta_jax import masks as masks_lib
 from pitta_jax.edges import edge_map, image_edge_map
 from pitta_jax.dtypes import as_float
 from pitta_jax.nonsmooth import absolute
-from pitta_jax.median import (INT_PAD, WINDOW, check_window, median_filter, median_of_middles,
-                              median_of_views, middle_order_statistics, middle_ranks,
-                              stacked_order_statistics, window_stack, window_views)
+from pitta_jax.median import (BLOCK_BYTES, INT_PAD, WINDOW, check_window, map_row_blocks,
+                              mean_of_middles, median_filter, median_of_views,
+                              middle_order_statistics, middle_ranks, select_middles, window_views)
 
 Array = jax.Array
 
@@ -137,8 +137,33 @@ def _window_of_instance(index: Array, value: Array, key: Array) -> Array:
   return jnp.where(index == key, value, jnp.where(index == INT_PAD, jnp.inf, 0.0))
 
 
+def _majority_and_pseudo_labels(index_map: Array, cand_lo: Array, cand_hi: Array, count, pseudo,
+                                lo_rank: Array) -> tuple[Array, Array, Array]:
+  """Per pixel of the fast L_d: the majority instance e != k0 of its window (0 = none) and the
+  pseudo labels D~'_k0 and D~'_e (see the module docstring).
+
+  Args:
+    index_map: (R, W) the pixels' own instance k0.
+    cand_lo, cand_hi: (R, W) the window's sorted instance indices at slots (c-1)//2 and c//2.
+    count: key (R, W) -> (R, W) how many of the window's pixels hold that instance.
+    pseudo: key (R, W) -> (R, W) the median of the window of D~_key (eq. 7).
+    lo_rank: (R, W) the slot (c-1)//2.
+
+  Returns:
+    (extra, pseudo_own, pseudo_extra), (R, W) each.
+  """
+  need = lo_rank + 1  # ceil(c / 2) = (c - 1) // 2 + 1
+  ok_lo = (cand_lo > 0) & (cand_lo != index_map) & (count(cand_lo) >= need)
+  ok_hi = (cand_hi > 0) & (cand_hi != index_map) & (count(cand_hi) >= need)
+  extra = jnp.where(ok_lo, cand_lo, jnp.where(ok_hi, cand_hi, 0))  # (R, W), 0 = none
+  # One pass per map (D~_k0, then D~_extra): a single pass over the two stacked as (2, R, W)
+  # makes XLA:CPU emit a concatenate fusion that takes twice as long as the whole loss.
+  return extra, pseudo(index_map), pseudo(extra)
+
+
 def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
-                             mode: str = "binary", inst_ids: Array | None = None) -> Array:
+                             mode: str = "binary", inst_ids: Array | None = None,
+                             block_bytes: int = BLOCK_BYTES) -> Array:
   """Depth-refining loss, eq. 8, at a cost independent of N (see the module docstring).
 
   Same value (up to float summation order) and the same gradient w.r.t. depth as
@@ -157,6 +182,8 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
     mode: "binary" (g_j = 1), "segment_id" (g_j = the segment id, `inst_ids` required) or
       "instance_id" (g_j = j), static.
     inst_ids: (N_max,) the instance table's segment ids (row j - 1 = instance j).
+    block_bytes: from s = `STACKED_FROM_WINDOW` on, the bound on one block of stacked windows
+      (`median.map_row_blocks`; static).
 
   Returns:
     scalar float32 L_d (0 when N = 0).
@@ -176,21 +203,24 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
   # pseudo labels D~'_k at each pixel: the median of the window of D~_k (stop-gradient).
   masked_values = jax.lax.stop_gradient(own_masked)
   check_window(s)
-  if s >= STACKED_FROM_WINDOW:
-    idx_stack = window_stack(index_map, s, INT_PAD)  # (H, W, s*s), INT_PAD outside the image
-    val_stack = window_stack(masked_values, s, jnp.inf)  # (H, W, s*s)
-    cand_lo, cand_hi = stacked_order_statistics(idx_stack, s)
+  if s >= STACKED_FROM_WINDOW:  # the windows stacked on an array axis, a block of rows at a time
+    def block(stacks: list[Array], lo_rank: Array, hi_rank: Array) -> tuple[Array, Array, Array]:
+      idx_stack, val_stack = stacks  # (R, W, s*s) each, INT_PAD / inf outside the image
 
-    def count(key: Array) -> Array:
-      return jnp.sum((idx_stack == key[..., None]).astype(jnp.int32), axis=-1)  # (H, W)
+      def count(key: Array) -> Array:
+        return jnp.sum((idx_stack == key[..., None]).astype(jnp.int32), axis=-1)  # (R, W)
 
-    def pseudo(key: Array) -> Array:
-      window = _window_of_instance(idx_stack, val_stack, key[..., None])  # (H, W, s*s)
-      return median_of_middles(*stacked_order_statistics(window, s), s)
+      def pseudo(key: Array) -> Array:
+        window = _window_of_instance(idx_stack, val_stack, key[..., None])  # (R, W, s*s)
+        return mean_of_middles(*select_middles(window, lo_rank, hi_rank), lo_rank, hi_rank)
+      own_index = idx_stack[..., (s * s) // 2]  # (R, W): the window's centre, the pixel itself
+      return _majority_and_pseudo_labels(own_index, *select_middles(idx_stack, lo_rank, hi_rank),
+                                         count, pseudo, lo_rank)
+    extra, pseudo_own, pseudo_extra = map_row_blocks(
+        block, [(index_map, INT_PAD), (masked_values, jnp.inf)], s, block_bytes)
   else:
     idx_views = window_views(index_map, s, INT_PAD)  # s*s x (H, W), INT_PAD outside the image
     val_views = window_views(masked_values, s, jnp.inf)  # s*s x (H, W)
-    cand_lo, cand_hi = middle_order_statistics(idx_views, s)
 
     def count(key: Array) -> Array:
       return sum((v == key).astype(jnp.int32) for v in idx_views)  # (H, W)
@@ -198,15 +228,9 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
     def pseudo(key: Array) -> Array:
       return median_of_views([_window_of_instance(iv, vv, key)
                               for iv, vv in zip(idx_views, val_views)], s)
-  lo_rank, _ = middle_ranks(*index_map.shape, s)
-  need = lo_rank + 1  # ceil(c / 2) = (c - 1) // 2 + 1
-  ok_lo = (cand_lo > 0) & (cand_lo != index_map) & (count(cand_lo) >= need)
-  ok_hi = (cand_hi > 0) & (cand_hi != index_map) & (count(cand_hi) >= need)
-  extra = jnp.where(ok_lo, cand_lo, jnp.where(ok_hi, cand_hi, 0))  # (H, W), 0 = none
-
-  # One pass per map (D~_k0, then D~_extra): a single pass over the two stacked as (2, H, W)
-  # makes XLA:CPU emit a concatenate fusion that takes twice as long as the whole loss.
-  pseudo_own, pseudo_extra = pseudo(index_map), pseudo(extra)  # (H, W) each
+    extra, pseudo_own, pseudo_extra = _majority_and_pseudo_labels(
+        index_map, *middle_order_statistics(idx_views, s), count, pseudo,
+        middle_ranks(*index_map.shape, s)[0])
 
   own_term = jnp.where(index_map > 0, absolute(own_masked - pseudo_own), 0.0)
   extra_term = jnp.where(extra > 0, absolute(pseudo_extra), 0.0)  # |0 - D~'_e|

@@ -102,6 +102,28 @@ def test_fast_loss_of_a_large_window_matches_loop(ld, mode):
                                rtol=RTOL, atol=1e-7)
 
 
+@pytest.mark.parametrize("rows", [1, 5])  # 16 rows: 16 blocks, or 4 with one row in the last
+def test_fast_loss_in_blocks_of_rows_matches_loop(rows):
+  # Reference: the NumPy loops of eq. 8 (an index map is a panoptic map whose ids are the rows).
+  # The stacked fast L_d goes through the image a block of rows at a time (bounded memory); the
+  # value and the gradient must be those of the whole image's windows.
+  s, shape = losses.STACKED_FROM_WINDOW, (16, 24)
+  rng = np.random.default_rng(20 + rows)
+  index = random_panoptic(rng, shape, 4, 2)
+  index[:, :13], index[4:9, 2:6] = 3, 1  # instance 3 fills most windows of its neighbours
+  depth = rng.uniform(0.5, 80.0, shape).astype(np.float32)
+  ids = np.arange(1, 5, dtype=np.int32)
+  block_bytes = rows * shape[1] * s * s * 4
+  for mode in ("binary", "segment_id"):
+    f = lambda d: losses.depth_refining_loss_fast(  # noqa: E731
+        d, jnp.asarray(index), jnp.int32(4), s, mode, jnp.asarray(ids), block_bytes)
+    v, g = jax.jit(jax.value_and_grad(f))(jnp.asarray(depth))
+    np.testing.assert_allclose(float(v), depth_refining_loss_loop(depth, index, ids, s, mode),
+                               rtol=RTOL)
+    np.testing.assert_allclose(np.asarray(g), depth_refining_grad_loop(depth, index, ids, s, mode),
+                               rtol=RTOL, atol=1e-7)
+
+
 def test_image_smaller_than_window(ld):
   # Reference: NumPy loops; a 3x4 image with s = 5 (every window is clipped on both axes).
   rng = np.random.default_rng(3)

@@ -116,6 +116,60 @@ def test_larger_networks_equal_numpy_loop(mf, s):
     np.testing.assert_array_equal(np.asarray(mf(x, s)), median_filter_loop(x, s))
 
 
+# One row a block, and 6 rows a block (19 rows: the fourth block holds one row of the image).
+@pytest.mark.parametrize("rows", [1, 6])
+def test_stacked_blocks_of_rows_equal_numpy_loop(rows):
+  # Reference: the NumPy loop of eq. 7. The stacked form goes through the image a block of rows
+  # at a time (bounded memory); each pixel must still see its whole-image window and slots, on
+  # blocks that cut through windows and a last block that reaches below the image.
+  s, shape = median_lib.SORT_FROM_WINDOW, (19, 23)
+  block_bytes = rows * shape[1] * s * s * 4
+  assert median_lib.block_rows(*shape, s, 4, block_bytes) == rows
+  f = jax.jit(median_lib.median_filter, static_argnums=(1, 2))
+  rng = np.random.default_rng(rows)
+  for x in (rng.standard_normal(shape).astype(np.float32),
+            rng.integers(-2, 3, shape).astype(np.float32) * np.float32(0.1)):
+    np.testing.assert_array_equal(np.asarray(f(x, s, block_bytes)), median_filter_loop(x, s))
+
+
+@pytest.mark.parametrize("rows", [1, 19])  # 19 blocks of one row; the whole map in one
+def test_stacked_median_gradient_reaches_the_middle_values(rows):
+  # Reference: per pixel, by a loop, the window's middle element(s) under np.argsort: distinct
+  # values, so the cotangent w of an odd window goes to its median element, and w / 2 to each of
+  # the two middle elements of an even one (the mean of eq. 7's even count).
+  s, (h, w) = median_lib.SORT_FROM_WINDOW, (19, 23)
+  r = s // 2
+  rng = np.random.default_rng(7)
+  x = rng.permutation(h * w).reshape(h, w).astype(np.float32) / 7
+  cot = rng.standard_normal((h, w)).astype(np.float32)
+  block_bytes = rows * w * s * s * 4
+  f = lambda v: jnp.sum(median_lib.median_filter(v, s, block_bytes) * cot)  # noqa: E731
+  got = np.asarray(jax.jit(jax.grad(f))(jnp.asarray(x)))
+  want = np.zeros((h, w), np.float64)
+  for i in range(h):
+    for j in range(w):
+      rows_i = np.arange(max(i - r, 0), min(i + r, h - 1) + 1)
+      cols_j = np.arange(max(j - r, 0), min(j + r, w - 1) + 1)
+      cells = [(a, b) for a in rows_i for b in cols_j]
+      order = np.argsort([x[a, b] for a, b in cells])
+      c = len(cells)
+      middles = {order[(c - 1) // 2], order[c // 2]}
+      for k in middles:
+        want[cells[k]] += cot[i, j] / len(middles)
+  np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+
+
+def test_stacked_working_memory_is_bounded_by_blocks():
+  # Hand bound: at 192x640 and s = 31 one stack of the windows is 192 * 640 * 961 * 4 bytes =
+  # 472 MB, and the selection holds several arrays of that size; in blocks of at most
+  # BLOCK_BYTES the compiled program's temporaries must stay within a few blocks.
+  s, shape = 31, (192, 640)
+  compiled = jax.jit(median_lib.median_filter, static_argnums=1).lower(
+      jnp.zeros(shape, jnp.float32), s).compile()
+  stats = compiled.memory_analysis()
+  assert stats.temp_size_in_bytes < 8 * median_lib.BLOCK_BYTES < shape[0] * shape[1] * s * s * 4
+
+
 def test_hand_computed_even_counts(mf):
   # Hand values: 2x2 map with s = 3, every window is the whole map {1, 2, 3, 10}: median =
   # (2 + 3) / 2 = 2.5 (mean of the two middle values, not 2 or 3, and not the mean 4).
