@@ -43,8 +43,8 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from pitta_jax.adapt.inputs import chunks
   from pitta_jax.methods import build
   from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, frame_metrics,
-                             input_size, load_resume_point, model_alignment, run_fingerprint,
-                             save_checkpoint)
+                             input_size, load_resume_point, model_alignment, record_marks,
+                             run_fingerprint, save_checkpoint, truncate_record)
   cfg = common.adapt_config("pitta", quick=quick)
   every = common.CHECKPOINT_EVERY if checkpoint_dir is not None else 0
   cfg = dataclasses.replace(cfg, chunk_size=checkpoint_chunk_size(cfg.chunk_size, every))
@@ -66,10 +66,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   h, w = input_size(weights, frames)
   bar = tqdm(total=len(frames), initial=start, desc="lambda sweep", unit="frame",
              disable=quiet)
-  def marks() -> tuple[int, list[int]]:
-    return len(record["names"]), [len(p) for p in record["per_frame"]]
-
-  done = (states, marks())  # the newest states whose frames are all scored in `record`
+  done = (states, record_marks(record))  # the newest states whose frames are all in `record`
   try:
     for chunk, originals in chunks(frames[start:], h, w,
                                    min(cfg.chunk_size, max(len(frames) - start, 1)),
@@ -85,16 +82,15 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
             pass
         record["names"].append(frame.name)
       n = len(record["names"])
-      done = (states, marks())
+      done = (states, record_marks(record))
       if every and n < len(frames) and n % every == 0:
         save_checkpoint(directory, states, record)
       bar.update(len(originals))
   except KeyboardInterrupt:
-    done_states, (n, scored) = done
+    done_states, marks = done
+    n = marks["names"][0]
     if every and n > start and n % every:  # the last whole chunk is not lost
-      del record["names"][n:]
-      for p, m in zip(record["per_frame"], scored):
-        del p[m:]
+      truncate_record(record, marks)
       save_checkpoint(directory, done_states, record)
     raise
   finally:

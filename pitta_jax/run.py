@@ -368,19 +368,28 @@ def _remove_checkpoint(path: Path) -> None:
   shutil.rmtree(path) if path.is_dir() else path.unlink()
 
 
-def _record_marks(record: dict) -> dict:
-  """The lengths of a run record's per-frame lists (`_truncate_record` cuts back to them)."""
-  return {"lists": {k: len(record[k]) for k in ("per_frame", "names", "excluded",
-                                               "nonfinite_indices")},
-          "logs": {k: len(v) for k, v in record["logs"].items()}}
+def record_marks(record):
+  """The lengths of every list in a run record (a dict of lists and dicts of lists; a list's
+  list items marked too, as a sweep's per-lambda lists): what `truncate_record` cuts back to."""
+  if isinstance(record, dict):
+    return {k: record_marks(v) for k, v in record.items() if isinstance(v, (dict, list))}
+  return len(record), [record_marks(v) for v in record if isinstance(v, list)]
 
 
-def _truncate_record(record: dict, marks: dict) -> None:
-  """Cuts `record` back to `marks`: what a chunk interrupted while being scored added goes."""
-  for key, n in marks["lists"].items():
-    del record[key][n:]
-  record["logs"] = {k: v[:marks["logs"][k]] for k, v in record["logs"].items()
-                    if k in marks["logs"]}
+def truncate_record(record, marks) -> None:
+  """Cuts `record` back to `marks` (`record_marks`) in place: what a chunk interrupted while
+  being scored added goes, lists and the keys of lists added since (a new log)."""
+  if isinstance(record, dict):
+    for k in [k for k, v in record.items() if isinstance(v, (dict, list))]:
+      if k in marks:
+        truncate_record(record[k], marks[k])
+      else:
+        del record[k]
+    return
+  n, inner = marks
+  del record[n:]
+  for v, m in zip([v for v in record if isinstance(v, list)], inner):
+    truncate_record(v, m)
 
 
 def complete_checkpoints(directory: str | Path) -> list[Path]:
@@ -564,7 +573,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   # the newest state whose frames are all in `record`, with the record's lengths then: a
   # Ctrl-C while a chunk is being scored checkpoints this one, not the chunk's half-scored state
   # (and this call's time then: a resumed run does not count the cut chunk's time twice)
-  done = (state, _record_marks(record), index, 0.0)
+  done = (state, record_marks(record), index, 0.0)
   try:
     for state, out in adapt_stream(state, consts, inputs(), runner):
       originals = chunk_frames.pop(0)
@@ -592,7 +601,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
           last_saved // checkpoint_every):
         save(state, time.perf_counter() - t0)
         last_saved = index
-      done = (state, _record_marks(record), index, time.perf_counter() - t0)
+      done = (state, record_marks(record), index, time.perf_counter() - t0)
       abs_rels = [m["abs_rel"] for m in record["per_frame"]]
       if compiled:  # this chunk's time (inputs, step, scoring) holds the compile
         compile_seconds += time.perf_counter() - chunk_start
@@ -604,7 +613,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   except KeyboardInterrupt:
     done_state, marks, done_index, done_elapsed = done
     if directory is not None and checkpoint_every and done_index > last_saved:
-      _truncate_record(record, marks)
+      truncate_record(record, marks)
       save(done_state, done_elapsed)  # the last completed chunk is not lost
     raise
   finally:

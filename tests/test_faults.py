@@ -318,6 +318,23 @@ def test_ctrl_c_while_a_chunk_is_scored_loses_no_frame(tiny_weights, tmp_path, m
   assert resumed["per_frame"] == full["per_frame"] and resumed["logs"] == full["logs"]
 
 
+def test_a_record_is_cut_back_to_its_marks():
+  """Hand case: what a chunk added to a run record after its marks were taken goes (frames,
+  per-lambda results, log entries, a log first written by that chunk); the rest stays."""
+  from pitta_jax.run import record_marks, truncate_record
+  record = {"names": ["a"], "per_frame": [[{"abs_rel": 1.0}], []], "logs": {"loss": [0.5]},
+            "fingerprint": "f", "seconds": 2.0}
+  marks = record_marks(record)
+  record["names"].append("b")
+  record["per_frame"][0].append({"abs_rel": 2.0})
+  record["per_frame"][1].extend([{"abs_rel": 3.0}, {"abs_rel": 4.0}])
+  record["logs"]["loss"].append(0.25)
+  record["logs"]["l_d"] = [0.1]
+  truncate_record(record, marks)
+  assert record == {"names": ["a"], "per_frame": [[{"abs_rel": 1.0}], []],
+                    "logs": {"loss": [0.5]}, "fingerprint": "f", "seconds": 2.0}
+
+
 def test_sigterm_stops_like_ctrl_c(tiny_weights, tmp_path):
   """SIGTERM (a scheduler's stop): the run stops as on Ctrl-C, with the last completed chunk
   checkpointed, the output directory unlocked, exit 143 and a line saying how to resume."""
