@@ -145,7 +145,11 @@ def save_weights(out_dir: str | os.PathLike, architecture: str, config: dict[str
   the JSON fields the network's `ModelSpec.build` reads (with "height"/"width", the input size
   the weights were trained at); depth/ (and pose/) are orbax checkpoints of Flax variables.
   """
+  from pitta_jax.models.registry import MODELS
   from pitta_jax.outputs import atomic_write_text
+  spec = MODELS[architecture]  # weights the loader would refuse are not written
+  spec.check_size(config.get("height", spec.default_size[0]),
+                  config.get("width", spec.default_size[1]))
   with writing_weights(out_dir, MODEL_JSON) as out:
     save_tree(out / "depth", depth)
     if pose is not None:

@@ -43,13 +43,11 @@ def _add_predict(sub) -> None:
   p.set_defaults(func=_run_predict)
 
 
-MAX_SIDE = 16384  # --height/--width: beyond any camera here (an 8K frame is 7680 wide)
-
-
 def _size(args) -> tuple[int, int] | None:
   """(--height, --width), or None when neither is given."""
   if (args.height is None) != (args.width is None):
     raise ValueError("give both --height and --width, or neither")
+  from pitta_jax.models.spec import MAX_SIDE
   if args.height is not None and max(args.height, args.width) > MAX_SIDE:
     raise ValueError(f"--height/--width: {args.height}x{args.width} is more than {MAX_SIDE} "
                      f"pixels on a side")
@@ -398,6 +396,7 @@ def _run_adapt(args) -> int:
   from pitta_jax.adapt import AdaptConfig
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.methods import build
+  from pitta_jax.methods.depth_refining import uses_instances
   from pitta_jax.outputs import open_output_dir, rounded_or_none
   from pitta_jax.report import Row, clear_earlier_results, write_results
   from pitta_jax.run import EvalConfig, checkpoint_chunk_size, metric_factor, run_sequence
@@ -461,6 +460,11 @@ def _run_adapt(args) -> int:
                               f"against{remedy}")
       notes.append(f"dataset {args.dataset} has no ground-truth depth: the run adapts and logs, "
                    f"nothing is scored{remedy}")
+    if (reader is not None and args.adapting and uses_instances(method.config)
+        and args.segmentation == "gt" and all(f.panoptic is None for f in reader.files)):
+      remedy = "--option panoptic_dir=DIR, " if args.dataset == "folder" else ""
+      notes.append(f"dataset {args.dataset} has no panoptic maps: no frame has instances, so "
+                   f"L_d (eq. 8) is 0 ({remedy}--segmentation png:DIR or mask2former:DIR)")
     if reader is not None:
       eval_cfg, protocol_note = dataset_evaluation(eval_cfg, reader.evaluation, args)
       notes += [protocol_note] if protocol_note else []
@@ -740,15 +744,21 @@ def error_line(error: BaseException) -> str:
 
 
 def out_of_memory(error: BaseException) -> str | None:
-  """The one line for an XLA out-of-memory error (RESOURCE_EXHAUSTED: a 16384x16384 input
-  ended in a traceback), None for any other error."""
+  """The one line for running out of memory: XLA's RESOURCE_EXHAUSTED (a 16384x16384 input
+  ended in a traceback), NumPy's or Python's MemoryError and OpenCV's failed allocation (an
+  image buffer of a huge size); None for any other error."""
+  hint = "(a smaller --height/--width, --chunk-size or image?)"
+  if isinstance(error, MemoryError):
+    return f"out of memory: {str(error) or type(error).__name__} {hint}"
+  if type(error).__name__ == "error" and "Insufficient memory" in str(error):  # cv2.error
+    what = str(error).split("Insufficient memory)", 1)[1].split(" in function")[0].strip()
+    return f"out of memory: {what} {hint}"
   if not (type(error).__name__ in ("JaxRuntimeError", "XlaRuntimeError")
           and "RESOURCE_EXHAUSTED" in str(error)):
     return None
   import jax  # imported by the command that ran out
   return (f"out of {jax.default_backend().upper()} memory: "
-          f"{str(error).splitlines()[0].split(': ', 1)[-1]} (a smaller --height/--width, "
-          f"--chunk-size or image?)")
+          f"{str(error).splitlines()[0].split(': ', 1)[-1]} {hint}")
 
 
 # errors a user can act on (a bad flag, input or file; a full disk): one line and exit 2

@@ -156,7 +156,9 @@ def test_met_needs_and_notes(cli, tmp_path, capsys):
   assert rc == 2 and lines[:2] == [
       "note: --method pitta uses no source-domain data: --replay-root ignored",
       "note: DrivingStereo size=full: the only left-image-*-size/ directory (foggy)"]
-  assert len(lines) == 3 and lines[2].startswith("error: ") and "weights" in lines[2]
+  assert lines[2] == ("note: dataset drivingstereo has no panoptic maps: no frame has instances, "
+                      "so L_d (eq. 8) is 0 (--segmentation png:DIR or mask2former:DIR)")
+  assert len(lines) == 4 and lines[3].startswith("error: ") and "weights" in lines[3]
 
 
 def test_evaluation_without_ground_truth_is_refused_before_work(cli, tmp_path, capsys):
@@ -168,6 +170,70 @@ def test_evaluation_without_ground_truth_is_refused_before_work(cli, tmp_path, c
   assert capsys.readouterr().err == ("error: dataset folder has no ground-truth depth to "
                                      "evaluate against (--option depth_dir=DIR)\n")
   assert not out.exists()
+
+
+def test_a_loss_with_l_d_on_frames_without_panoptic_maps_is_noted(cli):
+  """PITTA (and a baseline + L_d) on a dataset without panoptic maps under --segmentation gt
+  has no instances, so L_d is 0 on every frame: a note says so before any work (the run went
+  on silently); PITTA with L_e only (lambda = inf) and no adaptation need no maps."""
+  no_maps = ("note: dataset folder has no panoptic maps: no frame has instances, so L_d (eq. 8) "
+             "is 0 (--option panoptic_dir=DIR, --segmentation png:DIR or mask2former:DIR)")
+  cotta = ("--method", "cotta", "--bn-stats", "running")
+  for flags, noted in [((), True), (cotta, True),
+                       ((*cotta, "--cotta.ld-weight", "0"), False),
+                       (("--lam", "inf"), False), (("--method", "none"), False)]:
+    rc, err = cli("--dataset", "folder", "--root", "TMP/seq", *flags)
+    assert rc == 2 and (no_maps in err.splitlines()) == noted, (flags, err)
+
+
+def test_flags_beyond_any_use_are_refused_before_work(capsys):
+  """Tables larger than any frame needs (10^9 segments was killed for memory after a minute,
+  10^9 instances asked for 25 TB after 15 s of compiling) and a momentum Adam would ignore
+  are one line naming the flags, before any work."""
+  for flags, message in [
+      (("--max-segments", "4097"), "--adapt.max-segments: max_segments must be in 1..4096, got "
+                                   "4097"),
+      (("--max-instances", "1025"), "--pitta.ld.max-instances: max_instances must be an int in "
+                                    "1..1024, got 1025"),
+      (("--momentum", "0.9"), "--adapt.optimizer, --adapt.momentum: momentum applies to "
+                              "optimizer sgd only, got momentum 0.9 with adam")]:
+    assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", "unused", *flags]) == 2
+    assert capsys.readouterr().err == f"error: {message}\n"
+  assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", "unused", "--momentum",
+               "0.9", "--optimizer", "sgd", "--lr", "nan"]) == 2  # sgd takes it: the lr fails
+  assert "momentum" not in capsys.readouterr().err
+
+
+def test_python_m_weights_convert_errors_are_one_line(capsys, tmp_path):
+  """`python -m weights_convert` reports as `pitta-jax convert` does: a usage error is one line
+  (it printed argparse's usage block first), --debug is a flag, and a converter's flags are
+  checked before its checkpoint is read (the file here does not exist)."""
+  from weights_convert.cli import main as convert_main
+  missing, out = str(tmp_path / "missing.pth"), str(tmp_path / "out")
+  with pytest.raises(SystemExit) as usage:
+    convert_main(["monodepth2", "--encoder", missing])
+  assert usage.value.code == 2 and capsys.readouterr().err == ("error: the following arguments are required: --depth, "
+                                     "--out (see python -m weights_convert monodepth2 --help)\n")
+  for flags, message in [
+      (("sgdepth", "--model", missing, "--height", "0", "--width", "0"),
+       "--height/--width: input size 0x0 (WxH) is not supported by sgdepth: width and height "
+       "must be positive multiples of 32 (default 640x192)"),
+      (("depth-anything-v2", "--from", "official", missing, "--num-heads", "0"),
+       "num_heads (--num-heads) must be a positive int, got 0"),
+      (("depth-anything-v2", "--from", "official", missing, "--layer-idx=-1,3"),
+       "layer_idx (--layer-idx) must be increasing 0-based block numbers, got [-1, 3]"),
+      (("depth-anything-v2", "--from", "official", missing, "--layer-idx", "a,b"),
+       "argument --layer-idx: expected comma-separated block numbers such as 2,5,8,11, got "
+       "'a,b' (see python -m weights_convert depth-anything-v2 --help)"),
+      (("depth-anything-v2", "--from", "official", missing, "--max-depth", "nan"),
+       "max_depth (--max-depth) must be > 0 (metres), got nan")]:
+    try:
+      rc = convert_main([*flags, "--out", out])
+    except SystemExit as e:  # argparse's own (a flag's type)
+      rc = e.code
+    assert rc == 2 and capsys.readouterr().err == f"error: {message}\n"
+  with pytest.raises(Exception, match="no such file"):  # --debug: the traceback
+    convert_main(["--debug", "sgdepth", "--model", missing, "--out", out])
 
 
 def test_dynamic_classes_must_be_coco_ids(cli):

@@ -806,6 +806,42 @@ def test_out_of_memory_is_one_line():
   assert out_of_memory(ValueError("RESOURCE_EXHAUSTED")) is None
 
 
+def test_host_out_of_memory_is_one_line_too():
+  """NumPy's MemoryError and OpenCV's failed allocation (a weights' model.json edited to a
+  huge size ended in a 40-line traceback from cv2.resize) are the same one line."""
+  import cv2
+  from pitta_jax.cli import out_of_memory
+  hint = "(a smaller --height/--width, --chunk-size or image?)"
+  try:
+    np.empty((10 ** 7, 10 ** 7))
+  except MemoryError as e:
+    assert out_of_memory(e) == f"out of memory: {e} {hint}"
+  try:
+    cv2.resize(np.zeros((4, 4, 3), np.uint8), (200000, 200000))
+  except cv2.error as e:
+    assert out_of_memory(e) == f"out of memory: Failed to allocate 120000000000 bytes {hint}"
+  assert out_of_memory(cv2.error("(-215:Assertion failed) !ssize.empty()")) is None
+
+
+def test_weights_of_a_size_no_image_has_are_refused(tiny_weights, tmp_path):
+  """A model.json whose size is beyond any camera (10^9 rows, a multiple of 32) is refused
+  where the weights load, naming the file, and a converter does not write one (it was written,
+  and a run on it failed after 40 s with a traceback from an allocation)."""
+  import shutil
+  from pitta_jax.checkpoint import WeightsError, load_weights, save_weights
+  weights = load_weights(tiny_weights)
+  huge = {"num_layers": 18, "height": 32 * 10 ** 8, "width": W}
+  with pytest.raises(ValueError, match="more than 16384 pixels on a side"):
+    save_weights(tmp_path / "w", "monodepth2", huge, weights.depth)
+  assert not (tmp_path / "w" / "model.json").exists()
+  edited = tmp_path / "edited"
+  shutil.copytree(tiny_weights, edited)
+  meta = json.loads((edited / "model.json").read_text())
+  (edited / "model.json").write_text(json.dumps({**meta, "height": huge["height"]}))
+  with pytest.raises(WeightsError, match=r"model\.json: input size 96x3200000000 .* more than"):
+    load_weights(edited)
+
+
 def test_report_error_is_one_line_for_what_a_user_can_act_on(capsys):
   """The commands' shared handler (pitta-jax, the tables, the converters): one line and exit 2
   for a bad input, flag or file, the command's own kinds and XLA out of memory; anything else

@@ -120,8 +120,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-  parser = argparse.ArgumentParser(
+  from pitta_jax.config_cli import ArgumentParser  # one-line usage errors, as `pitta-jax convert`
+  parser = ArgumentParser(
       prog="python -m weights_convert",
       description="Convert PyTorch checkpoints to pitta-jax (Flax/orbax) weights. No torch needed.")
+  parser.add_argument("--debug", action="store_true",
+                      help="show the full traceback of an error instead of one line")
   add_subcommands(parser)
   return run(parser.parse_args(argv))

@@ -334,6 +334,29 @@ def infer_config(state: dict, source: str, path: str, arch: Mapping[str, Any] | 
   }
 
 
+def _check_overrides(arch: dict) -> None:
+  """Refuses an override that no network could take, before any file is read (the block count
+  that bounds layer_idx is the checkpoint's, checked once it is read)."""
+  heads, idx, max_depth = arch.get("num_heads"), arch.get("layer_idx"), arch.get("max_depth")
+  if heads is not None and not (isinstance(heads, int) and heads >= 1):
+    raise ValueError(f"num_heads (--num-heads) must be a positive int, got {heads!r}")
+  if idx is not None and not (len(idx) > 0 and all(isinstance(i, int) and i >= 0 for i in idx)
+                              and list(idx) == sorted(set(idx))):
+    raise ValueError(f"layer_idx (--layer-idx) must be increasing 0-based block numbers, got "
+                     f"{idx!r}")
+  if max_depth is not None and not (math.isfinite(max_depth) and max_depth > 0):
+    raise ValueError(f"max_depth (--max-depth) must be > 0 (metres), got {max_depth}")
+
+
+def _block_numbers(text: str) -> list[int]:
+  """--layer-idx's value: comma-separated ints."""
+  try:
+    return [int(i) for i in text.split(",")]
+  except ValueError:
+    raise argparse.ArgumentTypeError(f"expected comma-separated block numbers such as 2,5,8,11, "
+                                     f"got {text!r}") from None
+
+
 def convert_depth_anything_v2(path: str | os.PathLike, source: str = "official",
                               arch: Mapping[str, Any] | None = None):
   """Converts a Depth Anything V2 checkpoint file.
@@ -352,9 +375,8 @@ def convert_depth_anything_v2(path: str | os.PathLike, source: str = "official",
   """
   from flax.traverse_util import unflatten_dict
   from pitta_jax.models.depth_anything_v2 import build
+  _check_overrides(arch or {})
   max_depth = (arch or {}).get("max_depth")
-  if max_depth is not None and not (math.isfinite(max_depth) and max_depth > 0):
-    raise ValueError(f"max_depth must be > 0 (metres), got {max_depth}")
   state = read_state(path, source, max_depth)
   config = infer_config(state, source, str(path), arch)
   rules = official_rules(config) if source == "official" else hf_rules(config)
@@ -379,7 +401,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("checkpoint", help="the checkpoint file")
   parser.add_argument("--num-heads", type=int,
                       help="attention heads (default: from the ViT size, or the HF config.json)")
-  parser.add_argument("--layer-idx", type=lambda s: [int(i) for i in s.split(",")],
+  parser.add_argument("--layer-idx", type=_block_numbers,
                       help="comma-separated 0-based blocks the DPT head reads (default: upstream's "
                            "2,5,8,11 for ViT-S/B, 4,11,17,23 for ViT-L)")
   parser.add_argument("--max-depth", type=float,

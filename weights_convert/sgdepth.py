@@ -105,6 +105,12 @@ def convert_sgdepth(model: str | os.PathLike, height: int | None = None,
   from flax.traverse_util import unflatten_dict
   from pitta_jax.models.sgdepth import SPEC
 
+  size = {"height": SPEC.default_size[0] if height is None else int(height),
+          "width": SPEC.default_size[1] if width is None else int(width)}
+  try:  # before the file is read
+    SPEC.check_size(size["height"], size["width"])
+  except ValueError as e:
+    raise ValueError(f"--height/--width: {e}") from None
   state, path = load_state_dict(model), str(model)
   encoder_view = {k[len("common.encoder."):]: v for k, v in state.items()
                   if k.startswith(ENCODER_PREFIX)}  # MonoDepth2's `encoder.*` layout
@@ -115,10 +121,7 @@ def convert_sgdepth(model: str | os.PathLike, height: int | None = None,
                              if other else ""))
   num_layers = infer_num_layers(encoder_view, path)
   split, num_scales = infer_split(state, path), infer_num_scales(state, path)
-  config = {"num_layers": num_layers, "num_scales": num_scales,
-            "height": int(height or SPEC.default_size[0]),
-            "width": int(width or SPEC.default_size[1])}
-  SPEC.check_size(config["height"], config["width"])
+  config = {"num_layers": num_layers, "num_scales": num_scales, **size}
   expected = R.expected_shapes(SPEC.build(config), (1, 64, 64, 3))
   flat = R.apply_rules(state, depth_rules(num_layers, split, num_scales), _is_ignorable, path,
                        expected)

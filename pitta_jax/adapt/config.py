@@ -14,6 +14,11 @@ from pitta_jax.configs import check, check_seed, check_types, finite, option
 from pitta_jax.trainable import parse_selector
 
 
+# The largest S_max taken: more segments than any panoptic frame holds (COCO's and Cityscapes'
+# most crowded frames hold a few hundred); a larger table only costs memory (10^9 was killed).
+MAX_SEGMENTS = 4096
+
+
 @dataclasses.dataclass(frozen=True)
 class AdaptConfig:
   """Configuration of one adaptation run (one method on one frame sequence)."""
@@ -46,12 +51,16 @@ class AdaptConfig:
     finite(self.lr, "lr", 0.0)
     finite(self.momentum, "momentum", 0.0)
     check(self.momentum < 1.0, f"momentum must be < 1, got {self.momentum}")
+    check(self.momentum == 0 or self.optimizer == "sgd",  # Adam would ignore it
+          f"momentum applies to optimizer sgd only, got momentum {self.momentum} with "
+          f"{self.optimizer}")
     check(self.steps_per_frame >= 1, f"steps_per_frame must be >= 1, got {self.steps_per_frame}")
     check_seed(self.seed)
     check(self.bn_stats in ("batch", "running"),
           f"bn_stats must be batch or running, got {self.bn_stats!r}")
     parse_selector(self.selector)  # raises ValueError naming the selector
     check(self.reset_every >= 0, f"reset_every must be >= 0, got {self.reset_every}")
-    check(self.max_segments >= 1, f"max_segments must be >= 1, got {self.max_segments}")
+    check(1 <= self.max_segments <= MAX_SEGMENTS,
+          f"max_segments must be in 1..{MAX_SEGMENTS}, got {self.max_segments}")
     check(self.chunk_size >= 1, f"chunk_size must be >= 1, got {self.chunk_size}")
     check_library(self.conv_library)

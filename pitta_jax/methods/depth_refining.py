@@ -8,6 +8,7 @@ loss with instance-aware masking strategy"), so it lives here, shared, with one 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +16,12 @@ import jax.numpy as jnp
 from pitta_jax import losses, masks
 from pitta_jax.configs import check, check_types, is_int, option
 from pitta_jax.median import WINDOW
+
+
+# The largest N_max taken: more instances than any frame holds (a frame's instances are some
+# of its panoptic segments, a few hundred at most); each row costs a map of the frame's size in
+# the literal loss (10^9 rows asked for 25 TB).
+MAX_INSTANCES = 1024
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,8 +44,8 @@ class DepthRefiningConfig:
           f"mask_mode must be one of {', '.join(masks.MASK_MODES)}, got {self.mask_mode!r}")
     check(self.loss_impl in losses.IMPLS,
           f"loss_impl must be one of {', '.join(losses.IMPLS)}, got {self.loss_impl!r}")
-    check(is_int(self.max_instances) and self.max_instances >= 1,
-          f"max_instances must be an int >= 1, got {self.max_instances!r}")
+    check(is_int(self.max_instances) and 1 <= self.max_instances <= MAX_INSTANCES,
+          f"max_instances must be an int in 1..{MAX_INSTANCES}, got {self.max_instances!r}")
     check(len(self.dynamic_classes) > 0, "dynamic_classes must name at least one class")
     from pitta_jax.data import coco
     ids = []
@@ -73,6 +80,17 @@ def _check_window(cfg: DepthRefiningConfig, shape: tuple[int, ...]) -> None:
   area (641 on 320x96 frames did not finish two frames in two minutes)."""
   check(cfg.window <= min(shape), f"window {cfg.window} exceeds the frame's smaller side "
                                   f"({min(shape)} pixels of {shape[1]}x{shape[0]})")
+
+
+def uses_instances(config) -> bool:
+  """Whether a method config's loss holds L_d (eq. 8), i.e. needs panoptic maps: an `ld` field
+  weighted by its `ld_weight` > 0 (a baseline + L_d), or by eq. 10 unless lambda = inf (PITTA
+  with L_e only)."""
+  if not isinstance(getattr(config, "ld", None), DepthRefiningConfig):
+    return False
+  if hasattr(config, "ld_weight"):
+    return config.ld_weight > 0
+  return not math.isinf(getattr(config, "lam", 0.0))
 
 
 def frame_loss(depth: jax.Array, frame, cfg: DepthRefiningConfig,

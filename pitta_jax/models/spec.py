@@ -41,6 +41,7 @@ from pitta_jax.models.depth_decoder import (MAX_DEPTH, MIN_DEPTH, disp_to_depth,
 OUTPUTS = ("sigmoid_disparity", "relative_inverse_depth", "metric_depth")
 ALIGNMENTS = ("median", "scale_shift", "none")
 RELATIVE_EPS = 1e-6  # floor of a relative inverse depth before inverting it
+MAX_SIDE = 16384  # the largest input side taken: beyond any camera here (an 8K frame is 7680 wide)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,6 +88,9 @@ class ModelSpec:
       raise ValueError(f"input size {width}x{height} (WxH) is not supported by {self.name}: "
                        f"width and height must be positive multiples of {m} "
                        f"(default {self.default_size[1]}x{self.default_size[0]})")
+    if max(height, width) > MAX_SIDE:  # a size no image here has (an edited model.json?)
+      raise ValueError(f"input size {width}x{height} (WxH) is more than {MAX_SIDE} pixels on "
+                       f"a side")
 
   def inference_size(self, image_size: tuple[int, int], trained: tuple[int, int]
                      ) -> tuple[int, int]:
