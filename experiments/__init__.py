@@ -33,5 +33,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 2
   if not argv or argv[0] in ("-h", "--help"):  # asked for: stdout, 0; a usage error: stderr, 2
     print(__doc__, file=sys.stdout if argv else sys.stderr)
+    if not argv:  # the overview, then the one line that says what went wrong
+      print(f"error: name an experiment: {', '.join(NAMES)}", file=sys.stderr)
     return 0 if argv else 2
   return importlib.import_module(f"experiments.{argv[0]}").main(argv[1:])

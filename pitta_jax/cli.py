@@ -48,6 +48,8 @@ def _size(args) -> tuple[int, int] | None:
   if (args.height is None) != (args.width is None):
     raise ValueError("give both --height and --width, or neither")
   from pitta_jax.models.spec import MAX_SIDE
+  if args.height is not None and min(args.height, args.width) < 1:
+    raise ValueError(f"--height/--width must be positive, got {args.height}x{args.width}")
   if args.height is not None and max(args.height, args.width) > MAX_SIDE:
     raise ValueError(f"--height/--width: {args.height}x{args.width} is more than {MAX_SIDE} "
                      f"pixels on a side")
@@ -622,6 +624,7 @@ def build_parser() -> argparse.ArgumentParser:
   _add_segment(sub)
   _add_convert(sub)
   _add_experiment(sub)
+  parser.commands = sub.choices  # each command's parser, which reports its own flag errors
   return parser
 
 
@@ -806,7 +809,10 @@ def _main(argv: list[str]) -> int:
   if argv[:1] == ["experiment"]:  # its own parsers (flags such as --help belong to the table)
     import experiments
     return experiments.main(argv[1:])
-  args = build_parser().parse_args(argv)
+  parser = build_parser()
+  args, unknown = parser.parse_known_args(argv)
+  if unknown:  # named with the command's --help, where its flags are (not pitta-jax --help)
+    parser.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
   try:
     return args.func(args)
   except Exception as e:

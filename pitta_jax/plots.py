@@ -51,8 +51,9 @@ class PlotConfig:
     # found before the run, not as a failed allocation once it is done
     pixels = self.fig_width * self.dpi * self.fig_height * self.dpi
     check(pixels <= MAX_FIGURE_PIXELS,
-          f"a {self.fig_width:g} x {self.fig_height:g} inch figure at dpi {self.dpi} has "
-          f"{pixels:.3g} pixels; at most {MAX_FIGURE_PIXELS:.0e} (lower dpi or the size)")
+          f"fig_width x fig_height at dpi: a {self.fig_width:g} x {self.fig_height:g} inch figure "
+          f"at dpi {self.dpi} has {pixels:.3g} pixels; at most {MAX_FIGURE_PIXELS:.0e} (lower "
+          f"dpi or the size)")
 
 
 def _new_figure(cfg: PlotConfig, nrows: int, sharex: bool) -> tuple[Figure, np.ndarray]:

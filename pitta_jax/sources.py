@@ -113,7 +113,12 @@ def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False,
   if dataset != "synthetic":
     raise DataError(None, "--weights is required for real datasets (convert a checkpoint with "
                           "`pitta-jax convert NETWORK ...`)")
+  from pitta_jax.models.registry import get_spec
   from pitta_jax.source_model import load_or_train_source, network_source_config
+  if model and get_spec(model).output != "sigmoid_disparity":  # no synthetic source model
+    raise DataError(None, f"--model {model} needs --weights: the synthetic benchmark trains "
+                          f"source models of the MonoDepth2 family only (convert a checkpoint "
+                          f"with `pitta-jax convert ...`)")
   return load_or_train_source(network_source_config(model or "monodepth2"), quiet=quiet)[0]
 
 

@@ -236,6 +236,34 @@ def test_python_m_weights_convert_errors_are_one_line(capsys, tmp_path):
     convert_main(["--debug", "sgdepth", "--model", missing, "--out", out])
 
 
+def test_audit_messages_name_the_cause(capsys, tmp_path):
+  """Messages that named the wrong flag or cause: a figure too large named only --dpi, Depth
+  Anything V2 without --weights spoke of train-source, predict's negative --height named an
+  internal input_size, an unknown flag pointed at pitta-jax --help instead of the command's,
+  and a 16-bit colour depth PNG was asked whether it was 8-bit."""
+  import cv2
+  from pitta_jax.data.image_io import read_depth_png
+  from pitta_jax.data.errors import DataError
+  assert main(["demo", "--demo.figures.fig-width", "1e9"]) == 2
+  assert capsys.readouterr().err.startswith(
+      "error: --demo.figures.fig-width, --demo.figures.fig-height, --demo.figures.dpi: ")
+  assert main(["adapt", "--dataset", "synthetic", "--model", "depth_anything_v2", "--quiet",
+               "--out", str(tmp_path / "o")]) == 2
+  assert capsys.readouterr().err.startswith("error: --model depth_anything_v2 needs --weights")
+  assert main(["predict", "--weights", str(tmp_path), "--images", str(tmp_path), "--height",
+               "-64", "--width", "96", "--out", str(tmp_path / "p")]) == 2
+  assert capsys.readouterr().err == "error: --height/--width must be positive, got -64x96\n"
+  with pytest.raises(SystemExit) as usage:  # the command's own --help lists its flags
+    main(["evaluate", "--dataset", "synthetic", "--lr", "0.1"])
+  assert usage.value.code == 2 and capsys.readouterr().err == (
+      "error: unrecognized arguments: --lr 0.1 (see pitta-jax evaluate --help)\n")
+  png = tmp_path / "d.png"
+  cv2.imwrite(str(png), np.zeros((4, 5, 3), np.uint16))
+  with pytest.raises(DataError) as e:
+    read_depth_png(png)
+  assert str(e.value).endswith("got uint16 with 3 channel(s)")
+
+
 def test_dynamic_classes_must_be_coco_ids(cli):
   rc, err = cli("--dataset", "synthetic", "--dynamic-classes", "9999,-5")
   assert rc == 2 and err == ("error: --pitta.ld.dynamic-classes: not COCO panoptic category ids: "

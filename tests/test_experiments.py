@@ -591,6 +591,7 @@ def test_experiments_without_a_name_is_a_usage_error_on_stderr(capsys):
   assert experiments.main([]) == 2
   out, err = capsys.readouterr()
   assert out == "" and "table1" in err
+  assert err.splitlines()[-1] == ("error: name an experiment: " + ", ".join(experiments.NAMES))
   assert experiments.main(["--help"]) == 0
   out, err = capsys.readouterr()
   assert "table1" in out and err == ""

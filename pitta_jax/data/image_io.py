@@ -226,8 +226,9 @@ def read_depth_png(path: PathLike, scale: float = DEPTH_PNG_SCALE) -> np.ndarray
   array = _imread(path, "depth map")
   if array.dtype != np.uint16 or array.ndim != 2:
     channels = 1 if array.ndim == 2 else array.shape[2]
+    hint = " (an 8-bit visualisation instead of the map?)" if array.dtype == np.uint8 else ""
     raise DataError(path, f"depth PNG must be single-channel uint16, got {array.dtype} with "
-                          f"{channels} channel(s) (an 8-bit visualisation instead of the map?)")
+                          f"{channels} channel(s){hint}")
   return array.astype(np.float32) / np.float32(scale)
 
 
