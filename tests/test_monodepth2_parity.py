@@ -327,6 +327,17 @@ def test_swapped_files_and_an_unusable_size_are_named(r18, tmp_path):
   with pytest.raises(CheckpointError, match=r"h191\.pth: its 'height' and 'width' entries: input "
                                             r"size 640x191 .* multiples of 32"):
     convert_monodepth2(tmp_path / "h191.pth", root / "depth.pth")
+  # half a size is refused; none at all is MonoDepth2's default, said in a note
+  torch.save({k: v for k, v in state.items() if k != "width"}, tmp_path / "nowidth.pth")
+  with pytest.raises(CheckpointError, match=r"nowidth\.pth: has a 'height' entry but no 'width'"):
+    convert_monodepth2(tmp_path / "nowidth.pth", root / "depth.pth")
+  torch.save({k: v for k, v in state.items() if k not in ("height", "width")},
+             tmp_path / "nosize.pth")
+  notes = []
+  config, _, _ = convert_monodepth2(tmp_path / "nosize.pth", root / "depth.pth", notes=notes)
+  assert (config["height"], config["width"]) == (192, 640) and notes == [
+      f"{tmp_path / 'nosize.pth'} has no 'height' and 'width' entries (upstream's training "
+      f"writes them): taken as trained at MonoDepth2's 640x192"]
 
 
 def test_convert_never_writes_over_its_inputs_and_replaces_old_weights_whole(r18, tmp_path,

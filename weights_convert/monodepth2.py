@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 import numpy as np
 
@@ -111,8 +112,12 @@ def _flag(state: dict, key: str) -> bool:
 
 def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
                        pose_encoder: str | os.PathLike | None = None,
-                       pose: str | os.PathLike | None = None, num_layers: int | None = None):
+                       pose: str | os.PathLike | None = None, num_layers: int | None = None,
+                       notes: list[str] | None = None):
   """Converts MonoDepth2 checkpoint files to Flax variables.
+
+  notes: where given, what the user should know is appended (an encoder without the training
+  size entries, which upstream's training always writes: MonoDepth2's default size is taken).
 
   Returns:
     (config, depth_variables, pose_variables or None): config is the model.json dict of the
@@ -145,6 +150,13 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
   flat.update(R.apply_rules(dec_state, depth_decoder_rules(), _is_ignorable, str(depth),
                             expected, cover=False))
   R.check_covered(flat, expected)
+  absent = [k for k in ("height", "width") if k not in enc_state]
+  if len(absent) == 1:  # half a size is no training size
+    raise CheckpointError(f"{encoder}: has a {'height' if absent == ['width'] else 'width'!r} "
+                          f"entry but no {absent[0]!r} entry")
+  if absent and notes is not None:
+    notes.append(f"{encoder} has no 'height' and 'width' entries (upstream's training writes "
+                 f"them): taken as trained at MonoDepth2's {DEFAULT_SIZE[1]}x{DEFAULT_SIZE[0]}")
   config = {"num_layers": num_layers,
             "height": int_entry(enc_state, "height", encoder, DEFAULT_SIZE[0]),
             "width": int_entry(enc_state, "width", encoder, DEFAULT_SIZE[1]),
@@ -183,8 +195,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> Path:
   from pitta_jax.checkpoint import save_weights
+  notes: list[str] = []
   config, depth_vars, pose_vars = convert_monodepth2(
-      args.encoder, args.depth, args.pose_encoder, args.pose, args.num_layers)
+      args.encoder, args.depth, args.pose_encoder, args.pose, args.num_layers, notes)
+  for note in notes:
+    print(f"note: {note}", file=sys.stderr)
   source = {"encoder": str(args.encoder), "depth": str(args.depth),
             "pose_encoder": args.pose_encoder and str(args.pose_encoder),
             "pose": args.pose and str(args.pose)}
