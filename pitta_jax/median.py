@@ -205,19 +205,20 @@ def map_row_blocks(fn, maps: list[tuple[Array, object]], s: int,
 
 
 def middle_ranks(h: int, w: int, s: int, top: Array | int = 0,
-                 rows: int | None = None) -> tuple[Array, Array]:
+                 n_rows: int | None = None) -> tuple[Array, Array]:
   """Per pixel, the sorted slots of the window's two middle values.
 
   Built from iotas inside the traced function (no (H, W) constants in the program). `top` and
-  `rows` pick rows top .. top + rows - 1 of the h x w image (a block of `map_row_blocks`; rows
-  below the image get the last row's slots).
+  `n_rows` pick rows top .. top + n_rows - 1 of the h x w image (a block of `map_row_blocks`;
+  rows below the image get the last row's slots).
 
   Returns:
-    ((c-1)//2, c//2), (rows, W) int32 each (rows = h by default), c = c(x, y) the window's pixel
-    count.
+    ((c-1)//2, c//2), (n_rows, W) int32 each (n_rows = h by default), c = c(x, y) the window's
+    pixel count.
   """
   r = s // 2
-  i = jnp.minimum(top + jnp.arange(h if rows is None else rows, dtype=jnp.int32), h - 1)[:, None]
+  i = jnp.arange(h if n_rows is None else n_rows, dtype=jnp.int32)
+  i = jnp.minimum(top + i, h - 1)[:, None]  # (H, 1)
   j = jnp.arange(w, dtype=jnp.int32)[None, :]  # (1, W)
   rows = jnp.minimum(i + r, h - 1) - jnp.maximum(i - r, 0) + 1  # (H, 1)
   cols = jnp.minimum(j + r, w - 1) - jnp.maximum(j - r, 0) + 1  # (1, W)

@@ -369,11 +369,13 @@ def _remove_checkpoint(path: Path) -> None:
 
 
 def record_marks(record):
-  """The lengths of every list in a run record (a dict of lists and dicts of lists; a list's
-  list items marked too, as a sweep's per-lambda lists): what `truncate_record` cuts back to."""
+  """The lengths of every list in a run record (a dict of lists and dicts of lists; a list of
+  lists, as a sweep's per-lambda lists, marked item by item): what `truncate_record` cuts back
+  to. A list of other items (frame names, metric dicts) is not walked: constant time per call."""
   if isinstance(record, dict):
     return {k: record_marks(v) for k, v in record.items() if isinstance(v, (dict, list))}
-  return len(record), [record_marks(v) for v in record if isinstance(v, list)]
+  nested = bool(record) and isinstance(record[0], list)
+  return len(record), [record_marks(v) for v in record] if nested else []
 
 
 def truncate_record(record, marks) -> None:
@@ -388,7 +390,7 @@ def truncate_record(record, marks) -> None:
     return
   n, inner = marks
   del record[n:]
-  for v, m in zip([v for v in record if isinstance(v, list)], inner):
+  for v, m in zip(record, inner):  # a list of lists: each cut back too
     truncate_record(v, m)
 
 
