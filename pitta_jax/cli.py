@@ -624,8 +624,18 @@ def build_parser() -> argparse.ArgumentParser:
   _add_segment(sub)
   _add_convert(sub)
   _add_experiment(sub)
-  parser.commands = sub.choices  # each command's parser, which reports its own flag errors
   return parser
+
+
+def _chosen_parser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser:
+  """The parser of the command the line chose, down to its last level (`convert monodepth2`'s),
+  whose --help lists the flags that the command takes."""
+  while True:
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    name = getattr(args, subs[0].dest, None) if subs else None
+    if name not in (subs[0].choices if subs else {}):
+      return parser
+    parser = subs[0].choices[name]
 
 
 class Terminated(KeyboardInterrupt):
@@ -753,8 +763,8 @@ def out_of_memory(error: BaseException) -> str | None:
   hint = "(a smaller --height/--width, --chunk-size or image?)"
   if isinstance(error, MemoryError):
     return f"out of memory: {str(error) or type(error).__name__} {hint}"
-  if type(error).__name__ == "error" and "Insufficient memory" in str(error):  # cv2.error
-    what = str(error).split("Insufficient memory)", 1)[1].split(" in function")[0].strip()
+  if type(error).__name__ == "error" and "Insufficient memory)" in str(error):  # cv2.error
+    what = str(error).partition("Insufficient memory)")[2].split(" in function")[0].strip()
     return f"out of memory: {what} {hint}"
   if not (type(error).__name__ in ("JaxRuntimeError", "XlaRuntimeError")
           and "RESOURCE_EXHAUSTED" in str(error)):
@@ -811,8 +821,11 @@ def _main(argv: list[str]) -> int:
     return experiments.main(argv[1:])
   parser = build_parser()
   args, unknown = parser.parse_known_args(argv)
+  top = [a for a in unknown if a in parser._option_string_actions]
+  if top:  # pitta-jax's own flag (--debug) after the command
+    parser.error(f"{top[0]} goes before the command: pitta-jax {top[0]} {args.command} ...")
   if unknown:  # named with the command's --help, where its flags are (not pitta-jax --help)
-    parser.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
+    _chosen_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
   try:
     return args.func(args)
   except Exception as e:

@@ -55,6 +55,8 @@ INT_PAD = np.iinfo(np.int32).max
 # the stacked forms go through the image in blocks of rows (`map_row_blocks`), so that their
 # memory stays bounded whatever the image and the window (one stack of a 640x192 map takes
 # 142 MB at s = 17 and 472 MB at s = 31, and the selection holds several arrays of that size).
+# Per map: under `jax.vmap` (the literal L_d's instances, many streams) each mapped map holds
+# its own block.
 BLOCK_BYTES = 16 << 20
 
 
@@ -174,7 +176,7 @@ def map_row_blocks(fn, maps: list[tuple[Array, object]], s: int,
   (R, W) arrays that depend only on the pixel's own window. The blocks go through `lax.map`, so
   the program holds one block's stacks at a time, and the results are cut back to (H, W). A
   gradient flows through, as through `lax.scan`. The last block reaches below the image; its
-  extra rows see only padding and their results are dropped.
+  rows below the image are computed from the padding and what rows lie above, and dropped.
 
   Args:
     fn: (stacks, lo_rank, hi_rank) -> tuple of (R, W) arrays.

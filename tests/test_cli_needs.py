@@ -257,6 +257,14 @@ def test_audit_messages_name_the_cause(capsys, tmp_path):
     main(["evaluate", "--dataset", "synthetic", "--lr", "0.1"])
   assert usage.value.code == 2 and capsys.readouterr().err == (
       "error: unrecognized arguments: --lr 0.1 (see pitta-jax evaluate --help)\n")
+  for argv, message in [  # a converter's own help; pitta-jax's flag after the command
+      (["convert", "sgdepth", "--model", "m.pth", "--out", "o", "--bogus"],
+       "unrecognized arguments: --bogus (see pitta-jax convert sgdepth --help)"),
+      (["adapt", "--dataset", "synthetic", "--debug"],
+       "--debug goes before the command: pitta-jax --debug adapt ... (see pitta-jax --help)")]:
+    with pytest.raises(SystemExit):
+      main(argv)
+    assert capsys.readouterr().err == f"error: {message}\n"
   png = tmp_path / "d.png"
   cv2.imwrite(str(png), np.zeros((4, 5, 3), np.uint16))
   with pytest.raises(DataError) as e:

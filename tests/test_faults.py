@@ -821,6 +821,7 @@ def test_host_out_of_memory_is_one_line_too():
   except cv2.error as e:
     assert out_of_memory(e) == f"out of memory: Failed to allocate 120000000000 bytes {hint}"
   assert out_of_memory(cv2.error("(-215:Assertion failed) !ssize.empty()")) is None
+  assert out_of_memory(cv2.error("Insufficient memory to decode")) is None  # not OpenCV's form
 
 
 def test_weights_of_a_size_no_image_has_are_refused(tiny_weights, tmp_path):
