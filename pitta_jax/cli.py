@@ -45,15 +45,17 @@ def _add_predict(sub) -> None:
 
 def _size(args) -> tuple[int, int] | None:
   """(--height, --width), or None when neither is given."""
+  from pitta_jax.models.spec import MAX_SIDE
   if (args.height is None) != (args.width is None):
     raise ValueError("give both --height and --width, or neither")
-  from pitta_jax.models.spec import MAX_SIDE
-  if args.height is not None and min(args.height, args.width) < 1:
+  if args.height is None:
+    return None
+  if min(args.height, args.width) < 1:
     raise ValueError(f"--height/--width must be positive, got {args.height}x{args.width}")
-  if args.height is not None and max(args.height, args.width) > MAX_SIDE:
+  if max(args.height, args.width) > MAX_SIDE:
     raise ValueError(f"--height/--width: {args.height}x{args.width} is more than {MAX_SIDE} "
                      f"pixels on a side")
-  return None if args.height is None else (args.height, args.width)
+  return args.height, args.width
 
 
 def _run_predict(args) -> int:
@@ -631,11 +633,10 @@ def _chosen_parser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentPa
   """The parser of the command the line chose, down to its last level (`convert monodepth2`'s),
   whose --help lists the flags that the command takes."""
   while True:
-    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
-    name = getattr(args, subs[0].dest, None) if subs else None
-    if name not in (subs[0].choices if subs else {}):
+    subs = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+    if subs is None or getattr(args, subs.dest, None) not in subs.choices:
       return parser
-    parser = subs[0].choices[name]
+    parser = subs.choices[getattr(args, subs.dest)]
 
 
 class Terminated(KeyboardInterrupt):

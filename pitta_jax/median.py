@@ -20,7 +20,7 @@ From s = `SORT_FROM_WINDOW` on, the windows are stacked on an array axis instead
 middle values selected there (`stacked_order_statistics`: by bisection over the values' order
 keys, exact): the network's compile time doubles with every step of s (at 640x192, 2 CPU cores:
 s = 11 2.1 s, 13 6.6 s, 15 12.6 s, and minutes beyond), the stacked form's stays near 1 s
-(s = 17-31; `window_stack` takes 2s slices of the map), while it runs far slower (s = 11: 28 ms
+(s = 17-31; `stack_windows` takes 2s slices of the map), while it runs far slower (s = 11: 28 ms
 as a network; s = 17: 1.4-1.6 s, against 3.8-4.7 s for `jnp.sort` of the stacked windows,
 interleaved). The same values either way (both return elements of the window), and the same
 gradient as through a stable sort. The stacked windows take s*s times the map's memory, so they
@@ -115,11 +115,12 @@ def check_window(s: int) -> None:
     raise ValueError(f"window size s must be a positive odd int, got {s!r}")
 
 
-def _padded(x: Array, s: int, pad_value) -> Array:
-  """x padded by r = s // 2 on every side with `pad_value`, after checking s: the map both
-  window forms slice.  # (H + 2r, W + 2r)"""
-  check_window(s)
-  return jnp.pad(x, s // 2, constant_values=pad_value)
+def _padded(x: Array, s: int, pad_value, below: int = 0) -> Array:
+  """x padded with `pad_value` by r = s // 2 on every side, and `below` more rows at the bottom
+  (a last block of `map_row_blocks`): the map both window forms slice.
+  # (H + 2r + below, W + 2r)"""
+  r = s // 2
+  return jnp.pad(x, ((r, r + below), (r, r)), constant_values=pad_value)
 
 
 def window_views(x: Array, s: int, pad_value) -> list[Array]:
@@ -135,25 +136,21 @@ def window_views(x: Array, s: int, pad_value) -> list[Array]:
   Returns:
     s*s arrays of shape (H, W).
   """
+  check_window(s)
   padded = _padded(x, s, pad_value)
   h, w = x.shape
   return [padded[dy:dy + h, dx:dx + w] for dy in range(s) for dx in range(s)]
 
 
-def window_stack(x: Array, s: int, pad_value) -> Array:
-  """The views of `window_views` stacked on a last axis: view dy * s + dx at [i, j, dy * s + dx].
+def stack_windows(padded: Array, s: int, h: int, w: int) -> Array:
+  """The s x s windows of the h x w pixels whose windows fill `padded` (h + s - 1, w + s - 1),
+  stacked on a last axis: the view dy * s + dx of `window_views` at [i, j, dy * s + dx].
 
-  One array instead of s*s: what `stacked_order_statistics` selects from, and what elementwise
-  work over the window (a count, a mask) stays one broadcast expression on, whatever s. Built
-  from s row slices and s column slices of the padded map (2s slices, not s*s: the program
-  grows with s, not s*s).  # (H, W, s*s)
+  One array instead of s*s: what `select_middles` selects from, and what elementwise work over
+  the window (a count, a mask) stays one broadcast expression on, whatever s. Built from s row
+  slices and s column slices of the padded map (2s slices, not s*s: the program grows with s,
+  not s*s).  # (h, w, s*s)
   """
-  return _stack_of_padded(_padded(x, s, pad_value), s, *x.shape)
-
-
-def _stack_of_padded(padded: Array, s: int, h: int, w: int) -> Array:
-  """The windows of the h x w pixels whose s x s windows fill `padded` (h + s - 1, w + s - 1),
-  stacked as in `window_stack`.  # (h, w, s*s)"""
   rows = jnp.stack([padded[dy:dy + h] for dy in range(s)], axis=1)  # (h, s, w + s - 1)
   cells = jnp.stack([rows[..., dx:dx + w] for dx in range(s)], axis=-1)  # (h, s, w, s)
   return jnp.moveaxis(cells, 1, 2).reshape(h, w, s * s)  # [i, j, dy * s + dx]
@@ -192,11 +189,11 @@ def map_row_blocks(fn, maps: list[tuple[Array, object]], s: int,
   r = s // 2
   rows = block_rows(h, w, s, max(x.dtype.itemsize for x, _ in maps), block_bytes)
   blocks = -(-h // rows)
-  padded = [jnp.pad(x, ((r, r + blocks * rows - h), (r, r)), constant_values=pad)
+  padded = [_padded(x, s, pad, blocks * rows - h)
             for x, pad in maps]  # (blocks * R + 2r, W + 2r) each
 
   def block(top: Array):
-    stacks = [_stack_of_padded(jax.lax.dynamic_slice_in_dim(p, top, rows + 2 * r), s, rows, w)
+    stacks = [stack_windows(jax.lax.dynamic_slice_in_dim(p, top, rows + 2 * r), s, rows, w)
               for p in padded]  # (R, W, s*s) each
     return tuple(fn(stacks, *middle_ranks(h, w, s, top, rows)))
 
@@ -263,7 +260,7 @@ def middle_order_statistics(views: list[Array], s: int) -> tuple[Array, Array]:
 
 
 def stacked_order_statistics(stack: Array, s: int) -> tuple[Array, Array]:
-  """`middle_order_statistics` of windows stacked on the last axis (`window_stack`).
+  """`middle_order_statistics` of windows stacked on the last axis (`stack_windows`).
 
   stack: (..., H, W, s*s) of a whole image, the out-of-image slots sorting last. Returns
   (lower, upper), (..., H, W) each; see `select_middles`.

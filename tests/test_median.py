@@ -281,9 +281,10 @@ def test_stacked_order_statistics_pick_the_sorted_slots(stacked, x):
 
 
 @pytest.mark.parametrize("s", [1, 3, 7])
-def test_window_stack_holds_each_view_in_order(s):
+def test_stacked_windows_hold_each_view_in_order(s):
   # Reference: a NumPy loop over the pixels and offsets of the padded map (slot dy * s + dx holds
-  # x(i + dy - r, j + dx - r), the pad value outside), on an integer map (INT_PAD outside).
+  # x(i + dy - r, j + dx - r), the pad value outside), on an integer map (INT_PAD outside); the
+  # map padded and stacked as a block of `map_row_blocks` is.
   x = np.arange(5 * 6, dtype=np.int32).reshape(5, 6) * 7 % 11
   r = s // 2
   padded = np.pad(x, r, constant_values=median_lib.INT_PAD)
@@ -293,8 +294,8 @@ def test_window_stack_holds_each_view_in_order(s):
       for dy in range(s):
         for dx in range(s):
           want[i, j, dy * s + dx] = padded[i + dy, j + dx]
-  np.testing.assert_array_equal(np.asarray(median_lib.window_stack(jnp.asarray(x), s,
-                                                                   median_lib.INT_PAD)), want)
+  padded_jax = median_lib._padded(jnp.asarray(x), s, median_lib.INT_PAD)
+  np.testing.assert_array_equal(np.asarray(median_lib.stack_windows(padded_jax, s, 5, 6)), want)
 
 
 def test_stacked_order_statistics_gradient_is_a_stable_sorts():

@@ -150,10 +150,10 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
   flat.update(R.apply_rules(dec_state, depth_decoder_rules(), _is_ignorable, str(depth),
                             expected, cover=False))
   R.check_covered(flat, expected)
-  absent = [k for k in ("height", "width") if k not in enc_state]
-  if len(absent) == 1:  # half a size is no training size
-    raise CheckpointError(f"{encoder}: has a {'height' if absent == ['width'] else 'width'!r} "
-                          f"entry but no {absent[0]!r} entry")
+  present = [k for k in ("height", "width") if k in enc_state]
+  absent = [k for k in ("height", "width") if k not in present]
+  if len(present) == 1:  # half a size is no training size
+    raise CheckpointError(f"{encoder}: has a {present[0]!r} entry but no {absent[0]!r} entry")
   if absent and notes is not None:
     notes.append(f"{encoder} has no 'height' and 'width' entries (upstream's training writes "
                  f"them): taken as trained at MonoDepth2's {DEFAULT_SIZE[1]}x{DEFAULT_SIZE[0]}")
