@@ -273,12 +273,15 @@ def input_size(weights: Weights, frames: Sequence[Frame]) -> tuple[int, int]:
 
 def check_aspect(frame: Frame) -> None:
   """The prediction is resized onto the ground truth: their aspect ratios must agree (1%).
-  DataError naming the frame's image file (a reader's frame), else the frame."""
+  DataError naming the frame's ground-truth file and its image (a reader's frame), else the
+  frame."""
   if frame.depth is None:
     return
   why = aspect_mismatch(frame.image.shape, np.shape(frame.depth))
   if why is not None:
-    raise DataError(frame.image_file or frame.name or "frame", why)
+    if frame.depth_file and frame.image_file:
+      why += f" (image {frame.image_file})"
+    raise DataError(frame.depth_file or frame.image_file or frame.name or "frame", why)
 
 
 CHECKPOINT_PATTERN = "state_[0-9][0-9][0-9][0-9][0-9][0-9]"

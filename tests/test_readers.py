@@ -90,6 +90,8 @@ def test_drivingstereo_values_round_trip(tmp_path):
     assert frame.depth.dtype == np.float32
     np.testing.assert_array_equal(frame.depth, depth.astype(np.float32) / 256)
     assert frame.depth[0, 0] == 0 and frame.panoptic is None
+    stem = frame.name.split("/")[1]  # named in errors about the ground truth
+    assert frame.depth_file == str(tmp_path / "rainy" / "depth-map-full-size" / f"{stem}.png")
 
 
 def test_drivingstereo_all_order_and_nested_layout(tmp_path):
@@ -235,10 +237,11 @@ def test_kitti_eigen_gt(tmp_path):
   assert frames.names == ("2011_09_26/2011_09_26_drive_0002_sync/image_02/0000000069",
                           "2011_09_26/2011_09_26_drive_0002_sync/image_03/0000000005",
                           "2011_09_28/2011_09_28_drive_0001_sync/image_02/0000000003")
-  for frame, rgb, gt in zip(frames, images, maps):
+  for index, (frame, rgb, gt) in enumerate(zip(frames, images, maps)):
     np.testing.assert_array_equal(frame.image, rgb.astype(np.float32) / np.float32(255))
     assert frame.depth.dtype == np.float32
     np.testing.assert_array_equal(frame.depth, gt)
+    assert frame.depth_file == f"{split.parent / 'gt_depths.npz'}[{index}]"
 
 
 def test_kitti_plain_npz_and_jpg(tmp_path):
@@ -335,6 +338,9 @@ def test_kitti_improved_gt(tmp_path):
   assert frames.notes == ()  # the improved ground truth has both cameras
   for frame, depth in zip(frames, written):
     np.testing.assert_array_equal(frame.depth, depth.astype(np.float32) / 256)
+  assert frames[1].depth_file == str(tmp_path / "improved" / "val" / KITTI_LINES[1][0].split("/")[1]
+                                     / "proj_depth" / "groundtruth" / "image_03"
+                                     / f"{KITTI_LINES[1][1]:010d}.png")
 
 
 # KITTI ground truth from the Velodyne scans (MonoDepth2's kitti_utils.generate_depth_map, as
@@ -408,6 +414,9 @@ def test_kitti_ground_truth_from_velodyne(tmp_path):
     expected = np.zeros((6, 8), np.float32)
     expected[1, 3] = want
     np.testing.assert_array_equal(frames[k].depth, expected)
+    folder, frame, _ = KITTI_LINES[k]
+    assert frames[k].depth_file == str(tmp_path / "data" / folder / "velodyne_points" / "data"
+                                       / f"{frame:010d}.bin")
   (tmp_path / "data" / KITTI_LINES[2][0] / "velodyne_points" / "data" / "0000000003.bin").unlink()
   with pytest.raises(DataError, match=r"velodyne_points/data/0000000003\.bin: Velodyne scan not "
                                       r"found"):
@@ -482,6 +491,9 @@ def test_waymo_layout(tmp_path):
                           "segment-b/000001", "segment-b/000002")
   for frame, depth in zip(frames, expected_a + expected_b):
     np.testing.assert_array_equal(frame.depth, depth)
+    seq, stem = frame.name.split("/")
+    assert frame.depth_file in (str(tmp_path / seq / "depth" / f"{stem}{suffix}")
+                                for suffix in (".png", ".npy"))
   np.testing.assert_array_equal(frames[2].image, _rgb(200).astype(np.float32) / np.float32(255))
   # segment-b's first frame follows segment-a's last in the stream: a new recording
   assert [f.starts_recording for f in frames] == [True, False, True, False, False]
@@ -534,9 +546,11 @@ def test_folder_with_depth_and_panoptic(tmp_path):
   np.testing.assert_array_equal(frames[0].depth, np.full((H, W), 2.5, np.float32))
   assert frames[1].segments == (Segment(3, 8, True),)
   write_depth_png(tmp_path / "depth" / "a.png", np.full((H, H), 1.5))  # another aspect ratio
-  from pitta_jax.run import check_aspect  # what a run checks of each frame, naming its image
-  with pytest.raises(DataError, match=rf"img/a\.png: ground truth is {H}x{H} but the image is "
-                                      rf"{W}x{H} \(W x H\): another aspect ratio"):
+  from pitta_jax.run import check_aspect  # what a run checks of each frame, naming its files
+  with pytest.raises(DataError, match=rf"depth/a\.png: ground truth is {H}x{H} but the image is "
+                                      rf"{W}x{H} \(W x H\): another aspect ratio, so the "
+                                      rf"prediction cannot be resized onto it \(image "
+                                      rf"\S*img/a\.png\)"):
     check_aspect(readers.open_dataset("folder", tmp_path / "img", depth_dir=tmp_path / "depth")[0])
   (tmp_path / "depth" / "a.png").unlink()
   with pytest.raises(DataError, match=r"depth/a\.png: depth map for image a\.png not found"):

@@ -207,7 +207,7 @@ def _weather_files(root: Path, weather: str, size: str, depth: bool,
     panoptic = PanopticSource(wdir / "panoptic")
   files = []
   for stem in sorted(images):
-    depth_loader = None
+    depth_loader, depth_png = None, ""
     if depth_dir is not None:
       depth_png = require_file(depth_dir / f"{stem}.png", "depth map")
       depth_loader = functools.partial(read_depth_png, depth_png)
@@ -217,6 +217,7 @@ def _weather_files(root: Path, weather: str, size: str, depth: bool,
       panoptic_ref = panoptic.ref(nested_key if panoptic.has(nested_key) else stem)
     seq = stem.split("_")[0]  # the recording: <seq>_<timestamp>
     files.append(FrameFiles(name=f"{weather}/{stem}", image=images[stem], depth=depth_loader,
+                            depth_file=str(depth_png),
                             panoptic=panoptic_ref, recording=f"{weather}/{seq}",
                             **calibs.fields(seq, size, wdir)))
   return files

@@ -77,12 +77,12 @@ def open_folder(root: PathLike, depth_dir: PathLike | None = None,
                  f"{', '.join(order[1:3])}{', ...' if len(order) > 3 else ''}), not as text")
   files = []
   for stem in order:
-    depth = None if depth_root is None else depth_loader(
+    depth_file, depth = ("", None) if depth_root is None else depth_loader(
         depth_root, stem, png_scale=depth_scale,
         missing=f"depth map for image {images[stem].name} not found (nor .npy)")
     intrinsics = {} if camera is None else {
         "intrinsics": camera.K, "intrinsics_size": camera.size, "intrinsics_source": calib_path}
-    files.append(FrameFiles(name=stem, image=images[stem], depth=depth,
+    files.append(FrameFiles(name=stem, image=images[stem], depth=depth, depth_file=str(depth_file),
                             panoptic=None if panoptic is None else panoptic.ref(stem),
                             **intrinsics))
   return FrameSequence(files, temporal=temporal, remedies=REMEDIES, notes=notes)

@@ -42,6 +42,8 @@ class Frame:
             (`FrameSequence`); a stream's very first frame has no previous frame either way.
   image_file: the file the image was read from ("" for a frame built in memory), named in
             errors about the frame's data.
+  depth_file: where `depth` was read from ("" for a frame built in memory): a file, or an
+            archive's entry such as `gt_depths.npz[12]`, named in errors about the ground truth.
   """
   image: np.ndarray
   depth: np.ndarray | None = None
@@ -51,6 +53,7 @@ class Frame:
   intrinsics: np.ndarray | None = None
   starts_recording: bool = False
   image_file: str = ""
+  depth_file: str = ""
 
 
 ASPECT_TOLERANCE = 0.01  # relative difference of W / H a prediction can be resized across

@@ -264,14 +264,15 @@ def read_depth_npy(path: PathLike) -> np.ndarray:
 
 def depth_loader(depth_dir: Path, stem: str, *, png_scale: float = DEPTH_PNG_SCALE,
                  read_npy: Callable[[Path], np.ndarray] = read_depth_npy,
-                 missing: str = "depth map not found (nor .npy)") -> Callable[[], np.ndarray]:
-  """The lazy loader of `<depth_dir>/<stem>.png` (uint16 / png_scale), else `<stem>.npy` (read
-  by `read_npy`); DataError(`<stem>.png`, missing) when neither file exists."""
+                 missing: str = "depth map not found (nor .npy)"
+                 ) -> tuple[Path, Callable[[], np.ndarray]]:
+  """The file and lazy loader of `<depth_dir>/<stem>.png` (uint16 / png_scale), else
+  `<stem>.npy` (read by `read_npy`); DataError(`<stem>.png`, missing) when neither exists."""
   png, npy = depth_dir / f"{stem}.png", depth_dir / f"{stem}.npy"
   if png.is_file():
-    return functools.partial(read_depth_png, png, png_scale)
+    return png, functools.partial(read_depth_png, png, png_scale)
   if npy.is_file():
-    return functools.partial(read_npy, npy)
+    return npy, functools.partial(read_npy, npy)
   raise DataError(png, missing)
 
 

@@ -263,17 +263,17 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
   files = []
   for index, (folder, frame, camera) in enumerate(entries):
     image = _find_image(data, folder, frame, camera, ext)
-    depth_loader = None
+    depth_loader, depth_file = None, ""
     if depth and improved_root is not None:
-      depth_loader = functools.partial(
-          read_depth_png, _find_improved_gt(improved_root, folder, frame, camera))
+      depth_file = _find_improved_gt(improved_root, folder, frame, camera)
+      depth_loader = functools.partial(read_depth_png, depth_file)
     elif gt is not None:
-      depth_loader = functools.partial(gt, index)
+      depth_loader, depth_file = functools.partial(gt, index), f"{gt.path}[{index}]"
     elif velodyne is not None:
-      depth_loader = velodyne[index]
+      depth_loader, depth_file = velodyne[index], velodyne_path(data, folder, frame)
     key = f"{folder}/image_0{camera}/data/{frame:010d}"
     files.append(FrameFiles(name=f"{folder}/image_0{camera}/{frame:010d}", image=image,
-                            depth=depth_loader,
+                            depth=depth_loader, depth_file=str(depth_file),
                             panoptic=None if panoptic is None else panoptic.ref(key),
                             recording=f"{folder}/image_0{camera}",
                             **calibs.frame_fields(data, folder, camera)))

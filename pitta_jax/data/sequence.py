@@ -36,6 +36,7 @@ class FrameFiles:
   name: the frame's stable identifier (`Frame.name`).
   image: the colour image file.
   depth: a loader returning (Hd, Wd) float32 metres (0 = invalid), or None without ground truth.
+  depth_file: what `depth` reads (a file, or an archive's entry), named in errors (`Frame.depth_file`).
   panoptic: the panoptic files, or None.
   size: the (H, W) the image must have (e.g. from a calibration file), or None.
   size_source: the file that fixes `size`, named when the image disagrees.
@@ -51,6 +52,7 @@ class FrameFiles:
   name: str
   image: Path
   depth: Callable[[], np.ndarray] | None = None
+  depth_file: str = ""
   panoptic: PanopticRef | None = None
   size: tuple[int, int] | None = None
   size_source: Path | None = None
@@ -73,7 +75,8 @@ class FrameFiles:
         raise DataError(self.panoptic.png, f"panoptic map is {_wh(panoptic.shape)} but its image "
                                            f"{self.image.name} is {_wh(image.shape)} (W x H)")
     return Frame(image=image, depth=depth, panoptic=panoptic, segments=segments, name=self.name,
-                 intrinsics=self._intrinsics_for(image.shape[:2]), image_file=str(self.image))
+                 intrinsics=self._intrinsics_for(image.shape[:2]), image_file=str(self.image),
+                 depth_file=self.depth_file if depth is not None else "")
 
   def _intrinsics_for(self, size: tuple[int, int]) -> np.ndarray | None:
     """K of an image of `size` (H, W): `intrinsics` scaled from `intrinsics_size`."""

@@ -125,11 +125,11 @@ def _sequence_files(root: Path, seq: str, depth: bool, panoptic: PanopticSource 
     prefix = f"{seq}/"
   files = []
   for stem in sorted(images):
-    depth = None if depth_dir is None else depth_loader(
+    depth_file, depth = ("", None) if depth_dir is None else depth_loader(
         depth_dir, stem,
         read_npy=functools.partial(read_waymo_depth_npy, image=images[stem], calib=calib))
     files.append(FrameFiles(
-        name=f"{seq}/{stem}", image=images[stem], depth=depth,
+        name=f"{seq}/{stem}", image=images[stem], depth=depth, depth_file=str(depth_file),
         panoptic=None if panoptic is None else panoptic.ref(prefix + stem),
         size=None if calib is None else (calib.height, calib.width),
         size_source=None if calib is None else seq_dir / "calib.json",
