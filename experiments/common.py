@@ -24,6 +24,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -519,9 +520,20 @@ def parser(name: str, description: str,
   """The table command's parser; `rows`: whether it takes --rows (a table of rows); `frames`,
   `quick_frames`: the frames per part it runs on synthetic without --frames (for its --help)."""
   from pitta_jax.config_cli import ArgumentParser
-  p = ArgumentParser(prog=f"pitta-jax experiment {name}", description=description)
+  p = ArgumentParser(prog=command_name(name), description=description)
   add_arguments(p, datasets, rows, frames, quick_frames)
   return p
+
+
+def command_name(name: str, argv0: str | None = None) -> str:
+  """How the user started experiment `name` (`argv0`: sys.argv[0]), for its usage and errors:
+  `python -m experiments NAME`, `python -m experiments.NAME`, else `pitta-jax experiment NAME`."""
+  path = Path(sys.argv[0] if argv0 is None else argv0)
+  if path.parent.name == "experiments" and path.name == "__main__.py":
+    return f"python -m experiments {name}"
+  if path.parent.name == "experiments" and path.name == f"{name}.py":
+    return f"python -m experiments.{name}"
+  return f"pitta-jax experiment {name}"
 
 
 def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthetic",

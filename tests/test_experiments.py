@@ -7,6 +7,7 @@ import csv
 import json
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -595,6 +596,23 @@ def test_experiments_without_a_name_is_a_usage_error_on_stderr(capsys):
   assert experiments.main(["--help"]) == 0
   out, err = capsys.readouterr()
   assert "table1" in out and err == ""
+
+
+def test_an_unknown_flag_points_at_the_help_of_the_command_as_started(monkeypatch, capsys):
+  """Usage and errors name the command as the user typed it: `python -m experiments NAME`,
+  `python -m experiments.NAME` or `pitta-jax experiment NAME` (all three said the last)."""
+  from experiments import table1
+  import experiments
+  pkg = Path(experiments.__file__).parent
+  for argv0, typed in [(pkg / "__main__.py", "python -m experiments table1"),
+                       (pkg / "table1.py", "python -m experiments.table1"),
+                       ("/venv/bin/pitta-jax", "pitta-jax experiment table1")]:
+    monkeypatch.setattr(sys, "argv", [str(argv0), "table1", "--bogus"])
+    with pytest.raises(SystemExit) as e:
+      table1.main(["--bogus"])
+    assert e.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"error: unrecognized arguments: --bogus (see {typed} --help)")
 
 
 def test_sensitivity_help_gives_its_own_frames_and_no_real_data_flags(capsys):
