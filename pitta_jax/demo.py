@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from pathlib import Path
@@ -111,6 +112,7 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
   out = Path(demo.out)
   weights, train_report = load_or_train_source(source, quiet=quiet)
   clear_earlier_results(out, FIGURES)
+  figures_existed = (out / "figures").exists()
   try:
     h, w = weights.height, weights.width
     runners = Runners()  # one compile per row serves every shift
@@ -165,6 +167,9 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
     for pattern in FIGURES:
       for path in out.glob(pattern):
         path.unlink(missing_ok=True)
+    if not figures_existed:  # nor the directory it made for them, once empty
+      with contextlib.suppress(OSError):
+        (out / "figures").rmdir()
     raise
 
 

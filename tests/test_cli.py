@@ -82,6 +82,13 @@ def test_an_interrupted_demo_leaves_no_figures_without_results(demo_out, tmp_pat
              AdaptConfig(), source=TINY, quiet=True)
   assert [p.name for p in plots] == ["clear_abs_rel_per_frame.png", "fog_abs_rel_per_frame.png"]
   assert sorted(p.name for p in out.rglob("*")) == ["figures", "mine.png"]
+  # into a new directory: the figures/ it made goes too (it stayed, empty)
+  fresh = tmp_path / "fresh"
+  plots.clear()
+  with pytest.raises(KeyboardInterrupt):
+    run_demo(DemoConfig(shifts=("fog",), num_frames=3, methods=("none",), out=str(fresh)),
+             AdaptConfig(), source=TINY, quiet=True)
+  assert len(plots) == 2 and list(fresh.rglob("*")) == []
 
 
 def test_demo_writes_results_table_and_figures(demo_out):
