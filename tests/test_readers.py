@@ -728,3 +728,32 @@ def test_exif_orientation_as_pil_turns_it(tmp_path, orientation):
     ref = np.asarray(ImageOps.exif_transpose(im).convert("RGB"), np.float32) / 255
   assert read_image(path).shape == (8, 12, 3) and ours.shape == ref.shape
   assert np.abs(ours - ref).mean() < 2 / 255  # two JPEG decoders, the same pixels
+
+
+def test_exif_orientation_big_endian_and_in_png_and_no_decode_without_it(tmp_path, monkeypatch):
+  """The orientation entry as a big-endian (Motorola) TIFF directory stores it, in a JPEG's APP1
+  and in a PNG's eXIf chunk, turns the image as PIL does (OpenCV applies both); a file without
+  an orientation entry is not decoded again."""
+  import struct
+  from PIL import Image, ImageOps
+  from pitta_jax.data import image_io
+  stored = np.repeat(np.repeat(np.random.default_rng(7).integers(0, 256, (4, 6, 3), np.uint8),
+                               2, 0), 2, 1)
+  tiff = (b"MM\x00\x2a" + struct.pack(">I", 8) + struct.pack(">H", 1)
+          + struct.pack(">HHIHH", 0x0112, 3, 1, 6, 0) + struct.pack(">I", 0))
+  Image.fromarray(stored).save(tmp_path / "be.jpg", quality=100, exif=b"Exif\x00\x00" + tiff)
+  img = Image.fromarray(stored)
+  exif = img.getexif()
+  exif[0x0112] = 8
+  img.save(tmp_path / "turned.png", exif=exif)
+  for name in ("be.jpg", "turned.png"):
+    ours = image_io.exif_upright(tmp_path / name, read_image(tmp_path / name))
+    with Image.open(tmp_path / name) as im:
+      ref = np.asarray(ImageOps.exif_transpose(im).convert("RGB"), np.float32) / 255
+    assert ours.shape == ref.shape == (12, 8, 3)
+    assert np.abs(ours - ref).mean() < 2 / 255
+  Image.fromarray(stored).save(tmp_path / "plain.jpg", quality=100)
+  image = read_image(tmp_path / "plain.jpg")
+  decodes = []
+  monkeypatch.setattr(image_io.cv2, "imdecode", lambda *a: decodes.append(a))
+  assert image_io.exif_upright(tmp_path / "plain.jpg", image) is image and decodes == []

@@ -138,12 +138,21 @@ def _png_gray_alpha(path: PathLike) -> bool:
   return len(head) == 26 and head[:8] == PNG_SIGNATURE and head[25] == PNG_GRAY_ALPHA
 
 
+# The EXIF orientation entry's tag (0x0112) and type (SHORT, 3) as a TIFF directory stores them,
+# little- and big-endian: a file without either holds no orientation for a decoder to apply.
+EXIF_ORIENTATION_ENTRIES = (b"\x12\x01\x03\x00", b"\x01\x12\x00\x03")
+
+
 def exif_upright(path: PathLike, image: np.ndarray) -> np.ndarray:
   """`image` (as decoded from `path`, (H, W, C)) turned upright by the file's EXIF orientation,
   as `cv2.imread` does by default (a JPEG from a phone or camera stores it; other files and a
   JPEG without one come back unchanged). OpenCV applies the orientation while decoding to
-  8-bit colour; the turn found there (none, a rotation, a flip) is applied to `image`."""
+  8-bit colour; the turn found there (none, a rotation, a flip) is applied to `image`. A file
+  without an orientation entry (`EXIF_ORIENTATION_ENTRIES`) is not decoded again."""
   data = np.fromfile(path, np.uint8)
+  raw = data.tobytes()
+  if not any(entry in raw for entry in EXIF_ORIENTATION_ENTRIES):
+    return image  # no orientation tag anywhere in the file: nothing for OpenCV to apply
   stored = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
   upright = cv2.imdecode(data, cv2.IMREAD_COLOR)
   if stored is None or upright is None or (stored.shape == upright.shape
