@@ -153,3 +153,22 @@ def test_ld_weight_zero_is_plain_actmad(case, jax_run, torch_stats):
   rel = _worst_rel(params0, t_params, torch_tta.encoder_params(case[0]))
   print(f"adapted parameters after one ld_weight-0 step: worst max diff / max update {rel:.1e}")
   assert rel < 1e-6
+
+
+def test_reset_empties_the_ring_and_keeps_the_source_statistics():
+  """`reset_every` puts the weights back; the ring's activations came from the discarded
+  weights, so it is emptied as at the start (it kept them, and the first frames after a reset
+  were aligned with a batch of the old network's activations)."""
+  from pitta_jax.methods.base import ring_init, ring_push, ring_valid
+  method = build("actmad", ActmadConfig(ring_size=3))
+  mean, var = jnp.ones((2, 3, 4)), jnp.full((2, 3, 4), 2.0)
+  ring = ring_push(ring_push(ring_init(mean, 3), mean), 3 * mean)
+  state = {"source": {"enc/bn1": (mean, var)}, "rings": {"enc/bn1": ring},
+           "ld_weight": jnp.asarray(0.5)}
+  assert ring_valid(ring).tolist() == [True, True, False]
+  after = method.reset(state, None)
+  assert ring_valid(after["rings"]["enc/bn1"]).tolist() == [False, False, False]
+  assert after["source"] is state["source"] and after["ld_weight"] is state["ld_weight"]
+  pushed = ring_push(after["rings"]["enc/bn1"], 5 * mean)  # the next frame is the only entry
+  assert ring_valid(pushed).tolist() == [True, False, False]
+  np.testing.assert_array_equal(pushed["items"][0], 5 * mean)

@@ -19,11 +19,14 @@ very first frame (n = 1) the variance is 0 (divisor max(n - 1, 1)), so only the 
 the parameters. The ring holds the activations of each frame as computed before its update,
 and keeps them across a recording's start (`StepInput.starts_recording`): the ring stands in for
 a batch, whose images upstream draws independently, not for a frame's neighbours.
+`AdaptConfig.reset_every` empties it with the weights put back (as at the start).
 
 BatchNorm runs in eval mode (running statistics) as upstream: the method requires
-`AdaptConfig.bn_stats == "running"` and fails at init otherwise. As upstream, the frame's depth
-is evaluated after its update (upstream steps SGD, then tests; `report_after_update`), and the
-frame joins the ring once, so one update per frame is required (`steps_per_frame == 1`).
+`AdaptConfig.bn_stats == "running"` and fails at init otherwise. The frame's depth is evaluated
+after its update (`report_after_update`): upstream adapts on the whole test set and tests it
+afterwards, which is not online; testing each frame after its own update is the nearest online
+reading (docs/method.md). The frame joins the ring once, so one update per frame is required
+(`steps_per_frame == 1`).
 
 Which parameters adapt (our choice): every encoder conv kernel and BN scale/bias
 (`--selector 'fraction(cnn=100,bn=100)'`, the method's setting), never the decoder. Upstream's
@@ -49,8 +52,8 @@ import optax
 
 from pitta_jax import nonsmooth
 from pitta_jax.configs import check, check_types, finite, option
-from pitta_jax.methods.base import (Aux, Method, ring_init, ring_push, ring_valid,
-                                    variables_of)
+from pitta_jax.methods.base import (Aux, Method, ring_init, ring_push, ring_restart,
+                                    ring_valid, variables_of)
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
 
 RESOURCE = "actmad_source_stats"
@@ -192,13 +195,20 @@ def build(config: ActmadConfig = ActmadConfig()) -> Method:
              for k, r in ms["rings"].items()}
     return state.replace(method_state={**ms, "rings": rings}), skipped, unorm
 
+  def reset(method_state, source):
+    """`AdaptConfig.reset_every`: the ring is emptied with the weights put back, as at the
+    start; its activations came from the weights that the reset discards."""
+    del source
+    return {**method_state, "rings": {k: ring_restart(r, jnp.array(True))
+                                      for k, r in method_state["rings"].items()}}
+
   def prepare(model, variables, source):
     return {RESOURCE: source_statistics(model, variables, source.batches(), config.layers)}
 
-  return Method("actmad", config, init=init, loss=loss, update=update,
+  return Method("actmad", config, init=init, loss=loss, update=update, reset=reset,
                 optimizer=lambda cfg: optimizer(config), prepare=prepare,
                 requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),
                           ("steps_per_frame", 1, "adds each frame to its ring once")),
-                # upstream evaluates after optimizer.step() (actmad_kitti.py: step, then test)
+                # upstream tests after adapting (the nearest online reading: after the update)
                 report_after_update=True,
                 setting=(("selector", "fraction(cnn=100,bn=100)"),))
