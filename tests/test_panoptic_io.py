@@ -94,6 +94,20 @@ def test_isthing_defaults_from_coco_table(tmp_path):
       Segment(1, 3, True), Segment(2, 149, False), Segment(3, 3, False))
 
 
+@pytest.mark.parametrize("category_id", [0, 91, 201])
+def test_a_category_id_that_is_not_cocos_is_refused_with_isthing_given(tmp_path, category_id):
+  """Detectron2's raw `segments_info` (contiguous classes: 0 = person) with `isthing`: read as
+  COCO ids, its person (0) was never dynamic and no error was raised; panopticapi refuses ids
+  outside its categories. 91 and 201 are not COCO panoptic ids either."""
+  path = tmp_path / "s.json"
+  path.write_text(json.dumps({"segments_info": [
+      {"id": 1, "category_id": 3, "isthing": True},
+      {"id": 2, "category_id": category_id, "isthing": True}]}))
+  with pytest.raises(DataError, match=rf"s\.json: segments_info\[1\]: category_id {category_id} "
+                                      rf"is not a COCO panoptic category id \(Detectron2"):
+    panoptic_io.read_segments_json(path)
+
+
 def test_annotation_file(tmp_path):
   ids = np.array([[0, 4], [8, 8]], np.int32)
   png_dir = tmp_path / "panoptic_val"

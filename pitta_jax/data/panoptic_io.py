@@ -18,7 +18,9 @@ table. An annotation file whose `categories` name its ids otherwise than COCO do
 taxonomy, e.g. cityscapesScripts' `createPanopticImgs.py`, where 24 is "person" and 26 "car",
 COCO's "zebra" and no class) has its ids mapped to COCO's by name (`coco_ids_by_name`), with a
 note; a category COCO does not name keeps its id where COCO has no such id, else gets 0 (no
-COCO class: never dynamic). Segments listed in the JSON but absent from the PNG are dropped (a
+COCO class: never dynamic). Elsewhere a `category_id` that is not a COCO panoptic id is an
+error, as in panopticapi's checks (Detectron2's contiguous class numbers are not COCO ids).
+Segments listed in the JSON but absent from the PNG are dropped (a
 `Frame` holds the segments present in its map); ids in the PNG without a JSON entry are an
 error, as in panopticapi's own checks.
 """
@@ -144,18 +146,29 @@ def parse_segments(entries: Any, path: PathLike, categories: Mapping[int, bool] 
     if seg_id in seen:
       raise DataError(path, f"segment id {seg_id} listed twice in segments_info")
     seen.add(seg_id)
+    if categories is None or category_id not in categories:  # read as a COCO id
+      _check_coco_id(category_id, path, k)
     if "isthing" in entry:
       isthing = bool(entry["isthing"])
     elif categories is not None and category_id in categories:
       isthing = categories[category_id]
     else:
-      try:
-        isthing = coco.is_thing(category_id)
-      except KeyError:
-        raise DataError(path, f"segments_info[{k}]: category_id {category_id} is not a COCO "
-                              f"panoptic category and no 'isthing' is given") from None
+      isthing = coco.is_thing(category_id)
     segments.append(Segment(id=seg_id, category_id=category_id, isthing=isthing))
   return tuple(segments)
+
+
+CONTIGUOUS_HINT = ("Detectron2 and Mask2Former number the classes 0-132 in their own order: "
+                   "give COCO's ids, e.g. 1 person, 3 car")
+
+
+def _check_coco_id(category_id: int, path: PathLike, k: int) -> None:
+  """A category id read as COCO's must be one (as panopticapi checks), 'isthing' given or not:
+  a class numbering of another kind (Detectron2's contiguous 0-132: its 0 is COCO's person)
+  would leave dynamic segments out of the mask, silently."""
+  if category_id not in coco.CATEGORY_IDS:
+    raise DataError(path, f"segments_info[{k}]: category_id {category_id} is not a COCO panoptic "
+                          f"category id ({CONTIGUOUS_HINT})")
 
 
 def read_segments_json(path: PathLike) -> tuple[Segment, ...]:
