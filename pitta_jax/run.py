@@ -29,6 +29,7 @@ from pitta_jax.checkpoint import Weights
 from pitta_jax.configs import check, check_types, option
 from pitta_jax.methods import Method, build as build_method
 from pitta_jax.methods.base import INPUT_SIZE, METRIC_FACTOR
+from pitta_jax.methods.depth_refining import dynamic_classes
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame, aspect_mismatch
 from pitta_jax.data.sequence import FrameSequence
@@ -561,7 +562,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
 
   # a sequence shorter than a chunk is one chunk of its own length (no padded steps)
   stream = chunks(frames, h, w, min(cfg.chunk_size, max(len(frames), 1)), cfg.max_segments,
-                  weights.spec.image_resize)
+                  weights.spec.image_resize, dynamic_classes(method.config))
   chunk_frames: list[list[Frame]] = []
 
   def inputs():

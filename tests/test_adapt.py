@@ -371,3 +371,31 @@ def test_a_method_is_checked_when_it_is_built():
            requires=(("bn_stat", "running", "runs BN in eval mode"),))
   with pytest.raises(ValueError, match="name 'selecter'"):
     Method("m", None, init=lambda *a: {}, loss=lambda *a: 0, setting=(("selecter", "all"),))
+
+
+def test_a_frame_with_too_many_segments_keeps_the_dynamic_classes_first():
+  """Beyond max_segments a frame keeps the method's dynamic classes O first, then the other
+  things, then stuff (frame order within each): with "things first" alone, 70 traffic lights
+  (a COCO thing) listed before 10 cars left no car in the 64 kept, so N was 0."""
+  from pitta_jax.adapt.inputs import step_input
+  from pitta_jax.data.frame import Frame, Segment
+  from pitta_jax.methods.actmad import ActmadConfig
+  from pitta_jax.methods.depth_refining import dynamic_classes
+  lights = [Segment(1 + k, 10, True) for k in range(70)]              # COCO 10: traffic light
+  road = [Segment(100, 149, False)]                                   # COCO 149: road (stuff)
+  cars = [Segment(200 + k, 3, True) for k in range(10)]               # COCO 3: car
+  ids = np.zeros((4, 96), np.int32)
+  ids.reshape(-1)[:81] = [s.id for s in lights + road + cars]
+  frame = Frame(np.zeros((4, 96, 3), np.float32), panoptic=ids,
+                segments=tuple(lights + road + cars))
+  got = step_input(frame, 4, 96, 64)
+  kept = [int(i) for i, v in zip(got.seg_ids, got.seg_valid) if v]
+  assert kept == [s.id for s in cars] + [s.id for s in lights[:54]]   # road dropped last
+  assert list(got.seg_classes[:11]) == [3] * 10 + [10]
+  # another dynamic set (the method's ld.dynamic_classes) is kept first instead
+  got = step_input(frame, 4, 96, 3, keep_first=(149,))
+  assert got.seg_ids.tolist() == [100, 1, 2]
+  # what a run passes: the method's O, or the paper's default for a method without L_d
+  assert dynamic_classes(PittaConfig(ld=DepthRefiningConfig(dynamic_classes=("bench",)))) == (15,)
+  assert dynamic_classes(ActmadConfig()) == (1, 2, 3, 4, 6, 7, 8)
+  assert dynamic_classes(build("none").config) == (1, 2, 3, 4, 6, 7, 8)

@@ -8,7 +8,7 @@ compiled scan serves the whole sequence.
 
 from __future__ import annotations
 
-from typing import Iterable, Iterator
+from typing import Collection, Iterable, Iterator
 
 import numpy as np
 
@@ -16,12 +16,19 @@ from pitta_jax.adapt.engine import StepInput
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame
 from pitta_jax.data.resize import IMAGE_RESIZE, resize_frame
+from pitta_jax.masks import DEFAULT_DYNAMIC_COCO_IDS
 
 
 def step_input(frame: Frame, height: int, width: int, max_segments: int,
-               image_resize: str = IMAGE_RESIZE[0]) -> StepInput:
+               image_resize: str = IMAGE_RESIZE[0],
+               keep_first: Collection[int] = DEFAULT_DYNAMIC_COCO_IDS) -> StepInput:
   """One frame at the network's size (its image resized by `image_resize`, the network's
-  `ModelSpec.image_resize`). A frame without panoptic map has no instances (N = 0)."""
+  `ModelSpec.image_resize`). A frame without panoptic map has no instances (N = 0).
+
+  A frame with more than `max_segments` segments keeps those of the classes `keep_first` (the
+  method's dynamic set O, what L_d masks) first, then the other things, then stuff, each in the
+  frame's order: COCO's things include static objects (traffic lights, benches), which must not
+  crowd the cars and people out."""
   if frame.image.ndim != 3 or frame.image.shape[-1] != 3:
     raise DataError(frame.name or "frame", f"image must be (H, W, 3), got {frame.image.shape}")
   if not np.all(np.isfinite(frame.image)):
@@ -33,8 +40,10 @@ def step_input(frame: Frame, height: int, width: int, max_segments: int,
   else:
     panoptic = np.asarray(frame.panoptic, np.int32)
     segments = frame.segments
-  if len(segments) > max_segments:  # keep the things first: they are what the loss uses
-    segments = tuple(sorted(segments, key=lambda s: not s.isthing))[:max_segments]
+  if len(segments) > max_segments:  # keep the dynamic classes, then the things, first
+    keep = frozenset(int(c) for c in keep_first)
+    segments = tuple(sorted(segments, key=lambda s: (int(s.category_id) not in keep,
+                                                     not s.isthing)))[:max_segments]
   ids = np.zeros((max_segments,), np.int32)
   classes = np.zeros((max_segments,), np.int32)
   valid = np.zeros((max_segments,), bool)
@@ -55,15 +64,16 @@ def stack(inputs: list[StepInput], size: int) -> StepInput:
 
 
 def chunks(frames: Iterable[Frame], height: int, width: int, chunk_size: int,
-           max_segments: int, image_resize: str = IMAGE_RESIZE[0]
+           max_segments: int, image_resize: str = IMAGE_RESIZE[0],
+           keep_first: Collection[int] = DEFAULT_DYNAMIC_COCO_IDS
            ) -> Iterator[tuple[StepInput, list[Frame]]]:
   """Yields (stacked chunk, the original frames of it) — frames keep their full-size depth for
-  evaluation. Memory holds one chunk at a time. image_resize: `step_input`'s."""
+  evaluation. Memory holds one chunk at a time. image_resize, keep_first: `step_input`'s."""
   batch: list[Frame] = []
 
   def stacked() -> StepInput:
-    return stack([step_input(f, height, width, max_segments, image_resize) for f in batch],
-                 chunk_size)
+    return stack([step_input(f, height, width, max_segments, image_resize, keep_first)
+                  for f in batch], chunk_size)
 
   for frame in frames:
     batch.append(frame)

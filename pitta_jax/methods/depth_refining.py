@@ -93,6 +93,15 @@ def uses_instances(config) -> bool:
   return not math.isinf(getattr(config, "lam", 0.0))
 
 
+def dynamic_classes(config) -> tuple[int, ...]:
+  """The COCO ids of a method config's dynamic set O (its `ld`), else the paper's default: the
+  classes whose segments a frame keeps first (`adapt.inputs.step_input`)."""
+  ld = getattr(config, "ld", None)
+  if isinstance(ld, DepthRefiningConfig):
+    return ld.dynamic_classes
+  return masks.DEFAULT_DYNAMIC_COCO_IDS
+
+
 def frame_loss(depth: jax.Array, frame, cfg: DepthRefiningConfig,
                lam: float | jax.Array) -> losses.PittaLoss:
   """Eq. 10 on an engine frame: L_d (eqs. 3-8) + lam * L_e (eqs. 5-6, 9) of `depth` (H, W)."""
