@@ -82,7 +82,8 @@ def open_folder(root: PathLike, depth_dir: PathLike | None = None,
         missing=f"depth map for image {images[stem].name} not found (nor .npy)")
     intrinsics = {} if camera is None else {
         "intrinsics": camera.K, "intrinsics_size": camera.size, "intrinsics_source": calib_path}
-    files.append(FrameFiles(name=stem, image=images[stem], depth=depth, depth_file=str(depth_file),
+    files.append(FrameFiles(name=stem, image=images[stem], depth=depth,
+                            depth_file=str(depth_file),
                             panoptic=None if panoptic is None else panoptic.ref(stem),
                             **intrinsics))
   return FrameSequence(files, temporal=temporal, remedies=REMEDIES, notes=notes)

@@ -36,7 +36,8 @@ class FrameFiles:
   name: the frame's stable identifier (`Frame.name`).
   image: the colour image file.
   depth: a loader returning (Hd, Wd) float32 metres (0 = invalid), or None without ground truth.
-  depth_file: what `depth` reads (a file, or an archive's entry), named in errors (`Frame.depth_file`).
+  depth_file: what `depth` reads (a file, or an archive's entry), named in errors
+    (`Frame.depth_file`).
   panoptic: the panoptic files, or None.
   size: the (H, W) the image must have (e.g. from a calibration file), or None.
   size_source: the file that fixes `size`, named when the image disagrees.
