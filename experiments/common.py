@@ -126,6 +126,7 @@ class Context:
   # each model's weights identity (`weights_identity`), hashed once per command, not per row
   identities: dict[str, dict] = dataclasses.field(default_factory=dict)
   files_id: str | None = None   # `files_identity`, once per command
+  notes: list[str] = dataclasses.field(default_factory=list)  # for the caption (`check_rows`)
 
   def wants(self, label: str, *names: str) -> bool:
     """Whether --rows selects the row `label` (no --rows: every row): a --rows entry that is a
@@ -324,12 +325,33 @@ def check_rows(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSp
       raise no_source_error(method, who, stats_flag=False)
   if ctx.replay_root:
     check_replay_root([m for _, m in methods.values()], ctx.replay_root)
+  no_instances(ctx, selected, readers)
   for case, _, row in selected:  # each test case's frames, as its methods need them
     entry = methods.get((row.method, row.model))
     if entry is not None and entry[1].needs:
       for what, reader in readers.get(case, ()):
         check_needs(entry[1], reader, what)
   clear_earlier_table(ctx)
+
+
+def no_instances(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSpec]],
+                 readers: dict[str, list[tuple[str, Any]]]) -> None:
+  """A note (stderr and the caption) where a selected row's loss holds L_d but its test case's
+  frames have no panoptic maps under `--segmentation gt`: L_d is 0 there, and PITTA's row is
+  L_e alone (as `pitta-jax adapt` notes)."""
+  from pitta_jax.methods.depth_refining import uses_instances
+  if ctx.segmentation != "gt":
+    return
+  cases = list(dict.fromkeys(
+      case for case, _, row in selected
+      if readers.get(case) and uses_instances(method_of(row).config)
+      and all(f.panoptic is None for _, reader in readers[case] for f in reader.files)))
+  if cases:
+    note = (f"{ctx.dataset} has no panoptic maps in test case {', '.join(cases)}: no frame has "
+            f"instances, so L_d (eq. 8) is 0 in PITTA's and the '+ L_d' rows (--segmentation "
+            f"png:DIR or mask2former:DIR).")
+    print(f"note: {note}", file=sys.stderr)
+    ctx.notes.append(note)
 
 
 def clear_earlier_table(ctx: Context) -> None:
@@ -718,7 +740,7 @@ def caption_notes(ctx: Context) -> str:
                  + ".")
   if ctx.rows:
     notes.append(f"Only the rows selected by --rows {','.join(ctx.rows)}.")
-  return " ".join(notes)
+  return " ".join(notes + ctx.notes)
 
 
 # how a prediction is aligned to the ground truth, per `run.EvalConfig.alignment`

@@ -89,7 +89,8 @@ def markdown(entries: Sequence[Entry], layout: str, group_title: str, row_title:
 
 
 def _label(e: Entry, which: str) -> str:
-  """The row's label; in the paper's block the paper's own (e.g. CoMoDA, PITTA (ours))."""
+  """The row's label; in the paper's block the paper's name of the method (`RowSpec.paper`:
+  e.g. CoMoDA, PITTA (ours); spelled correctly where the paper misprints it, "DetphAnythingV2")."""
   return e.spec.paper if which == "paper" and e.spec is not None and e.spec.paper else e.label
 
 

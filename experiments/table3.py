@@ -1,5 +1,6 @@
 """Table 3: PITTA on the other networks of the paper (SGDepth, HR-Depth, MonoViT, Lite-Mono,
-Depth Anything V2), adapted to DrivingStereo: rows No adaptation (Sunny), All.
+Depth Anything V2), adapted to DrivingStereo: rows No adaptation, No adaptation (Sunny), Sunny,
+All.
 
     pitta-jax experiment table3 [--quick] [--dataset drivingstereo --root DIR
                                  --weights sgdepth=DIR --weights hrdepth=DIR ...]
@@ -10,7 +11,8 @@ The paper's "No adaptation" row does not say on which test case it is measured; 
 Sunny", measures the source network on the Sunny case, the reference of the Sunny row. PITTA adapts the encoder's BatchNorm layers, or
 its LayerNorms where the encoder has no BatchNorm (Depth Anything V2). Lite-Mono's encoder has
 both (BatchNorm in its stem, downsampling and dilated-convolution blocks, LayerNorm in its
-attention blocks): its BatchNorms, as for the CNNs.
+attention blocks): its BatchNorms, as for the CNNs; so does MonoViT's (MPViT: BatchNorm after
+its convolutions, LayerNorm in its transformer blocks).
 """
 
 from __future__ import annotations

@@ -122,6 +122,9 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   (case, parts), = ctx.cases(("Waymo",))
   weights = common.weights_for(ctx, "monodepth2")
+  if weights is not None:  # the sweep's frames opened (paths only) before any work
+    common.no_instances(ctx, [(case, parts, RowSpec("PITTA", "pitta"))],
+                        common.check_cases(ctx, [(case, parts)]))
   common.clear_earlier_table(ctx)
   if weights is None:
     entries = [Entry(case, label(lam), {}, status="needs weights: --weights DIR",

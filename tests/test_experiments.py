@@ -222,6 +222,33 @@ def test_ada_depth_rows_on_weights_up_to_scale_are_captioned():
     assert common.units_note(ctx, rows[:1]) == ""
 
 
+def test_rows_with_l_d_on_frames_without_panoptic_maps_are_noted(capsys):
+  """Real data under --segmentation gt without panoptic maps: PITTA's and the '+ L_d' rows ran
+  with L_d = 0 and the table said nothing (`pitta-jax adapt` notes it). A note on stderr and in
+  the caption, naming the test cases; none for rows without L_d, maps present, or another
+  --segmentation."""
+  from types import SimpleNamespace
+  from experiments import table1
+  reader = lambda pan: SimpleNamespace(files=[SimpleNamespace(panoptic=pan)] * 2)
+  readers = {"Foggy": [("foggy", reader(None))], "Rainy": [("rainy", reader("maps"))]}
+  rows = {r.label: r for r in table1.ROWS}
+  selected = [(case, [{}], rows[label]) for case in ("Foggy", "Rainy")
+              for label in ("No adaptation", "CoTTA (no L_d)", "PITTA")]
+  ctx = common.Context("drivingstereo", "/d", [], "gt", {}, None, False, 0, True)
+  common.no_instances(ctx, selected, readers)
+  note = ("drivingstereo has no panoptic maps in test case Foggy: no frame has instances, so "
+          "L_d (eq. 8) is 0 in PITTA's and the '+ L_d' rows (--segmentation png:DIR or "
+          "mask2former:DIR).")
+  assert capsys.readouterr().err == f"note: {note}\n" and ctx.notes == [note]
+  assert common.caption_notes(ctx) == note
+  for ctx, chosen in ((common.Context("drivingstereo", "/d", [], "gt", {}, None, False, 0, True),
+                       [s for s in selected if s[2].label != "PITTA"]),
+                      (common.Context("drivingstereo", "/d", [], "png:/p", {}, None, False, 0,
+                                      True), selected)):
+    common.no_instances(ctx, chosen, readers)
+    assert capsys.readouterr().err == "" and ctx.notes == []
+
+
 def test_row_cache_sees_the_files_it_reads(tmp_path):
   """A row's cache key holds the files under --root and the --segmentation directory (their
   sizes and times), not only their paths: re-segmented maps were served the old rows. The
@@ -248,6 +275,14 @@ def test_row_cache_sees_the_files_it_reads(tmp_path):
   assert identity() != second
 
 
+class _OneFrame(list):
+  """A reader of one frame with its panoptic map, as `check_rows` asks of it (paths only)."""
+  def __init__(self):
+    from types import SimpleNamespace
+    super().__init__([0])
+    self.files = [SimpleNamespace(panoptic="maps")]
+
+
 def test_rows_needs_are_checked_before_the_first_row(tmp_path, monkeypatch):
   """common.check_rows, before any row runs: a method's source data, its pose network, weights
   for at least one row, and an --option the test cases set; it was found at the row, after the
@@ -257,7 +292,7 @@ def test_rows_needs_are_checked_before_the_first_row(tmp_path, monkeypatch):
   from pitta_jax.data.errors import DataError
   by_label = {row.label: row for row in ROWS}
   foggy = ({"weather": "foggy"},)
-  monkeypatch.setattr("pitta_jax.sources.open_reader", lambda *a: [0])
+  monkeypatch.setattr("pitta_jax.sources.open_reader", lambda *a: _OneFrame())
 
   def ctx(weights=True, **kw):
     c = common.Context("drivingstereo", str(tmp_path), kw.pop("options", []), "gt",
