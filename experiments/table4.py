@@ -59,7 +59,8 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   if directory is not None:
     record["fingerprint"] = run_fingerprint(weights, build("pitta"), cfg, ev,
                                             [*names, f"lambdas {list(lams)}"])
-    found = load_resume_point(directory, record["fingerprint"], names, states, strict=False)
+    found = load_resume_point(directory, record["fingerprint"], names, states, strict=False,
+                              template=record)
     if found is not None:
       states, record = found
   start = len(record["names"])

@@ -310,23 +310,68 @@ def _frame_names(frames: Sequence[Frame]) -> list[str]:
   return list(names) if names is not None else [frame.name for frame in frames]
 
 
-def _resume_points(directory: Path, fingerprint: str, names: Sequence[str]
+# sidecar keys a record may lack (sidecars written before they were added; run_sequence fills
+# them in)
+RECORD_OPTIONAL = ("nonfinite_indices", "seconds")
+
+
+def _number(x) -> bool:
+  """A per-frame value as a sidecar stores it: a number, or None for a non-finite one."""
+  return x is None or (isinstance(x, (int, float)) and not isinstance(x, bool))
+
+
+def _sidecar_problem(record: dict, template: dict) -> str | None:
+  """What is wrong with a sidecar `record` whose run is this one, against the fresh record
+  `template` of its run (its keys and their kinds: a list of per-lambda lists in a sweep), or
+  None: a hand-edited or damaged sidecar is refused here, not met as a KeyError later."""
+  for key, fresh in template.items():
+    if key not in record:
+      if key in RECORD_OPTIONAL:
+        continue
+      return f"no {key!r}"
+    value = record[key]
+    if not isinstance(value, type(fresh)) and not (isinstance(fresh, float) and _number(value)
+                                                   and value is not None):
+      return f"{key!r} is not a {type(fresh).__name__}"
+    if isinstance(fresh, list) and fresh and isinstance(fresh[0], list) and (
+        len(value) != len(fresh) or not all(isinstance(v, list) for v in value)):
+      return f"{key!r} is not {len(fresh)} lists"
+  items = {key: [v for x in record.get(key, []) for v in (x if isinstance(x, list) else [x])]
+           for key in ("per_frame", "names", "excluded", "nonfinite_indices")}
+  if not all(isinstance(m, dict) and all(isinstance(v, str) if k == "name" else _number(v)
+                                         for k, v in m.items()) for m in items["per_frame"]):
+    return "'per_frame' holds an entry that is not a frame's metrics"
+  if not all(isinstance(v, str) for v in items["names"] + items["excluded"]):
+    return "'names' or 'excluded' holds a value that is not a frame name"
+  if not all(isinstance(v, int) and not isinstance(v, bool) for v in items["nonfinite_indices"]):
+    return "'nonfinite_indices' holds a value that is not a frame index"
+  logs = record.get("logs", {})
+  if not all(isinstance(v, list) and all(_number(x) or isinstance(x, bool) for x in v)
+             for v in logs.values()):
+    return "'logs' holds a value that is not a list of numbers"
+  return None
+
+
+def _resume_points(directory: Path, fingerprint: str, names: Sequence[str], template: dict
                    ) -> list[tuple[Path, dict]]:
   """This run's checkpoints under `directory`, newest first: the `state_NNNNNN` whose results
   sidecar is readable and says it belongs to this run (`run_fingerprint`, and its frames are the
-  first of `names`), each with that sidecar; [] when there is no checkpoint. DataError when there
-  are checkpoints but none of this run (another run's: other frames, weights or settings)."""
+  first of `names`) and holds what a record of the run holds (`template`,
+  `_sidecar_problem`), each with that sidecar; [] when there is no checkpoint. A damaged
+  sidecar newer than the one used gets a warning. DataError when there are checkpoints but
+  none of this run (another run's: other frames, weights or settings) or none readable."""
   if not directory.is_dir():
     return []
-  found, others = [], 0
+  found, others, damaged = [], 0, []
   for path in sorted(directory.glob(CHECKPOINT_PATTERN), reverse=True):
     sidecar = path.parent / f"{path.name}.json"
     if not sidecar.is_file():
       continue  # killed between the state and its sidecar: never used
     try:
       record = json.loads(sidecar.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
       others += 1  # unreadable: an older checkpoint may still be good
+      damaged.append(f"{sidecar}: unreadable ({type(e).__name__})")
       continue
     done = record.get("names") if isinstance(record, dict) else None
     if (record.get("fingerprint") if isinstance(record, dict) else None) != fingerprint or \
@@ -336,12 +381,20 @@ def _resume_points(directory: Path, fingerprint: str, names: Sequence[str]
     if len(done) != int(path.name[len("state_"):]):  # a sidecar not of its state's frames
       others += 1
       continue
+    problem = _sidecar_problem(record, template)
+    if problem is not None:
+      others += 1
+      damaged.append(f"{sidecar}: {problem}")
+      continue
+    if damaged and not found:
+      print(f"warning: {damaged[0]}; resuming from {path.name} instead", file=sys.stderr)
     found.append((path, record))
   if others and not found:
+    why = f"; {damaged[0]}" if damaged else ""
     raise DataError(directory, f"{others} checkpoint(s) here, none of this run (another run's "
-                               "frames, weights or settings, or unreadable): resume with the "
-                               "interrupted run's command, or run without --resume to start "
-                               "afresh")
+                               f"frames, weights or settings, or unreadable{why}): resume with "
+                               f"the interrupted run's command, or run without --resume to "
+                               f"start afresh")
   return found
 
 
@@ -426,13 +479,14 @@ def _remove_leftovers(directory: Path) -> None:
 
 
 def load_resume_point(directory: Path, fingerprint: str, names: Sequence[str], like,
-                      strict: bool) -> tuple[Any, dict] | None:
+                      strict: bool, template: dict) -> tuple[Any, dict] | None:
   """(state, sidecar) of this run's newest checkpoint under `directory` that reads back
   (`fingerprint`, and `names` of the frames from the first: its sidecar's "names" are the
-  frames it has done), None when there is none. Checkpoints that are not this run's (or none
-  that reads back): DataError when `strict`, else removed with a warning (None)."""
+  frames it has done; the sidecar holds what the run's fresh record `template` holds), None
+  when there is none. Checkpoints that are not this run's (or none that reads back): DataError
+  when `strict`, else removed with a warning (None)."""
   try:
-    return _load_newest(_resume_points(directory, fingerprint, names), like)
+    return _load_newest(_resume_points(directory, fingerprint, names, template), like)
   except DataError:
     if strict:
       raise
@@ -533,7 +587,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
             "logs": {}, "fingerprint": fingerprint, "seconds": 0.0}
   if directory is not None and resume:
-    found = load_resume_point(directory, fingerprint, names, state, strict=resume != RESUME_OWN)
+    found = load_resume_point(directory, fingerprint, names, state, strict=resume != RESUME_OWN,
+                              template=record)
     if found is not None:
       state, sidecar = found
       record = {"nonfinite_indices": [], "seconds": 0.0, **sidecar}

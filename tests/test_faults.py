@@ -994,3 +994,61 @@ def test_a_full_disk_during_a_save_is_one_os_error_naming_the_checkpoint(tmp_pat
   with pytest.raises(OSError) as caught:
     checkpoint.save_tree(tmp_path / "state_000004", {"a": np.zeros(3)})
   assert caught.value.filename == str(tmp_path / "state_000004")
+
+
+def test_a_damaged_sidecar_is_passed_over_with_a_warning_not_met_as_a_traceback(tmp_path,
+                                                                                capsys):
+  """A checkpoint's results sidecar with this run's fingerprint and frames but a field missing
+  or of the wrong kind (a hand edit, a damaged file): --resume took it and failed frames later
+  with KeyError / AttributeError, at every rerun. Now it is passed over like an unreadable one,
+  with a warning naming it and what is wrong, and an older good checkpoint is used; with none
+  left, one DataError naming it. Sidecars without the keys added later still resume."""
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.run import _resume_points
+  names = ["f0", "f1", "f2", "f3"]
+  template = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
+              "logs": {}, "fingerprint": "fp", "seconds": 0.0}
+
+  def sidecar(done: int, **changes) -> dict:
+    record = {"per_frame": [{"name": n, "abs_rel": 0.5, "a1": None} for n in names[:done]],
+              "names": names[:done], "excluded": [], "logs": {"loss": [1.0] * done,
+                                                              "skipped": [False] * done},
+              "fingerprint": "fp", **changes}
+    return {k: v for k, v in record.items() if v is not ...}
+
+  def write(directory, done, record):
+    (directory / f"state_{done:06d}").mkdir(parents=True, exist_ok=True)
+    (directory / f"state_{done:06d}.json").write_text(json.dumps(record))
+
+  good = sidecar(2)  # an older sidecar: no nonfinite_indices, no seconds
+  for bad, problem in [(sidecar(4, per_frame=...), "no 'per_frame'"),
+                       (sidecar(4, logs="zzz"), "'logs' is not a dict"),
+                       (sidecar(4, logs={"loss": ["x"] * 4}), "'logs' holds a value that is not"),
+                       (sidecar(4, per_frame=[{"name": "f0", "abs_rel": "garbage"}]),
+                        "'per_frame' holds an entry that is not a frame's metrics"),
+                       (sidecar(4, seconds="1"), "'seconds' is not a float")]:
+    directory = tmp_path / problem.replace("'", "").replace(" ", "_")
+    write(directory, 2, good)
+    write(directory, 4, bad)
+    found = _resume_points(directory, "fp", names, template)
+    assert [p.name for p, _ in found] == ["state_000002"]
+    err = capsys.readouterr().err
+    assert err.startswith(f"warning: {directory / 'state_000004.json'}: {problem}")
+    assert err.endswith("; resuming from state_000002 instead\n") and err.count("\n") == 1
+  directory = tmp_path / "garbage"  # unreadable: passed over as before, now with a warning
+  write(directory, 2, good)
+  write(directory, 4, good)
+  (directory / "state_000004.json").write_text("{garbage")
+  assert [p.name for p, _ in _resume_points(directory, "fp", names, template)] == ["state_000002"]
+  assert capsys.readouterr().err == (f"warning: {directory / 'state_000004.json'}: unreadable "
+                                     f"(JSONDecodeError); resuming from state_000002 instead\n")
+  directory = tmp_path / "only_bad"
+  write(directory, 4, sidecar(4, excluded=[3]))
+  with pytest.raises(DataError, match=r"1 checkpoint\(s\) here, none of this run .*state_000004"
+                                      r"\.json: 'names' or 'excluded' holds a value that is not"):
+    _resume_points(directory, "fp", names, template)
+  sweep = {"names": [], "per_frame": [[], []], "fingerprint": "fp"}  # Table 4: one list per lambda
+  write(tmp_path / "sweep", 2, {"names": names[:2], "fingerprint": "fp",
+                                "per_frame": [[{"name": "f0", "abs_rel": 1.0}]] * 3})
+  with pytest.raises(DataError, match=r"'per_frame' is not 2 lists"):
+    _resume_points(tmp_path / "sweep", "fp", names, sweep)
