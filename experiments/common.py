@@ -425,9 +425,38 @@ def files_identity(ctx: Context) -> str:
   return ctx.files_id
 
 
+def _metric_values(x: Any) -> bool:
+  """A stored row's metrics: names -> numbers (None for a non-finite one)."""
+  return isinstance(x, dict) and all(
+      v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in x.values())
+
+
+def _per_frame_values(x: Any) -> bool:
+  return isinstance(x, list) and _metric_values(dict(enumerate(x)))
+
+
+def stored_result(stored: Any, field: str) -> bool:
+  """Whether a row file's content is a result of its kind: a row's ("metrics": its metrics,
+  and its per-frame AbsRel and metrics before divergence where present) or a lambda sweep's
+  ("sweep": one such result per lambda). A hand-edited file of the wrong kinds was served to
+  the table, which failed at its rendering, naming no file."""
+  if not isinstance(stored, dict):
+    return False
+  results = stored.get(field)
+  if field == "metrics":
+    results = [stored]
+  if not isinstance(results, list) or not results:
+    return False
+  return all(isinstance(r, dict) and _metric_values(r.get("metrics"))
+             and (r.get("metrics_before_divergence") is None
+                  or _metric_values(r["metrics_before_divergence"]))
+             and _per_frame_values(r.get("abs_rel_per_frame", []))
+             and isinstance(r.get("status", ""), str) for r in results)
+
+
 def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "metrics") -> dict:
   """The row result stored under `key`, computed (and stored atomically) when absent or not a
-  result (a stored result holds `field`: a row's "metrics", a lambda sweep's "sweep")."""
+  result (`stored_result`: a row's "metrics", a lambda sweep's "sweep"), with a warning then."""
   from pitta_jax.outputs import atomic_write_text, json_safe
   path = ctx.out / "rows" / f"{key}.json"
   if path.is_file():
@@ -435,8 +464,10 @@ def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "me
       stored = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
       stored = None  # a torn file cannot exist (atomic writes); a hand-edited one is recomputed
-    if isinstance(stored, dict) and isinstance(stored.get(field), (dict, list)):
+    if stored_result(stored, field):
       return stored
+    print(f"warning: {path}: not a stored row result (edited or damaged); computing the row "
+          f"again", file=sys.stderr)
   result = compute()
   path.parent.mkdir(parents=True, exist_ok=True)
   atomic_write_text(path, json.dumps(json_safe(result)[0], indent=1) + "\n")

@@ -46,26 +46,38 @@ def test_written_tables_are_titled_as_the_paper(tmp_path):
     assert md.startswith(title)
 
 
-def test_cached_rows_are_computed_once(tmp_path):
+def test_cached_rows_are_computed_once(tmp_path, capsys):
   ctx = common.Context("synthetic", None, [], "gt", {}, tmp_path, True, 2, True)
   calls = []
 
   def compute():
     calls.append(1)
-    return {"metrics": {"abs_rel": 0.5}}
+    return {"metrics": {"abs_rel": 0.5, "a1": None}, "abs_rel_per_frame": [0.4, None]}
   assert common.cached(ctx, "k", compute) == common.cached(ctx, "k", compute)
   assert len(calls) == 1 and (tmp_path / "rows" / "k.json").is_file()
-  # a row file that is JSON but not a row (hand-edited, another tool's) is computed again
-  for text in ("{}", "[1]", '{"metrics": 3}', "\xff"):
+  # a row file that is JSON but not a row (hand-edited, another tool's, values of the wrong
+  # kind: the table failed at rendering, naming no file) is computed again, with a warning
+  texts = ("{}", "[1]", '{"metrics": 3}', "\xff", '{"metrics": {"abs_rel": "garbage"}}',
+           '{"metrics": {"abs_rel": true}}', '{"metrics": {}, "abs_rel_per_frame": ["x"]}',
+           '{"metrics": {}, "metrics_before_divergence": [1]}', '{"metrics": {}, "status": 1}')
+  for text in texts:
     (tmp_path / "rows" / "k.json").write_text(text)
-    assert common.cached(ctx, "k", compute) == {"metrics": {"abs_rel": 0.5}}
-  assert len(calls) == 5
+    assert common.cached(ctx, "k", compute) == compute()
+    assert capsys.readouterr().err == (f"warning: {tmp_path / 'rows' / 'k.json'}: not a stored "
+                                       f"row result (edited or damaged); computing the row "
+                                       f"again\n")
+  assert len(calls) == 1 + 2 * len(texts)
   # a lambda sweep's result (Table 4, the sensitivity study) is {"sweep": [...]}: cached too
   # (it was recomputed on every run: the check asked for "metrics")
+  calls.clear()
   sweep = lambda: calls.append(1) or {"sweep": [{"metrics": {"abs_rel": 0.4}}], "seconds": 3.0}
   assert common.cached(ctx, "s", sweep, field="sweep") == common.cached(ctx, "s", sweep,
                                                                           field="sweep")
-  assert len(calls) == 6
+  assert len(calls) == 1
+  for text in ('{"sweep": []}', '{"sweep": [{"metrics": {"abs_rel": "x"}}]}'):
+    (tmp_path / "rows" / "s.json").write_text(text)
+    common.cached(ctx, "s", sweep, field="sweep")
+  assert len(calls) == 3 and "not a stored row result" in capsys.readouterr().err
 
 
 def test_captions_say_quick_weights_and_row_subsets():
