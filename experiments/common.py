@@ -701,7 +701,7 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
                                                             else 0))
   out = Path(args.out or Path("experiments_out") / name)
   if out.exists() and not out.is_dir():
-    raise DataError(out, "--out: exists and is not a directory")
+    raise DataError(None, f"--out {out}: exists and is not a directory")  # as open_output_dir
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.run import EvalConfig
   eval_cfg = config_from_args(EvalConfig, args, "eval")

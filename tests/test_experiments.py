@@ -126,7 +126,8 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   assert err.count("\n") == 1 and not (tmp_path / "o").exists()
   (tmp_path / "file").write_text("")
   assert table1.main(["--quick", "--out", str(tmp_path / "file")]) == 2
-  assert f"{tmp_path / 'file'}: --out: exists and is not a directory" in capsys.readouterr().err
+  assert (f"error: --out {tmp_path / 'file'}: exists and is not a directory"
+          in capsys.readouterr().err)  # as pitta-jax adapt words it
   # table3's rows are known by network, row label and method too (the help's example)
   from experiments import table3
   assert table3.main(["--quick", "--rows", "zzz", "--out", str(tmp_path / "o")]) == 2
