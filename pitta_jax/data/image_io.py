@@ -174,8 +174,10 @@ def read_image(path: PathLike, gray: bool = False) -> np.ndarray:
     path: a PNG or JPEG file, 8 or 16 bit, 3 or 4 channels.
     gray: also take a grayscale image (with or without alpha), its channel repeated as R, G
       and B (what PIL's `convert("RGB")` in MonoDepth2's test_simple.py and cv2.imread in
-      Depth Anything V2's run.py make of it); else it is an error, for a dataset's frames a sign
-      of a wrong directory (KITTI's image_00/01 are the grayscale cameras).
+      Depth Anything V2's run.py make of an 8-bit one; a 16-bit one is scaled by 1/65535 as
+      any 16-bit image, where PIL's conversion clips it at 255); else it is an error, for a
+      dataset's frames a sign of a wrong directory (KITTI's image_00/01 are the grayscale
+      cameras).
 
   Returns:
     (H, W, 3) float32 RGB in [0, 1] (alpha, if any, dropped).
