@@ -345,9 +345,9 @@ def _sidecar_problem(record: dict, template: dict) -> str | None:
     return "'names' or 'excluded' holds a value that is not a frame name"
   if not all(isinstance(v, int) and not isinstance(v, bool) for v in items["nonfinite_indices"]):
     return "'nonfinite_indices' holds a value that is not a frame index"
-  logs = record.get("logs", {})
-  if not all(isinstance(v, list) and all(_number(x) or isinstance(x, bool) for x in v)
-             for v in logs.values()):
+  def numbers(x) -> bool:  # a log's per-frame values: numbers or flags (or lists of them)
+    return _number(x) or isinstance(x, bool) or (isinstance(x, list) and all(map(numbers, x)))
+  if not all(isinstance(v, list) and numbers(v) for v in record.get("logs", {}).values()):
     return "'logs' holds a value that is not a list of numbers"
   return None
 
