@@ -427,8 +427,8 @@ def files_identity(ctx: Context) -> str:
 
 def _metric_values(x: Any) -> bool:
   """A stored row's metrics: names -> numbers (None for a non-finite one)."""
-  return isinstance(x, dict) and all(
-      v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)) for v in x.values())
+  from pitta_jax.outputs import json_number
+  return isinstance(x, dict) and all(map(json_number, x.values()))
 
 
 def _per_frame_values(x: Any) -> bool:

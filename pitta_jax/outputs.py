@@ -207,6 +207,12 @@ def rounded_or_none(x: float, digits: int) -> float | None:
   return round(x, digits) if math.isfinite(x) else None
 
 
+def json_number(x: Any) -> bool:
+  """Whether `x` is a number as `json_safe` writes one: an int or float (not a bool), or None
+  for a non-finite value. What reading a stored result checks its values against."""
+  return x is None or (isinstance(x, (int, float)) and not isinstance(x, bool))
+
+
 def json_safe(obj: Any) -> tuple[Any, int]:
   """(obj with every non-finite float replaced by None, how many were replaced)."""
   count = 0

@@ -315,39 +315,39 @@ def _frame_names(frames: Sequence[Frame]) -> list[str]:
 RECORD_OPTIONAL = ("nonfinite_indices", "seconds")
 
 
-def _number(x) -> bool:
-  """A per-frame value as a sidecar stores it: a number, or None for a non-finite one."""
-  return x is None or (isinstance(x, (int, float)) and not isinstance(x, bool))
-
-
 def _sidecar_problem(record: dict, template: dict) -> str | None:
   """What is wrong with a sidecar `record` whose run is this one, against the fresh record
   `template` of its run (its keys and their kinds: a list of per-lambda lists in a sweep), or
   None: a hand-edited or damaged sidecar is refused here, not met as a KeyError later."""
+  from pitta_jax.outputs import json_number
+
+  def numbers(x) -> bool:  # a log's per-frame values: numbers or flags (or lists of them)
+    return json_number(x) or isinstance(x, bool) or (isinstance(x, list) and all(map(numbers, x)))
+
   for key, fresh in template.items():
     if key not in record:
       if key in RECORD_OPTIONAL:
         continue
       return f"no {key!r}"
     value = record[key]
-    if not isinstance(value, type(fresh)) and not (isinstance(fresh, float) and _number(value)
-                                                   and value is not None):
+    if not isinstance(value, type(fresh)) and not (isinstance(fresh, float) and value is not None
+                                                   and json_number(value)):
       return f"{key!r} is not a {type(fresh).__name__}"
     if isinstance(fresh, list) and fresh and isinstance(fresh[0], list) and (
         len(value) != len(fresh) or not all(isinstance(v, list) for v in value)):
       return f"{key!r} is not {len(fresh)} lists"
   items = {key: [v for x in record.get(key, []) for v in (x if isinstance(x, list) else [x])]
+           if key in template else []
            for key in ("per_frame", "names", "excluded", "nonfinite_indices")}
-  if not all(isinstance(m, dict) and all(isinstance(v, str) if k == "name" else _number(v)
+  if not all(isinstance(m, dict) and all(isinstance(v, str) if k == "name" else json_number(v)
                                          for k, v in m.items()) for m in items["per_frame"]):
     return "'per_frame' holds an entry that is not a frame's metrics"
   if not all(isinstance(v, str) for v in items["names"] + items["excluded"]):
     return "'names' or 'excluded' holds a value that is not a frame name"
   if not all(isinstance(v, int) and not isinstance(v, bool) for v in items["nonfinite_indices"]):
     return "'nonfinite_indices' holds a value that is not a frame index"
-  def numbers(x) -> bool:  # a log's per-frame values: numbers or flags (or lists of them)
-    return _number(x) or isinstance(x, bool) or (isinstance(x, list) and all(map(numbers, x)))
-  if not all(isinstance(v, list) and numbers(v) for v in record.get("logs", {}).values()):
+  logs = record.get("logs", {}) if "logs" in template else {}
+  if not all(isinstance(v, list) and numbers(v) for v in logs.values()):
     return "'logs' holds a value that is not a list of numbers"
   return None
 
