@@ -339,13 +339,11 @@ def no_instances(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], Row
   """A note (stderr and the caption) where a selected row's loss holds L_d but its test case's
   frames have no panoptic maps under `--segmentation gt`: L_d is 0 there, and PITTA's row is
   L_e alone (as `pitta-jax adapt` notes)."""
-  from pitta_jax.methods.depth_refining import uses_instances
-  if ctx.segmentation != "gt":
-    return
+  from pitta_jax.sources import lacks_panoptic_maps
   cases = list(dict.fromkeys(
       case for case, _, row in selected
-      if readers.get(case) and uses_instances(method_of(row).config)
-      and all(f.panoptic is None for _, reader in readers[case] for f in reader.files)))
+      if lacks_panoptic_maps(method_of(row).config, ctx.segmentation,
+                             [reader for _, reader in readers.get(case, ())])))
   if cases:
     note = (f"{ctx.dataset} has no panoptic maps in test case {', '.join(cases)}: no frame has "
             f"instances, so L_d (eq. 8) is 0 in PITTA's and the '+ L_d' rows (--segmentation "

@@ -400,14 +400,13 @@ def _run_adapt(args) -> int:
   from pitta_jax.adapt import AdaptConfig
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.methods import build
-  from pitta_jax.methods.depth_refining import uses_instances
   from pitta_jax.outputs import open_output_dir, rounded_or_none
   from pitta_jax.report import Row, clear_earlier_results, write_results
   from pitta_jax.run import EvalConfig, checkpoint_chunk_size, metric_factor, run_sequence
   from pitta_jax.checkpoint import read_model_json
   from pitta_jax.sources import (check_dataset_args, check_run_needs, check_stats_method,
-                                 check_unique_options, method_resources, open_frames,
-                                 open_weights)
+                                 check_unique_options, lacks_panoptic_maps, method_resources,
+                                 open_frames, open_weights)
   notes = []
   if args.adapting:
     cfg, method, notes = adapt_config(args)
@@ -464,8 +463,8 @@ def _run_adapt(args) -> int:
                               f"against{remedy}")
       notes.append(f"dataset {args.dataset} has no ground-truth depth: the run adapts and logs, "
                    f"nothing is scored{remedy}")
-    if (reader is not None and args.adapting and uses_instances(method.config)
-        and args.segmentation == "gt" and all(f.panoptic is None for f in reader.files)):
+    if (reader is not None and args.adapting
+        and lacks_panoptic_maps(method.config, args.segmentation, [reader])):
       remedy = "--option panoptic_dir=DIR, " if args.dataset == "folder" else ""
       notes.append(f"dataset {args.dataset} has no panoptic maps: no frame has instances, so "
                    f"L_d (eq. 8) is 0 ({remedy}--segmentation png:DIR or mask2former:DIR)")

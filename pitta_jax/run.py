@@ -310,8 +310,8 @@ def _frame_names(frames: Sequence[Frame]) -> list[str]:
   return list(names) if names is not None else [frame.name for frame in frames]
 
 
-# sidecar keys a record may lack (sidecars written before they were added; run_sequence fills
-# them in)
+# sidecar keys a record may lack (sidecars written before they were added; a resumed run
+# takes the fresh record's)
 RECORD_OPTIONAL = ("nonfinite_indices", "seconds")
 
 
@@ -591,7 +591,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                               template=record)
     if found is not None:
       state, sidecar = found
-      record = {"nonfinite_indices": [], "seconds": 0.0, **sidecar}
+      record = {**record, **sidecar}  # an older sidecar's missing keys: the fresh record's
       frames = frames[int(state.step):]
     elif resume != RESUME_OWN:  # the user asked to resume: say that there was nothing to resume
       print(f"note: --resume: no checkpoint in {directory}; the run starts at its first frame",

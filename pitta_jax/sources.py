@@ -300,6 +300,15 @@ def check_dataset_args(dataset: str, root: str | None, option_items: Sequence[st
   return typed_options(raw, function_annotations(READERS[dataset]), dataset)
 
 
+def lacks_panoptic_maps(config, segmentation: str, readers: Sequence[FrameSequence]) -> bool:
+  """Whether a method config's loss holds L_d (`depth_refining.uses_instances`) while, under
+  `--segmentation gt`, no frame of `readers` (at least one) has a panoptic map: its L_d is 0
+  on them. What `pitta-jax adapt` and the tables say in a note."""
+  from pitta_jax.methods.depth_refining import uses_instances
+  return (segmentation == "gt" and len(readers) > 0 and uses_instances(config)
+          and all(f.panoptic is None for reader in readers for f in reader.files))
+
+
 def open_reader(dataset: str, root: str | None, option_items: Sequence[str], segmentation: str
                 ) -> FrameSequence:
   """The reader's frames of a real dataset (files listed, none read), with `png:DIR` panoptic
