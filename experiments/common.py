@@ -710,6 +710,8 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
     raise DataError(None, f"--rows {text!r}: no row name in it (comma-separated labels)")
   # created, proved writable and locked before any row runs; `main_wrapper` releases it
   vars(args).setdefault("open_outputs", []).append(open_output_dir(out, "--out"))
+  from pitta_jax.report import check_results_owner
+  check_results_owner(out, f"experiment {name}")
   return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
                  args.quick, frames, args.quiet, args.source_images, args.replay_root,
                  runners, rows, eval_cfg=eval_cfg, name=name)

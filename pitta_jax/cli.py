@@ -237,7 +237,9 @@ def _run_demo(args) -> int:
       print(f"note: {ROWS[key][0]} runs with {', '.join(kept)} as given, not its own setting",
             file=sys.stderr)
   from pitta_jax.outputs import open_output_dir
+  from pitta_jax.report import check_results_owner
   with open_output_dir(demo.out):  # checked and locked before any work
+    check_results_owner(demo.out, "demo")
     enable_compilation_cache()  # the process's choice, made here, not by the library
     if args.retrain:
       load_or_train_source(SourceConfig(), quiet=args.quiet, retrain=True)
@@ -401,7 +403,7 @@ def _run_adapt(args) -> int:
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.methods import build
   from pitta_jax.outputs import open_output_dir, rounded_or_none
-  from pitta_jax.report import Row, clear_earlier_results, write_results
+  from pitta_jax.report import Row, check_results_owner, clear_earlier_results, write_results
   from pitta_jax.run import EvalConfig, checkpoint_chunk_size, metric_factor, run_sequence
   from pitta_jax.checkpoint import read_model_json
   from pitta_jax.sources import (check_dataset_args, check_run_needs, check_stats_method,
@@ -445,6 +447,7 @@ def _run_adapt(args) -> int:
     raise DataError(None, f"{' and '.join(source_flags)}: --source-stats holds the statistics "
                           f"the source data would give; give one of them")
   with open_output_dir(args.out):  # checked and locked first; removed again if a check fails
+    check_results_owner(args.out, args.command)
     checkpoints = Path(args.out) / "checkpoints"
     if args.checkpoint_every and checkpoints.exists() and not checkpoints.is_dir():
       raise DataError(checkpoints, "is a file; --checkpoint-every writes a directory there")

@@ -104,6 +104,50 @@ def clear_earlier_results(out_dir: str | Path, patterns: Sequence[str] = (),
   return names
 
 
+# commands whose results.json another command may replace, because it writes every file they
+# wrote: adapt and evaluate write `RESULT_FILES`, the demo those and its figures
+REPLACES = {"adapt": ("adapt", "evaluate"), "evaluate": ("adapt", "evaluate"),
+            "demo": ("adapt", "evaluate", "demo")}
+
+
+def results_owner(out_dir: str | Path) -> tuple[str, list[str]] | None:
+  """Which command wrote `out_dir`/results.json, and the files that go with it: ("adapt" |
+  "evaluate" | "demo" | "experiment NAME", [file names]); None when there is no results.json or
+  it is not one of ours (unreadable, another program's), which a run replaces as before."""
+  out = Path(out_dir)
+  try:
+    payload = json.loads((out / "results.json").read_text())
+  except (OSError, UnicodeDecodeError, ValueError):
+    return None
+  if not isinstance(payload, dict):
+    return None
+  table, command = payload.get("table"), payload.get("command")
+  if isinstance(table, str) and table:
+    return f"experiment {table}", ["results.json"] + [
+        f"{table}{s}" for s in (".md", ".csv", ".tex") if (out / f"{table}{s}").is_file()]
+  if command in ("adapt", "evaluate") or (command is None and isinstance(payload.get("demo"),
+                                                                         dict)):
+    owner = command or "demo"
+    return owner, [n for n in RESULT_FILES if (out / n).is_file()] + (
+        ["figures/"] if owner == "demo" and (out / "figures").is_dir() else [])
+  return None
+
+
+def check_results_owner(out_dir: str | Path, owner: str, what: str = "--out") -> None:
+  """DataError, before any work, when `out_dir` holds the results of another command that
+  `owner` (as `results_owner` names commands) would leave half replaced: both write
+  results.json, and the other's own files (a table's NAME.md, the demo's figures) would stay
+  beside results that are not theirs."""
+  from pitta_jax.data.errors import DataError
+  found = results_owner(out_dir)
+  if found is None or found[0] == owner or found[0] in REPLACES.get(owner, ()):
+    return
+  earlier, files = found
+  raise DataError(None, f"{what} {out_dir}: holds the results of `pitta-jax {earlier}` "
+                        f"({', '.join(files)}), which `pitta-jax {owner}` would replace in "
+                        f"part; give another {what} or remove them")
+
+
 def _jsonable(x):
   if isinstance(x, (np.floating, np.integer)):
     return x.item()

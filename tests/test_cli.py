@@ -143,6 +143,18 @@ def test_adapt_and_evaluate_on_synthetic(demo_out, tmp_path, monkeypatch):
                              ref["metrics"]["abs_rel"], rtol=1e-6)
 
 
+def test_adapt_refuses_the_demos_directory(demo_out, capsys):
+  """The demo's --out given to adapt: its results.json would be replaced and its figures left
+  beside it; refused before any work, the demo's files untouched."""
+  out = demo_out[0]
+  before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+  assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", str(out)]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith(f"error: --out {out}: holds the results of `pitta-jax demo` "
+                        f"(results.json, results.csv, table.md, figures/)") and err.count("\n") == 1
+  assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
 def test_user_errors_are_one_line(tmp_path, capsys):
   assert main(["adapt", "--dataset", "kitti", "--weights", str(tmp_path), "--out",
                str(tmp_path / "o")]) == 2

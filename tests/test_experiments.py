@@ -413,6 +413,28 @@ def test_rows_are_cached_and_a_rerun_computes_nothing(quick_out, monkeypatch):
   assert [r["metrics"] for r in after["rows"]] == [r["metrics"] for r in json.loads(before)["rows"]]
 
 
+def test_a_command_refuses_an_out_holding_another_commands_results(quick_out, monkeypatch,
+                                                                     capsys):
+  """`pitta-jax adapt` and another table given table2's directory: both write results.json, so
+  either would have left table2.md beside results that are not its own. Refused before any work,
+  one line naming the table and its files; nothing there changes."""
+  from pitta_jax import run as run_lib
+  from pitta_jax.cli import main
+  out = quick_out[0] / "table2"
+  before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+  calls = []
+  monkeypatch.setattr(run_lib, "run_sequence", lambda *a, **k: calls.append(1))
+  assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", str(out)]) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and err.startswith(f"error: --out {out}: holds the results of "
+                                                  f"`pitta-jax experiment table2` (results.json, "
+                                                  f"table2.md, table2.csv, table2.tex)")
+  assert _quick("table5", quick_out, "--out", str(out)) == 2
+  assert "`pitta-jax experiment table2`" in capsys.readouterr().err
+  assert calls == []
+  assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
 def test_an_interrupted_rerun_leaves_no_earlier_table(quick_out, monkeypatch, capsys):
   """table2 rerun on the same --out with another row selected, interrupted at its first new
   row: the earlier table's files and figures are gone (they stayed, looking current), the

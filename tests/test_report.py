@@ -166,3 +166,24 @@ def test_demo_methods_are_validated():
     DemoConfig(methods=("none", "pitta", "none"))
   with pytest.raises(ValueError, match="shifts \\['fog'\\] given twice"):
     DemoConfig(shifts=("fog", "fog"))
+
+
+@pytest.mark.parametrize("earlier, owner, refused", [
+    ({"command": "adapt"}, "evaluate", False), ({"command": "evaluate"}, "adapt", False),
+    ({"command": "adapt"}, "demo", False),     # the demo writes every file adapt wrote
+    ({"demo": {}}, "adapt", True),             # the demo's figures would stay
+    ({"table": "table1"}, "experiment table1", False),
+    ({"table": "table1"}, "experiment table3", True), ({"table": "table1"}, "adapt", True),
+    ({"command": "adapt"}, "experiment table1", True),
+    ({"rows": []}, "adapt", False), ("not json", "adapt", False), ([1, 2], "demo", False)])
+def test_which_earlier_results_a_command_may_replace(tmp_path, earlier, owner, refused):
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.report import check_results_owner
+  text = earlier if isinstance(earlier, str) else json.dumps(earlier)
+  (tmp_path / "results.json").write_text(text)
+  if refused:
+    with pytest.raises(DataError, match="holds the results of `pitta-jax "):
+      check_results_owner(tmp_path, owner)
+  else:
+    check_results_owner(tmp_path, owner)
+  check_results_owner(tmp_path / "missing", owner)  # nothing there: nothing to refuse
