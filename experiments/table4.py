@@ -42,10 +42,12 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from pitta_jax.adapt import streams
   from pitta_jax.adapt.inputs import chunks
   from pitta_jax.methods import build
-  from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, frame_metrics,
-                             input_size, load_resume_point, model_alignment, record_marks,
-                             run_fingerprint, save_checkpoint, truncate_record)
+  from pitta_jax.methods.depth_refining import dynamic_classes
+  from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, compile_count,
+                             frame_metrics, input_size, load_resume_point, model_alignment,
+                             record_marks, run_fingerprint, save_checkpoint, truncate_record)
   cfg = common.adapt_config("pitta", quick=quick)
+  pitta = build("pitta")  # every lambda's method but for lambda (the vmapped axis)
   every = common.CHECKPOINT_EVERY if checkpoint_dir is not None else 0
   cfg = dataclasses.replace(cfg, chunk_size=checkpoint_chunk_size(cfg.chunk_size, every))
   key = ("lambda_sweep", weights.spec.name, json.dumps(weights.config, sort_keys=True,
@@ -57,7 +59,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   record = {"names": [], "per_frame": [[] for _ in lams], "fingerprint": None}
   directory = Path(checkpoint_dir) if checkpoint_dir is not None else None
   if directory is not None:
-    record["fingerprint"] = run_fingerprint(weights, build("pitta"), cfg, ev,
+    record["fingerprint"] = run_fingerprint(weights, pitta, cfg, ev,
                                             [*names, f"lambdas {list(lams)}"])
     found = load_resume_point(directory, record["fingerprint"], names, states, strict=False,
                               template=record)
@@ -67,11 +69,14 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   h, w = input_size(weights, frames)
   bar = tqdm(total=len(frames), initial=start, desc="lambda sweep", unit="frame",
              disable=quiet)
+  if not compile_count(runner):  # the first chunk waits for the compile: say so
+    bar.set_postfix_str("compiling the step")
   done = (states, record_marks(record))  # the newest states whose frames are all in `record`
   try:
     for chunk, originals in chunks(frames[start:], h, w,
                                    min(cfg.chunk_size, max(len(frames) - start, 1)),
-                                   cfg.max_segments, weights.spec.image_resize):
+                                   cfg.max_segments, weights.spec.image_resize,
+                                   dynamic_classes(pitta.config)):
       states, out = runner(states, chunk, consts)
       depth = np.asarray(out.depth)                                     # (T, K, H, W)
       for t, frame in enumerate(originals):
@@ -86,6 +91,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
       done = (states, record_marks(record))
       if every and n < len(frames) and n % every == 0:
         save_checkpoint(directory, states, record)
+      bar.set_postfix_str("", refresh=False)
       bar.update(len(originals))
   except KeyboardInterrupt:
     done_states, marks = done

@@ -629,7 +629,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       yield chunk
 
   index, last_saved = start, start
-  compiles, compile_seconds, compiled_frames = _compile_count(runner), 0.0, 0
+  compiles, compile_seconds, compiled_frames = compile_count(runner), 0.0, 0
+  if not compiles:  # the first chunk waits for the compile (seconds to a minute): say so
+    bar.set_postfix_str("compiling the step")
   chunk_start = time.perf_counter()
   # the newest state whose frames are all in `record`, with the record's lengths then: a
   # Ctrl-C while a chunk is being scored checkpoints this one, not the chunk's half-scored state
@@ -638,7 +640,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   try:
     for state, out in adapt_stream(state, consts, inputs(), runner):
       originals = chunk_frames.pop(0)
-      now = _compile_count(runner)
+      now = compile_count(runner)
       compiled, compiles = now > compiles, now
       for k, frame in enumerate(originals):
         depth = out.depth[k]
@@ -668,9 +670,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
         compile_seconds += time.perf_counter() - chunk_start
         compiled_frames += len(originals)
       chunk_start = time.perf_counter()
-      bar.update(len(originals))
       bar.set_postfix(abs_rel=f"{np.mean(abs_rels) if abs_rels else float('nan'):.4f}",
-                      loss=f"{float(np.mean(out.loss)):.3g}")
+                      loss=f"{float(np.mean(out.loss)):.3g}", refresh=False)
+      bar.update(len(originals))
   except KeyboardInterrupt:
     done_state, marks, done_index, done_elapsed = done
     if directory is not None and checkpoint_every and done_index > last_saved:
@@ -693,7 +695,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                    compiled_frames=compiled_frames)
 
 
-def _compile_count(runner) -> int:
+def compile_count(runner) -> int:
   """How many programs the jitted chunk runner holds (it grows when a call compiles, or loads
   a program from the compilation cache); 0 for a runner that is not a `jax.jit` function."""
   size = getattr(runner, "_cache_size", None)
