@@ -279,6 +279,15 @@ def test_dynamic_classes_must_be_coco_ids(cli):
                              "(ids 1-200, 133 of them; names such as car work too)\n")
 
 
+def test_a_window_as_wide_as_the_frames_smaller_side_is_allowed():
+  # Hand values at the bound: a 5-pixel window on a 5x8 frame is taken, on a 4x8 frame refused.
+  from pitta_jax.methods.depth_refining import DepthRefiningConfig, _check_window
+  _check_window(DepthRefiningConfig(window=5), (5, 8))
+  with pytest.raises(ValueError, match=r"window 5 exceeds the frame's smaller side \(4 pixels "
+                                       r"of 8x4\)"):
+    _check_window(DepthRefiningConfig(window=5), (4, 8))
+
+
 def test_a_config_check_names_the_flag(capsys):
   """A field's check, raised by its config class, is reported with the flag that sets it (it
   named the field: 'steps, batch_size and ... must be >= 1' for --source.steps 0)."""

@@ -81,6 +81,17 @@ def test_fast_and_literal_match_loop(ld, s, mode):
     assert value > 0 or s == 1
 
 
+@pytest.mark.parametrize("mode", ["binary", "instance_id"])
+def test_fast_and_literal_match_loop_on_depths_of_either_sign(ld, mode):
+  # Reference: the NumPy loops, as above, on depths in [-40, 40]: eq. 8's |D~' - median| holds
+  # for any finite map (the fast form once dropped a |.| that positive depths never need).
+  rng = np.random.default_rng({"binary": 40, "instance_id": 50}[mode])
+  for s in (3, 5):
+    pan = random_panoptic(rng, SHAPE, 6, 2)
+    depth = rng.uniform(-40.0, 40.0, SHAPE).astype(np.float32)
+    assert_ld_matches_loop(ld, depth, pan, DYNAMIC_IDS, s, mode)
+
+
 @pytest.mark.parametrize("mode", ["binary", "segment_id"])
 def test_fast_loss_of_a_large_window_matches_loop(ld, mode):
   # Reference: literal NumPy loops, as above. From losses.STACKED_FROM_WINDOW on the fast L_d
@@ -339,6 +350,15 @@ def test_pitta_loss_total_and_parts(total):
   assert np.isfinite(g_inf).all()
   g_e = np.asarray(jax.jit(jax.grad(lambda d: losses.edge_guided_loss(image, d)))(depth))
   np.testing.assert_allclose(g_inf, g_e, rtol=1e-6)
+
+
+@pytest.mark.parametrize("lam, want", [(0.0, 2.0), (0.5, 3.5), (math.inf, 3.0)])
+def test_combine_with_a_python_or_a_traced_lambda(lam, want):
+  """Eq. 10 by hand, L_d = 2, L_e = 3: 2 + lambda 3, L_e alone at lambda = inf; the same for a
+  Python float (the engine's static lambda) and a traced one (the lambda sweep)."""
+  l_d, l_e = jnp.float32(2.0), jnp.float32(3.0)
+  assert float(losses.combine(l_d, l_e, lam)) == want
+  assert float(jax.jit(losses.combine)(l_d, l_e, jnp.float32(lam))) == want
 
 
 def test_combine_keeps_a_float64_lambda():

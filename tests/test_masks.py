@@ -50,6 +50,17 @@ def test_instance_table_hand(jitted):
   np.testing.assert_array_equal(inst_valid, [True, True])
 
 
+def test_instance_table_larger_than_the_segment_list(jitted):
+  # Hand value: 4 segment slots, one dynamic (10, a car), table of 6 rows: one instance, the
+  # five rows after it empty (the padding rows past the segment list are no instances).
+  inst_ids, inst_valid = jitted["table"](np.array([10, 11, 0, 0], np.int32),
+                                         np.array([3, 100, 0, 0], np.int32),
+                                         np.array([1, 1, 0, 0], bool),
+                                         np.array([3], np.int32), 6)
+  np.testing.assert_array_equal(inst_ids, [10, 0, 0, 0, 0, 0])
+  np.testing.assert_array_equal(inst_valid, [True] + [False] * 5)
+
+
 @settings(max_examples=30, deadline=None)
 @given(ids=hnp.arrays(np.int32, S_MAX, elements=st.integers(0, 40), unique=True),
        cls=hnp.arrays(np.int32, S_MAX, elements=st.integers(1, 10)),
@@ -88,6 +99,14 @@ def test_index_map_hand(jitted):
   pan = np.array([[7, 3, 5], [0, 9, 7]], np.int32)
   got = jitted["index"](pan, np.array([7, 3, 5], np.int32), np.array([True, True, False]))
   np.testing.assert_array_equal(got, [[1, 2, 0], [0, 0, 1]])
+
+
+def test_index_map_takes_the_first_of_repeated_table_ids(jitted):
+  # Hand value: the table holds id 5 twice; every pixel of segment 5 is instance 1, the first
+  # matching row (as the docstring says), not 2.
+  got = jitted["index"](np.array([[5, 5], [5, 0]], np.int32), np.array([5, 5], np.int32),
+                        np.array([True, True]))
+  np.testing.assert_array_equal(got, [[1, 1], [1, 0]])
 
 
 @settings(max_examples=30, deadline=None)

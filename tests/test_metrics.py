@@ -167,6 +167,10 @@ def test_mean_metrics():
   b["a1"] = 0.0
   m = metrics.mean_metrics([a, b])
   assert m["abs_rel"] == 2.0 and m["a1"] == 0.5
+  # three frames, one far off: the mean (3.0), not the median (2.0) or a pairwise mean
+  c = {k: 6.0 for k in metrics.METRIC_NAMES}
+  b = {k: 2.0 for k in metrics.METRIC_NAMES}
+  assert metrics.mean_metrics([a, b, c])["abs_rel"] == 3.0
   assert tuple(m) == metrics.METRIC_NAMES
   with pytest.raises(ValueError, match="at least one"):
     metrics.mean_metrics([])
