@@ -341,3 +341,41 @@ def test_synthetic_export_reads_back_with_one_option(tmp_path):
     np.testing.assert_allclose(read.intrinsics, original.intrinsics, rtol=1e-9)
     np.testing.assert_array_equal(read.panoptic, original.panoptic)
     np.testing.assert_allclose(read.image, original.image, atol=0.5 / 255 + 1e-6)
+
+
+def test_drivingstereo_calibration_without_s_rect_is_for_its_folders_size(tmp_path):
+  """Full-size images (1762x800) and only the half-size calibration, which has no S_rect_101:
+  its P_rect is for the release's half size (881x400, from the folder's name), so K doubles on
+  the images (pixel centres kept), instead of being taken as the full size's."""
+  image_dir = tmp_path / "foggy" / "left-image-full-size"
+  for stem in FOGGY:
+    _write_rgb(image_dir / f"{stem}.png", np.full((800, 1762, 3), 90, np.uint8))
+  path = tmp_path / "calib" / "half-image-calib" / f"{FOGGY_SEQ}.txt"
+  path.parent.mkdir(parents=True)
+  path.write_text(f"P_rect_101: {_p_rect(1000.0, 1000.0, 440.0, 200.0)}\n")
+  frames = drivingstereo.open_drivingstereo(tmp_path, weather="foggy", depth=False)
+  np.testing.assert_allclose(frames[0].intrinsics,
+                             _scaled([[1000, 0, 440], [0, 1000, 200], [0, 0, 1]], 2.0))
+
+
+def test_raw_drives_are_read_in_date_order(tmp_path):
+  """Five date folders made out of order: the drives (CoMoDa's replay order) follow the dates,
+  not the directory listing."""
+  dates = ["2011_09_29", "2011_10_03", "2011_09_26", "2011_09_30", "2011_09_28"]
+  for date in dates:
+    for i in range(2):
+      _write_rgb(tmp_path / date / f"{date}_drive_0001_sync" / "image_02" / "data"
+                 / f"{i:010d}.png", _rgb(i))
+  seqs = kitti.open_raw_sequences(tmp_path)
+  assert [s.names[0].split("/")[0] for s in seqs] == sorted(dates)
+
+
+def test_intrinsics_of_a_resize_that_changes_the_aspect_ratio():
+  # Hand values: (H, W) 50x100 -> 50x200: row 0 of K scales by 2 with cx = 2 (50 + 0.5) - 0.5
+  # = 100.5; row 1 is unchanged.
+  from pitta_jax.data.resize import scale_intrinsics
+  K = np.array([[100.0, 0, 50], [0, 100, 25], [0, 0, 1]])
+  np.testing.assert_array_equal(scale_intrinsics(K, (50, 100), (50, 200)),
+                                [[200, 0, 100.5], [0, 100, 25], [0, 0, 1]])
+  np.testing.assert_array_equal(scale_intrinsics(K, (50, 100), (100, 100)),
+                                [[100, 0, 50], [0, 200, 50.5], [0, 0, 1]])

@@ -161,3 +161,12 @@ def test_invariants(mask_cls, mask_pred, threshold):
     with np.errstate(over="ignore"):
       covered = (1 / (1 + np.exp(-mask_pred[same])) >= 0.5).any(0)  # float32, as implemented
     assert covered[id_map == s.id].all()
+
+
+def test_a_query_whose_argmax_is_no_object_is_dropped_at_any_threshold():
+  # Logits (1.0, -10, -10, 1.2): "no object" is the argmax (p 0.55), class 0 has p 0.45. At an
+  # object threshold of 0.3 the query still goes, as detectron2 drops it by its label over the
+  # K + 1 columns before the score test (a score over the K classes alone would keep it).
+  logits = np.array([1.0, -10.0, -10.0, 1.2], np.float32)
+  id_map, segs = run([(logits, mask())], object_mask_threshold=0.3)
+  assert segs == [] and not id_map.any()

@@ -541,3 +541,15 @@ def test_a_deeper_resnet_encoder_is_named_as_unsupported():
       infer_num_layers(bottleneck(n3), "e.pth")
   basic = {f"encoder.layer3.{i}.conv1.weight": 0 for i in range(6)}
   assert infer_num_layers(basic, "e.pth") == 34
+
+
+@pytest.mark.parametrize("fmt", ["zip", "legacy"])
+def test_a_lazily_negated_tensor_loads_negated(tmp_path, fmt):
+  """torch saves a negative view (`torch._neg_view`) with its storage and a `neg` flag: the
+  values are the negated storage, as torch.load gives them."""
+  ref = {"w": torch._neg_view(torch.tensor([1.0, -2.0, 3.5]))}
+  assert ref["w"].is_neg()
+  path = _save(ref, tmp_path / "neg.pth", fmt)
+  got = load_pth(path)
+  np.testing.assert_array_equal(got["w"], np.float32([-1.0, 2.0, -3.5]))
+  _assert_tensor_equal(got["w"], torch.load(path)["w"])

@@ -757,3 +757,156 @@ def test_exif_orientation_big_endian_and_in_png_and_no_decode_without_it(tmp_pat
   decodes = []
   monkeypatch.setattr(image_io.cv2, "imdecode", lambda *a: decodes.append(a))
   assert image_io.exif_upright(tmp_path / "plain.jpg", image) is image and decodes == []
+
+
+# ---------------------------------------------------------------------------------------------
+# Values that only a non-default setting shows (from a mutation campaign: each of these changed
+# nothing the tests above read)
+
+
+def test_folder_depth_scale_divides_the_stored_values(tmp_path):
+  # Hand values: stored 1000 and 250 read as 1.0 and 0.25 m at depth_scale 1000, 1000 / 256 m
+  # at the default (KITTI's 256).
+  _write_rgb(tmp_path / "img" / "a.png", _rgb(0))
+  stored = np.full((H, W), 1000, np.uint16)
+  stored[0, :] = 250
+  _write_u16(tmp_path / "depth" / "a.png", stored)
+  want = np.full((H, W), 1.0, np.float32)
+  want[0, :] = 0.25
+  frames = readers.open_dataset("folder", tmp_path / "img", depth_dir=tmp_path / "depth",
+                                depth_scale=1000)
+  np.testing.assert_array_equal(frames[0].depth, want)
+  frames = readers.open_dataset("folder", tmp_path / "img", depth_dir=tmp_path / "depth")
+  np.testing.assert_array_equal(frames[0].depth, stored.astype(np.float32) / np.float32(256))
+
+
+def test_a_16_bit_colour_png_is_rgb_over_65535(tmp_path):
+  # Hand values: a pure blue, a full white and a mid-grey pixel written by OpenCV (BGR order).
+  bgr = np.zeros((1, 3, 3), np.uint16)
+  bgr[0, 0] = (65535, 0, 0)            # blue
+  bgr[0, 1] = (65535, 65535, 65535)    # white
+  bgr[0, 2] = (0, 32768, 65535)        # red 1, green 32768 / 65535, blue 0
+  _write_u16(tmp_path / "a.png", bgr)
+  got = read_image(tmp_path / "a.png")
+  assert got.dtype == np.float32
+  np.testing.assert_array_equal(got[0, 0], [0, 0, 1])
+  np.testing.assert_array_equal(got[0, 1], [1, 1, 1])
+  np.testing.assert_array_equal(got[0, 2], np.float32([1, 32768 / 65535, 0]))
+
+
+def test_write_depth_png_rounds_and_keeps_small_depths_valid(tmp_path):
+  # Hand values at scale 256, read back by OpenCV: 10.999 m -> round(2815.7) = 2816; 0.001 m
+  # -> 1 (valid depths never become 0, the invalid mark); 0, negative, NaN, inf -> 0; 300 m ->
+  # 65535 (saturates).
+  depth = np.array([[10.999, 0.001, 0.0, -1.0, np.nan, np.inf, 300.0]])
+  write_depth_png(tmp_path / "d.png", depth)
+  stored = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)
+  assert stored.dtype == np.uint16
+  np.testing.assert_array_equal(stored, [[2816, 1, 0, 0, 0, 0, 65535]])
+
+
+def test_list_images_prefers_png_over_jpeg(tmp_path):
+  from pitta_jax.data.image_io import list_images
+  for name in ("a.jpg", "a.png", "b.jpeg", "b.jpg", "c.jpg"):
+    _write_rgb(tmp_path / name, _rgb(0))
+  found = list_images(tmp_path)
+  assert {stem: path.name for stem, path in found.items()} == {
+      "a": "a.png", "b": "b.jpg", "c": "c.jpg"}
+
+
+def test_kitti_split_side_3_is_the_right_camera(tmp_path):
+  # MonoDepth2's side map: "l" and "2" camera 2, "r" and "3" camera 3.
+  folder = "2011_09_26/2011_09_26_drive_0002_sync"
+  for camera in (2, 3):
+    _write_rgb(tmp_path / "data" / folder / f"image_0{camera}" / "data" / "0000000007.png",
+               _rgb(camera))
+  split = tmp_path / "test_files.txt"
+  split.write_text(f"{folder} 7 3\n{folder} 7 2\n")
+  frames = kitti.open_kitti(tmp_path / "data", split, depth=False)
+  for frame, camera in zip(frames, (3, 2)):
+    np.testing.assert_array_equal(frame.image, _rgb(camera).astype(np.float32) / np.float32(255))
+
+
+def test_kitti_gt_depths_in_fortran_order(tmp_path):
+  # A plain float npz saved from a Fortran-ordered array reads back as the same maps.
+  maps = np.asfortranarray(np.arange(3 * H * W, dtype=np.float32).reshape(3, H, W))
+  np.savez(tmp_path / "gt.npz", data=maps)
+  for got, want in zip(kitti.load_gt_depths(tmp_path / "gt.npz"), maps):
+    np.testing.assert_array_equal(got, want)
+
+
+def _generate_depth_map_upstream(calib_dir: Path, velo_filename: Path, cam: int = 2,
+                                 vel_depth: bool = False) -> np.ndarray:
+  """MonoDepth2's kitti_utils.generate_depth_map, written as upstream writes it (NumPy,
+  float64, its sub2ind and its duplicate loop): the reference for a non-identity R_rect_00."""
+  from collections import Counter
+
+  def read_calib_file(path):
+    data = {}
+    for line in Path(path).read_text().splitlines():
+      key, value = line.split(":", 1)
+      try:
+        data[key] = np.array([float(x) for x in value.split()])
+      except ValueError:
+        pass
+    return data
+
+  cam2cam = read_calib_file(calib_dir / "calib_cam_to_cam.txt")
+  velo2cam = read_calib_file(calib_dir / "calib_velo_to_cam.txt")
+  velo2cam = np.hstack((velo2cam["R"].reshape(3, 3), velo2cam["T"][..., np.newaxis]))
+  velo2cam = np.vstack((velo2cam, np.array([0, 0, 0, 1.0])))
+  im_shape = cam2cam["S_rect_02"][::-1].astype(np.int32)
+  R_cam2rect = np.eye(4)
+  R_cam2rect[:3, :3] = cam2cam["R_rect_00"].reshape(3, 3)
+  P_rect = cam2cam["P_rect_0" + str(cam)].reshape(3, 4)
+  P_velo2im = np.dot(np.dot(P_rect, R_cam2rect), velo2cam)
+  velo = np.fromfile(velo_filename, dtype=np.float32).reshape(-1, 4)
+  velo[:, 3] = 1.0
+  velo = velo[velo[:, 0] >= 0, :]
+  velo_pts_im = np.dot(P_velo2im, velo.T).T
+  velo_pts_im[:, :2] = velo_pts_im[:, :2] / velo_pts_im[:, 2][..., np.newaxis]
+  if vel_depth:
+    velo_pts_im[:, 2] = velo[:, 0]
+  velo_pts_im[:, 0] = np.round(velo_pts_im[:, 0]) - 1
+  velo_pts_im[:, 1] = np.round(velo_pts_im[:, 1]) - 1
+  val_inds = (velo_pts_im[:, 0] >= 0) & (velo_pts_im[:, 1] >= 0)
+  val_inds = val_inds & (velo_pts_im[:, 0] < im_shape[1]) & (velo_pts_im[:, 1] < im_shape[0])
+  velo_pts_im = velo_pts_im[val_inds, :]
+  depth = np.zeros((im_shape[:2]))
+  depth[velo_pts_im[:, 1].astype(int), velo_pts_im[:, 0].astype(int)] = velo_pts_im[:, 2]
+  m, n = depth.shape
+  inds = velo_pts_im[:, 1] * (n - 1) + velo_pts_im[:, 0] - 1
+  dupe_inds = [item for item, count in Counter(inds).items() if count > 1]
+  for dd in dupe_inds:
+    pts = np.where(inds == dd)[0]
+    x_loc = int(velo_pts_im[pts[0], 0])
+    y_loc = int(velo_pts_im[pts[0], 1])
+    depth[y_loc, x_loc] = velo_pts_im[pts, 2].min()
+  depth[depth < 0] = 0
+  return depth
+
+
+def test_velodyne_depth_with_a_rotated_rectification_matches_upstream(tmp_path):
+  """R_rect_00 a rotation of ~1 degree (KITTI's are of this size; the fixture above has the
+  identity), 400 random points in front: the map equals upstream's generate_depth_map, with
+  the Velodyne x (export_gt_depth.py) and with the camera's z as depth, for both cameras."""
+  from pitta_jax.data.velodyne import velodyne_depth
+  a, b = 0.02, -0.015
+  Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+  Ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+  R = " ".join(f"{x:.9e}" for x in (Rx @ Ry).ravel())
+  date = tmp_path / "date"
+  date.mkdir()
+  (date / "calib_velo_to_cam.txt").write_text(VELO_CALIB)
+  (date / "calib_cam_to_cam.txt").write_text(VELO_CAM_CALIB.replace(
+      "R_rect_00: 1 0 0 0 1 0 0 0 1", f"R_rect_00: {R}"))
+  rng = np.random.default_rng(7)
+  points = np.stack([rng.uniform(-1, 20, 400), rng.uniform(-8, 8, 400),
+                     rng.uniform(-3, 3, 400)], axis=1)
+  _write_velodyne(tmp_path / "scan.bin", [tuple(p) for p in points])
+  for camera in (2, 3):
+    for vel_depth in (True, False):
+      want = _generate_depth_map_upstream(date, tmp_path / "scan.bin", camera, vel_depth)
+      got = velodyne_depth(date, tmp_path / "scan.bin", camera=camera, vel_depth=vel_depth)
+      assert np.count_nonzero(want) > 10
+      np.testing.assert_array_equal(got, want.astype(np.float32))
