@@ -418,6 +418,28 @@ def test_recording_start_has_no_previous_frame(jax_run):
   np.testing.assert_array_equal(np.asarray(ring["items"][0]), frames[2].image)
 
 
+def test_u_keeps_its_weights_when_the_students_step_is_rejected(jax_run):
+  """A frame whose student step is rejected (S's parameters NaN here) leaves U as it was,
+  although U's own step on the frame was finite: U is committed only with S's step."""
+  frames = [step_input(f, H, W, adapt_frames.S) for f in generate_sequence(
+      SyntheticConfig(height=H, width=W, num_frames=2, seed=2))]
+  step, consts = jax_run["step"], jax_run["consts"]
+  with jax.enable_x64(True):
+    f0, f1 = (StepInput(*(jnp.asarray(v, jnp.float64 if v.dtype.kind == "f" else None)
+                          for v in f)) for f in frames)
+    state, _ = step(jax_run["fresh"], f0, consts)   # frame 0: the ring holds it now
+    before = _flat(state.method_state["u"].params)
+    poisoned = state.replace(trainable=jax.tree_util.tree_map(
+        lambda x: jnp.full_like(x, jnp.nan), state.trainable))
+    after, out = step(poisoned, f1, consts)
+    moved, _ = step(state, f1, consts)              # the same frame with a finite S
+  assert bool(out.skipped) and float(out.logs["u_updated"]) == 1.0
+  for k, v in _flat(after.method_state["u"].params).items():
+    np.testing.assert_array_equal(v, before[k])
+  assert any(not np.array_equal(v, before[k])
+             for k, v in _flat(moved.method_state["u"].params).items())
+
+
 def test_requirements_fail_before_work():
   """BN eval mode and one step per frame are required (one-line errors naming the flag), and a
   missing pose network or input size is named at init."""

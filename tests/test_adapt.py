@@ -102,6 +102,47 @@ def test_predict_then_adapt_matches_manual_adam_steps(variables, engine):
     assert out.logs["n_instances"][t] == 3
     updates, opt_state = opt.update(g, opt_state, tr)
     tr = optax.apply_updates(tr, updates)
+    # the logged norms: of this gradient and of this update (NumPy, float64)
+    for logged, tree in ((out.grad_norm[t], g), (out.update_norm[t], updates)):
+      norm = np.sqrt(sum(np.sum(np.square(np.asarray(x, np.float64)))
+                         for x in jax.tree_util.tree_leaves(tree)))
+      np.testing.assert_allclose(logged, norm, rtol=1e-3)
+
+
+def test_make_optimizer_is_the_adam_and_sgd_of_the_literal_update_rules():
+  """Three steps on gradients of a few 1e-7 (where Adam's eps matters) against the update rules
+  written out in NumPy: Adam (Kingma & Ba; torch.optim.Adam's defaults: betas 0.9, 0.999, eps
+  1e-8, bias-corrected), SGD with momentum 0.9 (torch.optim.SGD: buf = g, then buf = 0.9 buf +
+  g; theta -= lr buf) and plain SGD."""
+  grads = [np.float32([1e-7, -2e-7]), np.float32([3e-7, 1e-7]), np.float32([-1e-7, 5e-7])]
+
+  def adam_loop(lr, b1=0.9, b2=0.999, eps=1e-8):
+    theta, m, v, out = np.zeros(2), np.zeros(2), np.zeros(2), []
+    for t, g in enumerate(grads, 1):
+      m = b1 * m + (1 - b1) * g
+      v = b2 * v + (1 - b2) * g * g
+      theta = theta - lr * (m / (1 - b1 ** t)) / (np.sqrt(v / (1 - b2 ** t)) + eps)
+      out.append(theta)
+    return out
+
+  def sgd_loop(lr, momentum):
+    theta, buf, out = np.zeros(2), None, []
+    for g in grads:
+      buf = g if buf is None or not momentum else momentum * buf + g
+      theta = theta - lr * buf
+      out.append(theta)
+    return out
+
+  for cfg, want in ((AdaptConfig(lr=0.01), adam_loop(0.01)),
+                    (AdaptConfig(optimizer="sgd", lr=1e5, momentum=0.9), sgd_loop(1e5, 0.9)),
+                    (AdaptConfig(optimizer="sgd", lr=1e5), sgd_loop(1e5, 0.0))):
+    tx = make_optimizer(cfg)
+    theta = jnp.zeros(2)
+    opt_state = tx.init(theta)
+    for g, w in zip(grads, want):
+      updates, opt_state = tx.update(jnp.asarray(g), opt_state, theta)
+      theta = optax.apply_updates(theta, updates)
+      np.testing.assert_allclose(np.asarray(theta), w, rtol=1e-5, err_msg=str(cfg))
 
 
 def test_same_config_same_inputs_bitwise_identical(variables, engine):

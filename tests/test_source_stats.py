@@ -111,6 +111,15 @@ def test_round_trip_and_mismatches(written):
   with pytest.raises(DataError, match=r"bad\.npz: var of layer encoder/bn1 is \(32, 47, 64\), the "
                                       r"network gives \(32, 48, 64\)"):
     load_source_stats(bad, weights, ActmadConfig().layers)
+  # a negative variance (ActMAD would pull the frame's variance towards it), and a NaN mean
+  for key, value in (("var:encoder/bn1", -1.0), ("mean:encoder/bn1", np.nan)):
+    with np.load(out) as data:
+      corrupt = {k: np.array(data[k]) for k in data.files}
+    corrupt[key][0, 0, 0] = value
+    np.savez(bad, **corrupt)
+    with pytest.raises(DataError, match=rf"bad\.npz: {key.split(':')[0]} of layer encoder/bn1 "
+                                        rf"holds non-finite or negative values"):
+      load_source_stats(bad, weights, ActmadConfig().layers)
   np.savez(bad, data=np.zeros(3))
   with pytest.raises(DataError, match=r"bad\.npz: not a source statistics file"):
     read_source_stats(bad)
