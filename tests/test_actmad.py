@@ -172,3 +172,30 @@ def test_reset_empties_the_ring_and_keeps_the_source_statistics():
   pushed = ring_push(after["rings"]["enc/bn1"], 5 * mean)  # the next frame is the only entry
   assert ring_valid(pushed).tolist() == [True, False, False]
   np.testing.assert_array_equal(pushed["items"][0], 5 * mean)
+
+
+def test_a_non_finite_frame_does_not_enter_the_ring():
+  """A frame whose activations are not finite is not pushed (it would make the mean and
+  variance of the next ring_size frames NaN, and with them their losses); a finite one is."""
+  from pitta_jax.adapt.engine import AdaptState
+  from pitta_jax.methods.base import Aux, ring_init, ring_push, ring_valid
+  cfg = AdaptConfig(optimizer="sgd", lr=0.1, bn_stats="running", selector="all")
+  method = build("actmad", ActmadConfig(ring_size=3))
+  tx = make_optimizer(cfg, method)
+  mean = jnp.ones((2, 3, 4))
+  ms = {"source": {"enc/bn1": (mean, 2 * mean)},
+        "rings": {"enc/bn1": ring_push(ring_init(mean, 3), mean)}, "ld_weight": jnp.asarray(0.5)}
+  w = {"w": jnp.ones(2)}
+  state = AdaptState(trainable=w, opt_state=tx.init(w), method_state=ms, source=w,
+                     step=jnp.int32(0), rng=jax.random.PRNGKey(0), n_skipped=jnp.int32(0))
+  grads, loss = {"w": jnp.zeros(2)}, jnp.asarray(1.0)
+  for value, pushed in ((jnp.nan, False), (jnp.inf, False), (4.0, True)):
+    aux = Aux(jnp.ones((2, 2)), {}, {"enc/bn1": jnp.full((2, 3, 4), value)})
+    new, _, _ = method.update(state, grads, loss, aux, jax.random.PRNGKey(1), tx, cfg)
+    ring = new.method_state["rings"]["enc/bn1"]
+    assert ring_valid(ring).tolist() == [True, pushed, False]
+    np.testing.assert_array_equal(ring["items"][0], 4 * mean if pushed else mean)
+    if pushed:
+      np.testing.assert_array_equal(ring["items"][1], mean)
+    else:
+      assert np.all(np.isfinite(np.asarray(ring["items"])))

@@ -110,39 +110,58 @@ def test_predict_then_adapt_matches_manual_adam_steps(variables, engine):
 
 
 def test_make_optimizer_is_the_adam_and_sgd_of_the_literal_update_rules():
-  """Three steps on gradients of a few 1e-7 (where Adam's eps matters) against the update rules
-  written out in NumPy: Adam (Kingma & Ba; torch.optim.Adam's defaults: betas 0.9, 0.999, eps
-  1e-8, bias-corrected), SGD with momentum 0.9 (torch.optim.SGD: buf = g, then buf = 0.9 buf +
-  g; theta -= lr buf) and plain SGD."""
+  """Three steps on gradients of a few 1e-7 (where Adam's eps matters), parameters at 100 and
+  -50 (where a weight decay would show), against the update rules written out in NumPy: Adam
+  (Kingma & Ba; torch.optim.Adam's defaults: betas 0.9, 0.999, eps 1e-8, bias-corrected, no
+  weight decay), SGD with momentum 0.9 (torch.optim.SGD: buf = g, then buf = 0.9 buf + g;
+  theta -= lr buf) and plain SGD. Each step's update is compared."""
   grads = [np.float32([1e-7, -2e-7]), np.float32([3e-7, 1e-7]), np.float32([-1e-7, 5e-7])]
+  theta0 = np.float32([100.0, -50.0])
 
   def adam_loop(lr, b1=0.9, b2=0.999, eps=1e-8):
-    theta, m, v, out = np.zeros(2), np.zeros(2), np.zeros(2), []
+    m, v, out = np.zeros(2), np.zeros(2), []
     for t, g in enumerate(grads, 1):
       m = b1 * m + (1 - b1) * g
       v = b2 * v + (1 - b2) * g * g
-      theta = theta - lr * (m / (1 - b1 ** t)) / (np.sqrt(v / (1 - b2 ** t)) + eps)
-      out.append(theta)
+      out.append(-lr * (m / (1 - b1 ** t)) / (np.sqrt(v / (1 - b2 ** t)) + eps))
     return out
 
   def sgd_loop(lr, momentum):
-    theta, buf, out = np.zeros(2), None, []
+    buf, out = None, []
     for g in grads:
       buf = g if buf is None or not momentum else momentum * buf + g
-      theta = theta - lr * buf
-      out.append(theta)
+      out.append(-lr * buf)
     return out
 
   for cfg, want in ((AdaptConfig(lr=0.01), adam_loop(0.01)),
                     (AdaptConfig(optimizer="sgd", lr=1e5, momentum=0.9), sgd_loop(1e5, 0.9)),
                     (AdaptConfig(optimizer="sgd", lr=1e5), sgd_loop(1e5, 0.0))):
     tx = make_optimizer(cfg)
-    theta = jnp.zeros(2)
+    theta = jnp.asarray(theta0)
     opt_state = tx.init(theta)
     for g, w in zip(grads, want):
       updates, opt_state = tx.update(jnp.asarray(g), opt_state, theta)
+      np.testing.assert_allclose(np.asarray(updates), w, rtol=1e-5, err_msg=str(cfg))
       theta = optax.apply_updates(theta, updates)
-      np.testing.assert_allclose(np.asarray(theta), w, rtol=1e-5, err_msg=str(cfg))
+
+
+def test_the_guard_rejects_a_finite_gradient_that_overflows_the_step():
+  """A finite gradient whose step is not: Adam at g = 1e20 (g^2 overflows float32, so the
+  second moment is inf while the parameters stay finite: every later step would be 0) and SGD
+  at lr 1e30, g = 1e9 (the parameter overflows). Both are skipped, counted, and leave the
+  parameters and the optimiser state as they were."""
+  from pitta_jax.adapt.engine import AdaptState, optax_update
+  for cfg, g in ((AdaptConfig(lr=0.01), 1e20), (AdaptConfig(optimizer="sgd", lr=1e30), 1e9)):
+    tx = make_optimizer(cfg)
+    w = {"w": jnp.float32([1.0, 2.0])}
+    state = AdaptState(trainable=w, opt_state=tx.init(w), method_state={}, source=w,
+                       step=jnp.int32(0), rng=jax.random.PRNGKey(0), n_skipped=jnp.int32(0))
+    new, skipped, unorm = optax_update(state, {"w": jnp.float32([g, 0.0])}, jnp.float32(1.0),
+                                       tx, cfg)
+    assert bool(skipped) and int(new.n_skipped) == 1 and float(unorm) == 0.0, cfg
+    for a, b in zip(jax.tree_util.tree_leaves((new.trainable, new.opt_state)),
+                    jax.tree_util.tree_leaves((state.trainable, state.opt_state))):
+      np.testing.assert_array_equal(a, b)
 
 
 def test_same_config_same_inputs_bitwise_identical(variables, engine):
