@@ -38,6 +38,99 @@ def test_ranks_bold_best_and_underline_second_per_group_with_the_metric_directio
   assert r"$\delta$" in render.latex(entries, "columns", "G", "M", ("a1",), "δ<1.25", "t")
 
 
+def test_ranks_share_a_tie_and_the_next_value_is_second():
+  # 0.1, 0.1, 0.2: both 0.1 rows are best, 0.2 is the second value (bold, bold, underline)
+  entries = [Entry("A", k, {"abs_rel": v}) for k, v in (("x", 0.1), ("y", 0.1), ("z", 0.2))]
+  assert render.ranks(entries, "abs_rel") == {0: 1, 1: 1, 2: 2}
+
+
+def test_ranks_and_values_follow_the_decimals_shown():
+  """The sensitivity table prints 4 decimals: -0.0031 best, -0.0014 second, -0.0012 unmarked,
+  in the markdown and in the LaTeX (at 3 decimals the last two would tie)."""
+  entries = [Entry("S", k, {"abs_rel": v}) for k, v in (("a", -0.0012), ("b", -0.0014),
+                                                         ("c", -0.0031))]
+  assert render.ranks(entries, "abs_rel", decimals=4) == {2: 1, 1: 2}
+  md = render.markdown(entries, "rows", "G", "M", ("abs_rel",), decimals=4)
+  assert "**-0.0031**" in md and "<u>-0.0014</u>" in md and "| -0.0012 |" in md
+  tex = render.latex(entries, "rows", "G", "M", ("abs_rel",), "cap", "t", decimals=4)
+  assert r"\textbf{-0.0031}" in tex and r"\underline{-0.0014}" in tex
+  assert r"\underline{-0.0012}" not in tex and "-0.0012" in tex
+
+
+def test_the_papers_block_carries_the_papers_own_marks():
+  """The paper's numbers are marked as the paper prints them (its bold and underline), whatever
+  they are: here the paper bolds x's 0.3 and underlines y's 0.1."""
+  from experiments.common import RowSpec
+  entries = [Entry("A", "x", {"abs_rel": 0.2}, paper={"abs_rel": 0.3},
+                   spec=RowSpec("x", "pitta", paper="X"), paper_marks={"bold": ["abs_rel"]}),
+             Entry("A", "y", {"abs_rel": 0.1}, paper={"abs_rel": 0.1},
+                   spec=RowSpec("y", "none", paper="Y"), paper_marks={"underline": ["abs_rel"]})]
+  assert render.ranks(entries, "abs_rel", "paper") == {0: 1, 1: 2}
+  paper_block = render.markdown(entries, "rows", "G", "M", ("abs_rel",)).split("**Paper**")[1]
+  assert "**0.300**" in paper_block and "<u>0.100</u>" in paper_block
+
+
+def test_csv_columns_hold_their_values():
+  text = render.csv_text([Entry("A", "x", {"abs_rel": 0.25}, extra={"frames": 50,
+                                                                    "seconds": 12.3})], "t1")
+  header, row = list(csv.reader(text.splitlines()))
+  got = dict(zip(header, row))
+  assert (got["frames"], got["seconds"], got["abs_rel"], got["source"]) == (
+      "50", "12.3", "0.250000", "ours")
+
+
+def test_rows_selects_by_label_parts_or_whole_names():
+  ctx = common.Context("synthetic", None, [], "gt", {}, Path("."), True, 2, True,
+                       rows=("depth",))
+  assert not ctx.wants("PITTA", "pitta", "monodepth2")   # 'depth' is part of the network only
+  assert ctx.wants("Depth Anything V2", "none", "depth_anything_v2")   # part of the label
+  ctx.rows = ("monodepth2",)
+  assert ctx.wants("PITTA", "pitta", "monodepth2")       # a whole name
+
+
+def test_a_rows_cache_key_holds_the_frame_count(tmp_path):
+  """A rerun with --frames 50 after --frames 10 is not served the 10-frame row."""
+  from experiments.common import RowSpec
+  keys = set()
+  for frames in (10, 50):
+    ctx = common.Context("synthetic", None, [], "gt", {}, tmp_path, True, frames, True)
+    keys.add(common.row_key(ctx, RowSpec("PITTA", "pitta"), "fog", ({"domain": "fog"},), {}))
+  assert len(keys) == 2
+
+
+def test_table1_rows_run_the_papers_settings():
+  """Table 1's rows as the paper compares them: BN batch stats is no update with the frames'
+  statistics, each baseline with L_d (its own weight) and without it (weight 0), every compared
+  row under the paper's label."""
+  from experiments.table1 import ROWS
+  from pitta_jax.methods import method_config_class
+  by = {r.label: r for r in ROWS}
+  assert dict(by["BN batch stats"].adapt) == {"bn_stats": "batch"}
+  assert by["BN batch stats"].method == by["No adaptation"].method == "none"
+  for name, method, paper in (("CoMoDa", "comoda", "CoMoDA"), ("CoTTA", "cotta", "CoTTA"),
+                              ("ActMAD", "actmad", "ActMAD"),
+                              ("Ada-Depth", "adadepth", "Ada-Depth")):
+    with_ld, without = by[f"{name} + L_d"], by[f"{name} (no L_d)"]
+    assert (with_ld.method, without.method, with_ld.paper) == (method, method, paper)
+    assert with_ld.method_config == () and method_config_class(method)().ld_weight > 0
+    assert dict(without.method_config) == {"ld_weight": 0.0} and without.paper is None
+  assert (by["PITTA"].method, by["PITTA"].paper) == ("pitta", "PITTA (ours)")
+
+
+def test_sensitivity_deltas_and_verdicts():
+  """A study's row is ours minus its reference (negative AbsRel: the loss helps), and the
+  verdict calls a change within +-noise (0.002) noise. Hand values."""
+  from experiments.sensitivity import _delta, verdict
+  e = _delta("lr", "lr 0.001", {"abs_rel": 0.20, "a1": 0.8}, {"abs_rel": 0.22, "a1": 0.7})
+  assert e.metrics == pytest.approx({"abs_rel": -0.02, "a1": 0.1})
+  rows = [Entry("lr", "a", {"abs_rel": -0.001}), Entry("lr", "b", {"abs_rel": 0.0015}),
+          Entry("steps", "c", {"abs_rel": -0.01}), Entry("len", "d", {"abs_rel": 0.004})]
+  assert verdict(rows).splitlines() == [
+      "lr: the loss is within noise (best -0.0010 at a, worst +0.0015 at b)",
+      "steps: the loss helps (best -0.0100 at c, worst -0.0100 at c)",
+      "len: the loss hurts (best +0.0040 at d, worst +0.0040 at d)"]
+
+
 def test_written_tables_are_titled_as_the_paper(tmp_path):
   entries = [Entry("A", "x", {"abs_rel": 0.2})]
   for name, title in (("table1", "### Table 1\n"), ("sensitivity", "### Sensitivity\n")):

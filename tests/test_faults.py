@@ -368,6 +368,64 @@ def test_a_cache_resume_starts_afresh_over_another_runs_checkpoints(tiny_weights
   assert result.resumed_at == 0 and result.status == "ok" and len(result.per_frame) == N - K
 
 
+def test_ctrl_c_between_checkpoints_saves_the_last_chunk_without_the_cut_ones_frames(
+    tiny_weights, tmp_path, monkeypatch, capfd):
+  """--checkpoint-every 2K in chunks of K: Ctrl-C while the second chunk is scored, before any
+  checkpoint, saves the first chunk's state with the first chunk's frames only (the cut chunk's
+  scored frame is dropped from the record, else a resume would score it twice), and the resumed
+  run equals an uninterrupted one, frame for frame."""
+  from pitta_jax import run as run_lib
+  real, calls = run_lib.frame_metrics, []
+
+  def interrupting(*args, **kwargs):
+    calls.append(1)
+    if len(calls) == K + 2:   # the second frame of the second chunk
+      raise KeyboardInterrupt
+    return real(*args, **kwargs)
+
+  every = ("--checkpoint-every", str(2 * K), "--chunk-size", str(K))
+  out = tmp_path / "cut"
+  monkeypatch.setattr(run_lib, "frame_metrics", interrupting)
+  assert main(_adapt_args(tiny_weights, out, *every)) == 130
+  assert "the last completed chunk is checkpointed" in capfd.readouterr().err
+  monkeypatch.setattr(run_lib, "frame_metrics", real)
+  saved = sorted(p.name for p in (out / "checkpoints").glob("state_??????.json"))
+  assert saved == [f"state_{K:06d}.json"]
+  sidecar = json.loads((out / "checkpoints" / saved[0]).read_text())
+  assert len(sidecar["names"]) == len(sidecar["per_frame"]) == K
+  assert all(len(v) == K for v in sidecar["logs"].values())
+  assert main(_adapt_args(tiny_weights, out, *every, "--resume")) == 0
+  assert main(_adapt_args(tiny_weights, tmp_path / "full", *every)) == 0
+  resumed = json.loads((out / "results.json").read_text())
+  full = json.loads((tmp_path / "full" / "results.json").read_text())
+  assert resumed["resumed_at_frame"] == K and len(full["per_frame"]) == N
+  assert resumed["per_frame"] == full["per_frame"] and resumed["logs"] == full["logs"]
+
+
+def test_a_run_of_another_evaluation_protocol_is_another_run(tiny_weights):
+  """The fingerprint a checkpoint carries holds the evaluation's config: a --resume with other
+  --eval.* flags does not continue frames scored under the old protocol."""
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.checkpoint import load_weights
+  from pitta_jax.methods import build
+  from pitta_jax.run import EvalConfig, run_fingerprint
+  weights, method, cfg = load_weights(tiny_weights), build("pitta"), AdaptConfig()
+  names = ["a", "b"]
+  prints = {run_fingerprint(weights, method, cfg, ev, names)
+            for ev in (EvalConfig(), EvalConfig(max_depth=50.0), EvalConfig(garg_crop=True))}
+  assert len(prints) == 3
+
+
+def test_fps_after_a_resume_counts_this_calls_frames():
+  """8 frames, 4 of them from a checkpoint, this call 2 s: fps 2.0 (this call's 4 frames), and
+  total_fps over all 8 frames and both calls' time."""
+  from pitta_jax.run import RunResult
+  r = RunResult(name="x", per_frame=[], mean={}, logs={}, frame_names=[str(i) for i in range(8)],
+                seconds=2.0, kept_depths={}, n_skipped=0, excluded=[], resumed_at=4,
+                seconds_before=6.0)
+  assert r.fps == 2.0 and r.total_fps == 1.0
+
+
 def test_resume_takes_only_its_own_runs_checkpoints(tiny_weights, tmp_path, capsys):
   """A checkpoint carries its run's fingerprint (frames, weights, settings): --resume refuses
   another run's with one line (exit 2), and a fresh run clears the checkpoints it finds."""

@@ -213,3 +213,39 @@ def test_weights_trained_with_stereo_pairs_are_evaluated_as_monodepth2_does():
   relative = SimpleNamespace(alignment="scale_shift")
   assert model_alignment(SimpleNamespace(spec=relative, config={"use_stereo": True})) == \
       "scale_shift"
+
+
+def test_scale_shift_floors_a_negative_fitted_inverse_depth_at_max_depth():
+  """The fitted inverse depth of the far pixel is negative (-0.0076): floored at 1 / 80, it
+  scores as 80 m (against gt 70), not as a clamped 1e-3 m. Reference: the least squares and the
+  7 metrics written out here."""
+  gt = np.array([[2.0, 4.0, 8.0, 70.0]])
+  pred_inv = np.array([0.6, 0.35, 0.225, 0.05])
+  a = np.stack([pred_inv, np.ones(4)], 1)
+  s, t = np.linalg.lstsq(a, 1.0 / gt.ravel(), rcond=None)[0]
+  fitted = s * pred_inv + t
+  assert fitted[3] < 0
+  want = 1.0 / np.maximum(fitted, 1.0 / 80.0)
+  assert want[3] == 80.0
+  got = metrics.depth_metrics(1.0 / pred_inv[None].astype(np.float32), gt,
+                              alignment="scale_shift")
+  np.testing.assert_allclose(got["abs_rel"], np.mean(np.abs(gt.ravel() - want) / gt.ravel()),
+                             rtol=1e-5)
+  assert got["a1"] == np.mean(np.maximum(gt.ravel() / want, want / gt.ravel()) < 1.25) == 1.0
+
+
+def test_mean_metrics_does_not_hide_a_nan_frame():
+  # A frame whose metrics are NaN (a null read back from a results file) makes the mean NaN, as
+  # MonoDepth2's np.mean would: it is not left out.
+  ok = {k: 0.1 for k in metrics.METRIC_NAMES}
+  bad = {k: float("nan") for k in metrics.METRIC_NAMES}
+  assert math.isnan(metrics.mean_metrics([ok, bad])["abs_rel"])
+
+
+def test_positive_ground_truth_leaves_out_zeros():
+  # valid_gt="positive" scores gt > 0 only: the 0 (no measurement) pixel is not a pixel at
+  # inf relative error. Hand value: the two measured pixels, |12 - 10| / 10 and 0, mean 0.1.
+  gt = np.array([[10.0, 0.0, 20.0]])
+  pred = np.array([[12.0, 5.0, 20.0]])
+  got = metrics.depth_metrics(pred, gt, median_scaling=False, valid_gt="positive")
+  assert got["abs_rel"] == pytest.approx(0.1)

@@ -204,3 +204,15 @@ def test_a_flax_linen_batchnorm_network_adapts_with_batch_statistics():
   np.testing.assert_allclose(np.asarray(out.depth[0]), np.asarray(want), rtol=1e-5)
   for k, v in flatten_dict(consts.batch_stats, sep="/").items():
     np.testing.assert_array_equal(np.asarray(v), flatten_dict(variables["batch_stats"], sep="/")[k])
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_table3_adapts_norm_layers_that_each_network_has(name):
+  """Table 3's PITTA on each network: the selector it gives (BatchNorm for the CNN encoders,
+  LayerNorm for Depth Anything V2's ViT) selects that encoder's norm layers, not nothing."""
+  from experiments.table3 import NETWORKS
+  net, variables = _abstract(name)
+  selector = trainable.Selector(NETWORKS[name][1])
+  paths = trainable.selected_paths(variables, selector, net.spec.encoder)
+  assert paths and all(p.startswith(net.spec.encoder + "/") for p in paths)
+  assert all(p.endswith(("/scale", "/bias")) for p in paths)

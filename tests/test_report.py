@@ -187,3 +187,16 @@ def test_which_earlier_results_a_command_may_replace(tmp_path, earlier, owner, r
   else:
     check_results_owner(tmp_path, owner)
   check_results_owner(tmp_path / "missing", owner)  # nothing there: nothing to refuse
+
+
+def test_markdown_table_marks_nothing_in_a_group_of_one_row():
+  # a group with one row has no best to mark (it would bold all 7 cells)
+  assert "**" not in markdown_table([Row("fog", "PITTA", M1)])
+
+
+def test_results_csv_has_every_rows_extra_columns(tmp_path):
+  write_results(tmp_path, [Row("fog", "a", M1, {"fps": 2.0}),
+                           Row("fog", "b", M2, {"fps": 3.0, "n_skipped": 1})], {})
+  with open(tmp_path / "results.csv", newline="") as f:
+    rows = list(csv.DictReader(f))
+  assert [(r["fps"], r["n_skipped"]) for r in rows] == [("2.0", ""), ("3.0", "1")]
