@@ -726,6 +726,13 @@ def test_lambda_sweep_resumes_after_an_interrupt(tmp_path, monkeypatch):
   lams = (0.0, 0.5)
   shared = run.Runners()
   whole = table4.lambda_sweep(weights, frames, lams, runners=shared)
+  # a frame without a valid ground-truth pixel is left out of every lambda's mean (not a NaN)
+  import dataclasses
+  blind = list(frames)
+  blind[1] = dataclasses.replace(blind[1], depth=np.zeros_like(blind[1].depth))
+  for r in table4.lambda_sweep(weights, blind, lams, runners=shared):
+    assert len(r["abs_rel_per_frame"]) == 5
+    assert all(math.isfinite(v) for v in r["metrics"].values())
   scored, real = [], run.frame_metrics
 
   def interrupting(depth, *a):
