@@ -455,7 +455,46 @@ def test_a_frame_with_too_many_segments_keeps_the_dynamic_classes_first():
   # another dynamic set (the method's ld.dynamic_classes) is kept first instead
   got = step_input(frame, 4, 96, 3, keep_first=(149,))
   assert got.seg_ids.tolist() == [100, 1, 2]
+  # no dynamic class among them: the things before the stuff listed first
+  got = step_input(Frame(np.zeros((4, 96, 3), np.float32), panoptic=ids,
+                         segments=(road[0], lights[0], lights[1])), 4, 96, 2)
+  assert got.seg_ids.tolist() == [1, 2]
   # what a run passes: the method's O, or the paper's default for a method without L_d
   assert dynamic_classes(PittaConfig(ld=DepthRefiningConfig(dynamic_classes=("bench",)))) == (15,)
   assert dynamic_classes(ActmadConfig()) == (1, 2, 3, 4, 6, 7, 8)
   assert dynamic_classes(build("none").config) == (1, 2, 3, 4, 6, 7, 8)
+
+
+def test_chunks_pad_the_last_chunk_and_step_input_carries_each_frames_fields():
+  """5 frames in chunks of 2: three chunks, the last one frame and a padding copy of it marked
+  invalid; each frame's intrinsics (scaled to the network's size), its 'no intrinsics' and its
+  recording start reach the step; the image is resized as the network asks (OpenCV's area or
+  cubic interpolation, the references here)."""
+  import cv2
+  from pitta_jax.adapt.inputs import chunks, step_input
+  from pitta_jax.data.frame import Frame
+  rng = np.random.default_rng(0)
+  K = np.array([[10.0, 0, 5.5], [0, 10.0, 3.5], [0, 0, 1]])
+  frames = [Frame(rng.random((8, 12, 3)).astype(np.float32), name=str(i),
+                  intrinsics=K if i != 3 else None, starts_recording=i == 2) for i in range(5)]
+  got = list(chunks(frames, 4, 6, 2, 3))
+  assert [[f.name for f in originals] for _, originals in got] == [["0", "1"], ["2", "3"], ["4"]]
+  for chunk, originals in got:
+    assert chunk.image.shape == (2, 4, 6, 3)
+  assert [c.valid.tolist() for c, _ in got] == [[True, True], [True, True], [True, False]]
+  np.testing.assert_array_equal(got[2][0].image[1], got[2][0].image[0])   # the padding copy
+  assert [c.has_intrinsics.tolist() for c, _ in got] == [[True, True], [True, False],
+                                                         [True, True]]
+  assert [c.starts_recording.tolist() for c, _ in got] == [[False, False], [True, False],
+                                                           [False, False]]
+  # K of the 2x-smaller image, pixel centres kept: f / 2, (c + 0.5) / 2 - 0.5
+  np.testing.assert_allclose(got[0][0].intrinsics[0], [[5, 0, 2.5], [0, 5, 1.5], [0, 0, 1]])
+  np.testing.assert_array_equal(got[1][0].intrinsics[1], np.zeros((3, 3)))
+  image = frames[0].image
+  area = step_input(frames[0], 4, 6, 3, "area").image
+  cubic = step_input(frames[0], 4, 6, 3, "cubic").image
+  np.testing.assert_allclose(area, cv2.resize(image, (6, 4), interpolation=cv2.INTER_AREA),
+                             atol=1e-6)
+  np.testing.assert_allclose(cubic, cv2.resize(image, (6, 4), interpolation=cv2.INTER_CUBIC),
+                             atol=1e-6)
+  assert not np.allclose(area, cubic)

@@ -377,3 +377,18 @@ def test_restore_masks_are_bernoulli_p_per_element():
   assert masks["b"]["d"].shape == (7,)
   both = (masks["a"] & masks["b"]["c"]).mean()  # independent leaves: 0.2 * 0.2
   _near(both, 0.04, np.sqrt(0.04 * 0.96), masks["a"].size, "joint restore fraction")
+
+
+def test_views_are_clipped_after_the_noise():
+  """Upstream's last augmentation clips to [0, 1] after adding the noise: a white image with
+  noise +0.01 stays 1, a black one with -0.01 stays 0, a grey 0.5 becomes 0.51 (unit jitter
+  factors, a blur of a constant image, no flip). Hand values."""
+  from pitta_jax.methods.cotta import AugParams, augment_views
+  n, h, w = 3, 4, 5
+  images = (jnp.ones((h, w, 3)), jnp.zeros((h, w, 3)), jnp.full((h, w, 3), 0.5))
+  noises = (0.01, -0.01, 0.01)
+  for image, noise, want in zip(images, noises, (1.0, 0.0, 0.51)):
+    params = AugParams(order=jnp.tile(jnp.arange(4), (n, 1)), factors=jnp.ones((n, 4)),
+                       sigma=jnp.full((n,), 0.1), flip=jnp.zeros((n,), bool),
+                       noise=jnp.full((n, h, w, 3), noise))
+    np.testing.assert_allclose(np.asarray(augment_views(image, params)), want, atol=1e-6)

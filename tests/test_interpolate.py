@@ -12,7 +12,8 @@ import torch.nn.functional as F
 from pitta_jax.models import interpolate
 
 CASES = [((5, 7), (12, 9)), ((8, 8), (3, 5)), ((37, 37), (16, 24)), ((1, 4), (3, 8)),
-         ((6, 9), (6, 14)), ((5, 7), (5, 7))]  # one axis, both axes at their own size
+         ((6, 9), (6, 14)), ((5, 7), (5, 7)),  # one axis, both axes at their own size
+         ((4, 6), (1, 3))]                      # an output of one row
 
 
 def _torch(x: np.ndarray, size, mode: str, align_corners):

@@ -216,3 +216,26 @@ def test_table3_adapts_norm_layers_that_each_network_has(name):
   paths = trainable.selected_paths(variables, selector, net.spec.encoder)
   assert paths and all(p.startswith(net.spec.encoder + "/") for p in paths)
   assert all(p.endswith(("/scale", "/bias")) for p in paths)
+
+
+
+def test_fraction_selectors_on_networks_with_layernorms_and_dense_layers():
+  """fraction(cnn=a, bn=b) on a network without BatchNorm (Depth Anything V2's ViT) takes its
+  LayerNorms as the norm layers; its 'cnn' share counts convolution kernels only (4-D), not
+  the transformers' Dense kernels (Lite-Mono's pointwise layers, MonoViT's attention)."""
+  net, variables = _abstract("depth_anything_v2")
+  every_ln = trainable.selected_paths(variables, trainable.Selector("encoder_ln"),
+                                      net.spec.encoder)
+  all_norms = trainable.selected_paths(variables, trainable.parse_selector("fraction(cnn=0,bn=100)"),
+                                       net.spec.encoder)
+  assert all_norms and sorted(all_norms) == sorted(every_ln)
+  for name in ("litemono", "monovit"):
+    net, variables = _abstract(name)
+    flat = flatten_dict(variables["params"], sep="/")
+    paths = trainable.selected_paths(variables, trainable.parse_selector("fraction(cnn=100,bn=0)"),
+                                     net.spec.encoder, net.forward_order())
+    kernels = [p for p in paths if p.endswith("/kernel")]
+    assert kernels and all(flat[p].ndim == 4 for p in kernels), name
+    dense = [k for k in flat if k.startswith(net.spec.encoder + "/") and k.endswith("/kernel")
+             and flat[k].ndim == 2]
+    assert dense and not set(dense) & set(paths), name

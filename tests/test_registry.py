@@ -182,3 +182,16 @@ def test_networks_refuse_integer_and_channels_first_images():
     net.outputs({}, np.zeros((1, 3, 64, 96), np.float32), False)
   with pytest.raises(ValueError, match=r"got shape \(64, 96, 3\)"):
     net.capture({}, np.zeros((64, 96, 3), np.float32), False, "encoder/.*")
+
+
+
+def test_an_array_of_the_wrong_shape_is_named(variables, tmp_path):
+  """A weights file whose array names all fit but one array has another shape (a damaged or
+  hand-edited file): one error naming the file, the array and both shapes."""
+  import copy
+  bad = copy.deepcopy(jax.tree_util.tree_map(np.asarray, variables))
+  bad["params"]["encoder"]["bn1"]["scale"] = bad["params"]["encoder"]["bn1"]["scale"][:32]
+  save_weights(tmp_path / "w", "monodepth2", {"num_layers": 18, "height": H, "width": W}, bad)
+  with pytest.raises(WeightsError, match=r"encoder/bn1/scale has shape \(32,\), the network in "
+                                         r"model\.json expects \(64,\)"):
+    load_weights(tmp_path / "w")
