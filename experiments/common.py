@@ -357,10 +357,9 @@ def clear_earlier_table(ctx: Context) -> None:
   results.json and figures in --out go (with a warning), so that a rerun interrupted on the way
   leaves no earlier table that could pass for its own; its cached rows (rows/) stay and are
   reused."""
-  from pitta_jax.report import clear_earlier_results
+  from pitta_jax.report import TABLE_SUFFIXES, clear_earlier_results
   clear_earlier_results(ctx.out, (f"figures/{ctx.name}_*.png",),
-                        files=tuple(f"{ctx.name}{s}" for s in (".md", ".csv", ".tex"))
-                        + ("results.json",))
+                        files=tuple(f"{ctx.name}{s}" for s in TABLE_SUFFIXES) + ("results.json",))
 
 
 def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str]) -> None:

@@ -43,8 +43,8 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from pitta_jax.adapt.inputs import chunks
   from pitta_jax.methods import build
   from pitta_jax.methods.depth_refining import dynamic_classes
-  from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, compile_count,
-                             frame_metrics, input_size, load_resume_point, model_alignment,
+  from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, frame_metrics,
+                             input_size, load_resume_point, model_alignment, note_compile,
                              record_marks, run_fingerprint, save_checkpoint, truncate_record)
   cfg = common.adapt_config("pitta", quick=quick)
   pitta = build("pitta")  # every lambda's method but for lambda (the vmapped axis)
@@ -69,8 +69,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   h, w = input_size(weights, frames)
   bar = tqdm(total=len(frames), initial=start, desc="lambda sweep", unit="frame",
              disable=quiet)
-  if not compile_count(runner):  # the first chunk waits for the compile: say so
-    bar.set_postfix_str("compiling the step")
+  note_compile(bar, runner)
   done = (states, record_marks(record))  # the newest states whose frames are all in `record`
   try:
     for chunk, originals in chunks(frames[start:], h, w,

@@ -19,6 +19,8 @@ from pitta_jax.outputs import atomic_write_files, json_safe
 from pitta_jax.text import first_and_count
 
 RESULT_FILES = ("results.json", "results.csv", "table.md")  # what `write_results` writes
+# what an experiment table NAME writes beside results.json: NAME.md, NAME.csv, NAME.tex
+TABLE_SUFFIXES = (".md", ".csv", ".tex")
 HIGHER_IS_BETTER = ("a1", "a2", "a3")  # threshold accuracies; the errors are lower-is-better
 HEADERS = {"abs_rel": "AbsRel ↓", "sq_rel": "SqRel ↓", "rmse": "RMSE ↓", "rmse_log": "RMSElog ↓",
            "a1": "δ<1.25 ↑", "a2": "δ<1.25² ↑", "a3": "δ<1.25³ ↑"}
@@ -124,7 +126,7 @@ def results_owner(out_dir: str | Path) -> tuple[str, list[str]] | None:
   table, command = payload.get("table"), payload.get("command")
   if isinstance(table, str) and table:
     return f"experiment {table}", ["results.json"] + [
-        f"{table}{s}" for s in (".md", ".csv", ".tex") if (out / f"{table}{s}").is_file()]
+        f"{table}{s}" for s in TABLE_SUFFIXES if (out / f"{table}{s}").is_file()]
   if command in ("adapt", "evaluate") or (command is None and isinstance(payload.get("demo"),
                                                                          dict)):
     owner = command or "demo"

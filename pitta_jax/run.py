@@ -629,9 +629,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       yield chunk
 
   index, last_saved = start, start
-  compiles, compile_seconds, compiled_frames = compile_count(runner), 0.0, 0
-  if not compiles:  # the first chunk waits for the compile (seconds to a minute): say so
-    bar.set_postfix_str("compiling the step")
+  compiles, compile_seconds, compiled_frames = note_compile(bar, runner), 0.0, 0
   chunk_start = time.perf_counter()
   # the newest state whose frames are all in `record`, with the record's lengths then: a
   # Ctrl-C while a chunk is being scored checkpoints this one, not the chunk's half-scored state
@@ -640,7 +638,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   try:
     for state, out in adapt_stream(state, consts, inputs(), runner):
       originals = chunk_frames.pop(0)
-      now = compile_count(runner)
+      now = _compile_count(runner)
       compiled, compiles = now > compiles, now
       for k, frame in enumerate(originals):
         depth = out.depth[k]
@@ -695,7 +693,16 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                    compiled_frames=compiled_frames)
 
 
-def compile_count(runner) -> int:
+def note_compile(bar, runner) -> int:
+  """`_compile_count(runner)`; when it is 0, the progress `bar` says "compiling the step": the
+  first chunk waits for the compile (seconds to a minute), with nothing moving before."""
+  compiles = _compile_count(runner)
+  if not compiles:
+    bar.set_postfix_str("compiling the step")
+  return compiles
+
+
+def _compile_count(runner) -> int:
   """How many programs the jitted chunk runner holds (it grows when a call compiles, or loads
   a program from the compilation cache); 0 for a runner that is not a `jax.jit` function."""
   size = getattr(runner, "_cache_size", None)
