@@ -861,3 +861,75 @@ def test_an_os_error_is_one_line_naming_its_file(tmp_path, capsys):
   assert error_line(FileNotFoundError("no such split file: x.txt")) == "no such split file: x.txt"
   assert error_line(PermissionError(13, "Permission denied")) == "Permission denied"
   assert error_line(DataError(None, "bad")) == str(DataError(None, "bad"))
+
+
+def test_a_diverged_row_keeps_its_means_before_divergence_unranked(quick_out, tmp_path,
+                                                                    monkeypatch):
+  """A row whose depth stopped being finite at frame 2 of 4: results.json and the row file say
+  so, its "metrics" are empty (no score on the case), and the means of the frames scored before
+  are kept apart as metrics_before_divergence; the table prints the status, not those means."""
+  import importlib
+  from pitta_jax import run as run_lib
+  from pitta_jax.run import RunResult
+  names = ["f0", "f1", "f2", "f3"]
+  scored = [{"name": "f0", "abs_rel": 0.25, "sq_rel": 1.5, "rmse": 4.0, "rmse_log": 0.5,
+             "a1": 0.75, "a2": 0.875, "a3": 0.9375},
+            {"name": "f1", "abs_rel": 0.125, "sq_rel": 0.5, "rmse": 2.0, "rmse_log": 0.25,
+             "a1": 0.5, "a2": 0.625, "a3": 0.6875}]
+  means = {"abs_rel": 0.1875, "sq_rel": 1.0, "rmse": 3.0, "rmse_log": 0.375, "a1": 0.625,
+           "a2": 0.75, "a3": 0.8125}  # by hand from the two frames
+  monkeypatch.setattr(run_lib, "run_sequence", lambda *a, **k: RunResult(
+      name="x", per_frame=scored, mean=dict(means), logs={}, frame_names=names, seconds=2.0,
+      kept_depths={}, n_skipped=0, excluded=[], resumed_at=0, nonfinite_indices=[2, 3]))
+  out = tmp_path / "t2"
+  assert importlib.import_module("experiments.table2").main(
+      ["--quick", "--quiet", "--out", str(out), "--rows", "PITTA"], runners=quick_out[1]) == 0
+  rows = json.loads((out / "results.json").read_text())["rows"]
+  assert [r["label"] for r in rows] == ["PITTA"] and all(r["status"] == "diverged: non-finite depth from frame 2 of 4 (2 frames "
+                                     "not scored)" for r in rows)
+  for r in rows:
+    assert r["metrics"] == {} and r["extra"]["metrics_before_divergence"] == means
+    assert r["extra"]["abs_rel_per_frame"] == [0.25, 0.125]
+  stored = [json.loads(p.read_text()) for p in (out / "rows").glob("*.json")]
+  assert stored and all(s["metrics"] == {} and s["metrics_before_divergence"] == means
+                        for s in stored)
+  table = (out / "table2.md").read_text()
+  assert "diverged" in table and "0.188" not in table and "0.1875" not in table
+
+
+def test_sensitivity_rows_take_their_studys_reference(quick_out, tmp_path, monkeypatch):
+  """Each study against its own reference, with hand values for the runs (no step runs): the
+  BN-mode row is PITTA with running statistics minus No adaptation (not minus BN batch stats),
+  the traffic row is against BN batch stats on the dense street, and the sequence-length rows
+  are PITTA's mean over its first n frames minus the reference's over the same n frames."""
+  import importlib
+  from experiments import common
+  from experiments import table4
+  from experiments.common import Entry
+  runs = {  # (row label, dense street) -> (AbsRel, per-frame AbsRel)
+      ("BN batch stats", False): (0.30, [0.4, 0.2, 0.3, 0.1]),
+      ("PITTA lr 0.0001 x1", False): (0.28, [0.1, 0.2, 0.6, 0.0]),
+      ("No adaptation", False): (0.50, [0.5] * 4),
+      ("PITTA BN running", False): (0.45, [0.45] * 4),
+      ("BN batch stats", True): (0.35, [0.35] * 4),
+      ("PITTA", True): (0.33, [0.33] * 4)}
+
+  def fake_row(ctx, row, case, parts, shared, resources):
+    abs_rel, per_frame = runs[(row.label, "dense" in case)]
+    return Entry(case, row.label, {"abs_rel": abs_rel, "a1": 0.5}, spec=row,
+                 extra={"abs_rel_per_frame": per_frame})
+  monkeypatch.setattr(common, "run_row", fake_row)
+  monkeypatch.setattr(table4, "lambda_sweep", lambda weights, frames, lams, *a: [
+      {"metrics": {"abs_rel": 0.29, "a1": 0.5}} for _ in lams])
+  out = tmp_path / "sens"
+  assert importlib.import_module("experiments.sensitivity").main(
+      ["--quick", "--quiet", "--out", str(out)], runners=quick_out[1]) == 0
+  rows = {(r["group"], r["label"]): r["metrics"]["abs_rel"]
+          for r in json.loads((out / "results.json").read_text())["rows"]}
+  assert rows[("BN mode", "running statistics")] == pytest.approx(0.45 - 0.50)
+  assert rows[("traffic", "dense: PITTA")] == pytest.approx(0.33 - 0.35)
+  assert rows[("lr x steps", "lr 0.0001, 1 step")] == pytest.approx(0.28 - 0.30)
+  assert rows[("lambda", "λ = 0.2")] == pytest.approx(0.29 - 0.30)
+  assert rows[("sequence length", "first 1 frame")] == pytest.approx(0.1 - 0.4)
+  assert rows[("sequence length", "first 2 frames")] == pytest.approx(0.15 - 0.3)
+  assert rows[("sequence length", "first 4 frames")] == pytest.approx(0.225 - 0.25)

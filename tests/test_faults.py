@@ -373,13 +373,20 @@ def test_ctrl_c_between_checkpoints_saves_the_last_chunk_without_the_cut_ones_fr
   """--checkpoint-every 2K in chunks of K: Ctrl-C while the second chunk is scored, before any
   checkpoint, saves the first chunk's state with the first chunk's frames only (the cut chunk's
   scored frame is dropped from the record, else a resume would score it twice), and the resumed
-  run equals an uninterrupted one, frame for frame."""
+  run equals an uninterrupted one, frame for frame. The checkpoint's time is the first chunk's
+  too: the cut chunk's (here an hour on the run's clock) is not counted, as a resume runs that
+  chunk again and counts it then."""
+  import types
   from pitta_jax import run as run_lib
   real, calls = run_lib.frame_metrics, []
+  hour = [0.0]  # added to the run's clock once the cut chunk has taken its hour
+  monkeypatch.setattr(run_lib, "time", types.SimpleNamespace(
+      perf_counter=lambda: time.perf_counter() + hour[0]))
 
   def interrupting(*args, **kwargs):
     calls.append(1)
     if len(calls) == K + 2:   # the second frame of the second chunk
+      hour[0] = 3600.0
       raise KeyboardInterrupt
     return real(*args, **kwargs)
 
@@ -389,10 +396,12 @@ def test_ctrl_c_between_checkpoints_saves_the_last_chunk_without_the_cut_ones_fr
   assert main(_adapt_args(tiny_weights, out, *every)) == 130
   assert "the last completed chunk is checkpointed" in capfd.readouterr().err
   monkeypatch.setattr(run_lib, "frame_metrics", real)
+  monkeypatch.setattr(run_lib, "time", time)
   saved = sorted(p.name for p in (out / "checkpoints").glob("state_??????.json"))
   assert saved == [f"state_{K:06d}.json"]
   sidecar = json.loads((out / "checkpoints" / saved[0]).read_text())
   assert len(sidecar["names"]) == len(sidecar["per_frame"]) == K
+  assert 0 < sidecar["seconds"] < 3600
   assert all(len(v) == K for v in sidecar["logs"].values())
   assert main(_adapt_args(tiny_weights, out, *every, "--resume")) == 0
   assert main(_adapt_args(tiny_weights, tmp_path / "full", *every)) == 0

@@ -389,6 +389,13 @@ def test_an_interrupted_convert_can_be_run_again(r18, tmp_path, monkeypatch, cap
   capsys.readouterr()
   assert main(args) == 0, capsys.readouterr().err
   assert load_weights(out).config["has_pose"] and not (out / checkpoint.INCOMPLETE).exists()
+  # a rewrite of those complete weights interrupted midway: the old model.json must not stay
+  # beside the new depth/ and the old pose/ (it would describe arrays it never saw)
+  monkeypatch.setattr(checkpoint, "save_tree", interrupted)
+  assert main(args) == 130
+  assert not (out / "model.json").exists() and (out / checkpoint.INCOMPLETE).is_file()
+  with pytest.raises(checkpoint.WeightsError, match="model.json: not found"):
+    load_weights(out)
 
 
 @pytest.mark.parametrize("layout", ["dataset", "user_json", "user_file_in_depth", "empty_path",
