@@ -31,6 +31,7 @@ def test_coco_has_ten_missing_thing_ids():
 @pytest.mark.parametrize("name, coco_id, contiguous", [
     ("person", 1, 0), ("bicycle", 2, 1), ("car", 3, 2), ("motorcycle", 4, 3), ("bus", 6, 5),
     ("train", 7, 6), ("truck", 8, 7), ("traffic light", 10, 9), ("road", 149, 100),
+    ("sand", 154, 102), ("sea", 155, 103),
     ("sky-other-merged", 187, 119), ("rug-merged", 200, 132)])
 def test_known_categories(name, coco_id, contiguous):
   assert coco.name_to_id(name) == coco_id
@@ -61,5 +62,7 @@ def test_unknown_lookups_raise():
     coco.by_id(12)  # a COCO id with no category
   with pytest.raises(KeyError):
     coco.contiguous_to_id(133)
+  with pytest.raises(KeyError):
+    coco.contiguous_to_id(-1)  # not the last category, as Python's negative indexing would give
   with pytest.raises(KeyError, match="traffic light"):
     coco.by_name("traffic")  # suggests the close match

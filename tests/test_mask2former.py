@@ -174,6 +174,22 @@ def test_config_inferred_from_checkpoint(converted):
   assert cfg == Mask2FormerConfig()  # Swin-T, COCO panoptic
 
 
+def test_config_inferred_from_other_shapes(reference):
+  """The architecture is read from the checkpoint, not assumed: a Swin with window 12 (the
+  384-pixel Swin-B / Swin-L configs: relative position tables of (2 * 12 - 1)^2 = 529 rows),
+  200 queries and 80 + 1 classes is inferred as such."""
+  state = dict(reference.state)
+  swin = "model.pixel_level_module.encoder.swin.encoder.layers"
+  for i in range(4):
+    key = f"{swin}.{i}.blocks.0.attention.relative_position_bias.relative_position_bias_table"
+    state[key] = np.zeros((529, state[key].shape[1]), np.float32)
+  state["class_predictor.weight"] = np.zeros((81, 256), np.float32)
+  state["model.transformer_module.queries_features.weight"] = np.zeros((200, 256), np.float32)
+  cfg = wc.infer_config(state, "hf", "x.safetensors")
+  assert (cfg.swin.window_size, cfg.num_queries, cfg.num_classes) == (12, 200, 80)
+  assert cfg.swin.depths == (2, 2, 6, 2) and cfg.swin.num_heads == (3, 6, 12, 24)
+
+
 def test_backbone_parity(hf_out, flax_out):
   for i, (ours, ref) in enumerate(zip(flax_out["backbone"], hf_out["backbone"])):
     _check(f"backbone res{i + 2}", _nchw(ours), ref)
@@ -340,6 +356,9 @@ def test_detectron2_pkl_through_the_cli(tmp_path, converted, capsys):
                   str(tmp_path / "y")]) == 2
   err = capsys.readouterr().err
   assert "bgr.pkl" in err and "pixel_mean" in err and not (tmp_path / "y").exists()
+  # a buffer of another shape (here 6 values) is refused in one line too, not a traceback
+  with pytest.raises(CheckpointError, match=r"six\.pkl: pixel_std .* differs"):
+    wc._check_pixel_statistics({"pixel_std": np.tile(state["pixel_std"].ravel(), 2)}, "six.pkl")
 
 
 def test_detectron2_reader_tells_pickles_from_torch_files_by_content(tmp_path, converted):
@@ -395,6 +414,13 @@ def test_hf_legacy_key_names(reference, converted):
   state = wc.normalize_keys(legacy, "hf", "legacy")
   flat = _apply_hf(state, cfg, "legacy")
   _equal_trees(unflatten_dict(flat), variables)
+  # an old and a current name of one tensor in the same file: refused, both named (not one
+  # silently dropped, whichever came last)
+  old, new = ("model.pixel_level_module.encoder.hidden_states_norms.0.weight",
+              "model.pixel_level_module.encoder.hidden_states_norms.stage1.weight")
+  with pytest.raises(CheckpointError, match=re.escape(f"mixed: keys {old!r} and {new!r} both "
+                                                      f"mean {new!r}")):
+    wc.normalize_keys({old: legacy[old], new: legacy[old] + 1}, "hf", "mixed")
 
 
 def test_strict_loading_lists_every_bad_key(reference, converted):
@@ -455,6 +481,11 @@ def test_safetensors_reader_matches_the_library(tmp_path):
     with pytest.raises(CheckpointError, match=re.escape(f"{bad}: corrupt safetensors header")
                        + ".*" + re.escape(what)):
       wc.read_safetensors(bad)
+  # a tensor whose byte range does not hold its shape: named, not a reshape traceback
+  header = b'{"w": {"dtype": "F32", "shape": [2], "data_offsets": [0, 4]}}'
+  bad.write_bytes(len(header).to_bytes(8, "little") + header + b"\0" * 4)
+  with pytest.raises(CheckpointError, match=re.escape(f"{bad}: w has inconsistent data offsets")):
+    wc.read_safetensors(bad)
   with pytest.raises(CheckpointError, match="nope.safetensors: no such file"):
     wc.read_safetensors(tmp_path / "nope.safetensors")
 
@@ -488,12 +519,16 @@ def test_deformable_sampling_matches_grid_sample():
   np.testing.assert_allclose(ours, ref, atol=2e-5)
 
 
-def test_position_embedding_matches_hf():
+@pytest.mark.parametrize("height, width", [(6, 9), (1, 2)])
+def test_position_embedding_matches_hf(height, width):
+  """Also on a map of one row (the 1/32 level of a 32-pixel-high input), where the 1e-6 of the
+  normalisation (coordinate / (H + 1e-6)) moves the first features by ~6e-6."""
   from transformers.models.mask2former.modeling_mask2former import \
       Mask2FormerSinePositionEmbedding
   pe = Mask2FormerSinePositionEmbedding(num_position_features=128, normalize=True)
-  ref = pe((1, 256, 6, 9), "cpu", torch.float32)[0].permute(1, 2, 0).numpy()
-  np.testing.assert_allclose(msdeform.position_embedding_sine(6, 9, 128), ref, atol=2e-6)
+  ref = pe((1, 256, height, width), "cpu", torch.float32)[0].permute(1, 2, 0).numpy()
+  np.testing.assert_allclose(msdeform.position_embedding_sine(height, width, 128), ref,
+                             atol=2e-6)
 
 
 def test_resized_shape_is_detectron2_resize_shortest_edge():
@@ -511,6 +546,20 @@ def test_preprocess_normalises_and_pads():
   mean, std = np.array([123.675, 116.28, 103.53]), np.array([58.395, 57.12, 57.375])
   np.testing.assert_allclose(x[0, :40, :50], (img * 255 - mean) / std, atol=1e-5)
   assert not x[0, 40:].any() and not x[0, :, 50:].any()  # zero padding after normalisation
+
+
+@pytest.mark.parametrize("size", [(20, 25), (17, 31), (64, 80)])
+def test_preprocess_resizes_like_pil_bilinear(size):
+  """detectron2's ResizeShortestEdge resizes with PIL's bilinear filter, which widens its
+  triangle kernel when shrinking (antialiasing); ours on the 0-255 values matches PIL's on a
+  float image ("F" mode, no uint8 rounding) when shrinking, stretching and both at once."""
+  from PIL import Image
+  img = np.random.RandomState(4).rand(40, 50, 3).astype(np.float32)
+  x = np.asarray(jax.jit(preprocess, static_argnums=1)(jnp.asarray(img), size))
+  ref = np.stack([np.asarray(Image.fromarray(img[..., c] * 255, mode="F").resize(
+      (size[1], size[0]), Image.BILINEAR)) for c in range(3)], -1)
+  mean, std = np.array([123.675, 116.28, 103.53]), np.array([58.395, 57.12, 57.375])
+  np.testing.assert_allclose(x[0, :size[0], :size[1]], (ref - mean) / std, atol=1e-5)
 
 
 def test_mask_logits_resized_back_like_detectron2():

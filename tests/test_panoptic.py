@@ -130,6 +130,8 @@ def test_default_is_thing_is_coco_panoptic():
   assert t[:80].all() and not t[80:].any()
   with pytest.raises(ValueError, match="is_thing"):
     panoptic_inference(np.zeros((2, 5)), np.zeros((2, 3, 3)))
+  with pytest.raises(ValueError, match="134 classes is not COCO panoptic"):  # more classes too
+    panoptic_inference(np.zeros((2, 135)), np.zeros((2, 3, 3)))
 
 
 def test_to_frame_segments_maps_contiguous_to_coco_ids():
@@ -170,3 +172,96 @@ def test_a_query_whose_argmax_is_no_object_is_dropped_at_any_threshold():
   logits = np.array([1.0, -10.0, -10.0, 1.2], np.float32)
   id_map, segs = run([(logits, mask())], object_mask_threshold=0.3)
   assert segs == [] and not id_map.any()
+
+
+def test_object_threshold_is_strict():
+  """detectron2 keeps `scores.gt(object_mask_threshold)`: a query whose probability equals the
+  threshold is dropped. Logits (log 9, 0, 0, 0) give class 0 the probability 9 / 12 = 0.75,
+  exactly 0.75 once rounded to float32; at threshold 0.75 it goes, at 0.74 it stays."""
+  logits = np.array([np.log(9.0), 0.0, 0.0, 0.0], np.float32)
+  p = np.exp(logits.astype(np.float64))
+  assert np.float32(p[0] / p.sum()) == np.float32(0.75)
+  id_map, segs = run([(logits, mask())], object_mask_threshold=0.75)
+  assert segs == [] and not id_map.any()
+  id_map, segs = run([(logits, mask())], object_mask_threshold=0.74)
+  assert segs == [Segment(1, 0, True)] and (id_map == 1).all()
+
+
+def test_a_pixel_at_exactly_one_half_belongs_to_the_segment():
+  """detectron2 counts `cur_masks[k] >= 0.5` in the original area and the segment: a mask
+  logit of exactly 0 (sigmoid 1 / (1 + e^0) = 0.5) is painted, not void."""
+  m = mask()
+  m[0, :] = 0.0
+  id_map, segs = run([(cls_logits(0, 0.99), m)])
+  assert segs == [Segment(1, 0, True)]
+  np.testing.assert_array_equal(id_map, np.ones(HW, np.int32))
+
+
+def test_ties_between_classes_go_to_the_first_query():
+  """Two queries with equal scores and equal masks but different classes: every pixel goes to
+  the first (torch's argmax takes the first maximum), so the segment is the first query's
+  thing, and the second (stuff) query owns nothing and is dropped; in the other order, the
+  stuff class wins."""
+  thing = (cls_logits(0, 0.9), mask(rows=slice(0, 2)))
+  stuff = (cls_logits(1, 0.9), mask(rows=slice(0, 2)))
+  p = np.exp(np.stack([thing[0], stuff[0]]).astype(np.float64))
+  p /= p.sum(-1, keepdims=True)
+  assert np.float32(p[0, 0]) == np.float32(p[1, 1])  # equal scores (the classes permuted)
+  expected = np.zeros(HW, np.int32)
+  expected[:2] = 1
+  id_map, segs = run([thing, stuff])
+  assert segs == [Segment(1, 0, True)]
+  np.testing.assert_array_equal(id_map, expected)
+  id_map, segs = run([stuff, thing])
+  assert segs == [Segment(1, 1, False)]
+  np.testing.assert_array_equal(id_map, expected)
+
+
+def test_pixels_go_to_the_highest_score_times_mask_probability():
+  """Each pixel goes to the kept query maximising class score x sigmoid(mask logit), not the
+  mask probability alone. Both masks have logit 2 (sigmoid 0.881) on their columns: q0 (class
+  0, p 0.85) on columns 0-3, q1 (class 1, p 0.99) on 2-5. Columns 2-3 go to q1 (0.872 >
+  0.749), so q0 keeps 8 of its 16 pixels (0.5 < 0.8, dropped) and q1 all 16 of its: one
+  segment on columns 2-5, columns 0-1 void (assigned to the dropped q0)."""
+  id_map, segs = run([(cls_logits(0, 0.85), mask(cols=slice(0, 4), inside=2.0)),
+                      (cls_logits(1, 0.99), mask(cols=slice(2, 6), inside=2.0))])
+  assert segs == [Segment(1, 1, False)]
+  np.testing.assert_array_equal(id_map[0], [0, 0, 1, 1, 1, 1])
+  np.testing.assert_array_equal(id_map, np.broadcast_to(id_map[0], HW))
+
+
+def test_a_query_whose_assigned_pixels_are_all_below_half_makes_no_segment():
+  """detectron2 also requires the segment (assigned & sigmoid >= 0.5) to be non-empty. q1
+  (p 0.95) predicts columns 0-2 (logit 10) but q0 (p 0.99, same columns) wins them; q1 wins
+  columns 3-5 with logit -1 (0.95 x 0.27 > 0.99 x 0.00005) where its sigmoid is below 0.5:
+  mask area 12 / original area 12 passes the overlap test, yet its segment is empty, so it is
+  dropped (no id without pixels) and columns 3-5 stay void."""
+  q1_mask = mask(cols=slice(0, 3))
+  q1_mask[:, 3:] = -1.0
+  id_map, segs = run([(cls_logits(0, 0.99), mask(cols=slice(0, 3))),
+                      (cls_logits(0, 0.95), q1_mask)])
+  assert segs == [Segment(1, 0, True)]
+  np.testing.assert_array_equal(id_map[0], [1, 1, 1, 0, 0, 0])
+  np.testing.assert_array_equal(id_map, np.broadcast_to(id_map[0], HW))
+
+
+def test_merged_stuff_paints_only_pixels_at_or_above_half():
+  """A stuff query merged into its class's segment paints assigned & sigmoid >= 0.5, as a new
+  segment does. q1 (class 1 like q0, p 0.95) predicts columns 2-4 (logit 10) and wins column 5
+  with logit -1 (sigmoid 0.27; q0 there: 0.99 x 0.00005): area 16 / 12 passes, its pixels join
+  segment 1 except column 5, which stays void."""
+  q1_mask = mask(cols=slice(2, 5))
+  q1_mask[:, 5] = -1.0
+  id_map, segs = run([(cls_logits(1, 0.99), mask(cols=slice(0, 2))),
+                      (cls_logits(1, 0.95), q1_mask)])
+  assert segs == [Segment(1, 1, False)]
+  np.testing.assert_array_equal(id_map[0], [1, 1, 1, 1, 1, 0])
+  np.testing.assert_array_equal(id_map, np.broadcast_to(id_map[0], HW))
+
+
+def test_huge_class_logits_do_not_overflow():
+  """The softmax is taken stably (as torch's): logits (1000, 0, 0, 0) give class 0 the
+  probability 1 (exp(1000) overflows float64, exp(0 - 1000) does not), so the query is kept."""
+  logits = np.array([1000.0, 0.0, 0.0, 0.0], np.float32)
+  id_map, segs = run([(logits, mask())])
+  assert segs == [Segment(1, 0, True)] and (id_map == 1).all()

@@ -136,6 +136,14 @@ def test_lambda_curve_edge_cases():
   (line,) = no_inf.axes[0].get_lines()
   _equal_nan(line.get_ydata(), [0.6, NAN])
   assert "∞" not in [t.get_text() for t in no_inf.axes[0].get_xticklabels()]
+  # one finite lambda has no step between lambdas: the step is half its size (at least 0.5),
+  # so lambda = 4 puts inf at 4 + 1.5 * 2 = 7 (not 5.5, crowding the point at large lambdas)
+  # and the break line half-way, at 5.5
+  one = lambda_figure([4.0, INF], {"abs_rel": [0.2, 0.3]}, "t", SMALL)
+  point, marker, gap = one.axes[0].get_lines()
+  assert list(point.get_xdata()) == [4.0] and list(marker.get_xdata()) == [7.0]
+  assert list(gap.get_xdata()) == [5.5, 5.5]
+  assert [t.get_text() for t in one.axes[0].get_xticklabels()] == ["4", "∞"]
   with pytest.raises(ValueError, match="abs_rel has 1 values for 2 lambdas"):
     lambda_figure([0.0, 0.1], {"abs_rel": [0.2]}, "t", SMALL)
   with pytest.raises(ValueError, match="lams must be >= 0"):
@@ -160,3 +168,25 @@ def test_grouped_bars_hold_the_data(tmp_path):
   assert _png_size(tmp_path / "bars.png") == (256, 128)
   with pytest.raises(ValueError, match="ours has 1 values for 3 categories"):
     bar_figure(categories, {"ours": [0.1]}, "abs_rel", "t", SMALL)
+
+
+def test_saving_again_replaces_the_file_and_dates_nothing(tmp_path, monkeypatch):
+  """`save_figure` replaces an existing file with a new one (temp file + os.replace), never
+  rewrites it in place: a reader that opened the old figure keeps reading it whole. The PDF
+  carries no creation date: matplotlib stamps one from $SOURCE_DATE_EPOCH (else the clock)
+  unless the metadata removes it, so equal figures saved at different times are equal files."""
+  cfg = PlotConfig(fig_width=4.0, fig_height=2.0, dpi=30, pdf=True)
+  path = tmp_path / "f.png"
+  save_figure(per_frame_figure({"a": [1.0, 2.0]}, "loss", "old", cfg), path, cfg)
+  old = path.read_bytes()
+  with open(path, "rb") as reader:
+    save_figure(per_frame_figure({"a": [3.0, 1.0, 2.0]}, "loss", "new", cfg), path, cfg)
+    assert reader.read() == old  # the old file, untouched
+  assert path.read_bytes() != old and _png_size(path) == (120, 60)
+  fig = per_frame_figure({"a": [1.0, 2.0]}, "loss", "t", cfg)
+  pdfs = []
+  for epoch in ("0", "1000000000"):  # 1970 and 2001
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", epoch)
+    save_figure(fig, tmp_path / f"d{epoch}.png", cfg)
+    pdfs.append((tmp_path / f"d{epoch}.pdf").read_bytes())
+  assert pdfs[0] == pdfs[1] and b"CreationDate" not in pdfs[0]

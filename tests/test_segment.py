@@ -193,6 +193,23 @@ def test_segmented_frames_over_a_list(weights, image_dir):
     assert frame.segments == tuple(ref_segments) and frame.name == "a"
 
 
+def test_mapped_frames_transform_only_the_frames_read():
+  """`MappedFrames` runs the transform (the network) when a frame is read, not when the
+  sequence is sliced: a slice of a long list stays lazy, a MappedFrames of the sliced frames.
+  Integers stand for frames and +100 for the segmenter."""
+  calls = []
+
+  def transform(x):
+    calls.append(x)
+    return x + 100
+
+  frames = MappedFrames(list(range(10)), transform)
+  part = frames[2:8:2]
+  assert isinstance(part, MappedFrames) and len(part) == 3 and calls == []
+  assert part[1] == 104 and calls == [4]
+  assert list(part) == [102, 104, 106] and calls == [4, 2, 4, 6]
+
+
 def test_written_directory_is_png_segmentation_input(weights, image_dir, cli_out):
   """OUT is what `--segmentation png:OUT` gives the folder reader (`panoptic_dir`), and
   `--segmentation mask2former:DIR` gives the same frames without files."""
@@ -239,6 +256,11 @@ def test_cli_argument_errors(weights, image_dir, tmp_path, capsys):
   assert cli.main(["segment", "--weights", str(weights[0]), "--images",
                    str(tmp_path / "*.png"), "--out", str(tmp_path)]) == 2
   assert "no image found" in capsys.readouterr().err
+  # the Python API's own check of input_size: an empty network input is refused when the
+  # segmenter is made, not by a resize to zero pixels at the first image
+  for bad in ((0, W), (H, -1), (H,)):
+    with pytest.raises(ValueError, match=r"input_size must be \(height, width\) > 0"):
+      Segmenter(weights[0], bad)
   (tmp_path / "x").mkdir()
   write_image(tmp_path / "x" / "a.png", np.zeros((H, W, 3), np.uint8))
   with pytest.raises(DataError, match="same file stem"):  # outputs are named by stem

@@ -155,6 +155,27 @@ def test_a_damaged_cache_entry_is_rebuilt_with_a_warning_on_stderr(tmp_path, mon
   jax.tree_util.tree_map(np.testing.assert_array_equal, again.depth, first.depth)
 
 
+def test_retrain_trains_over_a_cache_and_a_shipped_model(tmp_path, monkeypatch):
+  """`retrain=True` (`train-source --retrain`) trains even when the config has a cache entry
+  and a shipped model, and its result replaces the cache entry, which the next plain call
+  reads. Training is stood in for by a function returning the shipped variables with a marker
+  in its report."""
+  monkeypatch.setenv(source_model.CACHE_ENV, str(tmp_path))
+  cfg = SourceConfig()
+  first, _ = source_model.load_or_train_source(cfg, quiet=True)  # cache entry from the package
+  calls = []
+
+  def fake_train(c, quiet=False):
+    calls.append(c)
+    return first.depth, first.pose, {"trained": "fake"}
+
+  monkeypatch.setattr(source_model, "train_source", fake_train)
+  _, report = source_model.load_or_train_source(cfg, quiet=True, retrain=True)
+  assert calls == [cfg] and report["trained"] == "fake" and "shipped" not in report
+  _, again = source_model.load_or_train_source(cfg, quiet=True)
+  assert calls == [cfg] and again["trained"] == "fake"
+
+
 def test_shipped_model_loads_bitwise(shipped):
   """The default config finds the shipped file; its float16 parameters come back as exactly
   their float32 values (first from the package, then from the cache), BN statistics as stored,

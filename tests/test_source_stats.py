@@ -250,3 +250,27 @@ def test_file_against_upstreams_averaged_batches(written):
   print(f"vs upstream's averaged batches (2 + 2): mean {worst_mean:.1e}, variance through the "
         f"relation {worst_var:.1e}; our variance differs from theirs by up to {gap:.2f} x max")
   assert worst_mean < 1e-5 and worst_var < 1e-5
+
+
+def test_weights_identity_tells_networks_apart(written):
+  """The cache key's `weights_identity` (module docstring: architecture, model.json, every
+  variable's path, dtype, shape and bytes) is equal for equal weights and differs when only
+  model.json changes (another input size, same arrays), or when one leaf keeps its bytes but
+  not its dtype (float32 read as int32) or its shape (reshaped): each of those is another
+  network, whose cached statistics would not fit."""
+  from flax.traverse_util import flatten_dict, unflatten_dict
+  from pitta_jax.source_stats import weights_identity
+  weights = load_weights(written[0] / "weights")
+  base = weights_identity(weights)
+  copy = Weights(weights.spec, dict(weights.config),
+                 unflatten_dict({k: np.array(v) for k, v in flatten_dict(weights.depth).items()}))
+  assert weights_identity(copy) == base
+  assert weights_identity(Weights(weights.spec, {**weights.config, "height": 32},
+                                  weights.depth)) != base
+  path = ("params", "encoder", "conv1", "kernel")
+  flat = flatten_dict(weights.depth)
+  leaf = np.asarray(flat[path])
+  for changed in (leaf.view(np.int32), leaf.reshape(-1)):
+    assert changed.tobytes() == leaf.tobytes()
+    other = Weights(weights.spec, weights.config, unflatten_dict({**flat, path: changed}))
+    assert weights_identity(other) != base

@@ -209,6 +209,30 @@ def test_lambda_sweep_equals_plain_engine(variables, single_runner):
   assert not np.any(np.asarray(outs.skipped))
 
 
+def test_init_streams_takes_one_seed_per_stream(variables):
+  """Explicit `seeds` become the streams' PRNG keys in order (stream k: PRNGKey(seeds[k]));
+  a list of another length than the number of streams is refused, not cut or padded."""
+  _, method = model_and_method()
+  states, _ = streams.init_streams(variables, method, CFG, 2, seeds=[5, 9])
+  assert streams.num_streams(states) == 2
+  for k, seed in enumerate((5, 9)):
+    np.testing.assert_array_equal(streams.stream_state(states, k).rng, jax.random.PRNGKey(seed))
+  with pytest.raises(ValueError, match="1 seeds for 2 streams"):
+    streams.init_streams(variables, method, CFG, 2, seeds=[5])
+
+
+def test_lambda_sweep_keeps_the_given_order(variables):
+  """Stream k of `init_lambda_sweep` carries lams[k] as given (unsorted here: the caller reads
+  stream k's results as lambda k's), and otherwise the same start: one seed for all."""
+  lams = (0.5, 0.0, math.inf, 0.2)
+  states, _ = streams.init_lambda_sweep(variables, lams, CFG, pitta=PITTA)
+  assert streams.num_streams(states) == 4
+  np.testing.assert_array_equal(np.asarray(states.method_state["lam"]), np.float32(lams))
+  for k in range(4):
+    np.testing.assert_array_equal(streams.stream_state(states, k).rng,
+                                  jax.random.PRNGKey(CFG.seed))
+
+
 def test_shardings_by_field():
   """Every carried field is split over the "streams" mesh axis; the constants are not carried."""
   P = jax.sharding.PartitionSpec
