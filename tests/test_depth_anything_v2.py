@@ -588,3 +588,45 @@ def test_methods_with_source_data_are_refused():
                                       "size, but depth_anything_v2 takes each dataset's"):
     method_resources(build_method("actmad"), weights, "synthetic")
   assert method_resources(build_method("cotta"), weights, "synthetic") == {}
+
+
+def test_layer_idx_overrides_are_refused_before_any_file_is_read(tmp_path):
+  """Upstream's get_intermediate_layers reads the blocks in block order, each once: a
+  --layer-idx out of order or repeated is refused naming the flag, before the checkpoint (here
+  one that does not exist) is opened."""
+  for idx in ([3, 2, 1, 0], [0, 1, 1, 2]):
+    with pytest.raises(ValueError, match=re.escape(f"layer_idx (--layer-idx) must be increasing "
+                                                   f"0-based block numbers, got {idx}")):
+      conv.convert_depth_anything_v2(tmp_path / "absent.pth", "official", {"layer_idx": idx})
+
+
+def test_a_position_table_that_is_no_square_grid_is_named():
+  """DINOv2's pos_embed holds the class token and a square grid of patch positions (1 + 37^2 =
+  1370 rows for upstream's 518x518): 1 + 1368 rows is no grid, named as such before anything
+  else is read from the file."""
+  state = {"pretrained.cls_token": np.zeros((1, 1, 8), np.float32),
+           "pretrained.pos_embed": np.zeros((1, 1 + 1368, 8), np.float32)}
+  with pytest.raises(CheckpointError, match=r"^x\.pth: pretrained\.pos_embed holds 1368 patch "
+                                            r"positions, not a square grid$"):
+    conv.infer_config(state, "official", "x.pth")
+
+
+def test_a_vits_read_at_other_blocks_is_not_labelled_vits():
+  """model.json's "encoder" names upstream's variant only when the weights are that variant as
+  upstream builds it: ViT-S shapes (width 384, 12 blocks, 6 heads) read at upstream's blocks
+  [2, 5, 8, 11] are "vits"; the same weights read at the last four blocks (Depth Anything V1's
+  rule, `--layer-idx 8,9,10,11`) are "custom". Only the shapes of the keys are read."""
+  def zeros(*shape):
+    return np.broadcast_to(np.float32(0), shape)
+  state = {"pretrained.cls_token": zeros(1, 1, 384), "pretrained.pos_embed": zeros(1, 1370, 384),
+           **{f"pretrained.blocks.{i}.norm1.weight": zeros(384) for i in range(12)},
+           "pretrained.blocks.0.mlp.fc1.weight": zeros(1536, 384),
+           "depth_head.scratch.layer1_rn.weight": zeros(64, 48, 3, 3),
+           "depth_head.scratch.output_conv2.0.weight": zeros(32, 32, 3, 3),
+           **{f"depth_head.projects.{i}.weight": zeros(c, 384, 1, 1)
+              for i, c in enumerate((48, 96, 192, 384))}}
+  upstream = conv.infer_config(state, "official", "x.pth")
+  assert (upstream["encoder"], upstream["num_heads"], upstream["layer_idx"]) == (
+      "vits", 6, [2, 5, 8, 11])
+  v1 = conv.infer_config(state, "official", "x.pth", {"layer_idx": [8, 9, 10, 11]})
+  assert (v1["encoder"], v1["layer_idx"]) == ("custom", [8, 9, 10, 11])

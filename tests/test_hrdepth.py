@@ -213,3 +213,28 @@ def test_twins_must_agree(released, tmp_path):
   _, variables = _convert_with(tmp_path, released, "pruned.pth", pruned)
   for a, b in zip(jax.tree_util.tree_leaves(variables), jax.tree_util.tree_leaves(released["variables"])):
     np.testing.assert_array_equal(a, b)
+
+
+def test_a_resnet50_encoder_is_named_as_unsupported(released, tmp_path):
+  """HR-Depth's decoder widths fit ResNet-18/34 only: a Bottleneck ResNet-50 encoder.pth (its
+  torchvision names: `layer1.0.conv3`, six `layer3` blocks) is refused by name before any key
+  table is applied, not reported as a pile of missing and unexpected keys."""
+  state = {"encoder.conv1.weight": torch.zeros(64, 3, 7, 7),
+           "encoder.layer1.0.conv3.weight": torch.zeros(256, 64, 1, 1),
+           **{f"encoder.layer3.{b}.conv1.weight": torch.zeros(1) for b in range(6)},
+           "height": 320, "width": 1024, "use_stereo": False}
+  torch.save(state, tmp_path / "r50.pth")
+  with pytest.raises(CheckpointError, match=r"^\S*r50\.pth: a ResNet-50 encoder; HR-Depth's "
+                                            r"decoder fits ResNet-18/34$"):
+    conv.convert_hrdepth(tmp_path / "r50.pth", released["root"] / "depth.pth")
+
+
+def test_only_the_never_called_layers_params_are_ignorable(released, tmp_path):
+  """Only the four never-called X_0j_Conv_0 layers' own ConvBlock parameters may be left unused:
+  a stray key beside them in the X_0 column (here under X_04_attention, a layer the forward
+  uses) is an unexpected key, named."""
+  state = torch.load(released["root"] / "depth.pth")
+  with pytest.raises(CheckpointError, match=r"1 unexpected keys: convs\.X_04_attention\.fc\.1\."
+                                            r"weight"):
+    _convert_with(tmp_path, released, "stray.pth",
+                  dict(state, **{"convs.X_04_attention.fc.1.weight": torch.zeros(1)}))

@@ -261,3 +261,15 @@ def test_unused_dilated_conv_norms_are_optional_and_untrained_sizes_refused(base
   torch.save(dict(enc_state, height=256, width=512), tmp_path / "odd.pth")
   with pytest.raises(CheckpointError, match=r"odd.pth: lite-mono defines dilation rates only"):
     convert_litemono(tmp_path / "odd.pth", dep_path)
+
+
+def test_use_stereo_is_carried_over_and_one_file_twice_is_named(base, tmp_path):
+  """encoder.pth's `use_stereo` (upstream's trainer writes it) reaches the config, where it
+  selects MonoDepth2's x5.4 stereo scaling in evaluation instead of the median; one file given
+  as both encoder and decoder is named as such."""
+  enc_path, dep_path = base["paths"]
+  torch.save(dict(torch.load(enc_path), use_stereo=True), tmp_path / "stereo.pth")
+  assert convert_litemono(tmp_path / "stereo.pth", dep_path)[0]["use_stereo"] is True
+  with pytest.raises(CheckpointError, match=r"encoder\.pth: keys .* also occur in "
+                                            r".*encoder\.pth; .*the same file\?"):
+    convert_litemono(enc_path, enc_path)

@@ -11,6 +11,7 @@ further from the float64 truth than torch's own float32 gradient.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
@@ -441,3 +442,223 @@ def test_convert_refuses_to_replace_what_is_not_earlier_weights(r18, tmp_path, c
   assert main(["convert", "monodepth2", "--encoder", str(out / "encoder.pth"), "--depth",
                str(depth), "--out", str(out)]) == 0
   assert (out / "encoder.pth").is_file() and load_weights(out).config["num_layers"] == 18
+  # a Hub snapshot's own config.json beside the file converted is neither Mask2Former weights
+  # nor anything a depth conversion writes: left alone too (it was refused as Mask2Former's)
+  shutil.rmtree(out)
+  out.mkdir()
+  shutil.copy(enc, out / "encoder.pth")
+  hub = json.dumps({"architectures": ["DepthAnythingForDepthEstimation"]})
+  (out / "config.json").write_text(hub)
+  assert main(["convert", "monodepth2", "--encoder", str(out / "encoder.pth"), "--depth",
+               str(depth), "--out", str(out)]) == 0, capsys.readouterr().err
+  assert (out / "config.json").read_text() == hub and load_weights(out).config["num_layers"] == 18
+
+
+# --- the key-table engine (weights_convert.rules) ------------------------------------------------
+
+def test_rule_layouts_match_the_pytorch_modules_and_invert():
+  """Each rule kind against the PyTorch module that owns the names (nn.Conv2d, nn.Linear,
+  nn.MultiheadAttention's in_proj rows, two Linears fused by rows): the conv kernel entry by
+  entry (OIHW -> HWIO, a 4x5 kernel so that no swap of axes passes by shape), the dense ones by
+  `x @ kernel + bias` against the torch module's own output (q/k/v: torch's F.linear on the rows
+  of in_proj that MultiheadAttention uses for each); `to_state_dict` gives the file back."""
+  import itertools
+  from flax.traverse_util import unflatten_dict
+  from weights_convert import rules as R
+  torch.manual_seed(0)
+  conv, lin = torch.nn.Conv2d(3, 2, (4, 5)), torch.nn.Linear(3, 4)
+  mha, q, k = torch.nn.MultiheadAttention(4, 2), torch.nn.Linear(3, 2), torch.nn.Linear(3, 2)
+  state = {f"{name}.{key}": v.detach().numpy().copy()
+           for name, m in (("conv", conv), ("lin", lin), ("attn", mha), ("q", q), ("k", k))
+           for key, v in m.state_dict().items()}
+  rules: R.Rules = []
+  R.conv(rules, ("params", "c"), "conv")
+  R.linear(rules, ("params", "l"), "lin")
+  R.in_proj(rules, ("params", "a"), "attn", 4)
+  R.fused_linear(rules, ("params", "qk"), ["q", "k"])
+  expected = {("params", "c", "kernel"): (4, 5, 3, 2), ("params", "c", "bias"): (2,),
+              ("params", "l", "kernel"): (3, 4), ("params", "l", "bias"): (4,),
+              ("params", "qk", "kernel"): (3, 4), ("params", "qk", "bias"): (4,)}
+  for name in ("q_proj", "k_proj", "v_proj", "out_proj"):
+    expected[("params", "a", name, "kernel")] = (4, 4)
+    expected[("params", "a", name, "bias")] = (4,)
+  flat = R.apply_rules(state, rules, lambda key: False, "x.pth", expected)
+
+  kernel, weight = flat[("params", "c", "kernel")], conv.weight.detach().numpy()
+  for h, w, i, o in itertools.product(range(4), range(5), range(3), range(2)):
+    assert kernel[h, w, i, o] == weight[o, i, h, w]
+
+  def dense(path, x):
+    return x @ flat[path + ("kernel",)] + flat[path + ("bias",)]
+  x3 = np.random.default_rng(0).normal(size=(5, 3)).astype(np.float32)
+  x4 = np.random.default_rng(1).normal(size=(5, 4)).astype(np.float32)
+  with torch.no_grad():
+    np.testing.assert_allclose(dense(("params", "l"), x3), lin(torch.from_numpy(x3)).numpy(),
+                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(dense(("params", "qk"), x3), torch.cat(
+        [q(torch.from_numpy(x3)), k(torch.from_numpy(x3))], -1).numpy(), rtol=1e-5, atol=1e-6)
+    for n, name in enumerate(("q_proj", "k_proj", "v_proj")):
+      rows = slice(4 * n, 4 * (n + 1))
+      want = torch.nn.functional.linear(torch.from_numpy(x4), mha.in_proj_weight[rows],
+                                        mha.in_proj_bias[rows]).numpy()
+      np.testing.assert_allclose(dense(("params", "a", name), x4), want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(dense(("params", "a", "out_proj"), x4),
+                               mha.out_proj(torch.from_numpy(x4)).numpy(), rtol=1e-5, atol=1e-6)
+
+  back = R.to_state_dict(unflatten_dict(flat), rules)
+  assert sorted(back) == sorted(state)
+  for key, value in state.items():
+    np.testing.assert_array_equal(back[key], value, err_msg=key)
+
+
+def test_rules_engine_gives_float32_and_names_bad_entries():
+  """A half- or double-precision tensor converts to float32 (what the networks and the weights
+  directories hold) with its values; a non-tensor entry, a tensor with fewer rows than its slice
+  needs, and a key table that leaves a model path uncovered each fail with one message naming
+  the key, the file or the path."""
+  from weights_convert import rules as R
+  values = [[0.5, -1.25, 3.0], [2.0, 0.0, -0.75]]  # (out 2, in 3), exact in float16
+  rules: R.Rules = []
+  R.linear(rules, ("params", "w"), "w", bias=False)
+  expected = {("params", "w", "kernel"): (3, 2)}
+  for dtype in (np.float16, np.float64):
+    flat = R.apply_rules({"w.weight": np.array(values, dtype)}, rules, lambda k: False, "x.pth",
+                         expected)
+    kernel = flat[("params", "w", "kernel")]
+    assert kernel.dtype == np.float32
+    np.testing.assert_array_equal(kernel, [[0.5, 2.0], [-1.25, 0.0], [3.0, -0.75]])
+  with pytest.raises(CheckpointError, match=r"^x\.pth: w\.weight is a int, expected a tensor$"):
+    R.apply_rules({"w.weight": 3}, rules, lambda k: False, "x.pth", expected)
+  rows: R.Rules = []
+  R.in_proj(rows, ("params", "a"), "attn", 2)  # q, k, v: rows 0:2, 2:4, 4:6
+  short = {"attn.in_proj_weight": np.zeros((5, 2), np.float32),
+           "attn.in_proj_bias": np.zeros(6, np.float32),
+           "attn.out_proj.weight": np.zeros((2, 2), np.float32),
+           "attn.out_proj.bias": np.zeros(2, np.float32)}
+  shapes = {("params", "a", n, leaf): (2, 2) if leaf == "kernel" else (2,)
+            for n in ("q_proj", "k_proj", "v_proj", "out_proj") for leaf in ("kernel", "bias")}
+  with pytest.raises(CheckpointError, match=r"^x\.pth: attn\.in_proj_weight has shape \(5, 2\), "
+                                            r"expected at least 6 rows$"):
+    R.apply_rules(short, rows, lambda k: False, "x.pth", shapes)
+  with pytest.raises(AssertionError, match=r"does not cover model paths \['params/b/kernel'\]"):
+    R.apply_rules({"w.weight": np.array(values, np.float32)}, rules, lambda k: False, "x.pth",
+                  {**expected, ("params", "b", "kernel"): (1, 1)})
+
+
+# --- converter arguments and metadata -------------------------------------------------------------
+
+def test_use_stereo_is_carried_over_and_absent_means_monocular(r18, tmp_path):
+  """upstream's trainer saves `use_stereo` in encoder.pth; a stereo-trained encoder must give
+  config["use_stereo"] True (evaluation then scales by MonoDepth2's x5.4 instead of the median),
+  and an encoder without the entry is taken as monocular (the converter's documented default)."""
+  root = r18["root"] / "zip"
+  state = torch.load(root / "encoder.pth")
+  torch.save(dict(state, use_stereo=True), tmp_path / "stereo.pth")
+  torch.save({k: v for k, v in state.items() if k != "use_stereo"}, tmp_path / "no_flag.pth")
+  assert convert_monodepth2(tmp_path / "stereo.pth", root / "depth.pth")[0]["use_stereo"] is True
+  assert convert_monodepth2(tmp_path / "no_flag.pth", root / "depth.pth")[0]["use_stereo"] is False
+
+
+def test_argument_mistakes_are_named(r18, tmp_path):
+  """A pose encoder without the pose decoder is refused before any file is read; one file given as
+  both encoder and decoder is named as such; a monocular encoder with a missing pose file names
+  that file, without the stereo release hint (only a stereo-trained encoder gets it)."""
+  enc, depth, penc, pose = _paths(r18["root"] / "zip")
+  with pytest.raises(CheckpointError, match="--pose-encoder and --pose go together"):
+    convert_monodepth2(enc, depth, pose_encoder=penc)
+  with pytest.raises(CheckpointError, match=r"encoder\.pth: keys .* also occur in .*encoder\.pth;"
+                                            r" .*the same file\?"):
+    convert_monodepth2(enc, enc)
+  with pytest.raises(CheckpointError, match=r"nope_pose\.pth") as info:
+    convert_monodepth2(enc, depth, penc, tmp_path / "nope_pose.pth")
+  assert "stereo" not in str(info.value)
+
+
+def _md2_args(**kw):
+  """`python -m weights_convert monodepth2`'s arguments, without the pose files by default."""
+  import argparse
+  return argparse.Namespace(**{"pose_encoder": None, "pose": None, "num_layers": None, **kw})
+
+
+def test_run_records_the_sources_and_a_pose_net_of_another_depth(r18, tmp_path):
+  """model.json's "source" names each input file under its own flag, and a pose encoder deeper
+  than the depth encoder (ResNet-34 beside ResNet-18) is recorded as pose_num_layers (the field
+  the registry builds the PoseNet from; it defaults to num_layers)."""
+  import json
+  from weights_convert import monodepth2
+  enc, depth, _, _ = _paths(r18["root"] / "zip")
+  penc, pose = tmp_path / "pose_encoder.pth", tmp_path / "pose.pth"
+  torch.save(tm.ResnetEncoder(34, num_input_images=2).state_dict(), penc)
+  torch.save(tm.PoseDecoder(tm.num_ch_enc(34), 1, 2).state_dict(), pose)
+  out = monodepth2.run(_md2_args(encoder=enc, depth=depth, pose_encoder=penc, pose=pose,
+                                 out=tmp_path / "w"))
+  meta = json.loads((out / "model.json").read_text())
+  assert meta["source"] == {"encoder": str(enc), "depth": str(depth), "pose_encoder": str(penc),
+                            "pose": str(pose)}
+  assert (meta["num_layers"], meta["pose_num_layers"]) == (18, 34)
+
+
+def test_an_input_inside_an_earlier_checkpoint_folder_is_refused(r18, tmp_path, capsys):
+  """An input file that lies inside OUT/depth/ of earlier weights would be deleted with the
+  checkpoint folder it is in when the conversion replaces it: refused before any work, named."""
+  import shutil
+  from pitta_jax.checkpoint import save_weights
+  from pitta_jax.cli import main
+  enc, depth, _, _ = _paths(r18["root"] / "zip")
+  out = tmp_path / "w"
+  save_weights(out, "monodepth2", {"num_layers": 18, "height": 192, "width": 640}, r18["zip"][1])
+  inside = out / "depth" / "depth.pth"
+  shutil.copy(depth, inside)
+  assert main(["convert", "monodepth2", "--encoder", str(enc), "--depth", str(inside), "--out",
+               str(out)]) == 2
+  assert f"--out {out} would overwrite the input --depth {inside}" in capsys.readouterr().err
+  assert inside.read_bytes() == open(depth, "rb").read()
+
+
+def test_a_depth_folder_that_is_no_checkpoint_is_not_replaced_beside_a_description(tmp_path):
+  """A model.json naming an architecture does not make everything beside it earlier weights:
+  a depth/ folder without orbax's metadata files (here a user's notes) would be replaced by the
+  conversion and is refused, named."""
+  import json
+  from weights_convert.cli import check_output_replaceable
+  out = tmp_path / "w"
+  (out / "depth").mkdir(parents=True)
+  (out / "depth" / "notes.txt").write_text("mine")
+  (out / "model.json").write_text(json.dumps({"architecture": "monodepth2"}))
+  with pytest.raises(ValueError, match=re.escape(f"--out {out}: its depth/ would be replaced and "
+                                                 f"is not earlier pitta-jax weights")):
+    check_output_replaceable(str(out), "monodepth2")
+  assert (out / "depth" / "notes.txt").read_text() == "mine"
+
+
+def test_one_network_per_weights_directory(tmp_path):
+  """A depth network's weights (a model.json naming an architecture, or an orbax depth/) refuse
+  a Mask2Former conversion into their directory and Mask2Former's (config.json naming one, or
+  an orbax params/) a depth conversion; files of the same names that are no pitta-jax weights
+  (a Hub snapshot's config.json, a dataset's depth/ of PNGs) do not count as another network."""
+  import json
+  from weights_convert.cli import check_output_replaceable
+  depth_net, m2f, plain = tmp_path / "depth_net", tmp_path / "m2f", tmp_path / "plain"
+  (depth_net / "depth").mkdir(parents=True)
+  (depth_net / "depth" / "_CHECKPOINT_METADATA").write_text("{}")
+  (m2f / "params").mkdir(parents=True)
+  (m2f / "params" / "_METADATA").write_text("{}")
+  (plain / "depth").mkdir(parents=True)
+  (plain / "depth" / "0000.png").write_bytes(b"ground truth")
+  (plain / "config.json").write_text(json.dumps({"model_type": "depth_anything"}))
+  with pytest.raises(ValueError, match=re.escape(f"--out {depth_net}: holds a depth network's "
+                                                 f"weights (model.json, depth)")):
+    check_output_replaceable(str(depth_net), "mask2former")
+  with pytest.raises(ValueError, match=re.escape(f"--out {m2f}: holds Mask2Former weights "
+                                                 f"(config.json, params)")):
+    check_output_replaceable(str(m2f), "hrdepth")
+  (depth_net / "depth" / "_CHECKPOINT_METADATA").unlink()
+  (depth_net / "model.json").write_text(json.dumps({"architecture": "monodepth2"}))
+  with pytest.raises(ValueError, match="holds a depth network's weights"):
+    check_output_replaceable(str(depth_net), "mask2former")
+  # Mask2Former's conversion would write plain's config.json (not pitta-jax's): refused as such
+  with pytest.raises(ValueError, match=re.escape(f"--out {plain}: its config.json would be "
+                                                 f"replaced and is not earlier pitta-jax")):
+    check_output_replaceable(str(plain), "mask2former")
+  (plain / "config.json").unlink()
+  check_output_replaceable(str(plain), "mask2former")  # the dataset's depth/ stays beside

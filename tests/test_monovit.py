@@ -304,3 +304,28 @@ def test_partial_data_parallel_prefix_is_an_error(tiny, tmp_path):
   torch.save(state, tmp_path / "depth.pth")
   with pytest.raises(CheckpointError, match="expected all or none"):
     convert_monovit(tiny["root"] / "encoder.pth", tmp_path / "depth.pth")
+
+
+def test_a_given_size_must_agree_with_the_file_and_a_given_use_stereo_wins(tiny):
+  """encoder.pth records its training size (192x640 here): --height/--width that contradict it
+  are refused, named; --use-stereo given explicitly is taken over the file's `use_stereo`
+  entry (the entry is the default only when the flag is not given)."""
+  root = tiny["root"]
+  with pytest.raises(CheckpointError, match=r"encoder\.pth: records height = 192, but 320 was "
+                                            r"given"):
+    convert_monovit(root / "encoder.pth", root / "depth.pth", height=320, width=640)
+  config, _ = convert_monovit(root / "encoder.pth", root / "depth.pth", height=192, width=640,
+                              use_stereo=True)
+  assert (config["height"], config["width"], config["use_stereo"]) == (192, 640, True)
+
+
+def test_a_stage_whose_widths_do_not_divide_is_not_an_mpvit_stage(tiny):
+  """The layout is read from shapes: an MLP width that is no multiple of the stage width (an
+  MPViT MLP is mlp_ratio x width) is named as not an MPViT stage, rather than floored into a
+  ratio that then fails on some shape."""
+  from weights_convert.monovit import infer_layout
+  state = torch.load(tiny["root"] / "encoder.pth")
+  state["mhca_stages.0.mhca_blks.0.MHCA_layers.0.mlp.fc1.weight"] = torch.zeros(100, 64)
+  with pytest.raises(CheckpointError, match=r"^enc\.pth: mhca_stages\.0 has width 64, MLP width "
+                                            r"100 and 8 channels per head; not an MPViT stage$"):
+    infer_layout(state, "enc.pth")

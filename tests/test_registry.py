@@ -195,3 +195,51 @@ def test_an_array_of_the_wrong_shape_is_named(variables, tmp_path):
   with pytest.raises(WeightsError, match=r"encoder/bn1/scale has shape \(32,\), the network in "
                                          r"model\.json expects \(64,\)"):
     load_weights(tmp_path / "w")
+
+
+def test_model_json_without_a_size_is_the_released_size_and_a_boolean_size_is_refused(
+    weights_dir, tmp_path):
+  """A model.json without height/width describes MonoDepth2's released mono_640x192 weights
+  (H 192, W 640); JSON `true` is no height, although Python's bool is an int."""
+  import shutil
+  root = tmp_path / "w"
+  shutil.copytree(weights_dir, root)
+  meta = json.loads((root / "model.json").read_text())
+  del meta["height"], meta["width"]
+  (root / "model.json").write_text(json.dumps(meta))
+  w = load_weights(root)
+  assert (w.height, w.width) == (192, 640)
+  _edit_json(root, height=True)
+  with pytest.raises(WeightsError, match=re.escape(str(root)) + r".*height must be a positive "
+                                         r"integer, got True"):
+    load_weights(root)
+
+
+def test_weights_the_loader_would_refuse_are_not_written(variables, tmp_path):
+  """save_weights checks the input size before writing anything (no directory is left); a tree
+  with an array the network does not have is refused on loading, named."""
+  with pytest.raises(ValueError, match=r"input size 100x64 .* multiples of 32"):
+    save_weights(tmp_path / "odd", "monodepth2", {"num_layers": 18, "height": 64, "width": 100},
+                 variables)
+  assert not (tmp_path / "odd").exists()
+  extra = jax.tree_util.tree_map(np.asarray, variables)
+  extra = {**extra, "params": {**extra["params"], "extra": {"kernel": np.zeros((1, 1), np.float32)}}}
+  save_weights(tmp_path / "extra", "monodepth2", {"num_layers": 18, "height": H, "width": W}, extra)
+  with pytest.raises(WeightsError, match=r"0 missing, 1 unexpected arrays, e\.g\. "
+                                         r"\['params/extra/kernel'\]"):
+    load_weights(tmp_path / "extra")
+
+
+def test_input_size_rule_on_each_side_and_its_bound():
+  """Both sides must be multiples of size_multiple (32 for MonoDepth2); the largest side taken is
+  MAX_SIDE = 16384 pixels itself, on either side."""
+  from pitta_jax.models.spec import MAX_SIDE
+  spec = get_spec("monodepth2")
+  with pytest.raises(ValueError, match=r"input size 100x64 \(WxH\) .* multiples of 32"):
+    spec.check_size(64, 100)
+  assert MAX_SIDE == 16384
+  spec.check_size(32, 16384)
+  spec.check_size(16384, 32)
+  for h, w in ((32, 16384 + 32), (16384 + 32, 32)):
+    with pytest.raises(ValueError, match=r"more than 16384 pixels on a side"):
+      spec.check_size(h, w)

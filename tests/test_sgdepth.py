@@ -259,3 +259,34 @@ def test_a_stereo_release_without_pose_files_says_so(tmp_path):
                      r"release .* leave out --pose-encoder and --pose"):
     convert_monodepth2(encoder, tmp_path / "depth.pth", tmp_path / "pose_encoder.pth",
                        tmp_path / "pose.pth")
+
+
+def test_more_than_four_disparity_heads_are_refused(released, tmp_path):
+  """Upstream's depth resolutions are 1..4 (MonoDepth2's four scales): a fifth head
+  `depth.multires.convs.4` is refused, named, rather than converted into a network with
+  a scale the decoder does not have."""
+  state = torch.load(released["path"])
+  fifth = {k.replace("convs.3.", "convs.4."): v for k, v in state.items()
+           if k.startswith("depth.multires.convs.3.")}
+  torch.save({**state, **fifth}, tmp_path / "five.pth")
+  with pytest.raises(CheckpointError, match=r"five\.pth: depth\.multires\.convs holds heads "
+                                            r"\[0, 1, 2, 3, 4\], expected 0\.\.n-1 with n in 1\.\.4"):
+    conv.convert_sgdepth(tmp_path / "five.pth")
+
+
+def test_decoder_steps_must_split_once_and_stray_keys_are_named(released, tmp_path):
+  """The ten PartialDecoder steps are common.decoder 0..k-1 then depth.decoder k..9: a file
+  without the depth branch's last step is named as not SGDepth's layout (rather than listed as
+  missing keys), and a stray key under that last step is an unexpected key like any other."""
+  state = torch.load(released["path"])
+  torch.save({k: v for k, v in state.items()
+              if not k.startswith("depth.decoder.blocks.step_9.")}, tmp_path / "nine.pth")
+  with pytest.raises(CheckpointError, match=r"nine\.pth: decoder steps common\.decoder \[0\] \+ "
+                                            r"depth\.decoder \[1, 2, 3, 4, 5, 6, 7, 8\] are not "
+                                            r"0\.\.k-1 and k\.\.9"):
+    conv.convert_sgdepth(tmp_path / "nine.pth")
+  torch.save(dict(state, **{"depth.decoder.blocks.step_9.extra": torch.zeros(1)}),
+             tmp_path / "stray.pth")
+  with pytest.raises(CheckpointError, match=r"1 unexpected keys: depth\.decoder\.blocks\.step_9\."
+                                            r"extra"):
+    conv.convert_sgdepth(tmp_path / "stray.pth")

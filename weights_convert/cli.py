@@ -48,25 +48,18 @@ WRITTEN = (MODEL_JSON, "depth", "pose", CONFIG_JSON, PARAMS_DIR)
 
 
 def check_output_replaceable(out: str, converter: str | None = None) -> None:
-  """ValueError when --out holds something a conversion would replace (model.json, depth/,
-  pose/, config.json, params/) that is not earlier pitta-jax weights: a dataset's depth/
-  folder, a user's own model.json. Earlier weights (a model.json or Mask2Former's config.json
-  naming an architecture, beside orbax checkpoint folders) are replaced, as a rerun expects;
-  anything else in --out (e.g. the .pth files converted) is left alone."""
+  """ValueError when --out holds something the `converter` would replace (a depth network's
+  model.json, depth/, pose/; Mask2Former's config.json, params/; all five for None) that is not
+  earlier pitta-jax weights: a dataset's depth/ folder, a user's own model.json. Earlier weights
+  (a model.json or Mask2Former's config.json naming an architecture, beside orbax checkpoint
+  folders) are replaced, as a rerun expects; the other network's weights are refused (one
+  network per directory); anything else in --out (the .pth files converted, a Hub snapshot's
+  own config.json beside a depth conversion) is left alone."""
   import json
   from pathlib import Path
   if not out:
     raise ValueError("--out: an empty path (give the weights directory to write)")
   path = Path(out)
-  if converter is not None and path.is_dir():  # one network's weights per directory
-    other = ([MODEL_JSON, "depth"] if converter == "mask2former" else [CONFIG_JSON, PARAMS_DIR])
-    if any((path / name).exists() for name in other):
-      kind = "a depth network's" if converter == "mask2former" else "Mask2Former"
-      raise ValueError(f"--out {out}: holds {kind} weights ({', '.join(other)}); the "
-                       f"{converter} weights need a directory of their own")
-  present = [name for name in WRITTEN if (path / name).exists()] if path.is_dir() else []
-  if not present:
-    return
 
   def is_description(p: Path) -> bool:
     try:
@@ -77,6 +70,24 @@ def check_output_replaceable(out: str, converter: str | None = None) -> None:
 
   def is_checkpoint(p: Path) -> bool:
     return p.is_dir() and any((p / m).is_file() for m in ("_METADATA", "_CHECKPOINT_METADATA"))
+
+  mask2former = (CONFIG_JSON, PARAMS_DIR)
+  depth_net = (MODEL_JSON, "depth", "pose")
+  if converter is not None and path.is_dir():  # one network's weights per directory
+    other = depth_net[:2] if converter == "mask2former" else mask2former
+    # another network's weights: its description, or its checkpoint folder (a Hub snapshot's
+    # own config.json beside model.safetensors is neither)
+    if any(is_description(path / n) if n.endswith(".json") else is_checkpoint(path / n)
+           for n in other):
+      kind = "a depth network's" if converter == "mask2former" else "Mask2Former"
+      raise ValueError(f"--out {out}: holds {kind} weights ({', '.join(other)}); the "
+                       f"{converter} weights need a directory of their own")
+  # what this converter writes (all of WRITTEN when the converter is not known)
+  written = (WRITTEN if converter is None
+             else mask2former if converter == "mask2former" else depth_net)
+  present = [name for name in written if (path / name).exists()] if path.is_dir() else []
+  if not present:
+    return
   descriptions = [n for n in present if n in (MODEL_JSON, CONFIG_JSON)]
   foreign = [n for n in present
              if not (is_description(path / n) if n in (MODEL_JSON, CONFIG_JSON)
