@@ -52,9 +52,9 @@ def _parse_int_tuple(text: str) -> tuple[int, ...]:
   from pitta_jax.data import coco
   out = []
   for item in (t.strip() for t in text.split(",") if t.strip()):
-    if item.lstrip("-").isdigit():
-      out.append(int(item))
-    else:
+    try:
+      out.append(int(item))  # "--5" passed an isdigit test, then int() raised a bare ValueError
+    except ValueError:
       try:
         out.append(coco.name_to_id(item))
       except (KeyError, ValueError):

@@ -34,9 +34,9 @@ def split_options(items: Sequence[str], unique: bool = False) -> dict[str, str]:
   options: dict[str, str] = {}
   for item in items:
     key, sep, value = item.partition("=")
-    if not sep or not key:
-      raise DataError(None, f"--option {item!r} is not KEY=VALUE")
     key, value = key.strip(), value.strip()
+    if not sep or not key:  # " =3": no key once its blanks go
+      raise DataError(None, f"--option {item!r} is not KEY=VALUE")
     if unique and key in options:
       raise DataError(None, f"--option {key} given twice ({options[key]}, {value}): give it once")
     options[key] = value

@@ -247,6 +247,52 @@ def test_shared_flags_reach_the_selected_method():
   assert all(c.ld_weight == 0.0 for name, c in configs.items() if hasattr(c, "ld_weight"))
 
 
+def test_every_flag_of_the_update_is_refused_for_a_method_that_never_updates():
+  """`--method none` never updates the network, so each --adapt flag that shapes an update
+  (optimiser, momentum, selector, reset, the non-finite guard, as --lr and --steps-per-frame
+  above) would be ignored: each is refused by its own name, a flag of the run (--bn-stats)
+  is not."""
+  from pitta_jax.cli import adapt_config, build_parser
+  parser = build_parser()
+
+  def adapt(*flags):
+    return adapt_config(parser.parse_args(["adapt", "--dataset", "synthetic", "--method",
+                                           "none", *flags]))
+  for flags, named in ((["--optimizer", "sgd"], "optimizer"),
+                       (["--optimizer", "sgd", "--momentum", "0.5"], "momentum"),
+                       (["--selector", "all"], "selector"),
+                       (["--reset-every", "5"], "reset-every"),
+                       (["--skip-nonfinite", "false"], "skip-nonfinite")):
+    with pytest.raises(ValueError) as e:
+      adapt(*flags)
+    assert str(e.value) == (f"--adapt.{named} does not apply to --method none: it never "
+                            f"updates the network"), flags
+  cfg, method, _ = adapt("--bn-stats", "batch")
+  assert (method.name, cfg.bn_stats) == ("none", "batch")
+
+
+def test_a_flag_given_as_zero_or_false_is_a_flag_given():
+  """A value that reads as false (0, false) is still a flag the user gave: another method's
+  flag is refused, --adapt's optimiser flags for a method with its own optimiser and the update
+  flags for one that never updates are refused, as for any other value."""
+  from pitta_jax.cli import adapt_config, build_parser
+  parser = build_parser()
+  cotta = ["--method", "cotta", "--bn-stats", "running"]
+  for flags, message in (
+      ([*cotta, "--comoda.lr", "0"], "--comoda.lr is a flag of --method comoda, not of --method "
+                                     "cotta"),
+      ([*cotta, "--adapt.lr", "0"], "--adapt.lr does not apply to --method cotta: it steps its "
+                                    "own optimiser (set it with its --cotta.* flags)"),
+      (["--method", "none", "--adapt.reset-every", "0"], "--adapt.reset-every does not apply to "
+                                                         "--method none: it never updates the "
+                                                         "network"),
+      (["--method", "none", "--adapt.skip-nonfinite", "false"],
+       "--adapt.skip-nonfinite does not apply to --method none: it never updates the network")):
+    with pytest.raises(ValueError) as e:
+      adapt_config(parser.parse_args(["adapt", "--dataset", "synthetic", *flags]))
+    assert str(e.value) == message, flags
+
+
 def test_a_failed_or_interrupted_command_ends_the_process_at_once(monkeypatch):
   """`exit_with` (the console scripts' exit): a non-zero code ends the process with os._exit
   (no interpreter teardown under a compile still running on JAX's thread, which crashed a

@@ -125,6 +125,19 @@ def cli(tmp_path, monkeypatch, capsys):
       "TMP/bogus.npz", "--source-images", "TMP/seq"),
      "--source-images and --source-stats: --source-stats holds the statistics the source data "
      "would give; give one of them"),
+    # the dataset flags themselves (`check_dataset_args`, `check_run_needs`): each mistake is
+    # named before the weights load, not met as the weights' (or a reader's) error later
+    (("--dataset", "synthetic", "--segmentation", "png:TMP/seq"),
+     "the synthetic benchmark carries exact panoptic maps: use --segmentation gt"),
+    (("--dataset", "folder"), "--root is required for dataset folder"),
+    (("--dataset", "synthetic", "--root", "TMP/seq"),
+     "--root TMP/seq: for real datasets (the synthetic benchmark is generated); drop it or name "
+     "the dataset with --dataset"),
+    (("--dataset", "folder", "--root", "TMP/seq", "--segmentation", "png"),
+     "--segmentation png:DIR needs a directory"),
+    (("--dataset", "synthetic", "--option", "num_frames=0"),
+     "--option num_frames=0: the synthetic sequence has no frames"),
+    (("--dataset", "synthetic", "--option", "=3"), "--option '=3' is not KEY=VALUE"),
 ])
 def test_unmet_needs_fail_before_work(cli, tmp_path, args, message):
   rc, err = cli(*args)
@@ -401,3 +414,64 @@ def test_an_unusable_cache_directory_is_named(tmp_path, monkeypatch, capsys):
   err = capsys.readouterr().err
   assert err.count("\n") == 1 and err.startswith(f"error: {blocker}")
   assert f"set ${CACHE_ENV} to a writable directory" in err
+
+
+def test_a_file_where_checkpoints_go_is_refused_before_work(cli, tmp_path, capsys):
+  """--checkpoint-every K writes OUT/checkpoints/: a file of that name is one line naming it,
+  before the weights load (here only a model.json), and is left as it was; without the flag
+  the file is no concern of the run (it goes on, to the weights)."""
+  out = tmp_path / "out"
+  out.mkdir()
+  (out / "checkpoints").write_text("mine")
+  argv = ["adapt", "--weights", str(tmp_path / "weights"), "--out", str(out), "--quiet",
+          "--dataset", "synthetic"]
+  assert main([*argv, "--checkpoint-every", "2"]) == 2
+  assert capsys.readouterr().err == (f"error: {out / 'checkpoints'}: is a file; "
+                                     "--checkpoint-every writes a directory there\n")
+  assert (out / "checkpoints").read_text() == "mine"
+  assert main(argv) == 2
+  err = capsys.readouterr().err
+  assert "is a file" not in err and err.startswith(f"error: {tmp_path / 'weights'}")
+
+
+def test_input_sizes_are_checked_at_their_bounds(tmp_path, capsys):
+  """predict's --height/--width (segment's share the check): 0 is not a size, and MAX_SIDE
+  pixels on a side is the largest taken (one more is refused); the checks come before the
+  weights (here an empty directory), so a size that passes them fails on the weights instead."""
+  from pitta_jax.models.spec import MAX_SIDE
+  argv = ["predict", "--weights", str(tmp_path), "--images", str(tmp_path), "--out",
+          str(tmp_path / "p")]
+  assert main([*argv, "--height", "0", "--width", "96"]) == 2
+  assert capsys.readouterr().err == "error: --height/--width must be positive, got 0x96\n"
+  assert main([*argv, "--height", "64", "--width", str(MAX_SIDE + 1)]) == 2
+  assert capsys.readouterr().err == (f"error: --height/--width: 64x{MAX_SIDE + 1} is more than "
+                                     f"{MAX_SIDE} pixels on a side\n")
+  assert main([*argv, "--height", str(MAX_SIDE), "--width", str(MAX_SIDE)]) == 2
+  err = capsys.readouterr().err
+  assert "pixels on a side" not in err and "model.json" in err
+  assert not (tmp_path / "p").exists()
+
+
+def test_ship_into_a_package_it_cannot_write_is_refused_before_training(monkeypatch, capsys):
+  """`train-source --ship` writes into the package (pitta_jax/assets/): where that is not
+  writable (an installed wheel) it is one line naming --ship, before the training it would
+  follow; where it is, the model trains, then ships. (Root may write anywhere: the test makes
+  the package's folder read-only to `os.access`, the check the command makes.)"""
+  import os
+  from pathlib import Path
+  from pitta_jax import source_model
+  calls = []
+  monkeypatch.setattr(source_model, "load_or_train_source",
+                      lambda cfg, **k: calls.append("train") or (None, {"weights_dir": "w"}))
+  monkeypatch.setattr(source_model, "ship_source", lambda cfg, **k: calls.append("ship") or "s")
+  real_access = os.access
+  package = {source_model.ASSETS, source_model.ASSETS.parent}
+  monkeypatch.setattr(os, "access", lambda path, mode: Path(path) not in package
+                      and real_access(path, mode))
+  assert main(["train-source", "--ship", "--quiet"]) == 2
+  assert capsys.readouterr().err == (f"error: --ship: {source_model.ASSETS} is not writable "
+                                     f"(ship from a source checkout)\n")
+  assert calls == []
+  monkeypatch.setattr(os, "access", real_access)
+  assert main(["train-source", "--ship", "--quiet"]) == 0
+  assert calls == ["train", "ship"] and capsys.readouterr().out.endswith("shipped: s\n")

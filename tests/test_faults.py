@@ -61,6 +61,14 @@ def test_output_dir_checked_and_locked(tmp_path):
   open_output_dir(tmp_path / "out").close()  # free again
 
 
+def test_an_existing_directory_nothing_can_be_written_to_is_refused_by_name():
+  """An existing --out directory in which no file can be made (/proc here: the tests run as
+  root, whom permissions do not stop) is one line naming --out, found by the probe file before
+  any work, not an OSError of the lock file's path."""
+  with pytest.raises(OutputError, match=r"^--out /proc: cannot write there \("):
+    open_output_dir("/proc")
+
+
 def test_second_writer_on_one_out_is_refused_with_one_line(tmp_path, capsys):
   out = tmp_path / "out"
   holder = subprocess.Popen(
@@ -155,6 +163,23 @@ def test_files_of_one_result_are_replaced_together_or_not_at_all(tmp_path):
   assert not list(tmp_path.glob(".*.tmp-*"))
   atomic_write_files(tmp_path, {"t.md": "new", "t.csv": b"new"})
   assert [(tmp_path / n).read_text() for n in names] == ["new", "new", "old"]
+
+
+def test_every_file_of_a_result_is_synced_before_the_first_rename(tmp_path, monkeypatch):
+  """The write's durability (the module's promise: temporary file, fsync, then rename): each
+  temporary file is fsynced, every one before the first `os.replace`, so that a crash after a
+  rename cannot find a renamed file whose data never reached the disk."""
+  events = []
+  real_fsync, real_replace = os.fsync, os.replace
+  monkeypatch.setattr(os, "fsync", lambda fd: events.append(
+      ("fsync", os.path.basename(os.readlink(f"/proc/self/fd/{fd}")))) or real_fsync(fd))
+  monkeypatch.setattr(os, "replace", lambda src, dst: events.append(
+      ("replace", os.path.basename(dst))) or real_replace(src, dst))
+  atomic_write_files(tmp_path, {"t.md": "new", "results.json": b"{}"})
+  pid = os.getpid()
+  assert events == [("fsync", f".t.md.tmp-{pid}"), ("fsync", f".results.json.tmp-{pid}"),
+                    ("replace", "t.md"), ("replace", "results.json")]
+  assert (tmp_path / "t.md").read_text() == "new"
 
 
 def _dead_pid() -> int:
@@ -834,6 +859,31 @@ def test_a_commands_stderr_holds_no_log_lines_of_orbax_threads(capsys, caplog):
     absl.setLevel(level)
 
 
+def test_the_interrupted_line_offers_resume_only_for_a_run_that_checkpoints(tmp_path,
+                                                                           monkeypatch, capsys):
+  """Ctrl-C (exit 130): the line says that the last chunk is checkpointed, with --resume to
+  continue, only for `adapt --checkpoint-every K` with a complete checkpoint; the same run
+  before its first one says none was saved; a run without --checkpoint-every says nothing of
+  checkpoints, even over an earlier run's (which --resume, needing the flag, would not take).
+  The command and the checkpoints found are stubbed: only the line is checked."""
+  from pitta_jax import cli, run
+
+  def stop(args):
+    raise KeyboardInterrupt
+  monkeypatch.setattr(cli, "_run_adapt", stop)
+  found = ["an earlier run's"]
+  monkeypatch.setattr(run, "complete_checkpoints", lambda directory: found)
+  argv = ["adapt", "--dataset", "synthetic", "--quiet", "--out", str(tmp_path / "o")]
+  assert main(argv) == 130
+  assert capsys.readouterr().err == "interrupted\n"
+  assert main([*argv, "--checkpoint-every", "4"]) == 130
+  assert capsys.readouterr().err == ("interrupted; the last completed chunk is checkpointed: run "
+                                     "the same command with --resume to continue\n")
+  found.clear()
+  assert main([*argv, "--checkpoint-every", "4"]) == 130
+  assert capsys.readouterr().err == "interrupted; no checkpoint was saved yet\n"
+
+
 def test_a_closed_terminal_stops_a_command_as_sigterm_does(capsys):
   """SIGHUP (the ssh session or terminal closed) ended a run at once, without the last chunk's
   checkpoint; it now stops the command where it runs, as SIGTERM, with the shell's status
@@ -889,6 +939,18 @@ def test_host_out_of_memory_is_one_line_too():
     assert out_of_memory(e) == f"out of memory: Failed to allocate 120000000000 bytes {hint}"
   assert out_of_memory(cv2.error("(-215:Assertion failed) !ssize.empty()")) is None
   assert out_of_memory(cv2.error("Insufficient memory to decode")) is None  # not OpenCV's form
+
+
+def test_weights_of_another_network_than_model_are_refused_before_work(tiny_weights, tmp_path,
+                                                                       capsys):
+  """--model names the network the user means; weights of another architecture are one line
+  naming both, and nothing runs (the --out directory the command made is removed again)."""
+  out = tmp_path / "o"
+  assert main(["adapt", "--dataset", "synthetic", "--weights", str(tiny_weights), "--model",
+               "litemono", "--option", "num_frames=1", "--quiet", "--out", str(out)]) == 2
+  assert capsys.readouterr().err == (f"error: --model litemono, but {tiny_weights} holds a "
+                                     f"monodepth2\n")
+  assert not out.exists()
 
 
 def test_weights_of_a_size_no_image_has_are_refused(tiny_weights, tmp_path):

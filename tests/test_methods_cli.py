@@ -99,6 +99,26 @@ def test_demo_rows_keep_the_flags_given_and_refuse_a_method(capsys):
                                      "(e.g. --demo.methods none,bn,pitta,cotta)\n")
 
 
+def test_the_demo_notes_a_row_that_runs_with_a_flag_instead_of_its_own_setting(tmp_path,
+                                                                             monkeypatch, capsys):
+  """A flag given wins over a row's own setting (CoTTA adapts every parameter, selector all):
+  the demo says so on stderr before it runs, for the rows it changes; a flag equal to the row's
+  setting changes nothing and is not noted. (The run itself is stubbed: only the notes.)"""
+  from pitta_jax import demo, source_model
+  ran = []
+  monkeypatch.setattr(demo, "run_demo", lambda *a, **k: ran.append(k["given"]))
+  monkeypatch.setattr(source_model, "enable_compilation_cache", lambda: None)
+  out = str(tmp_path / "d")
+  assert main(["demo", "--demo.methods", "none,pitta,cotta", "--selector", "encoder_bn",
+               "--out", out, "--quiet"]) == 0
+  assert capsys.readouterr().err == ("note: CoTTA + L_d runs with --selector encoder_bn as "
+                                     "given, not its own setting\n")
+  assert main(["demo", "--demo.methods", "cotta", "--selector", "all", "--out", out,
+               "--quiet"]) == 0
+  assert capsys.readouterr().err == ""
+  assert [("selector" in given) for given in ran] == [True, True]
+
+
 def test_help_offers_only_flags_the_command_takes(capsys):
   """adapt's --method help names every registered method; the demo's --help shows neither
   --method (its rows come from --demo.methods) nor --max-depth / --min-depth, which it would

@@ -141,6 +141,33 @@ def test_an_interrupted_predict_leaves_whole_images_and_reruns(converted, tmp_pa
   assert len(list(out.iterdir())) == 9
 
 
+def test_nothing_to_predict_and_a_non_finite_prediction_are_one_line(converted, tmp_path,
+                                                                    monkeypatch, capsys):
+  """--images that name only a previous run's outputs (--out there) leave nothing to predict:
+  one line naming --out's directory, not "wrote 0 predictions"; a network output that is not
+  finite on an image is one line naming the image, with none of its files written (nor the
+  --out directory the command made)."""
+  from pitta_jax import predict
+  d = tmp_path / "imgs"
+  d.mkdir()
+  for name in ("a.png", "a_disp.png"):  # a_disp.png: with the two arrays, an earlier output
+    cv2.imwrite(str(d / name), np.random.default_rng(3).integers(0, 256, (64, 96, 3),
+                                                                 dtype=np.uint8))
+  for name in ("a_disp.npy", "a_depth.npy"):
+    np.save(d / name, np.ones((64, 96), np.float32))
+  args = ["predict", "--weights", str(converted[0]), "--quiet", "--images"]
+  assert main([*args, str(d / "a_*"), "--out", str(d)]) == 2
+  assert capsys.readouterr().err == (f"error: {d}: no image to predict besides this command's "
+                                     f"own outputs\n")
+  monkeypatch.setattr(predict, "make_predictor", lambda network: lambda v, x: (
+      np.full(x.shape[:3], np.nan, np.float32),) * 2)
+  out = tmp_path / "o"
+  assert main([*args, str(d / "a.png"), "--out", str(out)]) == 2
+  assert capsys.readouterr().err == (f"error: {d / 'a.png'}: the network produced non-finite "
+                                     f"outputs on this image\n")
+  assert not out.exists()
+
+
 def test_predict_keeps_a_users_files_reads_gray_and_globs_any_depth(converted, tmp_path, capsys):
   """A ground-truth `a_depth.npy` beside `a.png` with --out the image directory is refused, not
   replaced (it was, with exit 0); a grayscale image predicts as its channel repeated three times

@@ -43,6 +43,7 @@ def test_a_rate_over_no_frames_is_written_as_no_value(tmp_path):
   counted among non_finite_values as if a metric had diverged."""
   from pitta_jax.outputs import rounded_or_none
   assert rounded_or_none(1.23456, 2) == 1.23 and rounded_or_none(float("nan"), 2) is None
+  assert rounded_or_none(float("inf"), 2) is None  # not finite either: no value, not a count
   row = Row("synthetic", "pitta", {"abs_rel": 0.1}, {"steady_fps": rounded_or_none(float("nan"),
                                                                                   2)})
   write_results(tmp_path, [row], {})
@@ -121,6 +122,19 @@ def test_reader_options_are_typed_from_annotations():
     split_options(["foggy"])
 
 
+def test_none_in_any_case_unsets_an_optional_reader_option():
+  """`--option depth_dir=None` (or none, NONE) unsets an option whose annotation allows None
+  (not a directory named "None"); for an option that cannot be None (the synthetic domain, a
+  str) the text stays a value."""
+  from pitta_jax.data.readers import READERS
+  from pitta_jax.data.synthetic import SyntheticConfig
+  folder = function_annotations(READERS["folder"])
+  assert typed_options({"depth_dir": "None", "calib": "NONE", "panoptic_dir": "none"}, folder,
+                       "folder") == {"depth_dir": None, "calib": None, "panoptic_dir": None}
+  assert typed_options({"domain": "None"}, dataclass_annotations(SyntheticConfig),
+                       "synthetic") == {"domain": "None"}
+
+
 def test_segmentation_sources_parse():
   assert parse_segmentation("gt") == ("gt", "")
   assert parse_segmentation("png:pan/dir") == ("png", "pan/dir")
@@ -136,6 +150,29 @@ def test_string_tuples_parse_as_strings():
   add_config_arguments(parser, DemoConfig, "demo", "demo")
   cfg = config_from_args(DemoConfig, parser.parse_args(["--shifts", "fog, night"]), "demo")
   assert cfg.shifts == ("fog", "night") and cfg.num_frames == 40
+
+
+def test_flag_values_parse_as_the_module_documents(capsys):
+  """config_cli's value types, hand values: a bool flag takes true|false (also 1/0, yes/no,
+  on/off, in any case) and refuses anything else in one line naming the flag (not read as
+  false); a comma list drops empty items (a trailing comma); an int list takes negative
+  integers and COCO names (person 1, car 3)."""
+  from pitta_jax.cli import main
+  from pitta_jax.config_cli import parse_bool, parser_for
+  for text, value in (("true", True), ("False", False), (" yes ", True), ("0", False),
+                      ("ON", True), ("off", False)):
+    assert parse_bool(text) is value, text
+  with pytest.raises(argparse.ArgumentTypeError, match="^expected true or false, got 'maybe'$"):
+    parse_bool("maybe")
+  with pytest.raises(SystemExit) as e:
+    main(["adapt", "--dataset", "synthetic", "--out", "unused", "--adapt.skip-nonfinite", "maybe"])
+  assert e.value.code == 2 and capsys.readouterr().err == (
+      "error: argument --adapt.skip-nonfinite/--skip-nonfinite: expected true or false, got "
+      "'maybe' (see pitta-jax adapt --help)\n")
+  strings, _ = parser_for(tuple[str, ...])
+  assert strings("fog,, night,") == ("fog", "night")
+  ints, _ = parser_for(tuple[int, ...])
+  assert ints("-1, 7,person,car,") == (-1, 7, 1, 3)
 
 
 @pytest.mark.parametrize("command", ["demo", "adapt", "evaluate", "train-source", "predict",
@@ -166,6 +203,23 @@ def test_demo_methods_are_validated():
     DemoConfig(methods=("none", "pitta", "none"))
   with pytest.raises(ValueError, match="shifts \\['fog'\\] given twice"):
     DemoConfig(shifts=("fog", "fog"))
+
+
+def test_demo_config_is_checked_at_the_ends_of_its_ranges():
+  """DemoConfig's checks at their bounds (hand values): severity 0 and 1 (the range's ends),
+  one frame and target seed 0 are taken; one step beyond each, and no shift or no row at all,
+  are refused naming the field (a demo of no shift ran only the clear street)."""
+  from pitta_jax.demo import DemoConfig
+  for fine in (dict(severity=0.0), dict(severity=1.0), dict(num_frames=1), dict(target_seed=0)):
+    DemoConfig(**fine)
+  for bad, match in ((dict(severity=-0.1), r"^severity must be in \[0, 1\], got -0.1$"),
+                     (dict(severity=1.1), r"^severity must be in \[0, 1\], got 1.1$"),
+                     (dict(num_frames=0), r"^num_frames must be >= 1, got 0$"),
+                     (dict(target_seed=-1), r"^target_seed must be >= 0, got -1$"),
+                     (dict(shifts=()), r"^shifts \(\) invalid: choose from fog, "),
+                     (dict(methods=()), r"^methods \(\) invalid: choose from none, ")):
+    with pytest.raises(ValueError, match=match):
+      DemoConfig(**bad)
 
 
 @pytest.mark.parametrize("earlier, owner, refused", [
@@ -200,3 +254,16 @@ def test_results_csv_has_every_rows_extra_columns(tmp_path):
   with open(tmp_path / "results.csv", newline="") as f:
     rows = list(csv.DictReader(f))
   assert [(r["fps"], r["n_skipped"]) for r in rows] == [("2.0", ""), ("3.0", "1")]
+
+
+def test_a_blank_option_key_and_a_malformed_integer_are_named():
+  """`--option " =3"` has no key once its blanks go: it is not KEY=VALUE (it was met as "has no
+  option  (options: ...)" with an empty name); `--pitta.ld.dynamic-classes 1,--5` names the item
+  (argparse said "invalid _parse_int_tuple value", the parser's function name)."""
+  from pitta_jax.config_cli import parser_for
+  with pytest.raises(DataError, match=r"^--option ' =3' is not KEY=VALUE$"):
+    split_options([" =3"])
+  ints, _ = parser_for(tuple[int, ...])
+  with pytest.raises(argparse.ArgumentTypeError,
+                     match=r"^'--5' is neither an integer nor a COCO class name$"):
+    ints("1,--5")

@@ -172,6 +172,19 @@ def test_layers_matching_only_modules_with_several_outputs_fail_in_one_line(writ
   assert (root / "weights" / "model.json").read_bytes() == before
 
 
+def test_an_out_that_is_a_directory_is_named_as_one(tmp_path, capsys):
+  """--out naming a directory (the folder meant to hold the file) is one line saying to name
+  the .npz file, before the weights (here none) or the images are read (not "exists and is
+  not a statistics file", which would send the user looking for a file that is not there)."""
+  folder = tmp_path / "stats"
+  folder.mkdir()
+  assert main(["source-stats", "--weights", str(tmp_path / "none"), "--images",
+               str(tmp_path / "none"), "--out", str(folder)]) == 2
+  assert capsys.readouterr().err == (f"error: --out {folder}: is a directory; name the .npz "
+                                     f"file to write\n")
+  assert list(folder.iterdir()) == []
+
+
 def test_synthetic_statistics_are_cached(written, tmp_path, monkeypatch):
   root = written[0]
   weights = load_weights(root / "weights")
