@@ -406,9 +406,9 @@ def _run_adapt(args) -> int:
   from pitta_jax.report import Row, check_results_owner, clear_earlier_results, write_results
   from pitta_jax.run import EvalConfig, checkpoint_chunk_size, metric_factor, run_sequence
   from pitta_jax.checkpoint import read_model_json
-  from pitta_jax.sources import (check_dataset_args, check_run_needs, check_stats_method,
-                                 check_unique_options, lacks_panoptic_maps, method_resources,
-                                 open_frames, open_weights)
+  from pitta_jax.sources import (check_dataset_args, check_model, check_run_needs,
+                                 check_stats_method, check_unique_options, lacks_panoptic_maps,
+                                 method_resources, open_frames, open_weights)
   notes = []
   if args.adapting:
     cfg, method, notes = adapt_config(args)
@@ -428,6 +428,7 @@ def _run_adapt(args) -> int:
   weights_config = None
   if args.weights:  # cheap checks first: the weights' description, the dataset, the method's needs
     weights_spec, weights_config = read_model_json(args.weights)
+    check_model(args.model, weights_spec.name, args.weights)
     if (args.adapting and method.metres and method.config.depth_scale is None
         and metric_factor(weights_spec, weights_config) is None):
       notes.append(f"--method {method.name}'s thresholds are in metres and these weights predict "
@@ -837,7 +838,7 @@ def _main(argv: list[str]) -> int:
     if not args.debug:  # the process ends now: what the save threads still report is noise
       _silence_teardown()
     from pitta_jax.run import complete_checkpoints
-    checkpointing = getattr(args, "checkpoint_every", 0) and getattr(args, "adapting", False)
+    checkpointing = getattr(args, "checkpoint_every", 0)  # adapt and evaluate
     saved = checkpointing and bool(complete_checkpoints(os.path.join(args.out, "checkpoints")))
     say_stopped("interrupted" + ("; the last completed chunk is checkpointed: run the same "
                                  "command with --resume to continue" if saved else

@@ -97,6 +97,13 @@ def dataclass_annotations(cls: type) -> dict[str, Any]:
   return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
 
 
+def check_model(model: str | None, architecture: str, weights_dir: str) -> None:
+  """DataError unless the --model the user asked for (None: any) is the network the weights
+  directory holds (its model.json's `architecture`)."""
+  if model and architecture != model:
+    raise DataError(None, f"--model {model}, but {weights_dir} holds a {architecture}")
+
+
 def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False,
                  model: str | None = None) -> Weights:
   """The given weights directory; for the synthetic benchmark without one, the cached source
@@ -107,8 +114,7 @@ def open_weights(weights_dir: str | None, dataset: str, quiet: bool = False,
   """
   if weights_dir:
     weights = load_weights(weights_dir)
-    if model and weights.spec.name != model:
-      raise DataError(None, f"--model {model}, but {weights_dir} holds a {weights.spec.name}")
+    check_model(model, weights.spec.name, weights_dir)
     return weights
   if dataset != "synthetic":
     raise DataError(None, "--weights is required for real datasets (convert a checkpoint with "

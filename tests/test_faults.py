@@ -879,6 +879,10 @@ def test_the_interrupted_line_offers_resume_only_for_a_run_that_checkpoints(tmp_
   assert main([*argv, "--checkpoint-every", "4"]) == 130
   assert capsys.readouterr().err == ("interrupted; the last completed chunk is checkpointed: run "
                                      "the same command with --resume to continue\n")
+  # evaluate checkpoints and resumes alike (it said only "interrupted")
+  assert main(["evaluate", *argv[1:], "--checkpoint-every", "4"]) == 130
+  assert capsys.readouterr().err == ("interrupted; the last completed chunk is checkpointed: run "
+                                     "the same command with --resume to continue\n")
   found.clear()
   assert main([*argv, "--checkpoint-every", "4"]) == 130
   assert capsys.readouterr().err == "interrupted; no checkpoint was saved yet\n"
@@ -942,15 +946,19 @@ def test_host_out_of_memory_is_one_line_too():
 
 
 def test_weights_of_another_network_than_model_are_refused_before_work(tiny_weights, tmp_path,
-                                                                       capsys):
+                                                                       capsys, monkeypatch):
   """--model names the network the user means; weights of another architecture are one line
-  naming both, and nothing runs (the --out directory the command made is removed again)."""
+  naming both, found from model.json before the arrays are read, and nothing runs (the --out
+  directory the command made is removed again)."""
+  from pitta_jax import sources
+  loads = []
+  monkeypatch.setattr(sources, "load_weights", lambda d: loads.append(d))
   out = tmp_path / "o"
   assert main(["adapt", "--dataset", "synthetic", "--weights", str(tiny_weights), "--model",
                "litemono", "--option", "num_frames=1", "--quiet", "--out", str(out)]) == 2
   assert capsys.readouterr().err == (f"error: --model litemono, but {tiny_weights} holds a "
                                      f"monodepth2\n")
-  assert not out.exists()
+  assert not out.exists() and loads == []
 
 
 def test_weights_of_a_size_no_image_has_are_refused(tiny_weights, tmp_path):
