@@ -6,7 +6,8 @@ writes, and JSON that is always valid.
   is refused with one line instead of racing; the lock goes with the process, also on a kill.
   Used as a context manager, a command that fails leaves no directory it created behind.
 - `atomic_write_text` / `atomic_write_bytes`: a temporary file in the same directory, fsync,
-  then `os.replace`: a reader (or a crash) sees the old file or the new one, never half of one.
+  then `os.replace` and an fsync of the directory: a reader (or a crash) sees the old file or
+  the new one, never half of one.
   `atomic_write_files`: the files of one result (a table's .md/.csv/.tex/results.json), every
   one written and synced before the first rename, so a failure while writing replaces none.
 - `json_safe`: NaN/Inf become `null` (the JSON standard has no such numbers) and are counted.
@@ -181,6 +182,7 @@ def atomic_write_files(directory: str | os.PathLike, contents: dict[str, str | b
         os.fsync(f.fileno())
     for name, tmp in temps.items():
       os.replace(tmp, directory / name)
+    _sync_directory(directory)
   except BaseException as e:
     for tmp in temps.values():
       tmp.unlink(missing_ok=True)
@@ -191,6 +193,22 @@ def atomic_write_files(directory: str | os.PathLike, contents: dict[str, str | b
   # what a killed earlier writer of these files left (a cache entry, `source-stats --out FILE`:
   # places no locked output directory cleans)
   remove_stale_temps(directory, contents)
+
+
+def _sync_directory(directory: Path) -> None:
+  """fsync of `directory` itself, so that its renames reach the disk too (after a power loss
+  the files are the new ones, not the old names back). Where a file system or platform refuses a
+  directory's fsync, the renames are atomic all the same."""
+  try:
+    fd = os.open(directory, os.O_RDONLY)
+  except OSError:
+    return
+  try:
+    os.fsync(fd)
+  except OSError:
+    pass
+  finally:
+    os.close(fd)
 
 
 def npy_bytes(array: np.ndarray) -> bytes:

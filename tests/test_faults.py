@@ -168,7 +168,7 @@ def test_files_of_one_result_are_replaced_together_or_not_at_all(tmp_path):
 def test_every_file_of_a_result_is_synced_before_the_first_rename(tmp_path, monkeypatch):
   """The write's durability (the module's promise: temporary file, fsync, then rename): each
   temporary file is fsynced, every one before the first `os.replace`, so that a crash after a
-  rename cannot find a renamed file whose data never reached the disk."""
+  rename cannot find a renamed file whose data never reached the disk; then the directory."""
   events = []
   real_fsync, real_replace = os.fsync, os.replace
   monkeypatch.setattr(os, "fsync", lambda fd: events.append(
@@ -178,7 +178,8 @@ def test_every_file_of_a_result_is_synced_before_the_first_rename(tmp_path, monk
   atomic_write_files(tmp_path, {"t.md": "new", "results.json": b"{}"})
   pid = os.getpid()
   assert events == [("fsync", f".t.md.tmp-{pid}"), ("fsync", f".results.json.tmp-{pid}"),
-                    ("replace", "t.md"), ("replace", "results.json")]
+                    ("replace", "t.md"), ("replace", "results.json"),
+                    ("fsync", tmp_path.name)]  # the directory: its renames reach the disk too
   assert (tmp_path / "t.md").read_text() == "new"
 
 
