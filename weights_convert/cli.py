@@ -43,8 +43,10 @@ def add_subcommands(parser: argparse.ArgumentParser) -> None:
     p.set_defaults(convert_fn=run)
 
 
-# what a converter writes under --out (a depth network's weights directory, or Mask2Former's)
-WRITTEN = (MODEL_JSON, "depth", "pose", CONFIG_JSON, PARAMS_DIR)
+# what a converter writes under --out: a depth network's weights directory, or Mask2Former's
+DEPTH_WRITTEN = (MODEL_JSON, "depth", "pose")
+MASK2FORMER_WRITTEN = (CONFIG_JSON, PARAMS_DIR)
+WRITTEN = DEPTH_WRITTEN + MASK2FORMER_WRITTEN
 
 
 def check_output_replaceable(out: str, converter: str | None = None) -> None:
@@ -71,10 +73,8 @@ def check_output_replaceable(out: str, converter: str | None = None) -> None:
   def is_checkpoint(p: Path) -> bool:
     return p.is_dir() and any((p / m).is_file() for m in ("_METADATA", "_CHECKPOINT_METADATA"))
 
-  mask2former = (CONFIG_JSON, PARAMS_DIR)
-  depth_net = (MODEL_JSON, "depth", "pose")
   if converter is not None and path.is_dir():  # one network's weights per directory
-    other = depth_net[:2] if converter == "mask2former" else mask2former
+    other = DEPTH_WRITTEN[:2] if converter == "mask2former" else MASK2FORMER_WRITTEN
     # another network's weights: its description, or its checkpoint folder (a Hub snapshot's
     # own config.json beside model.safetensors is neither)
     if any(is_description(path / n) if n.endswith(".json") else is_checkpoint(path / n)
@@ -84,7 +84,7 @@ def check_output_replaceable(out: str, converter: str | None = None) -> None:
                        f"{converter} weights need a directory of their own")
   # what this converter writes (all of WRITTEN when the converter is not known)
   written = (WRITTEN if converter is None
-             else mask2former if converter == "mask2former" else depth_net)
+             else MASK2FORMER_WRITTEN if converter == "mask2former" else DEPTH_WRITTEN)
   present = [name for name in written if (path / name).exists()] if path.is_dir() else []
   if not present:
     return
