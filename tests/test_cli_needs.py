@@ -199,10 +199,11 @@ def test_a_loss_with_l_d_on_frames_without_panoptic_maps_is_noted(cli):
     assert rc == 2 and (no_maps in err.splitlines()) == noted, (flags, err)
 
 
-def test_flags_beyond_any_use_are_refused_before_work(capsys):
+def test_flags_beyond_any_use_are_refused_before_work(capsys, tmp_path):
   """Tables larger than any frame needs (10^9 segments was killed for memory after a minute,
   10^9 instances asked for 25 TB after 15 s of compiling) and a momentum Adam would ignore
   are one line naming the flags, before any work."""
+  out = str(tmp_path / "unused")  # never made: each command is refused before
   for flags, message in [
       (("--max-segments", "4097"), "--adapt.max-segments: max_segments must be in 1..4096, got "
                                    "4097"),
@@ -210,9 +211,9 @@ def test_flags_beyond_any_use_are_refused_before_work(capsys):
                                     "1..1024, got 1025"),
       (("--momentum", "0.9"), "--adapt.optimizer, --adapt.momentum: momentum applies to "
                               "optimizer sgd only, got momentum 0.9 with adam")]:
-    assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", "unused", *flags]) == 2
+    assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", out, *flags]) == 2
     assert capsys.readouterr().err == f"error: {message}\n"
-  assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", "unused", "--momentum",
+  assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", out, "--momentum",
                "0.9", "--optimizer", "sgd", "--lr", "nan"]) == 2  # sgd takes it: the lr fails
   assert "momentum" not in capsys.readouterr().err
 
@@ -301,9 +302,10 @@ def test_a_window_as_wide_as_the_frames_smaller_side_is_allowed():
     _check_window(DepthRefiningConfig(window=5), (4, 8))
 
 
-def test_a_config_check_names_the_flag(capsys):
+def test_a_config_check_names_the_flag(capsys, tmp_path):
   """A field's check, raised by its config class, is reported with the flag that sets it (it
   named the field: 'steps, batch_size and ... must be >= 1' for --source.steps 0)."""
+  out = str(tmp_path / "unused")  # never made: each command is refused before
   from pitta_jax.cli import main
   assert main(["train-source", "--source.steps", "0"]) == 2
   assert capsys.readouterr().err == "error: --source.steps: steps must be >= 1, got 0\n"
@@ -313,16 +315,16 @@ def test_a_config_check_names_the_flag(capsys):
   # a median window wider than the frame (it ran for minutes per frame), an empty --out (the
   # working directory), a reader option given twice (the last one won)
   for flags, message in [
-      (("--window", "641", "--out", "unused"), "window 641 exceeds the frame's smaller side (96 "
+      (("--window", "641", "--out", out), "window 641 exceeds the frame's smaller side (96 "
                                                "pixels of 320x96)"),
       (("--out", ""), "--out: an empty path"),
-      (("--option", "domain=fog", "--option", "domain=rain", "--out", "unused"),
+      (("--option", "domain=fog", "--option", "domain=rain", "--out", out),
        "--option domain given twice (fog, rain): give it once")]:
     assert main(["adapt", "--dataset", "synthetic", "--quiet", *flags]) == 2
     assert capsys.readouterr().err.splitlines()[-1] == f"error: {message}"
   # a seed jax.random.PRNGKey cannot take (it raised OverflowError after the weights loaded)
   for seed in ("-1", str(2**63)):
-    assert main(["adapt", "--dataset", "synthetic", "--out", "unused", "--seed", seed]) == 2
+    assert main(["adapt", "--dataset", "synthetic", "--out", out, "--seed", seed]) == 2
     assert capsys.readouterr().err == (f"error: --adapt.seed: seed must be in [0, 2^63), got "
                                        f"{seed}\n")
 

@@ -82,10 +82,11 @@ def test_method_runs_from_the_cli_on_drivingstereo(method, dataset, tmp_path):
   assert all(np.isfinite(v) for v in logs["loss"])
 
 
-def test_demo_rows_keep_the_flags_given_and_refuse_a_method(capsys):
+def test_demo_rows_keep_the_flags_given_and_refuse_a_method(capsys, tmp_path):
   """The demo applies each row's own setting (CoTTA: selector all) except where a flag was
   given (it replaced --selector silently), and --method, which it never used (results.json
   recorded it), is refused for --demo.methods."""
+  out = str(tmp_path / "unused")  # never made: each command is refused before
   from pitta_jax.adapt import AdaptConfig
   from pitta_jax.demo import row_config
   from pitta_jax.methods import build
@@ -94,7 +95,7 @@ def test_demo_rows_keep_the_flags_given_and_refuse_a_method(capsys):
   kept = row_config(AdaptConfig(selector="encoder_bn"), cotta, {}, given={"selector"})
   assert kept.selector == "encoder_bn" and kept.bn_stats == "running" and kept.method == "cotta"
   assert row_config(AdaptConfig(), build("none"), {"bn_stats": "batch"}).bn_stats == "batch"
-  assert main(["demo", "--method", "cotta", "--out", "unused"]) == 2
+  assert main(["demo", "--method", "cotta", "--out", out]) == 2
   assert capsys.readouterr().err == ("error: --method: the demo runs the rows of --demo.methods "
                                      "(e.g. --demo.methods none,bn,pitta,cotta)\n")
 
@@ -119,11 +120,12 @@ def test_the_demo_notes_a_row_that_runs_with_a_flag_instead_of_its_own_setting(t
   assert [("selector" in given) for given in ran] == [True, True]
 
 
-def test_help_offers_only_flags_the_command_takes(capsys):
+def test_help_offers_only_flags_the_command_takes(capsys, tmp_path):
   """adapt's --method help names every registered method; the demo's --help shows neither
   --method (its rows come from --demo.methods) nor --max-depth / --min-depth, which it would
   always refuse (Ada-Depth has both its own and its photometric loss's: ambiguous), while both
   still fail in one line naming what to use."""
+  out = str(tmp_path / "unused")  # never made: each command is refused before
   with pytest.raises(SystemExit):
     main(["adapt", "--help"])
   text = " ".join(capsys.readouterr().out.split())
@@ -137,6 +139,6 @@ def test_help_offers_only_flags_the_command_takes(capsys):
     assert not re.search(rf"(\[|^ +|, ){re.escape(flag)}[ ,\]]", text, re.M), flag
   assert "used with --method" not in text  # the methods' groups say which rows use them
   assert "--adadepth.max-depth" in text and "--adadepth.sfm.max-depth" in text
-  assert main(["demo", "--max-depth", "50", "--out", "unused"]) == 2
+  assert main(["demo", "--max-depth", "50", "--out", out]) == 2
   assert capsys.readouterr().err == ("error: --max-depth is ambiguous for adadepth: use "
                                      "--adadepth.max-depth or --adadepth.sfm.max-depth\n")

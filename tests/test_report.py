@@ -152,11 +152,12 @@ def test_string_tuples_parse_as_strings():
   assert cfg.shifts == ("fog", "night") and cfg.num_frames == 40
 
 
-def test_flag_values_parse_as_the_module_documents(capsys):
+def test_flag_values_parse_as_the_module_documents(capsys, tmp_path):
   """config_cli's value types, hand values: a bool flag takes true|false (also 1/0, yes/no,
   on/off, in any case) and refuses anything else in one line naming the flag (not read as
   false); a comma list drops empty items (a trailing comma); an int list takes negative
   integers and COCO names (person 1, car 3)."""
+  out = str(tmp_path / "unused")  # never made: each command is refused before
   from pitta_jax.cli import main
   from pitta_jax.config_cli import parse_bool, parser_for
   for text, value in (("true", True), ("False", False), (" yes ", True), ("0", False),
@@ -165,7 +166,7 @@ def test_flag_values_parse_as_the_module_documents(capsys):
   with pytest.raises(argparse.ArgumentTypeError, match="^expected true or false, got 'maybe'$"):
     parse_bool("maybe")
   with pytest.raises(SystemExit) as e:
-    main(["adapt", "--dataset", "synthetic", "--out", "unused", "--adapt.skip-nonfinite", "maybe"])
+    main(["adapt", "--dataset", "synthetic", "--out", out, "--adapt.skip-nonfinite", "maybe"])
   assert e.value.code == 2 and capsys.readouterr().err == (
       "error: argument --adapt.skip-nonfinite/--skip-nonfinite: expected true or false, got "
       "'maybe' (see pitta-jax adapt --help)\n")
