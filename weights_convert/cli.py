@@ -73,25 +73,27 @@ def check_output_replaceable(out: str, converter: str | None = None) -> None:
   def is_checkpoint(p: Path) -> bool:
     return p.is_dir() and any((p / m).is_file() for m in ("_METADATA", "_CHECKPOINT_METADATA"))
 
-  if converter is not None and path.is_dir():  # one network's weights per directory
-    other = DEPTH_WRITTEN[:2] if converter == "mask2former" else MASK2FORMER_WRITTEN
-    # another network's weights: its description, or its checkpoint folder (a Hub snapshot's
-    # own config.json beside model.safetensors is neither)
-    if any(is_description(path / n) if n.endswith(".json") else is_checkpoint(path / n)
-           for n in other):
-      kind = "a depth network's" if converter == "mask2former" else "Mask2Former"
-      raise ValueError(f"--out {out}: holds {kind} weights ({', '.join(other)}); the "
-                       f"{converter} weights need a directory of their own")
-  # what this converter writes (all of WRITTEN when the converter is not known)
-  written = (WRITTEN if converter is None
-             else MASK2FORMER_WRITTEN if converter == "mask2former" else DEPTH_WRITTEN)
+  def is_weights(name: str) -> bool:
+    """--out/name is pitta-jax weights' own: a description naming an architecture, or an orbax
+    checkpoint folder (a Hub snapshot's own config.json is neither)."""
+    return (is_description(path / name) if name in (MODEL_JSON, CONFIG_JSON)
+            else is_checkpoint(path / name))
+
+  # what this converter writes, and the other kind of weights (none when it is not known)
+  if converter is None:
+    written, other, kind = WRITTEN, (), ""
+  elif converter == "mask2former":
+    written, other, kind = MASK2FORMER_WRITTEN, DEPTH_WRITTEN[:2], "a depth network's"
+  else:
+    written, other, kind = DEPTH_WRITTEN, MASK2FORMER_WRITTEN, "Mask2Former"
+  if path.is_dir() and any(map(is_weights, other)):  # one network's weights per directory
+    raise ValueError(f"--out {out}: holds {kind} weights ({', '.join(other)}); the "
+                     f"{converter} weights need a directory of their own")
   present = [name for name in written if (path / name).exists()] if path.is_dir() else []
   if not present:
     return
   descriptions = [n for n in present if n in (MODEL_JSON, CONFIG_JSON)]
-  foreign = [n for n in present
-             if not (is_description(path / n) if n in (MODEL_JSON, CONFIG_JSON)
-                     else is_checkpoint(path / n))]
+  foreign = [n for n in present if not is_weights(n)]
   # an interrupted conversion's checkpoints (marked, without their description) are ours too
   if foreign or not (descriptions or (path / INCOMPLETE).is_file()):
     names = foreign or present
