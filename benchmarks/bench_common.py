@@ -275,7 +275,7 @@ def kernel_grad_rows(x: jax.Array, g: jax.Array, kernel_size, strides, padding, 
   """A convolution's kernel gradient (`conv_vjp._kernel_grad`'s arguments) as kh products, one
   per kernel row a: the column taps (`_column_taps`) read at row offset a with the row stride,
   (N, Ho, Wo, kw C), contracted with g over (N, Ho, Wo) -> (kw C, O). Each row's view is a
-  (strided) copy of the column taps. Tried in the model on 2026-12-06, not kept (README)."""
+  (strided) copy of the column taps. Tried in the model on 2026-12-06, not kept (docs/performance.md)."""
   kh, kw = kernel_size
   n, ho, wo, o = g.shape
   cols = _column_taps(x, kw, strides[1], rhs_dilation[1], padding, wo)  # (N, Hp, Wo, kw C)
@@ -292,7 +292,7 @@ def kernel_grad_stacked(x: jax.Array, g: jax.Array, kernel_size, strides, paddin
   (`_column_taps`, (N, Hp, Wo, kw C)) with g shifted down by each row tap's offset a d and
   zero-filled to Hp rows, the kh shifts side by side ((N, Hp, Wo, kh O)), contracted over
   (N, Hp, Wo) -> (kw C, kh O): no copy per row as in `kernel_grad_rows`, a kh times larger copy
-  of g instead. Tried in the model on 2026-12-06, not kept (README)."""
+  of g instead. Tried in the model on 2026-12-06, not kept (docs/performance.md)."""
   kh, kw = kernel_size
   n, ho, wo, o = g.shape
   if strides[0] != 1:

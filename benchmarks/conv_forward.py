@@ -5,7 +5,7 @@
 
 Why: the forward convolutions are about half of the PITTA step on a CPU and nearly all of an
 eval-mode forward (`benchmarks/profile_step.py --conv-library default`), and the step is short
-of 2x PyTorch where its forward is not faster than PyTorch's (README, Performance). Each layer's
+of 2x PyTorch where its forward is not faster than PyTorch's (docs/performance.md). Each layer's
 3x3 stride-1 convolution (zero padding 1, NHWC) is timed in several forms, each inside a
 compiled `lax.fori_loop` of `--loops` iterations whose input is the previous output through a
 ReLU (as in a network, and so that XLA cannot hoist it):

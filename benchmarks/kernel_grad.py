@@ -6,7 +6,7 @@
 
 Why: the baselines that adapt convolution kernels (CoMoDa: the depth and pose networks at batch
 4; ActMAD and Ada-Depth: batch 1) spend much of their step in kernel gradients, a contraction
-over every pixel, and that is where the JAX steps lose to PyTorch (the README's Performance).
+over every pixel, and that is where the JAX steps lose to PyTorch (docs/performance.md).
 Each layer's kernel gradient dk[a, b, c, o] = sum_{n,i,j} x_pad[n, i s + a, j s + b, c]
 g[n, i, j, o] (x: (N, H, W, C) NHWC, g: (N, Ho, Wo, O)) is timed in several forms, each inside
 a compiled `lax.fori_loop` of `--loops` iterations (the engine's step is the body of a scan,

@@ -3,7 +3,7 @@
 XLA:CPU hands convolutions to one of two libraries: YNNPACK (jaxlib 0.10's default, through its
 "YNN fusions") or Eigen's tensor contractions (XLA's older path). Neither is faster everywhere.
 Measured on a 2-core AMD EPYC (Zen 3, AVX2) host, each step interleaved with itself, 640x192
-(README, Performance): Eigen's forward convolutions and input gradients are faster (no
+(docs/performance.md): Eigen's forward convolutions and input gradients are faster (no
 adaptation 16% and PITTA, which adapts only BatchNorm parameters, 6-12% faster per frame), its
 kernel gradients slower (ActMAD and CoMoDa, which adapt convolution kernels, 8% slower by the
 median; Ada-Depth 1-3%), unless forward passes dominate the step (CoTTA: 35 forward passes per

@@ -299,5 +299,5 @@ def build(config: CottaConfig = CottaConfig()) -> Method:
                 requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),),
                 setting=(("selector", "all"),),
                 # 35 forward passes per update outweigh its kernel gradients: on a Zen 3 CPU
-                # the step ran 21.5% faster with Eigen's convolutions (README, Performance)
+                # the step ran 21.5% faster with Eigen's convolutions (docs/performance.md)
                 cpu_conv_library="eigen")

@@ -170,8 +170,8 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   convolution of the image, or of two stacked images in the pose encoder) it is one matrix
   product of the input's patches instead (`kernel_grad_patches`): as a convolution its
   "features" are the one image and its kernel the whole 96x320 cotangent. Measured inside a
-  compiled loop at 640x192 on 2 vCPUs (Intel, AVX-512; `benchmarks/kernel_grad.py`, README,
-  Performance, 2026-12-05), best ms, convolution vs patches, batch 1: 3 -> 64 features 16.0 vs
+  compiled loop at 640x192 on 2 vCPUs (Intel, AVX-512; `benchmarks/kernel_grad.py`,
+  docs/performance.md, 2026-12-05), best ms, convolution vs patches, batch 1: 3 -> 64 features 16.0 vs
   11.7 (XLA's default library) and 18.1 vs 11.6 (Eigen's), 6 -> 64 30.6 vs 22.2 and 32.5 vs 21.5.
 
   At batch 4 the convolution form is the fastest on Eigen's library for every layer shape of
