@@ -590,7 +590,7 @@ def test_resize_frame():
   np.testing.assert_array_equal(tiny.panoptic, reference)
   assert 9 not in tiny.panoptic and [s.id for s in tiny.segments] == sorted(
       set(np.unique(tiny.panoptic).tolist()) - {0})
-  big = resize.resize_frame(frame)  # the MonoDepth2 default, upsampling here
+  big = resize.resize_frame(frame, 192, 640)  # MonoDepth2's size, upsampling here
   assert big.image.shape == (192, 640, 3) and big.panoptic.shape == (192, 640)
   assert 0 <= big.image.min() and big.image.max() <= 1
 

@@ -25,7 +25,6 @@ import numpy as np
 
 from pitta_jax.data.frame import Frame
 
-MONODEPTH2_SIZE = (192, 640)  # (H, W) of MonoDepth2's KITTI models
 # how a network's images are resized (`ModelSpec.image_resize`): "area" as above (MonoDepth2's
 # family); "cubic": cv2.INTER_CUBIC on the [0, 1] image, not clipped, as Depth Anything V2's
 # `infer_image` (its util/transform.py `Resize`, applied to image / 255)
@@ -61,9 +60,10 @@ def resize_ids(ids: np.ndarray, height: int, width: int) -> np.ndarray:
   return ids[rows[:, None], cols[None, :]]
 
 
-def resize_frame(frame: Frame, height: int = MONODEPTH2_SIZE[0], width: int = MONODEPTH2_SIZE[1],
+def resize_frame(frame: Frame, height: int, width: int,
                  image_resize: str = IMAGE_RESIZE[0]) -> Frame:
-  """The frame with image and panoptic map at (height, width); depth (ground truth) untouched.
+  """The frame with image and panoptic map at (height, width), the network's input size (its
+  `ModelSpec`'s); depth (ground truth) untouched.
   image_resize: the image's interpolation (`resize_image`)."""
   image = resize_image(frame.image, height, width, image_resize)
   panoptic, segments = frame.panoptic, frame.segments
