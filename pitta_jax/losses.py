@@ -266,7 +266,7 @@ def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, 
       raise ValueError("impl='literal' needs the static table size n_max")
     n_max = masks_lib.table_rows(n_max)
     masks = masks_lib.masks_from_index(index_map, n_max, mode, inst_ids)  # (N_max, H, W)
-    valid = jnp.arange(1, n_max + 1) <= jnp.asarray(n)  # (N_max,)
+    valid = jnp.arange(1, n_max + 1) <= _instance_count(n)  # (N_max,), rows 1..N of eq. 8
     return depth_refining_loss_literal(depth, masks, valid, s)
   raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
 

@@ -63,6 +63,16 @@ def index_array(index_map: Array) -> Array:
   return segment_id_array(index_map, "index_map", "instance indices")
 
 
+def _segment_map(panoptic: Array) -> Array:
+  """One frame's (H, W) panoptic map as int32 segment ids (eq. 3's R_i); TypeError when it is
+  not an integer array, ValueError when it is not 2-D (a batch of maps would broadcast against
+  the instance table's rows)."""
+  panoptic = segment_id_array(panoptic, "panoptic")
+  if panoptic.ndim != 2:
+    raise ValueError(f"panoptic must be an (H, W) map of segment ids, got shape {panoptic.shape}")
+  return panoptic
+
+
 def _table_ids(inst_ids: Array, n_max: int | None = None) -> Array:
   """The instance table's segment ids (N_max,) as int32: an integer array of `n_max` entries
   (when given); TypeError / ValueError naming inst_ids otherwise."""
@@ -147,13 +157,13 @@ def instance_index_map(panoptic: Array, inst_ids: Array, inst_valid: Array) -> A
   Returns:
     (H, W) int32 index map.
   """
-  panoptic = segment_id_array(panoptic, "panoptic")
-  if panoptic.ndim != 2:
-    raise ValueError(f"panoptic must be an (H, W) map of segment ids, got shape {panoptic.shape}")
+  panoptic = _segment_map(panoptic)
   inst_ids = segment_id_array(inst_ids, "inst_ids")
   inst_valid = jnp.asarray(inst_valid, bool)
   usable = inst_valid & (inst_ids > 0)  # (N_max,) invalid rows never match
   n_max = inst_ids.shape[0]
+  if n_max == 0:  # an empty table (eq. 3's N = 0): no pixel belongs to an instance
+    return jnp.zeros(panoptic.shape, jnp.int32)
   rows = jnp.arange(1, n_max + 1, dtype=jnp.int32)[:, None, None]  # (N_max, 1, 1)
   hit = (panoptic[None] == inst_ids[:, None, None]) & usable[:, None, None]  # (N_max, H, W)
   first = jnp.min(jnp.where(hit, rows, n_max + 1), axis=0)  # (H, W), the first matching row
@@ -213,6 +223,9 @@ def masks_from_index(index_map: Array, n_max: int, mode: str = "binary",
     (N_max, H, W) float32, M_j in row j - 1 (all zero for instances without pixels).
   """
   index_map = index_array(index_map)
+  if index_map.ndim != 2:  # a batch of maps would broadcast against the N_max rows
+    raise ValueError(f"index_map must be an (H, W) map of instance indices, got shape "
+                     f"{index_map.shape}")
   n_max = table_rows(n_max)
   j = jnp.arange(1, n_max + 1, dtype=jnp.int32)[:, None, None]  # (N_max, 1, 1)
   gains = instance_gains(n_max, mode, inst_ids)[:, None, None]  # (N_max, 1, 1)
@@ -233,7 +246,7 @@ def instance_masks(panoptic: Array, inst_ids: Array, inst_valid: Array,
   Returns:
     (N_max, H, W) float32 masks.
   """
-  panoptic = segment_id_array(panoptic, "panoptic")
+  panoptic = _segment_map(panoptic)
   inst_ids = _table_ids(inst_ids)
   inst_valid = jnp.asarray(inst_valid, bool)
   n_max = inst_ids.shape[0]

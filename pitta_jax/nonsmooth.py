@@ -39,7 +39,10 @@ def absolute(x: Array) -> Array:
 @absolute.defjvp
 def _absolute_jvp(primals, tangents):
   (x,), (t,) = primals, tangents
-  return jnp.abs(x), jnp.sign(x) * t
+  # torch's sgn(x) = (0 < x) - (x < 0): 0 at 0 and at NaN (jnp.sign(NaN) is NaN, and a NaN
+  # derivative poisons the gradient of an entry that a `where` masks out, 0 * NaN = NaN)
+  sgn = (x > 0).astype(x.dtype) - (x < 0).astype(x.dtype)
+  return jnp.abs(x), sgn * t
 
 
 def clamp(x: Array, lo: float | Array | None = None, hi: float | Array | None = None) -> Array:

@@ -107,8 +107,12 @@ def ssim_loss(x: Array, y: Array) -> Array:
   """MonoDepth2's `SSIM` module: per-pixel (1 - SSIM) / 2 clamped to [0, 1].
 
   x, y: (B, H, W, C) images; returns (B, H, W, C). Statistics are 3x3 means over
-  reflection-padded inputs (`nn.ReflectionPad2d(1)` + `nn.AvgPool2d(3, 1)`).
+  reflection-padded inputs (`nn.ReflectionPad2d(1)` + `nn.AvgPool2d(3, 1)`); H and W must be
+  at least 2, as PyTorch's reflection padding by 1 requires (ValueError otherwise).
   """
+  if min(x.shape[1:3]) < 2:
+    raise ValueError(f"ssim_loss needs (B, H, W, C) images with H, W >= 2 (reflection padding by "
+                     f"1, nn.ReflectionPad2d(1)), got shape {x.shape}")
   pad = ((0, 0), (1, 1), (1, 1), (0, 0))
   x = jnp.pad(x, pad, mode="reflect")
   y = jnp.pad(y, pad, mode="reflect")

@@ -398,3 +398,20 @@ def test_shape_mistakes_are_named():
     losses.edge_guided_loss(jnp.ones((6, 7, 3)), depth, u=jnp.ones((3,)))
   with pytest.raises(ValueError, match="positive odd int, got True"):
     losses.depth_refining_loss(depth, pan, np.array([5]), s=True)
+
+
+def test_literal_loss_from_index_refuses_a_non_scalar_n():
+  """N is a scalar for both forms. The fast form refuses an (N_max,) n; the literal one
+  compared it row by row with the row numbers, so the table's validity vector passed as n
+  (True, True, False) silently kept one instance of two: L_d of instance 1 alone."""
+  rng = np.random.default_rng(3)
+  depth = jnp.asarray(rng.uniform(1, 5, (6, 7)), jnp.float32)
+  index = np.zeros((6, 7), np.int32)
+  index[1:4, 1:4], index[2:6, 4:7] = 1, 2
+  want = losses.depth_refining_loss_from_index(depth, index, 2, s=3, impl="literal", n_max=3)
+  np.testing.assert_allclose(
+      want, losses.depth_refining_loss_from_index(depth, index, 2, s=3), rtol=RTOL)
+  for impl in losses.IMPLS:
+    with pytest.raises(ValueError, match="n .* must be a scalar"):
+      losses.depth_refining_loss_from_index(depth, index, jnp.array([True, True, False]), s=3,
+                                            impl=impl, n_max=3)

@@ -220,3 +220,27 @@ def test_table_sizes_and_ids_are_checked_by_name():
     masks.instance_gains(3, "segment_id", np.array([5, 9]))
   with pytest.raises(ValueError, match=r"panoptic must be an \(H, W\) map"):
     masks.instance_index_map(np.array([5, 0, 5]), np.array([5]), np.array([True]))
+
+
+def test_masks_of_a_map_that_is_not_2d_are_refused():
+  """instance_masks and masks_from_index take one (H, W) map (as instance_index_map, which
+  refuses others). A batch of B maps with N_max = B rows broadcast into (1, B, H, W): row j's
+  mask taken from frame j only, with no error; other B failed in a broadcasting error."""
+  pan = np.array([[[1, 2], [2, 0]], [[1, 1], [2, 2]]], np.int32)  # (B=2, H, W)
+  with pytest.raises(ValueError, match=r"panoptic must be an \(H, W\) map"):
+    masks.instance_masks(pan, np.array([1, 2]), np.array([True, True]))
+  with pytest.raises(ValueError, match=r"index_map must be an \(H, W\) map"):
+    masks.masks_from_index(pan, 2)
+
+
+def test_index_map_of_an_empty_instance_table_is_all_zero():
+  """An instance table of 0 rows (table_rows, instance_table and instance_masks take n_max = 0)
+  holds no instance: every pixel is 0. It failed in an empty reduction ("zero-size array to
+  reduction operation min")."""
+  pan = np.array([[1, 2], [2, 0]], np.int32)
+  ids, valid = masks.instance_table(np.array([1, 2]), np.array([3, 3]), np.array([True, True]),
+                                    np.array([3]), 0)
+  index = masks.instance_index_map(pan, ids, valid)
+  assert index.shape == (2, 2) and index.dtype == jnp.int32
+  np.testing.assert_array_equal(np.asarray(index), 0)
+  assert masks.instance_masks(pan, ids, valid).shape == (0, 2, 2)

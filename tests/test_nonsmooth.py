@@ -126,3 +126,15 @@ def test_batch_norm_at_zero_variance_matches_torch():
   np.testing.assert_allclose(np.asarray(gx), xt.grad.permute(0, 2, 3, 1).numpy(), atol=1e-4)
   np.testing.assert_allclose(np.asarray(gp["scale"]), bn.weight.grad.numpy(), atol=1e-4)
   np.testing.assert_allclose(np.asarray(gp["bias"]), bn.bias.grad.numpy(), atol=1e-5)
+
+
+def test_absolute_derivative_at_nan_is_torchs_zero():
+  """torch.abs's derivative is sgn(x), 0 at NaN as at 0: a NaN that a `where` masks out leaves
+  the gradient finite in PyTorch. jnp.sign(NaN) is NaN, and 0 * NaN poisoned the gradient of
+  the masked-out entry (and everything summed with it)."""
+  x = np.float32([np.nan, -1.0, 0.0, 2.0])
+  keep = np.array([False, True, True, True])
+  got = jax.grad(lambda a: jnp.sum(jnp.where(keep, absolute(a), 0.0)))(jnp.asarray(x))
+  t = torch.from_numpy(x.copy()).requires_grad_(True)
+  torch.where(torch.from_numpy(keep), t.abs(), torch.zeros(())).sum().backward()
+  np.testing.assert_array_equal(np.asarray(got), t.grad.numpy())

@@ -423,3 +423,17 @@ def test_loss_rng_and_config():
               dict(smoothness=-1.0), dict(automask=1)):
     with pytest.raises(ValueError):
       sfm.SfmLossConfig(**bad)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 5, 3), (1, 4, 1, 3)])
+def test_ssim_refuses_an_axis_that_reflection_padding_cannot_pad(shape):
+  """MonoDepth2's SSIM pads by reflection (nn.ReflectionPad2d(1)), which PyTorch refuses on an
+  axis of one pixel; ssim_loss gave a (1 - SSIM) / 2 map of such an image (jnp.pad's 'reflect'
+  repeats the single pixel) where upstream has none."""
+  x = np.random.default_rng(0).random(shape).astype(np.float32)
+  with pytest.raises(RuntimeError, match="Padding size should be less than"):
+    torch.nn.ReflectionPad2d(1)(torch.from_numpy(x).permute(0, 3, 1, 2))
+  with pytest.raises(ValueError, match="ssim_loss"):
+    sfm.ssim_loss(x, x)
+  with pytest.raises(ValueError, match="ssim_loss"):
+    sfm.reprojection_loss(x, x)

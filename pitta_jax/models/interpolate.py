@@ -29,8 +29,9 @@ def _source_coords(n_in: int, n_out: int, align_corners: bool) -> np.ndarray:
   return (i + 0.5) * (n_in / n_out) - 0.5
 
 
-def linear_matrix(n_in: int, n_out: int, align_corners: bool) -> np.ndarray:
-  """(n_out, n_in) float32 weights of PyTorch's 1-D linear interpolation."""
+def linear_matrix(n_in: int, n_out: int, align_corners: bool,
+                  dtype: type = np.float32) -> np.ndarray:
+  """(n_out, n_in) weights of PyTorch's 1-D linear interpolation, float32 (or `dtype`)."""
   x = _source_coords(n_in, n_out, align_corners)
   if not align_corners:
     x = np.maximum(x, 0.0)
@@ -40,7 +41,7 @@ def linear_matrix(n_in: int, n_out: int, align_corners: bool) -> np.ndarray:
   m = np.zeros((n_out, n_in), np.float64)
   np.add.at(m, (np.arange(n_out), lo), 1.0 - frac)
   np.add.at(m, (np.arange(n_out), hi), frac)
-  return m.astype(np.float32)
+  return m.astype(dtype)
 
 
 def _cubic_weights(t: np.ndarray, a: float) -> np.ndarray:
@@ -52,8 +53,9 @@ def _cubic_weights(t: np.ndarray, a: float) -> np.ndarray:
   return np.stack([far(t + 1), near(t), near(1 - t), far(2 - t)], axis=-1)
 
 
-def cubic_matrix(n_in: int, n_out: int, align_corners: bool, a: float = CUBIC_A) -> np.ndarray:
-  """(n_out, n_in) float32 weights of PyTorch's 1-D bicubic interpolation."""
+def cubic_matrix(n_in: int, n_out: int, align_corners: bool, a: float = CUBIC_A,
+                 dtype: type = np.float32) -> np.ndarray:
+  """(n_out, n_in) weights of PyTorch's 1-D bicubic interpolation, float32 (or `dtype`)."""
   x = _source_coords(n_in, n_out, align_corners)
   base = np.floor(x).astype(np.int64)
   w = _cubic_weights(x - base, a)  # (n_out, 4)
@@ -61,7 +63,7 @@ def cubic_matrix(n_in: int, n_out: int, align_corners: bool, a: float = CUBIC_A)
   for k in range(4):
     idx = np.clip(base - 1 + k, 0, n_in - 1)
     np.add.at(m, (np.arange(n_out), idx), w[:, k])
-  return m.astype(np.float32)
+  return m.astype(dtype)
 
 
 def _resize(x: jax.Array, size: tuple[int, int], matrix) -> jax.Array:
@@ -70,8 +72,10 @@ def _resize(x: jax.Array, size: tuple[int, int], matrix) -> jax.Array:
   the input's own size (e.g. MonoDepth2's loss upsampling scale 0) costs nothing and puts no
   (H, H) constant into the program."""
   h, w = x.shape[-3], x.shape[-2]
-  mh = matrix(h, size[0])  # (H', H)
-  mw = matrix(w, size[1])  # (W', W)
+  # float64 weights for a float64 input (as F.interpolate on a double tensor), float32 otherwise
+  dtype = np.float64 if x.dtype == jnp.float64 else np.float32
+  mh = matrix(h, size[0], dtype)  # (H', H)
+  mw = matrix(w, size[1], dtype)  # (W', W)
   hp = jax.lax.Precision.HIGHEST
   if not _is_identity(mh):
     x = jnp.einsum("ph,...hwc->...pwc", jnp.asarray(mh), x, precision=hp)
@@ -86,12 +90,12 @@ def _is_identity(m: np.ndarray) -> bool:
 
 def resize_bilinear(x: jax.Array, size: tuple[int, int], align_corners: bool) -> jax.Array:
   """`F.interpolate(x, size, mode="bilinear", align_corners=...)` on (..., H, W, C)."""
-  return _resize(x, size, lambda i, o: linear_matrix(i, o, align_corners))
+  return _resize(x, size, lambda i, o, dtype: linear_matrix(i, o, align_corners, dtype=dtype))
 
 
 def resize_bicubic(x: jax.Array, size: tuple[int, int], align_corners: bool) -> jax.Array:
   """`F.interpolate(x, size, mode="bicubic", align_corners=...)` on (..., H, W, C), a = -0.75."""
-  return _resize(x, size, lambda i, o: cubic_matrix(i, o, align_corners))
+  return _resize(x, size, lambda i, o, dtype: cubic_matrix(i, o, align_corners, dtype=dtype))
 
 
 def resize_nearest(x: jax.Array, size: tuple[int, int]) -> jax.Array:
