@@ -158,7 +158,10 @@ def stack_windows(padded: Array, s: int, h: int, w: int) -> Array:
 
 def block_rows(h: int, w: int, s: int, itemsize: int, block_bytes: int = BLOCK_BYTES) -> int:
   """Rows per block of `map_row_blocks`: as many as keep one block's stack of windows within
-  `block_bytes` (at least one, at most h)."""
+  `block_bytes` (a static positive int: ValueError naming it otherwise; at least one row, at
+  most h)."""
+  if static_int(block_bytes, "block_bytes", "the block bound", "a positive int") < 1:
+    raise ValueError(f"the block bound block_bytes must be a positive int, got {block_bytes!r}")
   return int(max(1, min(h, block_bytes // (w * s * s * itemsize))))
 
 

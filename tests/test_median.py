@@ -199,6 +199,17 @@ def test_a_traced_window_is_named_as_such():
     jax.jit(median_lib.median_filter)(jnp.zeros((4, 4)), 3)
 
 
+def test_a_bad_or_traced_block_bound_is_named():
+  """block_bytes bounds the stacked windows of s >= SORT_FROM_WINDOW and sets the block shape,
+  so it is static: traced, it failed in a TracerBoolConversionError inside block_rows."""
+  s = median_lib.SORT_FROM_WINDOW
+  with pytest.raises(ValueError, match=r"block_bytes must be a Python int, not a traced value"):
+    jax.jit(median_lib.median_filter, static_argnums=1)(jnp.zeros((4, 4)), s, 1 << 20)
+  for bad in (0, -5, 2.5, True):
+    with pytest.raises(ValueError, match="block_bytes must be a positive int"):
+      median_lib.median_filter(jnp.zeros((4, 4)), s, bad)
+
+
 def test_rejects_non_2d():
   with pytest.raises(ValueError, match="H, W"):
     median_lib.median_filter(jnp.zeros((4, 4, 3)), 3)
