@@ -375,14 +375,21 @@ def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str]) -> 
 
 def row_key(ctx: Context, row: RowSpec, case: str, parts, weights_id: dict) -> str:
   """The cache key of a row's result: a hash of the row, the test case, the data, the weights,
-  the frame count, and the configurations it resolves to (the AdaptConfig with the method's
-  setting, the method's config, the evaluation protocol), so that a changed library default
-  recomputes the rows it changes instead of serving them from the cache."""
+  the frame count, the configurations it resolves to (the AdaptConfig with the method's
+  setting, the method's config, the evaluation protocol) and a preparing method's source data,
+  so that a changed library default or --source-images recomputes the rows it changes instead
+  of serving them from the cache."""
   from pitta_jax.methods import method_config_class
   # the method config's defaults (the row's changes are in `row`; a sweep's are not one config)
   resolved = {"adapt": dataclasses.asdict(adapt_config(row.method, row.adapt, ctx.quick)),
               "method": dataclasses.asdict(method_config_class(row.method)()),
               "eval": dataclasses.asdict(ctx.evaluation())}
+  # the source-domain data of a method that prepares from it (ActMAD's statistics, CoMoDa's
+  # replay): another --source-images or --replay-root is another row (only there, so that the
+  # other rows stay cached)
+  if method_of(row).prepare is not None:
+    resolved["source"] = [str(Path(p).resolve()) if p else None
+                          for p in (ctx.source_images, ctx.replay_root)]
   text = json.dumps({"format": FORMAT, "row": dataclasses.asdict(row), "case": case,
                      "parts": parts, "dataset": ctx.dataset,
                      "root": str(Path(ctx.root).resolve()) if ctx.root else None,

@@ -71,6 +71,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
              disable=quiet)
   note_compile(bar, runner)
   done = (states, record_marks(record))  # the newest states whose frames are all in `record`
+  last_saved = start  # frames in the newest checkpoint (or resumed from)
   try:
     for chunk, originals in chunks(frames[start:], h, w,
                                    min(cfg.chunk_size, max(len(frames) - start, 1)),
@@ -90,12 +91,15 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
       done = (states, record_marks(record))
       if every and n < len(frames) and n % every == 0:
         save_checkpoint(directory, states, record)
+        last_saved = n
       bar.set_postfix_str("", refresh=False)
       bar.update(len(originals))
   except KeyboardInterrupt:
     done_states, marks = done
     n = marks["names"][0]
-    if every and n > start and n % every:  # the last whole chunk is not lost
+    # the last whole chunk is not lost, nor one whose save the Ctrl-C cut (the save removes
+    # what it wrote)
+    if every and n > last_saved:
       truncate_record(record, marks)
       save_checkpoint(directory, done_states, record)
     raise

@@ -489,7 +489,8 @@ def _run_adapt(args) -> int:
                        quiet=args.quiet,
                        checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
                        checkpoint_every=args.checkpoint_every, resume=args.resume,
-                       resources=resources, on_start=lambda: clear_earlier_results(out))
+                       resources=resources, on_start=lambda: clear_earlier_results(out),
+                       data=run_data(args))
     # fps over every frame: after --resume, the earlier call's time up to its checkpoint too;
     # steady_fps: this call's chunks after the step compiled; compile_seconds: those that did
     row = Row(args.dataset, cfg.method, res.mean, {"fps": rounded_or_none(res.total_fps, 2),
@@ -536,6 +537,21 @@ def _run_adapt(args) -> int:
     speed = f" ({ran} run now at {res.fps:.2f} frames/s{steady})" if ran > 0 else ""
     print(f"{len(res.frame_names)} frames{speed}; results in {out}/")
   return 0
+
+
+def run_data(args) -> dict:
+  """What a run's frames are beyond their names, for its checkpoints' fingerprint: the dataset
+  flags (a synthetic frame's name holds its domain and seed, not --option severity or the
+  traffic; a folder's names not its depth_dir or --segmentation maps) and the method's source
+  data (unused flags are None by now), so that a --resume with other ones is refused."""
+  from pathlib import Path
+  return {"dataset": args.dataset,
+          "root": str(Path(args.root).resolve()) if args.root else None,
+          "options": sorted(args.option or []), "segmentation": args.segmentation,
+          "source": {name: str(Path(value).resolve()) if value else None
+                     for name, value in (("images", args.source_images),
+                                         ("replay_root", args.replay_root),
+                                         ("stats", args.source_stats))}}
 
 
 def _add_source_stats(sub) -> None:

@@ -292,16 +292,52 @@ RESUME_OWN = "own"  # run_sequence(resume=...): resume this run's checkpoint, el
 
 
 def run_fingerprint(weights: Weights, method: Method, cfg: AdaptConfig, eval_cfg: EvalConfig,
-                    names: Sequence[str]) -> str:
+                    names: Sequence[str], data: dict | None = None) -> str:
   """A digest of everything that decides a run's results: the network (spec, model.json, the
-  parameter values), the method and its config, the run's and the evaluation's configs, and the
-  frames' names in order. A checkpoint carries it, so that a resume continues only its own run."""
+  parameter values), the method and its config, the run's and the evaluation's configs, the
+  frames' names in order and, where given, `data`: what the frames are beyond their names (the
+  dataset flags: a synthetic frame's name holds its domain and seed, not its severity or
+  traffic; a folder's names not its ground-truth or panoptic directory; nor do they hold the
+  method's source data). A checkpoint carries it, so that a resume continues only its own run."""
   import hashlib
   from pitta_jax.source_stats import weights_identity
-  text = json.dumps({"weights": weights_identity(weights), "method": method.name,
-                     "method_config": repr(method.config), "adapt": repr(cfg),
-                     "eval": repr(eval_cfg), "frames": list(names)}, sort_keys=True, default=str)
+  parts = {"weights": weights_identity(weights), "method": method.name,
+           "method_config": repr(method.config), "adapt": repr(cfg), "eval": repr(eval_cfg),
+           "frames": list(names)}
+  if data is not None:  # absent (not null) without it: earlier fingerprints stay as they were
+    parts["data"] = data
+  text = json.dumps(parts, sort_keys=True, default=str)
   return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def run_settings(method: Method, cfg: AdaptConfig, eval_cfg: EvalConfig,
+                 data: dict | None = None) -> dict[str, Any]:
+  """The readable settings of a run, as JSON values ({"method", "method_config", "adapt",
+  "eval", "data"}): a checkpoint's sidecar carries them, so that a --resume refused for another
+  run's checkpoints names the flags that differ (`setting_differences`), not only that some do."""
+  from pitta_jax.outputs import json_safe
+
+  def fields(config) -> Any:
+    return dataclasses.asdict(config) if dataclasses.is_dataclass(config) else repr(config)
+
+  settings = {"method": method.name, "method_config": fields(method.config),
+              "adapt": fields(cfg), "eval": fields(eval_cfg), "data": data or {}}
+  return json.loads(json.dumps(json_safe(settings)[0], default=str))  # tuples as lists, as read
+
+
+def setting_differences(saved: Any, now: dict[str, Any], prefix: str = "") -> list[str]:
+  """`saved.KEY was A, now B` for each setting (nested keys joined with dots, e.g.
+  adapt.lr) in which a checkpoint's `run_settings` differ from this run's."""
+  if not isinstance(saved, dict):
+    return []
+  out = []
+  for key in sorted(set(saved) | set(now)):
+    a, b = saved.get(key), now.get(key)
+    if isinstance(a, dict) and isinstance(b, dict):
+      out += setting_differences(a, b, f"{prefix}{key}.")
+    elif a != b:
+      out.append(f"{prefix}{key} was {a!r}, now {b!r}")
+  return out
 
 
 def _frame_names(frames: Sequence[Frame]) -> list[str]:
@@ -312,7 +348,7 @@ def _frame_names(frames: Sequence[Frame]) -> list[str]:
 
 # sidecar keys a record may lack (sidecars written before they were added; a resumed run
 # takes the fresh record's)
-RECORD_OPTIONAL = ("nonfinite_indices", "seconds")
+RECORD_OPTIONAL = ("nonfinite_indices", "seconds", "settings")
 
 
 def _sidecar_problem(record: dict, template: dict) -> str | None:
@@ -362,7 +398,7 @@ def _resume_points(directory: Path, fingerprint: str, names: Sequence[str], temp
   none of this run (another run's: other frames, weights or settings) or none readable."""
   if not directory.is_dir():
     return []
-  found, others, damaged = [], 0, []
+  found, others, damaged, differ = [], 0, [], []
   for path in sorted(directory.glob(CHECKPOINT_PATTERN), reverse=True):
     sidecar = path.parent / f"{path.name}.json"
     if not sidecar.is_file():
@@ -377,6 +413,8 @@ def _resume_points(directory: Path, fingerprint: str, names: Sequence[str], temp
     if (record.get("fingerprint") if isinstance(record, dict) else None) != fingerprint or \
         not isinstance(done, list) or done != list(names[:len(done)]):
       others += 1
+      if not differ and isinstance(record, dict):  # the newest readable one's, for the error
+        differ = setting_differences(record.get("settings"), template.get("settings", {}))
       continue
     if len(done) != int(path.name[len("state_"):]):  # a sidecar not of its state's frames
       others += 1
@@ -391,10 +429,11 @@ def _resume_points(directory: Path, fingerprint: str, names: Sequence[str], temp
     found.append((path, record))
   if others and not found:
     why = f"; {damaged[0]}" if damaged else ""
-    raise DataError(directory, f"{others} checkpoint(s) here, none of this run (another run's "
-                               f"frames, weights or settings, or unreadable{why}): resume with "
-                               f"the interrupted run's command, or run without --resume to "
-                               f"start afresh")
+    what = (f"settings differ: {'; '.join(differ[:3])}" + ("; ..." if len(differ) > 3 else "")
+            if differ else "another run's frames, weights or settings, or unreadable")
+    raise DataError(directory, f"{others} checkpoint(s) here, none of this run ({what}{why}): "
+                               f"resume with the interrupted run's command, or run without "
+                               f"--resume to start afresh")
   return found
 
 
@@ -530,7 +569,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                  checkpoint_dir: str | Path | None = None, checkpoint_every: int = 0,
                  runners: Runners | None = None, resume: bool | str = False,
                  resources: dict | None = None,
-                 on_start: Callable[[], Any] | None = None) -> RunResult:
+                 on_start: Callable[[], Any] | None = None,
+                 data: dict | None = None) -> RunResult:
   """Runs a method online over `frames` (predict-then-adapt) and evaluates each prediction
   against the frame's ground truth (when it has one).
 
@@ -560,6 +600,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     on_start: called once the frames, the method and the checkpoints to resume from are
       checked, before the first step (the CLI removes an earlier run's result files there, so
       that a refused --resume keeps them).
+    data: what the frames are beyond their names (JSON values: the dataset flags, the method's
+      source data), part of the checkpoints' fingerprint, so that a --resume with other data
+      under the same frame names is refused instead of continuing the old run's numbers.
   """
   from pitta_jax.sources import check_frame_needs, check_needs
   if len(frames) == 0:
@@ -583,9 +626,10 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   directory = Path(checkpoint_dir) if checkpoint_dir else None
   names = None if directory is None else _frame_names(frames)
   fingerprint = None if directory is None else run_fingerprint(weights, method, cfg, eval_cfg,
-                                                               names)
+                                                               names, data)
   record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],
-            "logs": {}, "fingerprint": fingerprint, "seconds": 0.0}
+            "logs": {}, "fingerprint": fingerprint, "seconds": 0.0,
+            "settings": run_settings(method, cfg, eval_cfg, data)}
   if directory is not None and resume:
     found = load_resume_point(directory, fingerprint, names, state, strict=resume != RESUME_OWN,
                               template=record)
@@ -658,11 +702,13 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                           ("grad_norm", out.grad_norm), ("update_norm", out.update_norm),
                           *out.logs.items()]:
         record["logs"].setdefault(key, []).extend(np.asarray(values).tolist())
+      # this chunk is complete before its save: a Ctrl-C during the save (which then removes
+      # what it wrote) saves it again below, rather than the chunk before or nothing
+      done = (state, record_marks(record), index, time.perf_counter() - t0)
       if directory is not None and checkpoint_every and index // checkpoint_every > (
           last_saved // checkpoint_every):
-        save(state, time.perf_counter() - t0)
+        save(state, done[3])
         last_saved = index
-      done = (state, record_marks(record), index, time.perf_counter() - t0)
       abs_rels = [m["abs_rel"] for m in record["per_frame"]]
       if compiled:  # this chunk's time (inputs, step, scoring) holds the compile
         compile_seconds += time.perf_counter() - chunk_start

@@ -98,6 +98,22 @@ def test_a_rows_cache_key_holds_the_frame_count(tmp_path):
   assert len(keys) == 2
 
 
+def test_a_rows_cache_key_holds_its_methods_source_data(tmp_path):
+  """A rerun with another --source-images (ActMAD's statistics) or --replay-root (CoMoDa's
+  replay) is not served the rows computed from the earlier source data; a row whose method
+  uses no source data stays cached."""
+  from experiments.common import RowSpec
+  case, parts = "fog", ({"domain": "fog"},)
+  for row, changed in ((RowSpec("ActMAD", "actmad"), True), (RowSpec("CoMoDa", "comoda"), True),
+                       (RowSpec("PITTA", "pitta"), False)):
+    keys = {common.row_key(common.Context("synthetic", None, [], "gt", {}, tmp_path, True, 2, True,
+                                          source_images=images, replay_root=replay),
+                           row, case, parts, {})
+            for images, replay in ((f"{tmp_path}/a/*.png", None), (f"{tmp_path}/b/*.png", None),
+                                   (None, f"{tmp_path}/raw_a"), (None, f"{tmp_path}/raw_b"))}
+    assert (len(keys) > 1) == changed, row.label
+
+
 def test_table1_rows_run_the_papers_settings():
   """Table 1's rows as the paper compares them: BN batch stats is no update with the frames'
   statistics, each baseline with L_d (its own weight) and without it (weight 0), every compared
@@ -753,6 +769,24 @@ def test_lambda_sweep_resumes_after_an_interrupt(tmp_path, monkeypatch):
   resumed = table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=ckpt)
   assert starts == [frames[2].name]
   assert resumed == whole
+  # a Ctrl-C landing as the first checkpoint's state is written: the save removes what it
+  # wrote, and the chunk it saved is saved again (it was lost: n % every == 0 saved nothing)
+  real_save, saves = run.save_state, []
+
+  def cut_save(path, state):
+    real_save(path, state)
+    saves.append(path)
+    if len(saves) == 1:
+      raise KeyboardInterrupt
+  cut = tmp_path / "cut.ckpt"
+  monkeypatch.setattr(run, "save_state", cut_save)
+  with pytest.raises(KeyboardInterrupt):
+    table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=cut)
+  assert [p.name for p in run.complete_checkpoints(cut)] == ["state_000002.json"]
+  monkeypatch.setattr(run, "save_state", real_save)
+  starts.clear()
+  assert table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=cut) == whole
+  assert starts == [frames[2].name]
 
 
 def test_experiments_without_a_name_is_a_usage_error_on_stderr(capsys):

@@ -437,6 +437,52 @@ def test_ctrl_c_between_checkpoints_saves_the_last_chunk_without_the_cut_ones_fr
   assert resumed["per_frame"] == full["per_frame"] and resumed["logs"] == full["logs"]
 
 
+def test_a_resume_with_other_dataset_options_is_refused_naming_them(tiny_weights, tmp_path,
+                                                                    capsys):
+  """A synthetic frame's name holds its domain and seed, not --option severity (nor the
+  traffic; a folder's names hold no depth_dir or --segmentation maps): a --resume with another
+  severity continued the old run's checkpoint and wrote its numbers under the new options, exit
+  0. It is refused with one line naming the option, and so is another --adapt.lr, by name."""
+  out = tmp_path / "out"
+  assert main(_adapt_args(tiny_weights, out, frames=K)) == 0   # its checkpoint at K frames
+  for flags, named in ((("--option", "severity=0.1"), "severity=0.1"),
+                       (("--adapt.lr", "0.001"), "adapt.lr")):
+    capsys.readouterr()
+    assert main(_adapt_args(tiny_weights, out, "--resume", *flags, frames=K)) == 2, flags
+    err = [line for line in capsys.readouterr().err.splitlines()
+           if not line.startswith("note: ")]
+    assert len(err) == 1 and "none of this run" in err[0] and named in err[0], (flags, err)
+  assert json.loads((out / "results.json").read_text())["options"] == [
+      f"num_frames={K}", "domain=fog"]   # a refused --resume leaves the results as they were
+
+
+def test_ctrl_c_as_a_checkpoint_save_ends_keeps_the_chunk_it_saved(tiny_weights, tmp_path,
+                                                                   monkeypatch, capfd):
+  """Ctrl-C (or SIGTERM) landing while the first checkpoint is saved, after its state is
+  written: the save removed what it wrote, the run saved nothing else (its last completed
+  chunk was the one being saved), said "no checkpoint was saved yet" and removed --out, so the
+  chunk's frames were lost. The completed chunk is saved, and --resume continues after it."""
+  from pitta_jax import run as run_lib
+  real, calls = run_lib.save_state, []
+
+  def interrupted(path, state):
+    real(path, state)
+    calls.append(path)
+    if len(calls) == 1:   # the Ctrl-C lands as orbax's save returns
+      raise KeyboardInterrupt
+
+  out = tmp_path / "cut"
+  monkeypatch.setattr(run_lib, "save_state", interrupted)
+  assert main(_adapt_args(tiny_weights, out, frames=2 * K)) == 130
+  assert "the last completed chunk is checkpointed" in capfd.readouterr().err
+  monkeypatch.setattr(run_lib, "save_state", real)
+  saved = sorted(p.name for p in (out / "checkpoints").glob("state_??????.json"))
+  assert saved == [f"state_{K:06d}.json"]
+  assert main(_adapt_args(tiny_weights, out, "--resume", frames=2 * K)) == 0
+  resumed = json.loads((out / "results.json").read_text())
+  assert resumed["resumed_at_frame"] == K and len(resumed["per_frame"]) == 2 * K
+
+
 def test_a_run_of_another_evaluation_protocol_is_another_run(tiny_weights):
   """The fingerprint a checkpoint carries holds the evaluation's config: a --resume with other
   --eval.* flags does not continue frames scored under the old protocol."""
