@@ -8,15 +8,20 @@ both checkpoint formats, float64 LayerNorm gradients), about a minute of CPU:
 
 from __future__ import annotations
 
+import argparse
 import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-import test_depth_anything_v2 as t  # noqa: E402  (the test module's references and helpers)
-
-if __name__ == "__main__":
+def main(argv=None) -> None:
+  argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)  # --help
+  sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+  import test_depth_anything_v2 as t  # the test module's references and helpers
   with tempfile.TemporaryDirectory() as d:
     t.full_size_vits_matches_torch(Path(d))
   print("full-size ViT-S parity: ok")
+
+
+if __name__ == "__main__":
+  main()

@@ -65,9 +65,21 @@ def child(args) -> None:
                     "wall_s": round(wall, 1), "final_loss": losses[-1]}), flush=True)
 
 
+def _lengths(text: str) -> list[int]:
+  """--lengths: a comma list of sequence lengths, each >= 1."""
+  try:
+    lengths = [int(x) for x in text.split(",")]
+  except ValueError:
+    raise argparse.ArgumentTypeError(f"expected a comma list of integers, got {text!r}") from None
+  if min(lengths) < 1:
+    raise argparse.ArgumentTypeError(f"each length must be >= 1, got {text!r}")
+  return lengths
+
+
 def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument("--lengths", default="100,1000", help="comma list of sequence lengths")
+  p.add_argument("--lengths", type=_lengths, default="100,1000",
+                 help="comma list of sequence lengths")
   p.add_argument("--height", type=int, default=96)
   p.add_argument("--width", type=int, default=320)
   p.add_argument("--instances", type=int, default=8)
@@ -78,7 +90,7 @@ def main(argv=None) -> None:
     child(args)
     return
 
-  lengths = [int(x) for x in args.lengths.split(",")]
+  lengths = args.lengths
   peaks = {}
   for n in lengths:
     cmd = [sys.executable, __file__, "--frames", str(n), "--height", str(args.height),

@@ -513,6 +513,8 @@ def main(argv=None) -> None:
   if args.quick:
     args.height, args.width, args.frames, args.reps = 96, 320, min(args.frames, 4), 3
     args.jax_frames = min(args.jax_frames, 8)
+  if min(args.frames, args.jax_frames, args.reps) < 1:
+    p.error("--frames, --jax-frames and --reps must be >= 1")
   args.jax_frames = max(args.jax_frames, args.frames)
   torch.set_num_threads(args.threads)
   impls = [s.strip() for s in args.impls.split(",") if s.strip()] or ["jax", *TORCH_IMPLS]

@@ -49,6 +49,12 @@ def main(argv=None) -> None:
   p.add_argument("--reps", type=int, default=2)
   p.add_argument("--quick", action="store_true", help="320x96")
   args = p.parse_args(argv)
+  try:
+    ks = [int(x) for x in args.ks.split(",")]
+  except ValueError:
+    p.error(f"--ks: expected a comma list of integers, got {args.ks!r}")
+  if min(ks) < 1 or args.frames < 1 or args.reps < 1:
+    p.error("--ks, --frames and --reps must be >= 1")
   if args.quick:
     args.height, args.width = 96, 320
   common = {"H": args.height, "W": args.width, "instances": args.instances,
@@ -78,7 +84,7 @@ def main(argv=None) -> None:
 
   # K independent streams
   multi = make_chunk_runner(streams.make_multi_stream_step(model, method, cfg, tx), options)
-  for k in [int(x) for x in args.ks.split(",")]:
+  for k in ks:
     frames = streams.stack_stream_inputs([chunk(100 + i) for i in range(k)])
     states, consts = streams.init_streams(variables, method, cfg, k, tx, model=model)
     first, _, med, _, _ = bc.timed_chunks(multi, states, frames, consts, args.reps)

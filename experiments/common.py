@@ -637,7 +637,8 @@ def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthe
   from pitta_jax.run import EvalConfig
   add_config_arguments(p, EvalConfig, "eval", "evaluation (every row of the table)")
   p.add_argument("--out", default=None, help="output directory (default experiments_out/NAME)")
-  p.add_argument("--quiet", action="store_true", help="no progress bars")
+  p.add_argument("--quiet", action="store_true",
+                 help="no progress bars and no table on the terminal (NAME.md has it)")
   p.add_argument("--debug", action="store_true", help="full tracebacks")
 
 

@@ -208,7 +208,8 @@ def _add_demo(sub) -> None:
   add_config_arguments(p, DemoConfig, "demo", "demo")
   _add_method_configs(p, every=True)
   p.add_argument("--retrain", action="store_true", help="retrain the source model (ignore cache)")
-  p.add_argument("--quiet", action="store_true", help="no progress bars")
+  p.add_argument("--quiet", action="store_true",
+                 help="no progress bars and no table on the terminal (table.md has it)")
   p.set_defaults(func=_run_demo)
 
 

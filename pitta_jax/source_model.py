@@ -162,16 +162,26 @@ def cache_root() -> Path:
   return Path(base) / "pitta-jax"
 
 
+def writable_cache_dir(path: Path) -> Path:
+  """`path` (a folder under the cache root), created and checked writable with a probe file:
+  DataError naming it and the fix, in one line, otherwise (e.g. $PITTA_JAX_CACHE pointing
+  nowhere writable), before any work whose result would go there."""
+  import tempfile
+  try:
+    path.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryFile(dir=path):
+      pass
+  except OSError as e:
+    from pitta_jax.data.errors import DataError
+    raise DataError(path, f"cannot write the cache directory ({e.strerror or e}); set "
+                          f"${CACHE_ENV} to a writable directory") from None
+  return path
+
+
 def enable_compilation_cache() -> None:
   """Persist XLA executables under the cache root, so a second run skips the compiles
   (tens of seconds per network on a CPU). Safe to call more than once."""
-  path = cache_root() / "xla"
-  try:
-    path.mkdir(parents=True, exist_ok=True)
-  except OSError as e:  # e.g. $PITTA_JAX_CACHE pointing nowhere writable: named, one line
-    from pitta_jax.data.errors import DataError
-    raise DataError(path, f"cannot create the cache directory ({e.strerror or e}); set "
-                          f"${CACHE_ENV} to a writable directory") from None
+  path = writable_cache_dir(cache_root() / "xla")
   jax.config.update("jax_compilation_cache_dir", str(path))
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
@@ -474,6 +484,7 @@ def load_or_train_source(cfg: SourceConfig = SourceConfig(), quiet: bool = False
       print(f"warning: cached source model at {directory} unreadable ({e}); "
             + ("copying the shipped model again" if shipped.is_file() else "retraining"),
             file=sys.stderr)
+  writable_cache_dir(directory.parent)  # before a training of minutes, not after it
   if not retrain and shipped.is_file():
     depth, pose, record = _read_shipped(shipped)
     return _save(directory, cfg, depth, pose, {**record["report"], "shipped": str(shipped)},

@@ -215,6 +215,11 @@ def method_resources(method, weights: Weights, dataset: str, source_images: str 
     return resources
   if method.prepare is None:
     return resources
+  if method.name == "actmad":  # its layers before any source data is read, as source-stats
+    from pitta_jax.source_stats import layer_shapes
+    if not layer_shapes(weights, method.config.layers):
+      raise DataError(None, f"--actmad.layers {method.config.layers!r} matches no module of "
+                            f"{weights.spec.name} whose output is one feature map")
   h, w = weights.height, weights.width
   images = read_source_images(source_images, h, w) if source_images else None
   sequences = replay_sequences(replay_root, h, w) if replay_root else None
@@ -438,9 +443,10 @@ def check_run_needs(method, dataset: str, root: str | None, option_items: Sequen
   reader = None
   if dataset == "synthetic":
     options = check_dataset_args(dataset, root, option_items, segmentation)
+    if isinstance(options.get("num_frames"), int) and options["num_frames"] < 1:
+      raise DataError(None, f"--option num_frames={options['num_frames']}: the synthetic "
+                            f"sequence has no frames")
     n = synthetic_config(options, 8, 8).num_frames
-    if n == 0:
-      raise DataError(None, "--option num_frames=0: the synthetic sequence has no frames")
     if "previous_frame" in method.needs and n < 2:
       raise _needs_error(method, "previous_frame", f"the synthetic sequence has {n} frame(s)",
                          "--option num_frames=N with N >= 2")

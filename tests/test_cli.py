@@ -311,3 +311,33 @@ def test_a_failed_or_interrupted_command_ends_the_process_at_once(monkeypatch):
   with pytest.raises(SystemExit) as e:
     cli.exit_with(0)
   assert ended == [2, 130, 143] and e.value.code == 0
+
+
+def test_quiet_help_says_it_hides_the_table():
+  """The demo's and the tables' --quiet hide the results table on the terminal too (as adapt's
+  --quiet says), not only the progress bars their --help named."""
+  import argparse
+  from experiments import common
+  from pitta_jax.cli import build_parser
+
+  def quiet_help(parser):
+    return next(a.help for a in parser._actions if "--quiet" in a.option_strings)
+  subs = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+  for parser in (subs.choices["demo"], subs.choices["adapt"], common.parser("table4", "")):
+    assert "no table on the terminal" in quiet_help(parser), parser.prog
+
+
+def test_actmad_layers_matching_nothing_is_refused_naming_the_flag(tmp_path, monkeypatch, capsys):
+  """`--actmad.layers` that selects no layer: one line naming the flag, before any source data
+  is read (it said "layers '...' matches no module", after ActMAD's source pass had started)."""
+  monkeypatch.setenv(source_model.CACHE_ENV, str(tmp_path / "cache"))
+  from pitta_jax import sources
+  monkeypatch.setattr(sources, "synthetic_streets", lambda *a, **k: pytest.fail("source data read"))
+  out = tmp_path / "o"
+  assert main(["adapt", "--dataset", "synthetic", "--method", "actmad", "--bn-stats", "running",
+               "--actmad.layers", "nomatch", "--option", "num_frames=1", "--quiet",
+               "--out", str(out)]) == 2
+  err = capsys.readouterr().err
+  assert err.endswith("error: --actmad.layers 'nomatch' matches no module of monodepth2 "
+                      "whose output is one feature map\n")
+  assert not out.exists()

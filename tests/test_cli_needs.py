@@ -137,6 +137,10 @@ def cli(tmp_path, monkeypatch, capsys):
      "--segmentation png:DIR needs a directory"),
     (("--dataset", "synthetic", "--option", "num_frames=0"),
      "--option num_frames=0: the synthetic sequence has no frames"),
+    # a negative count named as the option it is (was "synthetic options: num_frames must be
+    # >= 0, got -3", where 0 is refused too)
+    (("--dataset", "synthetic", "--option", "num_frames=-3"),
+     "--option num_frames=-3: the synthetic sequence has no frames"),
     (("--dataset", "synthetic", "--option", "=3"), "--option '=3' is not KEY=VALUE"),
 ])
 def test_unmet_needs_fail_before_work(cli, tmp_path, args, message):
@@ -416,6 +420,23 @@ def test_an_unusable_cache_directory_is_named(tmp_path, monkeypatch, capsys):
   err = capsys.readouterr().err
   assert err.count("\n") == 1 and err.startswith(f"error: {blocker}")
   assert f"set ${CACHE_ENV} to a writable directory" in err
+
+
+def test_train_source_refuses_an_unwritable_cache_before_training(tmp_path, monkeypatch,
+                                                                   capsys):
+  """train-source writes its model under the cache root: one that cannot be written is named,
+  with the fix, before the training (it failed with OSError's bare text after it)."""
+  from pitta_jax import source_model
+  from pitta_jax.cli import main
+  blocker = tmp_path / "file"
+  blocker.write_text("x")
+  monkeypatch.setenv(source_model.CACHE_ENV, str(blocker))
+  monkeypatch.setattr(source_model, "train_source",
+                      lambda *a, **k: pytest.fail("trained before the cache was checked"))
+  assert main(["train-source", "--retrain", "--quiet"]) == 2
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and err.startswith(f"error: {blocker}")
+  assert f"set ${source_model.CACHE_ENV} to a writable directory" in err
 
 
 def test_a_file_where_checkpoints_go_is_refused_before_work(cli, tmp_path, capsys):

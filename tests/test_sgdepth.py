@@ -290,3 +290,32 @@ def test_decoder_steps_must_split_once_and_stray_keys_are_named(released, tmp_pa
   with pytest.raises(CheckpointError, match=r"1 unexpected keys: depth\.decoder\.blocks\.step_9\."
                                             r"extra"):
     conv.convert_sgdepth(tmp_path / "stray.pth")
+
+
+def test_every_converter_names_a_file_of_another_network(tmp_path):
+  """The README: "A file given to the wrong converter is named for what it looks like". A
+  MonoDepth2 encoder.pth given to the Lite-Mono, MonoViT, Depth Anything V2 and Mask2Former
+  converters was refused as 'not a ...' without saying what it is (only the strict key check
+  and the MonoDepth2 and SGDepth converters named it)."""
+  from weights_convert.depth_anything_v2 import convert_depth_anything_v2
+  from weights_convert.litemono import convert_litemono
+  from weights_convert.mask2former import convert_mask2former
+  from weights_convert.monovit import convert_monovit
+  md2 = tmp_path / "encoder.pth"
+  torch.save({"encoder.conv1.weight": torch.zeros(4, 3, 7, 7), "height": 64, "width": 96}, md2)
+  depth = tmp_path / "depth.pth"
+  torch.save({"decoder.0.conv.conv.weight": torch.zeros(4, 4, 3, 3)}, depth)
+  named = r"its keys look like a ResNet encoder\.pth \(`pitta-jax convert monodepth2 --encoder`\)"
+  for convert in (lambda: convert_litemono(md2, depth), lambda: convert_monovit(md2, depth),
+                  lambda: convert_depth_anything_v2(md2, "official"),
+                  lambda: convert_depth_anything_v2(md2, "hf"),
+                  lambda: convert_mask2former(md2, "hf"),
+                  lambda: convert_mask2former(md2, "detectron2")):
+    with pytest.raises(CheckpointError, match=named):
+      convert()
+  # MonoDepth2's depth.pth given to HR-Depth's converter: a list of 20 missing twins, unnamed
+  from weights_convert.hrdepth import convert_hrdepth
+  torch.save({**tm.ResnetEncoder(18).state_dict(), "height": 64, "width": 96}, md2)
+  with pytest.raises(CheckpointError, match=r"its keys look like a MonoDepth2 depth\.pth "
+                                            r"\(`pitta-jax convert monodepth2 --depth`\)$"):
+    convert_hrdepth(md2, depth)

@@ -55,7 +55,7 @@ from typing import Any, Mapping, NamedTuple
 from weights_convert import rules as R
 from weights_convert.mask2former import read_safetensors
 from weights_convert.pth import CheckpointError, load_pth, unwrap_state_dict
-from weights_convert.strict import check_keys
+from weights_convert.strict import check_keys, looks_like
 
 FORMATS = ("official", "hf")
 # keys the network does not use (see the module docstring)
@@ -239,7 +239,7 @@ def _shape(state: dict, key: str, path: str, source: str) -> tuple[int, ...]:
   if key not in state:
     other = [f for f in FORMATS if f != source][0]
     hint = (f" (its keys look like the {other!r} format: use --from {other})"
-            if _SHAPE_KEYS[other].cls_token in state else "")
+            if _SHAPE_KEYS[other].cls_token in state else looks_like(state))
     raise CheckpointError(f"{path}: {key} not found; not a Depth Anything V2 {source!r} "
                           f"checkpoint{hint}")
   return tuple(getattr(state[key], "shape", ()))

@@ -36,7 +36,7 @@ from weights_convert import rules as R
 from weights_convert.monodepth2 import (METADATA_KEYS, encoder_rules,
                                         infer_num_layers)
 from weights_convert.pth import CheckpointError, int_entry, load_state_dict
-from weights_convert.strict import shown
+from weights_convert.strict import looks_like, shown
 
 # upstream layer kind -> the PyTorch parameter names of one layer (relative to the layer)
 PARAMS = {
@@ -89,9 +89,10 @@ def check_twins(state: dict, twins: dict[str, str], path: str) -> None:
       problems.append(f"{have} without its twin {lack}")
     elif dkey in state and not np.array_equal(np.asarray(state[dkey]), np.asarray(state[ckey])):
       problems.append(f"{dkey} differs from its twin {ckey}")
-  if problems:
+  if problems:  # a file without any `convs.*` key is another network's: named as such
+    other = "" if any(k.startswith("convs.") for k in state) else looks_like(state)
     raise CheckpointError(f"{path}: `decoder.<i>` and `convs.<name>` are the same upstream "
-                          f"layers, but " + shown(problems, sep="; "))
+                          f"layers, but " + shown(problems, sep="; ") + other)
 
 
 def decoder_rules() -> R.Rules:

@@ -31,6 +31,7 @@ from pathlib import Path
 
 from weights_convert import rules as R
 from weights_convert.pth import METADATA_KEYS, CheckpointError, int_entry, load_state_dict
+from weights_convert.strict import looks_like
 
 # upstream's decoder ModuleList order: (upconv, 2, 0), (upconv, 2, 1), ..., (upconv, 0, 1),
 # then dispconv 0..2
@@ -106,7 +107,7 @@ def infer_model(state: dict, path: str) -> str:
     dims = tuple(int(state[f"downsample_layers.{i}.0.conv.weight"].shape[0]) for i in range(3))
   except (KeyError, AttributeError) as e:
     raise CheckpointError(f"{path}: not a Lite-Mono encoder (no downsample_layers.N.0.conv."
-                          f"weight tensor: {e})") from None
+                          f"weight tensor: {e}){looks_like(state)}") from None
   blocks: list[set[int]] = [set(), set(), set()]
   for key in state:
     m = _STAGE_KEY.match(key)

@@ -40,6 +40,7 @@ import numpy as np
 
 from weights_convert import rules as R
 from weights_convert.pth import CheckpointError, checked_path, load_pth, load_pth_or_pickle
+from weights_convert.strict import looks_like
 
 from pitta_jax.models.mask2former.load import CONFIG_JSON, PARAMS_DIR
 
@@ -276,7 +277,7 @@ def infer_config(state: dict, source: str, path: str):
         enc_layers=_count(state, enc), enc_dim_feedforward=int(state[enc_ffn].shape[0]))
   except (KeyError, AttributeError, IndexError) as e:
     raise CheckpointError(f"{path}: not a {source} Mask2Former checkpoint with a Swin backbone "
-                          f"({type(e).__name__}: {e})") from None
+                          f"({type(e).__name__}: {e}){looks_like(state)}") from None
 
 
 def expected_shapes(cfg) -> dict[tuple[str, ...], tuple[int, ...]]:

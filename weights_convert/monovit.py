@@ -43,7 +43,7 @@ import numpy as np
 
 from weights_convert import rules as R
 from weights_convert.pth import METADATA_KEYS, CheckpointError, int_entry, load_state_dict
-from weights_convert.strict import check_keys
+from weights_convert.strict import check_keys, looks_like
 
 NUM_STAGES = 4  # the decoder takes the stem and four stage outputs
 DECODER_UNUSED = ("X_00_Conv_0", "X_01_Conv_0", "X_02_Conv_0", "X_03_Conv_0")
@@ -95,8 +95,8 @@ def infer_layout(state: dict, path: str, prefix: str = "") -> dict[str, tuple[in
   stages = _indices(state, rf"{p}patch_embed_stages\.(\d+)\.")
   if stages != list(range(NUM_STAGES)):
     raise CheckpointError(f"{path}: expected MPViT patch_embed_stages.0..{NUM_STAGES - 1} keys"
-                          f"{f' under {prefix!r}' if prefix else ''}, found stages {stages}; is "
-                          f"this a MonoViT encoder?")
+                          f"{f' under {prefix!r}' if prefix else ''}, found stages {stages}"
+                          f"{looks_like(state)}; is this a MonoViT encoder?")
   per_stage = []
   for s in stages:
     stage, blk = f"{prefix}mhca_stages.{s}", f"{prefix}mhca_stages.{s}.mhca_blks.0"

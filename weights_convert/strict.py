@@ -49,6 +49,13 @@ def layout_of(keys: Iterable[str]) -> str | None:
   return None
 
 
+def looks_like(keys: Iterable[str]) -> str:
+  """The end of a converter's refusal of a file of another network's keys: "; its keys look
+  like <what it is and its converter>" (`layout_of`), else "" (keys it does not know)."""
+  other = layout_of(keys)
+  return f"; its keys look like {other}" if other else ""
+
+
 def check_keys(path: str, present: Iterable[str], used: Iterable[str],
                ignorable: Callable[[str], bool]) -> None:
   """Raises CheckpointError naming the unexpected keys (in the file, not used, not ignorable)
