@@ -294,16 +294,20 @@ RESUME_OWN = "own"  # run_sequence(resume=...): resume this run's checkpoint, el
 def run_fingerprint(weights: Weights, method: Method, cfg: AdaptConfig, eval_cfg: EvalConfig,
                     names: Sequence[str], data: dict | None = None) -> str:
   """A digest of everything that decides a run's results: the network (spec, model.json, the
-  parameter values), the method and its config, the run's and the evaluation's configs, the
+  parameter values; the pose network's values for a method that needs it), the method and its config, the run's and the evaluation's configs, the
   frames' names in order and, where given, `data`: what the frames are beyond their names (the
   dataset flags: a synthetic frame's name holds its domain and seed, not its severity or
   traffic; a folder's names not its ground-truth or panoptic directory; nor do they hold the
   method's source data). A checkpoint carries it, so that a resume continues only its own run."""
   import hashlib
-  from pitta_jax.source_stats import weights_identity
+  from pitta_jax.source_stats import update_with_tree, weights_identity
   parts = {"weights": weights_identity(weights), "method": method.name,
            "method_config": repr(method.config), "adapt": repr(cfg), "eval": repr(eval_cfg),
            "frames": list(names)}
+  if "pose" in method.needs and weights.pose is not None:  # the pose network it runs too
+    pose = hashlib.sha256()
+    update_with_tree(pose, weights.pose)
+    parts["pose"] = pose.hexdigest()
   if data is not None:  # absent (not null) without it: earlier fingerprints stay as they were
     parts["data"] = data
   text = json.dumps(parts, sort_keys=True, default=str)

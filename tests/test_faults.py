@@ -497,6 +497,27 @@ def test_a_run_of_another_evaluation_protocol_is_another_run(tiny_weights):
   assert len(prints) == 3
 
 
+def test_a_run_with_other_pose_weights_is_another_run(tiny_weights):
+  """A method that runs the pose network (CoMoDa) continues only a run of the same pose
+  weights: the fingerprint held the depth network's values alone. A method without a pose
+  network keeps its fingerprint whatever the pose weights."""
+  import dataclasses
+  import jax
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.checkpoint import load_weights
+  from pitta_jax.methods import build
+  from pitta_jax.run import EvalConfig, run_fingerprint
+  weights = load_weights(tiny_weights)
+  pose = {"params": {"pose_conv": {"kernel": np.zeros((3, 3, 6, 4), np.float32)}}}
+  moved = jax.tree_util.tree_map(lambda a: a + 1, pose)
+  names = ["a", "b"]
+  for method, differ in ((build("comoda"), True), (build("pitta"), False)):
+    prints = {run_fingerprint(dataclasses.replace(weights, pose=p), method, AdaptConfig(),
+                              EvalConfig(), names) for p in (pose, moved)}
+    assert (len(prints) == 2) == differ, method.name
+    assert "pose" in method.needs or not differ
+
+
 def test_fps_after_a_resume_counts_this_calls_frames():
   """8 frames, 4 of them from a checkpoint, this call 2 s: fps 2.0 (this call's 4 frames), and
   total_fps over all 8 frames and both calls' time."""
