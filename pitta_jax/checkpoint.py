@@ -56,9 +56,25 @@ class Weights:
     return network(self.spec, self.config)
 
 
+@contextlib.contextmanager
+def _root_logging_kept():
+  """The root logger's handlers as they were after the block: orbax logs through absl, whose
+  every call runs `logging.basicConfig()` while the root logger has no handler, so a save or a
+  load left a stderr handler on the root logger and made a caller's own
+  `logging.basicConfig(...)` afterwards silently do nothing. Handlers the block added go."""
+  import logging
+  before = list(logging.root.handlers)
+  try:
+    yield
+  finally:
+    for handler in [h for h in logging.root.handlers if h not in before]:
+      logging.root.removeHandler(handler)
+
+
 def _checkpointer():
-  import orbax.checkpoint as ocp  # imported lazily: orbax start-up is slow
-  return ocp.StandardCheckpointer()
+  with _root_logging_kept():
+    import orbax.checkpoint as ocp  # imported lazily: orbax start-up is slow
+    return ocp.StandardCheckpointer()
 
 
 # orbax's threads of one save (orbax 0.11's names): its commit thread and the threads it starts
@@ -84,8 +100,9 @@ def save_tree(path: str | os.PathLike, tree: Any) -> None:
   ckpt = _checkpointer()
   before = set(threading.enumerate())
   try:
-    ckpt.save(os.path.abspath(path), tree, force=True)
-    ckpt.wait_until_finished()
+    with _root_logging_kept():
+      ckpt.save(os.path.abspath(path), tree, force=True)
+      ckpt.wait_until_finished()
   except BaseException as e:  # a full disk, Ctrl-C: no half-written temporary directory stays
     if isinstance(e, KeyboardInterrupt):
       # orbax writes from its own threads: let them end first (deleting their files under
@@ -130,7 +147,8 @@ def load_tree(path: str | os.PathLike) -> Any:
     raise WeightsError(f"{path}: the checkpoint is missing")
   try:
     _check_readable(path)
-    return _checkpointer().restore(os.path.abspath(path))
+    with _root_logging_kept():
+      return _checkpointer().restore(os.path.abspath(path))
   except WeightsError:
     raise
   except Exception as e:
@@ -145,9 +163,12 @@ def save_weights(out_dir: str | os.PathLike, architecture: str, config: dict[str
   the JSON fields the network's `ModelSpec.build` reads (with "height"/"width", the input size
   the weights were trained at); depth/ (and pose/) are orbax checkpoints of Flax variables.
   """
-  from pitta_jax.models.registry import MODELS
+  from pitta_jax.models.registry import MODELS, REGISTER_HINT
   from pitta_jax.outputs import atomic_write_text
-  spec = MODELS[architecture]  # weights the loader would refuse are not written
+  if architecture not in MODELS:  # weights the loader would refuse are not written
+    raise WeightsError(f"{out_dir}: not written: architecture {architecture!r} is not one of "
+                       f"{', '.join(sorted(MODELS))} ({REGISTER_HINT})")
+  spec = MODELS[architecture]
   spec.check_size(config.get("height", spec.default_size[0]),
                   config.get("width", spec.default_size[1]))
   with writing_weights(out_dir, MODEL_JSON) as out:
@@ -194,7 +215,7 @@ def read_json_object(path: Path) -> dict[str, Any]:
 
 def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]]:
   """(spec, config) from DIR/model.json, validated (see the module docstring)."""
-  from pitta_jax.models.registry import MODELS
+  from pitta_jax.models.registry import MODELS, REGISTER_HINT
   path = Path(weights_dir) / MODEL_JSON
   if not Path(weights_dir).is_dir():
     raise WeightsError(f"{weights_dir}: not a weights directory with a {MODEL_JSON} (make one "
@@ -209,7 +230,8 @@ def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]
   meta = read_json_object(path)
   arch = meta.get("architecture")
   if arch not in MODELS:
-    raise WeightsError(f"{path}: architecture {arch!r} is not one of {', '.join(sorted(MODELS))}")
+    raise WeightsError(f"{path}: architecture {arch!r} is not one of {', '.join(sorted(MODELS))} "
+                       f"({REGISTER_HINT})")
   spec = MODELS[arch]
   config = {k: v for k, v in meta.items() if k != "architecture"}
   config.setdefault("height", spec.default_size[0])

@@ -742,19 +742,27 @@ def terminate_as_interrupt():
     raise late[0]()
 
 
-def _quiet_libraries() -> None:
+def _quiet_libraries() -> Callable[[], None]:
   """Silences the libraries' own log lines: OpenCV's (e.g. "[ WARN:0@...] PNG input buffer is
   incomplete": the readers raise a one-line error for the same file, which they would precede)
   and orbax's through absl (a full disk during a checkpoint save printed hundreds of lines of
   its threads' tracebacks before the error line; its failures reach the command as
   exceptions), and tensorstore's "Event loop is closed" (`_quiet_unraisable`, while the command
   runs: `terminate_as_interrupt` restores the hook it found). The command's choice, unless
-  --debug; the library leaves them alone."""
+  --debug; the library leaves them alone. Returns what puts OpenCV's and absl's levels back
+  (`interruptible` calls it once the command is done: `main` run in-process, e.g. by a script
+  that registers its own network first, leaves the process's logging as it found it)."""
   import logging
   import cv2.utils.logging as cv_logging
+  cv_level, absl_level = cv_logging.getLogLevel(), logging.getLogger("absl").level
   cv_logging.setLogLevel(cv_logging.LOG_LEVEL_SILENT)
   logging.getLogger("absl").setLevel(logging.CRITICAL)
   sys.unraisablehook = _quiet_unraisable(sys.unraisablehook)
+
+  def restore() -> None:
+    cv_logging.setLogLevel(cv_level)
+    logging.getLogger("absl").setLevel(absl_level)
+  return restore
 
 
 def _quiet_unraisable(hook: Callable) -> Callable:
@@ -811,29 +819,45 @@ def report_error(error: Exception, debug: bool, also: tuple[type[Exception], ...
   return 2
 
 
-def interruptible(body: Callable[[], int], debug: bool | None = None) -> int:
+def interruptible(body: Callable[[], int], debug: bool | None = None,
+                  in_process: bool = False) -> int:
   """A console entry's `body` with Ctrl-C and SIGTERM handled from its first line: while it
   imports and parses too, a signal stops it with one line and exit 130 / 143 (a traceback
   before, and a Ctrl-C that landed in JAX's gc callback during the imports was dropped: the run
   went on and exited 0). The command's own handlers, inside, say more where they can. Unless
   `debug` (default: --debug on the command line) the libraries' log lines are silenced
-  (`_quiet_libraries`), and what the process still prints after a signal."""
+  (`_quiet_libraries`), and what the process still prints after a signal. `in_process`: the
+  caller's process goes on after the command (`main(argv)` from a script), so the libraries'
+  log levels are put back once the command has returned or raised."""
   debug = ("--debug" in sys.argv) if debug is None else debug
+  restore = None
   try:
     with terminate_as_interrupt():
       if not debug:
-        _quiet_libraries()
-      return body()
+        restore = _quiet_libraries()
+      status = body()
   except KeyboardInterrupt as e:
     if not debug:
       _silence_teardown()
     say_stopped("interrupted")
     return exit_status(e)
+  except BaseException:
+    if in_process and restore is not None:
+      restore()
+    raise
+  if in_process and restore is not None:
+    restore()
+  return status
 
 
 def main(argv: list[str] | None = None) -> int:
+  """The `pitta-jax` command line `argv` (default: `sys.argv[1:]`, the console script). Called
+  with an explicit `argv` from a script (e.g. one that registers its own network or method
+  first: README 'Adding a network or a method'), the process's logging levels are left as they
+  were."""
+  in_process = argv is not None
   argv = list(sys.argv[1:] if argv is None else argv)
-  return interruptible(lambda: _main(argv), "--debug" in argv)
+  return interruptible(lambda: _main(argv), "--debug" in argv, in_process)
 
 
 def _main(argv: list[str]) -> int:

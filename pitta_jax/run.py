@@ -202,7 +202,8 @@ def code_key(obj: Any, _path: frozenset = frozenset()) -> Any:
       except ValueError:  # a cell not yet filled
         cells.append(("empty",))
     return ("function", code, tuple(cells), code_key(getattr(obj, "__defaults__", None), path),
-            code_key(getattr(obj, "__kwdefaults__", None), path))
+            code_key(getattr(obj, "__kwdefaults__", None), path),
+            _globals_key(code, getattr(obj, "__globals__", {})))
   if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
     return (type(obj), tuple(code_key(getattr(obj, f.name), path)
                              for f in dataclasses.fields(obj)))
@@ -215,6 +216,30 @@ def code_key(obj: Any, _path: frozenset = frozenset()) -> Any:
   except TypeError:
     return ("id", id(obj))
   return (type(obj), obj)
+
+
+def _globals_key(code: types.CodeType, namespace: dict) -> tuple:
+  """What the module-level names a function's code reads are bound to: a class or function
+  itself, which compares by identity (a notebook cell run again with an edited `class Net` or
+  loss helper binds the name to a new object, where the code of `lambda config: Net()` stays
+  equal; held by the key, so that its id is never reused meanwhile), another hashable value (a
+  constant) by its value, an unhashable one by identity; modules are left out."""
+  names = set(code.co_names)
+  for const in code.co_consts:  # the code of nested functions and comprehensions
+    if isinstance(const, types.CodeType):
+      names |= set(const.co_names)
+  key = []
+  for name in sorted(names):
+    if name not in namespace or isinstance(namespace[name], types.ModuleType):
+      continue
+    value = namespace[name]
+    try:
+      hash(value)
+    except TypeError:
+      key.append((name, "id", id(value)))
+      continue
+    key.append((name, type(value), value))
+  return tuple(key)
 
 
 def model_alignment(weights: Weights) -> str:
@@ -294,11 +319,12 @@ RESUME_OWN = "own"  # run_sequence(resume=...): resume this run's checkpoint, el
 def run_fingerprint(weights: Weights, method: Method, cfg: AdaptConfig, eval_cfg: EvalConfig,
                     names: Sequence[str], data: dict | None = None) -> str:
   """A digest of everything that decides a run's results: the network (spec, model.json, the
-  parameter values; the pose network's values for a method that needs it), the method and its config, the run's and the evaluation's configs, the
-  frames' names in order and, where given, `data`: what the frames are beyond their names (the
-  dataset flags: a synthetic frame's name holds its domain and seed, not its severity or
-  traffic; a folder's names not its ground-truth or panoptic directory; nor do they hold the
-  method's source data). A checkpoint carries it, so that a resume continues only its own run."""
+  parameter values; the pose network's values for a method that needs it), the method and its
+  config, the run's and the evaluation's configs, the frames' names in order and, where given,
+  `data`: what the frames are beyond their names (the dataset flags: a synthetic frame's name
+  holds its domain and seed, not its severity or traffic; a folder's names not its ground-truth
+  or panoptic directory; nor do they hold the method's source data). A checkpoint carries it,
+  so that a resume continues only its own run."""
   import hashlib
   from pitta_jax.source_stats import update_with_tree, weights_identity
   parts = {"weights": weights_identity(weights), "method": method.name,

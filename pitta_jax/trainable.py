@@ -124,8 +124,15 @@ def selected_paths(variables: Tree, selector: Selector, encoder: str = "encoder"
   norms = encoder_layers(variables, norm_kind, encoder, order)
   if not norms and selector.kind != "fraction":
     name = "LayerNorm" if norm_kind == "ln" else "BatchNorm"
+    tops = sorted({p.split("/", 1)[0] for p in flat})
+    if encoder not in tops:  # e.g. a network of one's own whose encoder has another name
+      raise ValueError(f"selector {selector} found no {name} layer: the network has no "
+                       f"top-level module {encoder!r} (its ModelSpec.encoder), its top-level "
+                       f"modules are {', '.join(tops)}: set ModelSpec(encoder=...) to its "
+                       f"encoder's name")
+    other = "encoder_bn" if norm_kind == "ln" else "encoder_ln"
     raise ValueError(f"selector {selector} found no {name} layer under {encoder}/ "
-                     f"(try encoder_ln or encoder_bn)")
+                     f"(try {other}, all or fraction(cnn=..., bn=...))")
   if selector.kind in ("encoder_bn", "encoder_ln"):
     convs = []
   else:

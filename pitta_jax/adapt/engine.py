@@ -279,13 +279,32 @@ def make_chunk_runner(step, compiler_options: dict[str, Any] | None = None):
   The step's work that depends on `consts` alone (e.g. the frozen convolutions' input-gradient
   kernels) runs once per chunk, before the scan (`hoist.hoist_invariants`).
   compiler_options: XLA options for this program alone (`jax.jit`'s), e.g.
-  `{"xla_backend_optimization_level": 0}` for a run too short to repay a full compile."""
-  @functools.partial(jax.jit, donate_argnums=0, compiler_options=compiler_options)
-  def run_chunk(state, frames, consts):
+  `{"xla_backend_optimization_level": 0}` for a run too short to repay a full compile.
+
+  Called with traced arguments (inside the caller's own `jax.jit`, `jax.vmap`, ...), the runner
+  is the same scan jitted without `compiler_options`, which JAX takes on a top-level `jax.jit`
+  only: the caller's program compiles with its own options (a speed choice, `xla_cpu`)."""
+  def scan_chunk(state, frames, consts):
     one = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), frames)
     body, _ = hoist_invariants(lambda c, s, f: step(s, f, c), consts, state, one)
     return jax.lax.scan(body, state, frames)
-  return run_chunk
+
+  run_chunk = jax.jit(scan_chunk, donate_argnums=0, compiler_options=compiler_options)
+  if not compiler_options:
+    return run_chunk
+
+  traced = jax.jit(scan_chunk, donate_argnums=0)
+
+  @functools.wraps(scan_chunk)
+  def runner(state, frames, consts):
+    if any(isinstance(x, jax.core.Tracer)
+           for x in jax.tree_util.tree_leaves((state, frames, consts))):
+      return traced(state, frames, consts)
+    return run_chunk(state, frames, consts)
+
+  runner._cache_size = run_chunk._cache_size  # `run._compile_count` reads it
+  runner.lower = run_chunk.lower
+  return runner
 
 
 def adapt_stream(state: AdaptState, consts: Consts, chunks: Iterable[StepInput], run_chunk,

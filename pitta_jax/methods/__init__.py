@@ -36,7 +36,11 @@ def build(name: str, config: Any | None = None) -> Method:
     config = cls()
   if not isinstance(config, cls):
     raise TypeError(f"method {name} takes a {cls.__name__}, got {type(config).__name__}")
-  return make(config)
+  method = make(config)
+  if method.name != name:  # runs, flags (--<name>.*) and records go by Method.name
+    raise ValueError(f"METHODS[{name!r}] builds a method named {method.name!r}: register it "
+                     f"under its own name, METHODS[{method.name!r}]")
+  return method
 
 
 def method_setting(name: str) -> dict[str, Any]:

@@ -95,6 +95,22 @@ def optimizer(config: ActmadConfig) -> optax.GradientTransformation:
                                nesterov=config.nesterov))
 
 
+def _bn_hint(model, variables) -> str:
+  """The network's encoder BatchNorm layers (modules with running statistics), for an error
+  about a `layers` regex that matches none: the default names MonoDepth2's (`bn1`,
+  `downsample_bn`), while a network of one's own built on `flax.linen.BatchNorm` has
+  `BatchNorm_0`, ...; empty when the encoder has none."""
+  from flax.traverse_util import flatten_dict
+  encoder = getattr(getattr(model, "spec", None), "encoder", "encoder")
+  paths = sorted({k.rsplit("/", 1)[0] for k in flatten_dict(variables.get("batch_stats", {}),
+                                                           sep="/")
+                  if k.startswith(encoder + "/")})
+  if not paths:
+    return ""
+  more = f", ... ({len(paths)} in all)" if len(paths) > 4 else ""
+  return f"; the encoder's BatchNorm layers are {', '.join(paths[:4])}{more}"
+
+
 def source_statistics(model, variables, images: Iterable[Any], layers: str = ENCODER_BN
                       ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
   """Per-location mean and unbiased variance of each matched layer's output over source images.
@@ -111,8 +127,8 @@ def source_statistics(model, variables, images: Iterable[Any], layers: str = ENC
   count, means, m2s = 0, {}, {}
   for batch in images:
     acts = {k: np.asarray(a, np.float64) for k, a in capture(variables, jnp.asarray(batch)).items()}
-    check(len(acts) > 0, f"layers {layers!r} matches no module of the network whose output is "
-                         "one feature map")
+    check(len(acts) > 0, f"layers {layers!r} (--actmad.layers) matches no module of the "
+                         f"network whose output is one feature map{_bn_hint(model, variables)}")
     b = next(iter(acts.values())).shape[0]
     for k, a in acts.items():
       mean_b, m2_b = a.mean(0), ((a - a.mean(0)) ** 2).sum(0)

@@ -30,10 +30,15 @@ MODELS: dict[str, ModelSpec] = {
 }
 
 
+REGISTER_HINT = ("a network of your own: `pitta_jax.models.registry.MODELS[spec.name] = spec` "
+                 "first (README 'Adding a network or a method')")
+
+
 def get_spec(name: str) -> ModelSpec:
   """The spec of network `name` (ValueError listing the known names otherwise)."""
   if name not in MODELS:
-    raise ValueError(f"unknown model {name!r}; available: {', '.join(sorted(MODELS))}")
+    raise ValueError(f"unknown model {name!r}; available: {', '.join(sorted(MODELS))} "
+                     f"({REGISTER_HINT})")
   return MODELS[name]
 
 
