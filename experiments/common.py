@@ -329,6 +329,9 @@ def check_rows(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSp
   for case, _, row in selected:  # each test case's frames, as its methods need them
     entry = methods.get((row.method, row.model))
     if entry is not None and entry[1].needs:
+      if ctx.frames:  # --frames N (synthetic: always) frames per part, each its own recording
+        check_needs(entry[1], [None] * ctx.frames,
+                    f"each part of test case {case} (--frames {ctx.frames})")
       for what, reader in readers.get(case, ()):
         check_needs(entry[1], reader, what)
   clear_earlier_table(ctx)
@@ -386,8 +389,10 @@ def row_key(ctx: Context, row: RowSpec, case: str, parts, weights_id: dict) -> s
               "eval": dataclasses.asdict(ctx.evaluation())}
   # the source-domain data of a method that prepares from it (ActMAD's statistics, CoMoDa's
   # replay): another --source-images or --replay-root is another row (only there, so that the
-  # other rows stay cached)
-  if method_of(row).prepare is not None:
+  # other rows stay cached); the method by its name, with its default config: a sweep's row
+  # holds all its values in one field (Table 4's 12 lambdas), which no single config takes
+  from pitta_jax.methods import build
+  if build(row.method).prepare is not None:
     resolved["source"] = [str(Path(p).resolve()) if p else None
                           for p in (ctx.source_images, ctx.replay_root)]
   text = json.dumps({"format": FORMAT, "row": dataclasses.asdict(row), "case": case,

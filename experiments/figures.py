@@ -8,9 +8,13 @@ from typing import Sequence
 
 from experiments.common import Entry
 
+QUICK_TITLE = "\n--quick: random networks, not results"
 
-def per_frame_figures(out: Path, name: str, entries: Sequence[Entry]) -> list[Path]:
-  """out/figures/NAME_<group>_abs_rel.png for each group with per-frame values."""
+
+def per_frame_figures(out: Path, name: str, entries: Sequence[Entry],
+                      quick: bool = False) -> list[Path]:
+  """out/figures/NAME_<group>_abs_rel.png for each group with per-frame values; `quick`: the
+  title says the curves are a --quick run's."""
   from pitta_jax import plots
   written = []
   for group in dict.fromkeys(e.group for e in entries):
@@ -19,14 +23,16 @@ def per_frame_figures(out: Path, name: str, entries: Sequence[Entry]) -> list[Pa
     if series:
       slug = "".join(c if c.isalnum() else "_" for c in group).strip("_").lower()
       written += plots.save_figure(
-          plots.per_frame_figure(series, "abs_rel", f"{name}: {group}, per-frame AbsRel"),
+          plots.per_frame_figure(series, "abs_rel", f"{name}: {group}, per-frame AbsRel"
+                                  + (QUICK_TITLE if quick else "")),
           out / "figures" / f"{name}_{slug}_abs_rel.png")
   return written
 
 
-def lambda_figure(out: Path, name: str, entries: Sequence[Entry]) -> list[Path]:
-  """out/figures/NAME_lambda.png: AbsRel and delta<1.25 against lambda (ours; the paper's as
-  printed in a second figure)."""
+def lambda_figure(out: Path, name: str, entries: Sequence[Entry],
+                  quick: bool = False) -> list[Path]:
+  """out/figures/NAME_lambda.png: AbsRel and delta<1.25 against lambda (ours, `quick`: titled
+  as a --quick run's; the paper's as printed in a second figure)."""
   from pitta_jax import plots
   written = []
   ours = [e for e in entries if e.status == "ok"]
@@ -34,7 +40,8 @@ def lambda_figure(out: Path, name: str, entries: Sequence[Entry]) -> list[Path]:
     lams = [e.extra["lambda"] for e in ours]
     written += plots.save_figure(plots.lambda_figure(
         lams, {m: [e.metrics[m] for e in ours] for m in ("abs_rel", "a1")},
-        f"{name}: ours, lambda of eq. 10"), out / "figures" / f"{name}_lambda.png")
+        f"{name}: ours, lambda of eq. 10" + (QUICK_TITLE if quick else "")),
+        out / "figures" / f"{name}_lambda.png")
   paper = [e for e in entries if e.paper]
   if paper:
     written += plots.save_figure(plots.lambda_figure(

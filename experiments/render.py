@@ -28,7 +28,12 @@ TEX_HEADERS = {"abs_rel": r"AbsRel $\downarrow$", "sq_rel": r"SqRel $\downarrow$
 
 
 def _fmt(v: float | None, decimals: int = 3) -> str:
-  return "—" if v is None or not math.isfinite(v) else f"{v:.{decimals}f}"
+  """`v` at `decimals`; a value that rounds to zero is "0.000", whichever its sign ("-0.000"
+  beside "0.000" read as two values, and `ranks` ties them)."""
+  if v is None or not math.isfinite(v):
+    return "—"
+  text = f"{v:.{decimals}f}"
+  return text[1:] if text.startswith("-") and float(text) == 0 else text
 
 
 def ranks(entries: Sequence[Entry], metric: str, which: str = "ours",
@@ -127,12 +132,20 @@ def _md_columns(entries, which, row_title, metrics, marked=True, decimals=3) -> 
   return "\n".join(lines) + "\n"
 
 
+# text-mode LaTeX of each character that is not itself there: the specials, the symbols of the
+# captions and labels, and "<", ">" (text mode's default OT1 encoding prints them as "¡", "¿")
+TEX_TEXT = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#",
+            "$": r"\$", "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}",
+            "^": r"\textasciicircum{}", "<": r"\textless{}", ">": r"\textgreater{}",
+            "λ": r"$\lambda$", "∞": r"$\infty$", "δ": r"$\delta$", "↑": r"$\uparrow$",
+            "↓": r"$\downarrow$", "²": r"$^2$", "³": r"$^3$", "—": "---"}
+
+
 def _tex_escape(text: str) -> str:
-  return (text.replace("\\", r"\textbackslash{}").replace("&", r"\&").replace("%", r"\%")
-          .replace("_", r"\_").replace("#", r"\#").replace("λ", r"$\lambda$")
-          .replace("∞", r"$\infty$").replace("δ", r"$\delta$").replace("↑", r"$\uparrow$")
-          .replace("↓", r"$\downarrow$").replace("²", r"$^2$").replace("³", r"$^3$")
-          .replace("—", "---"))
+  """`text` as LaTeX prints it; a "-" before another "-" is kept apart ("--quick", "--weights":
+  LaTeX joins "--" into an en dash)."""
+  return "".join("-{}" if c == "-" and text[i + 1:i + 2] == "-" else TEX_TEXT.get(c, c)
+                 for i, c in enumerate(text))
 
 
 def _mark_tex(text: str, rank: int | None) -> str:
@@ -178,20 +191,23 @@ def latex(entries: Sequence[Entry], layout: str, group_title: str, row_title: st
   return "\n".join(lines) + "\n"
 
 
-def csv_text(entries: Sequence[Entry], table: str) -> str:
+def csv_text(entries: Sequence[Entry], table: str, quick: bool = False) -> str:
+  """One line per row and source; `quick`: our rows are a --quick run's (random networks, a
+  few frames), which their "quick" column says, as the caption does in the .md and .tex."""
   buffer = io.StringIO(newline="")
   writer = csv.writer(buffer)
   writer.writerow(["table", "group", "row", "source", "status", *METRIC_NAMES, "frames",
-                   "seconds"])
+                   "seconds", "quick"])
   for e in entries:
     writer.writerow([table, e.group, e.label, "ours", e.status,
                      *(f"{e.metrics[m]:.6f}" if e.metrics.get(m) is not None else ""
                        for m in METRIC_NAMES),
-                     e.extra.get("frames", ""), e.extra.get("seconds", "")])
+                     e.extra.get("frames", ""), e.extra.get("seconds", ""),
+                     "true" if quick else "false"])
     if e.paper:
       writer.writerow([table, e.group, e.label, "paper", "ok",
                        *(f"{e.paper[m]:.3f}" if e.paper.get(m) is not None else ""
-                         for m in METRIC_NAMES), "", ""])
+                         for m in METRIC_NAMES), "", "", ""])
   return buffer.getvalue()
 
 
@@ -215,7 +231,7 @@ def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, 
              "rows": [dataclasses.asdict(e) for e in entries]}
   payload, n_bad = json_safe(json.loads(json.dumps(payload, default=str)))
   payload["non_finite_values"] = n_bad
-  files = {f"{name}.md": md, f"{name}.csv": csv_text(entries, name),
+  files = {f"{name}.md": md, f"{name}.csv": csv_text(entries, name, bool(meta.get("quick"))),
            f"{name}.tex": latex(entries, layout, group_title, row_title, metrics, caption,
                                 f"tab:{name}", marked, decimals),
            "results.json": json.dumps(payload, indent=1, allow_nan=False) + "\n"}

@@ -91,11 +91,17 @@ def run(args, runners=None) -> int:
     if study == "reference" or setting.endswith(": reference"):
       continue
     base = {"traffic": dense_ref, "BN mode": running_ref}.get(study, ref)
-    entries.append(_delta(study, setting, e.metrics, base.metrics))
+    entries.append(_delta(study, setting, e, base))
   for lam, r in zip(lams, sweep):
-    entries.append(_delta("lambda", f"λ = {label(lam)}", r["metrics"], ref.metrics))
+    entries.append(_delta("lambda", f"λ = {label(lam)}",
+                          Entry("fog", "", r["metrics"], status=r.get("status", "ok")), ref))
   default = next(e for s, n, e in results if n.startswith("lr 0.0001, 1 step"))
   for n in [n for n in lengths if n <= ctx.frames]:  # a mean over frames the run has
+    failed = next((e for e in (default, ref) if e.status != "ok"), None)
+    if failed is not None:  # its per-frame values are the frames it scored, not the first n
+      entries.append(Entry("sequence length", f"first {n} frame{'s' * (n > 1)}", {},
+                           status=f"{failed.label}: {failed.status}"))
+      continue
     a = np.nanmean(default.extra["abs_rel_per_frame"][:n])
     b = np.nanmean(ref.extra["abs_rel_per_frame"][:n])
     entries.append(Entry("sequence length", f"first {n} frame{'s' * (n > 1)}",
@@ -104,9 +110,9 @@ def run(args, runners=None) -> int:
                    caption=("PITTA minus 'BN batch stats' (the same frames, no update) on "
                             f"synthetic fog, {ctx.frames} frames: negative AbsRel / positive "
                             "δ = the loss helps. Reference AbsRel "
-                            f"{ref.metrics['abs_rel']:.4f}; the BN-mode row is PITTA with "
+                            f"{_abs_rel(ref)}; the BN-mode row is PITTA with "
                             "running statistics minus No adaptation (running statistics, no "
-                            f"update: AbsRel {running_ref.metrics['abs_rel']:.4f}); the traffic "
+                            f"update: AbsRel {_abs_rel(running_ref)}); the traffic "
                             "row is against BN batch stats on the dense street. "
                             + common.caption_notes(ctx)).strip(),
                    group_title="Study", row_title="Setting", seconds=elapsed(), decimals=4,
@@ -119,8 +125,18 @@ def run(args, runners=None) -> int:
   return 0
 
 
-def _delta(study: str, setting: str, ours: dict, ref: dict) -> Entry:
-  return Entry(study, setting, {m: ours[m] - ref[m] for m in ours if m in ref})
+def _delta(study: str, setting: str, ours: Entry, ref: Entry) -> Entry:
+  """`ours` minus `ref`; where either has no metrics (diverged, not scored), its status."""
+  failed = next((e for e in (ours, ref) if e.status != "ok"), None)
+  if failed is not None:
+    return Entry(study, setting, {}, status=failed.status if failed is ours
+                 else f"reference {failed.label}: {failed.status}")
+  return Entry(study, setting, {m: ours.metrics[m] - ref.metrics[m] for m in ours.metrics
+                                if m in ref.metrics})
+
+
+def _abs_rel(e: Entry) -> str:
+  return f"{e.metrics['abs_rel']:.4f}" if e.status == "ok" else e.status
 
 
 def verdict(entries: Sequence[Entry], noise: float = 0.002) -> str:

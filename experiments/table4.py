@@ -30,7 +30,10 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
                  quick: bool = False, runners=None, checkpoint_dir=None,
                  eval_cfg=None) -> list[dict]:
   """PITTA with each lambda of `lams` over `frames`, as one vmapped run; per lambda
-  {"metrics": mean of the 7, "abs_rel_per_frame": [...], "frames": n}. runners: a
+  {"metrics": mean of the 7, "abs_rel_per_frame": [...], "frames": n, "status": "ok" or why
+  there are no metrics, "metrics_before_divergence"}: a lambda whose depth stops being finite
+  is that lambda's divergence, as a table row's (`run.RunResult.status`), not the sweep's
+  failure; its frames from there are not scored. runners: a
   `run.Runners` that keeps the compiled sweep for later calls. checkpoint_dir: the sweep's
   states and results so far are saved there every `common.CHECKPOINT_EVERY` frames (and on
   Ctrl-C), and a sweep interrupted before resumes from its newest checkpoint (one of another
@@ -56,7 +59,8 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   states, consts = streams.init_lambda_sweep(weights.depth, lams, cfg, tx, model=model)
   ev = eval_cfg if eval_cfg is not None else EvalConfig()
   names = [frame.name for frame in frames]
-  record = {"names": [], "per_frame": [[] for _ in lams], "fingerprint": None}
+  record = {"names": [], "per_frame": [[] for _ in lams], "nonfinite": [[] for _ in lams],
+            "fingerprint": None}
   directory = Path(checkpoint_dir) if checkpoint_dir is not None else None
   if directory is not None:
     record["fingerprint"] = run_fingerprint(weights, pitta, cfg, ev,
@@ -81,6 +85,9 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
       depth = np.asarray(out.depth)                                     # (T, K, H, W)
       for t, frame in enumerate(originals):
         for k in range(len(lams)):
+          if not np.isfinite(depth[t, k]).all():
+            record["nonfinite"][k].append(len(record["names"]))
+            continue
           try:
             record["per_frame"][k].append(frame_metrics(depth[t, k], frame.depth, ev,
                                                         model_alignment(weights)))
@@ -108,8 +115,16 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   # a checkpoint's JSON holds NaN as null
   per_frame = [[{k: float("nan") if v is None else v for k, v in m.items()} for m in p]
                for p in record["per_frame"]]
-  return [{"metrics": metrics_lib.mean_metrics(p), "frames": len(frames),
-           "abs_rel_per_frame": [m["abs_rel"] for m in p]} for p in per_frame]
+  results = []
+  for p, bad in zip(per_frame, record["nonfinite"]):
+    mean = metrics_lib.mean_metrics(p) if p else {}
+    status = (f"diverged: non-finite depth from frame {bad[0]} of {len(frames)} ({len(bad)} "
+              f"frames not scored)" if bad else "ok" if p
+              else "not scored: no frame has valid ground truth")
+    results.append({"metrics": mean if status == "ok" else {}, "status": status,
+                    "metrics_before_divergence": mean if bad else None, "frames": len(frames),
+                    "abs_rel_per_frame": [m["abs_rel"] for m in p]})
+  return results
 
 
 def _sweep_runner(weights, cfg):
@@ -157,8 +172,9 @@ def run(args, runners=None) -> int:
     adapt = dataclasses.asdict(common.adapt_config("pitta", quick=ctx.quick))
     from pitta_jax.methods.pitta import PittaConfig
     pitta = PittaConfig()
-    entries = [Entry(case, label(lam), r["metrics"], extra={
+    entries = [Entry(case, label(lam), r["metrics"], status=r.get("status", "ok"), extra={
         "lambda": lam, "frames": r["frames"], "seconds": cached.get("seconds"),
+        "metrics_before_divergence": r.get("metrics_before_divergence"),
         "abs_rel_per_frame": r["abs_rel_per_frame"], "adapt": adapt,
         "method_config": dataclasses.asdict(dataclasses.replace(pitta, lam=lam)),
         "row_key": key})
@@ -167,7 +183,7 @@ def run(args, runners=None) -> int:
   caption = (f"PITTA's lambda of eq. 10 (AbsRel, δ<1.25), 12 streams in one vmapped run (each "
              f"row's seconds are that run's). Best bold, second underlined (ours: the paper's "
              f"Table 4 marks none). Dataset: {waymo_caption(ctx)}.")
-  lambda_figure(ctx.out, "table4", entries)
+  lambda_figure(ctx.out, "table4", entries, ctx.quick)
   return publish(ctx, "table4", entries, elapsed(), layout="columns", caption=caption,
                  group_title="Dataset", row_title="λ", metrics=("abs_rel", "a1"))
 

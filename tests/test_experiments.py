@@ -137,7 +137,8 @@ def test_sensitivity_deltas_and_verdicts():
   """A study's row is ours minus its reference (negative AbsRel: the loss helps), and the
   verdict calls a change within +-noise (0.002) noise. Hand values."""
   from experiments.sensitivity import _delta, verdict
-  e = _delta("lr", "lr 0.001", {"abs_rel": 0.20, "a1": 0.8}, {"abs_rel": 0.22, "a1": 0.7})
+  e = _delta("lr", "lr 0.001", Entry("fog", "lr 0.001", {"abs_rel": 0.20, "a1": 0.8}),
+             Entry("fog", "reference", {"abs_rel": 0.22, "a1": 0.7}))
   assert e.metrics == pytest.approx({"abs_rel": -0.02, "a1": 0.1})
   rows = [Entry("lr", "a", {"abs_rel": -0.001}), Entry("lr", "b", {"abs_rel": 0.0015}),
           Entry("steps", "c", {"abs_rel": -0.01}), Entry("len", "d", {"abs_rel": 0.004})]
