@@ -513,7 +513,7 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
             "fps": rounded_or_none(res.total_fps, 3),
             "steady_fps": rounded_or_none(res.steady_fps, 3),
             "compile_seconds": round(res.compile_seconds, 2), "n_skipped": res.n_skipped,
-            "abs_rel_per_frame": [m["abs_rel"] for m in res.per_frame],
+            "abs_rel_per_frame": res.per_frame_series("abs_rel"),  # NaN: a frame not scored
             "adapt": dataclasses.asdict(cfg), "method_config": dataclasses.asdict(method.config)}
 
   result = cached(ctx, key, compute)

@@ -102,8 +102,9 @@ def run(args, runners=None) -> int:
       entries.append(Entry("sequence length", f"first {n} frame{'s' * (n > 1)}", {},
                            status=f"{failed.label}: {failed.status}"))
       continue
-    a = np.nanmean(default.extra["abs_rel_per_frame"][:n])
-    b = np.nanmean(ref.extra["abs_rel_per_frame"][:n])
+    # NaN (null when served from the row cache): a frame not scored
+    a = np.nanmean(np.asarray(default.extra["abs_rel_per_frame"][:n], np.float64))
+    b = np.nanmean(np.asarray(ref.extra["abs_rel_per_frame"][:n], np.float64))
     entries.append(Entry("sequence length", f"first {n} frame{'s' * (n > 1)}",
                          {"abs_rel": float(a - b)}))
   md = write_table(ctx.out, "sensitivity", entries, layout="rows",

@@ -30,13 +30,13 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
                  quick: bool = False, runners=None, checkpoint_dir=None,
                  eval_cfg=None) -> list[dict]:
   """PITTA with each lambda of `lams` over `frames`, as one vmapped run; per lambda
-  {"metrics": mean of the 7, "abs_rel_per_frame": [...], "frames": n, "status": "ok" or why
-  there are no metrics, "metrics_before_divergence"}: a lambda whose depth stops being finite
-  is that lambda's divergence, as a table row's (`run.RunResult.status`), not the sweep's
-  failure; its frames from there are not scored. runners: a
-  `run.Runners` that keeps the compiled sweep for later calls. checkpoint_dir: the sweep's
-  states and results so far are saved there every `common.CHECKPOINT_EVERY` frames (and on
-  Ctrl-C), and a sweep interrupted before resumes from its newest checkpoint (one of another
+  {"metrics": mean of the 7, "abs_rel_per_frame": [...] (every frame, NaN where not scored),
+  "frames": n, "status": "ok" or why there are no metrics, "metrics_before_divergence"}: a
+  lambda whose depth stops being finite is that lambda's divergence, as a table row's
+  (`run.RunResult.status`), not the sweep's failure; its frames from there are not scored.
+  runners: a `run.Runners` that keeps the compiled sweep for later calls. checkpoint_dir: the
+  sweep's states and results so far are saved there every `common.CHECKPOINT_EVERY` frames (and
+  on Ctrl-C), and a sweep interrupted before resumes from its newest checkpoint (one of another
   sweep is removed, with a warning), with the result of an uninterrupted one. eval_cfg: the
   `run.EvalConfig` each frame is scored with (None: its defaults)."""
   from pathlib import Path
@@ -59,8 +59,10 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   states, consts = streams.init_lambda_sweep(weights.depth, lams, cfg, tx, model=model)
   ev = eval_cfg if eval_cfg is not None else EvalConfig()
   names = [frame.name for frame in frames]
+  # per lambda: the scored frames' metrics, the frames whose depth is not finite, and AbsRel
+  # of every frame (None where not scored: the curves' x is the frame index)
   record = {"names": [], "per_frame": [[] for _ in lams], "nonfinite": [[] for _ in lams],
-            "fingerprint": None}
+            "abs_rel": [[] for _ in lams], "fingerprint": None}
   directory = Path(checkpoint_dir) if checkpoint_dir is not None else None
   if directory is not None:
     record["fingerprint"] = run_fingerprint(weights, pitta, cfg, ev,
@@ -87,12 +89,15 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
         for k in range(len(lams)):
           if not np.isfinite(depth[t, k]).all():
             record["nonfinite"][k].append(len(record["names"]))
+            record["abs_rel"][k].append(None)
             continue
           try:
-            record["per_frame"][k].append(frame_metrics(depth[t, k], frame.depth, ev,
-                                                        model_alignment(weights)))
+            m = frame_metrics(depth[t, k], frame.depth, ev, model_alignment(weights))
           except metrics_lib.NoValidPixels:
-            pass
+            record["abs_rel"][k].append(None)
+            continue
+          record["per_frame"][k].append(m)
+          record["abs_rel"][k].append(m["abs_rel"])
         record["names"].append(frame.name)
       n = len(record["names"])
       done = (states, record_marks(record))
@@ -116,14 +121,14 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   per_frame = [[{k: float("nan") if v is None else v for k, v in m.items()} for m in p]
                for p in record["per_frame"]]
   results = []
-  for p, bad in zip(per_frame, record["nonfinite"]):
+  for p, bad, series in zip(per_frame, record["nonfinite"], record["abs_rel"]):
     mean = metrics_lib.mean_metrics(p) if p else {}
     status = (f"diverged: non-finite depth from frame {bad[0]} of {len(frames)} ({len(bad)} "
               f"frames not scored)" if bad else "ok" if p
               else "not scored: no frame has valid ground truth")
     results.append({"metrics": mean if status == "ok" else {}, "status": status,
                     "metrics_before_divergence": mean if bad else None, "frames": len(frames),
-                    "abs_rel_per_frame": [m["abs_rel"] for m in p]})
+                    "abs_rel_per_frame": [float("nan") if v is None else v for v in series]})
   return results
 
 

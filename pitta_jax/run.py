@@ -97,6 +97,20 @@ class RunResult:
   compile_seconds: float = 0.0
   compiled_frames: int = 0
 
+  def per_frame_series(self, metric: str = "abs_rel") -> list[float]:
+    """`metric` of every frame in frame order, NaN where the frame was not scored (its depth
+    not finite, its ground truth without a valid pixel or absent): a curve over the frames
+    whose x is the frame index, where `per_frame` holds the scored frames only."""
+    bad, scored, out = set(self.nonfinite_indices), iter(self.per_frame), []
+    entry = next(scored, None)
+    for i, name in enumerate(self.frame_names):
+      if entry is not None and i not in bad and entry.get("name") == name:
+        out.append(entry[metric])
+        entry = next(scored, None)
+      else:
+        out.append(float("nan"))
+    return out
+
   @property
   def nonfinite(self) -> list[str]:
     """The names of the frames whose prediction is not finite."""

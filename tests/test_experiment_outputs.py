@@ -45,8 +45,11 @@ def test_a_diverged_lambda_is_a_diverged_row_not_a_failed_sweep(monkeypatch):
   ok, blown = result
   assert ok.get("status", "ok") == "ok" and all(math.isfinite(v) for v in ok["metrics"].values())
   assert blown["status"].startswith("diverged: non-finite depth from frame 2 of 4")
-  assert blown["metrics"] == {} and len(blown["abs_rel_per_frame"]) == 2
-  assert blown["metrics_before_divergence"]["abs_rel"] == np.mean(blown["abs_rel_per_frame"])
+  # every frame's place kept (a curve's x is the frame index): NaN where not scored
+  series = blown["abs_rel_per_frame"]
+  assert blown["metrics"] == {} and len(series) == 4
+  assert np.isfinite(series[:2]).all() and np.isnan(series[2:]).all()
+  assert blown["metrics_before_divergence"]["abs_rel"] == np.mean(series[:2])
 
 
 def test_a_sweep_without_a_scorable_frame_says_so():
@@ -63,6 +66,20 @@ def test_a_sweep_without_a_scorable_frame_says_so():
       SyntheticConfig(height=64, width=96, num_frames=2, domain="fog"))]
   for r in table4.lambda_sweep(weights, frames, (0.0, 0.5)):
     assert r["status"] == "not scored: no frame has valid ground truth" and r["metrics"] == {}
+    assert len(r["abs_rel_per_frame"]) == 2 and np.isnan(r["abs_rel_per_frame"]).all()
+
+
+def test_per_frame_series_keeps_each_frames_place():
+  """A run's per-frame curve is over all its frames, NaN where one was not scored (no valid
+  ground truth, a non-finite depth): the tables' figures drew the scored values one after
+  another, so every frame after an unscored one was drawn one frame early (and Table 3's Sunny
+  rows under the wrong frames of All). Hand values."""
+  from pitta_jax.run import RunResult
+  names = ["a", "b", "c", "d", "e"]
+  per_frame = [{"name": "a", "abs_rel": 0.1}, {"name": "c", "abs_rel": 0.3}]
+  r = RunResult(name="x", per_frame=per_frame, mean={}, logs={}, frame_names=names,
+                seconds=1.0, kept_depths={}, excluded=["b"], nonfinite_indices=[3, 4])
+  np.testing.assert_array_equal(r.per_frame_series("abs_rel"), [0.1, np.nan, 0.3, np.nan, np.nan])
 
 
 METRICS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")

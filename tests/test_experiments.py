@@ -748,7 +748,8 @@ def test_lambda_sweep_resumes_after_an_interrupt(tmp_path, monkeypatch):
   blind = list(frames)
   blind[1] = dataclasses.replace(blind[1], depth=np.zeros_like(blind[1].depth))
   for r in table4.lambda_sweep(weights, blind, lams, runners=shared):
-    assert len(r["abs_rel_per_frame"]) == 5
+    series = r["abs_rel_per_frame"]  # the blind frame's place kept, as a gap
+    assert len(series) == 6 and np.isnan(series[1]) and np.isfinite(np.delete(series, 1)).all()
     assert all(math.isfinite(v) for v in r["metrics"].values())
   scored, real = [], run.frame_metrics
 
@@ -924,7 +925,7 @@ def test_a_diverged_row_keeps_its_means_before_divergence_unranked(quick_out, tm
                                      "not scored)" for r in rows)
   for r in rows:
     assert r["metrics"] == {} and r["extra"]["metrics_before_divergence"] == means
-    assert r["extra"]["abs_rel_per_frame"] == [0.25, 0.125]
+    assert r["extra"]["abs_rel_per_frame"] == [0.25, 0.125, None, None]  # gaps: not scored
   stored = [json.loads(p.read_text()) for p in (out / "rows").glob("*.json")]
   assert stored and all(s["metrics"] == {} and s["metrics_before_divergence"] == means
                         for s in stored)
