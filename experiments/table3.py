@@ -101,7 +101,7 @@ def run(args, runners=None) -> int:
                "are different test cases, not competing methods.")
   per_frame_figures(ctx.out, "table3", _aligned_for_figures(entries), ctx.quick)
   return publish(ctx, "table3", entries, elapsed(), layout="rows", caption=caption,
-                 group_title="MDE network", row_title="Weather", marked=False)
+                 group_title="MDE Net", row_title="Weather", marked=False)
 
 
 def main(argv: Sequence[str] | None = None, runners=None) -> int:
