@@ -186,8 +186,11 @@ def atomic_write_files(directory: str | os.PathLike, contents: dict[str, str | b
   except BaseException as e:
     for tmp in temps.values():
       tmp.unlink(missing_ok=True)
-    if isinstance(e, OSError) and e.filename is None and e.errno is not None:
-      # a full disk: name the file (the commands print "error: FILE: No space left on device")
+    unnamed = isinstance(e, OSError) and e.errno is not None and (
+        e.filename is None or str(e.filename) in {str(t) for t in temps.values()})
+    if unnamed:
+      # a full disk, a rename refused: name the file, not the temporary one just removed (the
+      # commands print "error: FILE: No space left on device")
       raise OSError(e.errno, e.strerror, str(directory / name)) from e
     raise
   # what a killed earlier writer of these files left (a cache entry, `source-stats --out FILE`:

@@ -165,6 +165,16 @@ def test_files_of_one_result_are_replaced_together_or_not_at_all(tmp_path):
   assert [(tmp_path / n).read_text() for n in names] == ["new", "new", "old"]
 
 
+def test_a_refused_rename_names_the_file_not_its_temporary(tmp_path):
+  """A result file whose name is taken by a directory: the rename's error named the temporary
+  file it had just removed (".results.json.tmp-PID: Is a directory"); it names the file."""
+  (tmp_path / "results.json").mkdir()
+  with pytest.raises(OSError) as caught:
+    atomic_write_files(tmp_path, {"t.md": "new", "results.json": b"{}"})
+  assert caught.value.filename == str(tmp_path / "results.json")
+  assert not list(tmp_path.glob(".*.tmp-*"))
+
+
 def test_every_file_of_a_result_is_synced_before_the_first_rename(tmp_path, monkeypatch):
   """The write's durability (the module's promise: temporary file, fsync, then rename): each
   temporary file is fsynced, every one before the first `os.replace`, so that a crash after a
