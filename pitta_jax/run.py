@@ -429,6 +429,9 @@ def _sidecar_problem(record: dict, template: dict) -> str | None:
   logs = record.get("logs", {}) if "logs" in template else {}
   if not all(isinstance(v, list) and numbers(v) for v in logs.values()):
     return "'logs' holds a value that is not a list of numbers"
+  seconds = record.get("seconds", 0.0) if "seconds" in template else 0.0
+  if not 0 <= seconds < float("inf"):  # a run's wall time so far (its kind checked above)
+    return "'seconds' is not a time (a number >= 0)"
   return None
 
 

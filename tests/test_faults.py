@@ -1241,7 +1241,9 @@ def test_a_damaged_sidecar_is_passed_over_with_a_warning_not_met_as_a_traceback(
                        (sidecar(4, logs={"loss": ["x"] * 4}), "'logs' holds a value that is not"),
                        (sidecar(4, per_frame=[{"name": "f0", "abs_rel": "garbage"}]),
                         "'per_frame' holds an entry that is not a frame's metrics"),
-                       (sidecar(4, seconds="1"), "'seconds' is not a float")]:
+                       (sidecar(4, seconds="1"), "'seconds' is not a float"),
+                       # an edited time: the resumed run reported negative seconds and fps
+                       (sidecar(4, seconds=-5.0), "'seconds' is not a time")]:
     directory = tmp_path / problem.replace("'", "").replace(" ", "_")
     write(directory, 2, good)
     write(directory, 4, bad)
