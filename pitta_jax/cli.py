@@ -165,7 +165,7 @@ def _check_method_flags(args, method) -> None:
   """ValueError naming the flag: another method's `--<name>.*` flags, or `--adapt`'s optimiser
   flags for a method that steps its own optimiser (the baselines), would be ignored."""
   from pitta_jax.adapt import AdaptConfig
-  from pitta_jax.config_cli import given_fields, given_flags
+  from pitta_jax.config_cli import given_fields, given_flags, typed_flag
   for _, name in _method_config_classes():
     given = given_flags(args, name)
     if name not in ("adapt", method.name) and given:
@@ -173,12 +173,13 @@ def _check_method_flags(args, method) -> None:
   given = given_fields(AdaptConfig, args, "adapt")
   own = sorted(given & {"optimizer", "lr", "momentum"})
   if method.optimizer is not None and own:
-    raise ValueError(f"--adapt.{own[0]} does not apply to --method {method.name}: it steps its "
-                     f"own optimiser (set it with its --{method.name}.* flags)")
+    raise ValueError(f"{typed_flag(args, 'adapt.' + own[0])} does not apply to --method "
+                     f"{method.name}: it steps its own optimiser (set it with its "
+                     f"--{method.name}.* flags)")
   updating = sorted(given & {"optimizer", "lr", "momentum", "steps_per_frame", "selector",
                              "reset_every", "skip_nonfinite"})
   if not method.adapts and updating:
-    raise ValueError(f"--adapt.{updating[0].replace('_', '-')} does not apply to --method "
+    raise ValueError(f"{typed_flag(args, 'adapt.' + updating[0])} does not apply to --method "
                      f"{method.name}: it never updates the network")
 
 

@@ -109,7 +109,22 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, namespace: 
       flags.append(alias)
     text = f"{help_of(field)} (default: {shown})".lstrip().replace("%", "%%")  # argparse formats
     group.add_argument(*flags, dest=flag_dest(namespace, field.name), type=kind, default=None,
-                       metavar=meta, help=argparse.SUPPRESS if field.name in hidden else text)
+                       metavar=meta, help=argparse.SUPPRESS if field.name in hidden else text,
+                       action=_StoreSpelled, path=f"{namespace}.{field.name}")
+
+
+class _StoreSpelled(argparse.Action):
+  """argparse's store, recording which spelling of the field's flags the command line used
+  (`--adapt.lr` or its short alias), for `typed_flag`."""
+
+  def __init__(self, *args, path: str, **kwargs):
+    super().__init__(*args, **kwargs)
+    self.path = path  # "adapt.lr"
+
+  def __call__(self, parser, namespace, values, option_string=None):
+    setattr(namespace, self.dest, values)
+    if option_string:
+      vars(namespace).setdefault(SPELLED, {})[self.path] = option_string
 
 
 def flag_dest(namespace: str, name: str) -> str:
@@ -258,4 +273,17 @@ def route_aliases(args: argparse.Namespace, configs: Sequence[tuple[type, str]],
         raise ValueError(f"{flag}: {e}") from None
       except ValueError:
         raise ValueError(f"{flag}: expected {meta}, got {text!r}") from None
+      vars(args).setdefault(SPELLED, {})[path] = flag
     setattr(args, key, None)
+
+
+# args' record of how each given config field's flag was spelled: {"adapt.lr": "--lr", ...}
+# (`_StoreSpelled`; a shared alias that `route_aliases` moved onto the field)
+SPELLED = "flag_spellings"
+
+
+def typed_flag(args: argparse.Namespace, path: str) -> str:
+  """The flag of field `path` ("adapt.lr") as the command line gave it (`--lr`,
+  `--steps-per-frame` or `--adapt.lr`; `--adapt.lr` where no flag gave it): what a message
+  about the value names, so that it names what the user typed."""
+  return getattr(args, SPELLED, {}).get(path, f"--{path.replace('_', '-')}")
