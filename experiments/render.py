@@ -230,7 +230,11 @@ def write_table(out: Path, name: str, entries: Sequence[Entry], *, layout: str, 
   payload = {"table": name, "caption": caption, "seconds": round(seconds, 1), **meta,
              "rows": [dataclasses.asdict(e) for e in entries]}
   payload, n_bad = json_safe(json.loads(json.dumps(payload, default=str)))
-  payload["non_finite_values"] = n_bad
+  # a per-frame series' NaN is a frame not scored (a gap, null), not a non-finite value: not
+  # counted, as it is not when the row comes back from the row cache (null there already)
+  gaps = sum(isinstance(v, float) and not math.isfinite(v) for e in entries
+             for v in (e.extra.get("abs_rel_per_frame") or ()))
+  payload["non_finite_values"] = n_bad - gaps
   files = {f"{name}.md": md, f"{name}.csv": csv_text(entries, name, bool(meta.get("quick"))),
            f"{name}.tex": latex(entries, layout, group_title, row_title, metrics, caption,
                                 f"tab:{name}", marked, decimals),

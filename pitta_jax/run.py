@@ -250,10 +250,25 @@ def _globals_key(code: types.CodeType, namespace: dict) -> tuple:
     try:
       hash(value)
     except TypeError:
-      key.append((name, "id", id(value)))
+      key.append((name, _ByIdentity(value)))
       continue
     key.append((name, type(value), value))
   return tuple(key)
+
+
+class _ByIdentity:
+  """An unhashable value in a cache key, equal only to itself and held alive by the key (an id
+  alone could be reused by a later object once the value is gone)."""
+  __slots__ = ("obj",)
+
+  def __init__(self, obj: Any):
+    self.obj = obj
+
+  def __hash__(self) -> int:
+    return id(self.obj)
+
+  def __eq__(self, other: Any) -> bool:
+    return isinstance(other, _ByIdentity) and other.obj is self.obj
 
 
 def model_alignment(weights: Weights) -> str:

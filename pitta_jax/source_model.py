@@ -162,15 +162,17 @@ def cache_root() -> Path:
   return Path(base) / "pitta-jax"
 
 
-def writable_cache_dir(path: Path) -> Path:
-  """`path` (a folder under the cache root), created and checked writable with a probe file:
-  DataError naming it and the fix, in one line, otherwise (e.g. $PITTA_JAX_CACHE pointing
-  nowhere writable), before any work whose result would go there."""
+def writable_cache_dir(path: Path, probe: bool = True) -> Path:
+  """`path` (a folder under the cache root), created and (`probe`) checked writable with a probe
+  file: DataError naming it and the fix, in one line, otherwise (e.g. $PITTA_JAX_CACHE pointing
+  nowhere writable), before any work whose result would go there. Without `probe` a folder that
+  exists is taken as it is (a read-only compilation cache is still read)."""
   import tempfile
   try:
     path.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryFile(dir=path):
-      pass
+    if probe:
+      with tempfile.TemporaryFile(dir=path):
+        pass
   except OSError as e:
     from pitta_jax.data.errors import DataError
     raise DataError(path, f"cannot write the cache directory ({e.strerror or e}); set "
@@ -181,7 +183,9 @@ def writable_cache_dir(path: Path) -> Path:
 def enable_compilation_cache() -> None:
   """Persist XLA executables under the cache root, so a second run skips the compiles
   (tens of seconds per network on a CPU). Safe to call more than once."""
-  path = writable_cache_dir(cache_root() / "xla")
+  # created if need be, not probed: a read-only cache that holds the compiled programs (and the
+  # source models) serves them; JAX only warns where it cannot add one
+  path = writable_cache_dir(cache_root() / "xla", probe=False)
   jax.config.update("jax_compilation_cache_dir", str(path))
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
