@@ -32,8 +32,9 @@ from typing import Any, Callable, Sequence
 # bump when a row's meaning changes: cached rows of another format are recomputed (2: the
 # prediction's disparity is resized onto the ground truth; CoMoDa's and Ada-Depth's warp,
 # CoTTA's blur as upstream computes them; 3: ActMAD evaluated after its update, Ada-Depth and
-# CoMoDa never pair frames of two recordings)
-FORMAT = 3
+# CoMoDa never pair frames of two recordings; 4: a row's per-frame AbsRel holds every frame, a gap
+# where one was not scored, and a sweep's lambda that diverges is its own row's status)
+FORMAT = 4
 
 # The embedded stand-ins of the paper's datasets (SyntheticConfig fields per part of a case).
 TARGET_SEED = 200          # DrivingStereo-like streets (training uses seeds 0..7, the demo 100)
