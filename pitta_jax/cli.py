@@ -585,7 +585,7 @@ def _run_source_stats(args) -> int:
   from pitta_jax.methods import build
   from pitta_jax.methods.actmad import RESOURCE, ActmadConfig
   from pitta_jax.methods.base import SourceData
-  from pitta_jax.source_stats import layer_shapes, save_source_stats
+  from pitta_jax.source_stats import matched_layers, save_source_stats
   from pitta_jax.sources import read_source_images
   try:
     cfg = ActmadConfig() if args.layers is None else ActmadConfig(layers=args.layers)
@@ -607,10 +607,7 @@ def _run_source_stats(args) -> int:
   if len(images) < 2:
     raise DataError(args.images, f"{len(images)} image(s); the variance needs at least 2")
   weights = load_weights(args.weights)
-  shapes = layer_shapes(weights, cfg.layers)
-  if not shapes:
-    raise ValueError(f"--layers {cfg.layers!r} matches no module of the {weights.spec.name} "
-                     "whose output is one feature map")
+  matched_layers(weights, cfg.layers, "--layers")
   source = SourceData(images, progress=None if args.quiet else "source statistics")
   stats = build("actmad", cfg).prepare(weights.network(), weights.depth, source)[RESOURCE]
   save_source_stats(args.out, stats, weights, cfg.layers, len(images))

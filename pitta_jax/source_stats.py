@@ -68,6 +68,16 @@ def layer_shapes(weights: Weights, layers: str) -> dict[str, tuple[int, ...]]:
   return {k: tuple(a.shape[1:]) for k, a in acts.items()}
 
 
+def matched_layers(weights: Weights, layers: str, flag: str) -> dict[str, tuple[int, ...]]:
+  """`layer_shapes`, checked before any source image is read: DataError naming `flag` (the
+  command's option that set `layers`) when the regex matches no module."""
+  shapes = layer_shapes(weights, layers)
+  if not shapes:
+    raise DataError(None, f"{flag} {layers!r} matches no module of {weights.spec.name} whose "
+                          f"output is one feature map")
+  return shapes
+
+
 def save_source_stats(path: str | Path, stats: Stats, weights: Weights, layers: str,
                       n_images: int) -> Path:
   """Writes `stats` ({path: (mean, var)}) with its metadata atomically (module docstring)."""

@@ -216,10 +216,8 @@ def method_resources(method, weights: Weights, dataset: str, source_images: str 
   if method.prepare is None:
     return resources
   if method.name == "actmad":  # its layers before any source data is read, as source-stats
-    from pitta_jax.source_stats import layer_shapes
-    if not layer_shapes(weights, method.config.layers):
-      raise DataError(None, f"--actmad.layers {method.config.layers!r} matches no module of "
-                            f"{weights.spec.name} whose output is one feature map")
+    from pitta_jax.source_stats import matched_layers
+    matched_layers(weights, method.config.layers, "--actmad.layers")
   h, w = weights.height, weights.width
   images = read_source_images(source_images, h, w) if source_images else None
   sequences = replay_sequences(replay_root, h, w) if replay_root else None

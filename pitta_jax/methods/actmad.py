@@ -96,15 +96,13 @@ def optimizer(config: ActmadConfig) -> optax.GradientTransformation:
 
 
 def _bn_hint(model, variables) -> str:
-  """The network's encoder BatchNorm layers (modules with running statistics), for an error
-  about a `layers` regex that matches none: the default names MonoDepth2's (`bn1`,
-  `downsample_bn`), while a network of one's own built on `flax.linen.BatchNorm` has
-  `BatchNorm_0`, ...; empty when the encoder has none."""
-  from flax.traverse_util import flatten_dict
+  """The network's encoder BatchNorm layers (`trainable.encoder_layers`), for an error about a
+  `layers` regex that matches none: the default names MonoDepth2's (`bn1`, `downsample_bn`),
+  while a network of one's own built on `flax.linen.BatchNorm` has `BatchNorm_0`, ...; empty
+  when the encoder has none."""
+  from pitta_jax.trainable import encoder_layers
   encoder = getattr(getattr(model, "spec", None), "encoder", "encoder")
-  paths = sorted({k.rsplit("/", 1)[0] for k in flatten_dict(variables.get("batch_stats", {}),
-                                                           sep="/")
-                  if k.startswith(encoder + "/")})
+  paths = encoder_layers(variables, "bn", encoder)
   if not paths:
     return ""
   more = f", ... ({len(paths)} in all)" if len(paths) > 4 else ""
