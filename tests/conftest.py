@@ -24,14 +24,16 @@ os.environ["JAX_DEFAULT_MATMUL_PRECISION"] = "highest"
 # The suite does not use that GPU-only cache; without it the keys depend on the program alone.
 os.environ["JAX_PERSISTENT_CACHE_ENABLE_XLA_CACHES"] = "none"
 # The suite is compile-bound, and most of a compile is XLA:CPU turning fusions into machine code.
-# The tests check values, not speed: compile with LLVM at -O1, no loop unrolling and no SLP
+# The tests check values, not speed: compile with LLVM at -O0, no loop unrolling and no SLP
 # vectorisation, and with XLA's older LLVM-IR fusion emitters instead of its MLIR-based ones
 # (none of which reassociates floating-point arithmetic). Measured on 2 vCPUs (2026-12-02/03,
 # Ada-Depth's float64 step at 64x96, one core each, pairs run side by side): -O1 and the two
 # LLVM options 103 -> 80 s, the step no slower (2.69 vs 2.78 s); the older emitters on top
-# 116-138 -> 85-111 s (three pairs). Placed first, so that flags of the caller's own XLA_FLAGS
-# (the last of a repeated flag wins) override them.
-TEST_CODEGEN_FLAGS = ("--xla_backend_optimization_level=1 --xla_backend_extra_options="
+# 116-138 -> 85-111 s (three pairs). -O0 rather than -O1 (2026-12-07, the whole suite each way):
+# 1160 -> 1115 s of test time, and less once the few programs that run many steps take -O1 back
+# (tests/xla_options.py). Placed first, so that flags of the caller's own XLA_FLAGS (the last of
+# a repeated flag wins) override them.
+TEST_CODEGEN_FLAGS = ("--xla_backend_optimization_level=0 --xla_backend_extra_options="
                       "xla_cpu_disable_loop_unrolling,xla_cpu_disable_slp_vectorizer "
                       "--xla_cpu_use_fusion_emitters=false")
 # XLA aborts the process on a flag it does not know, and these are XLA's, not JAX's API: another

@@ -27,7 +27,6 @@ from flax.traverse_util import flatten_dict
 import adapt_frames
 import torch_monodepth2 as tm
 import torch_tta
-from xla_options import QUICK_COMPILE
 from pitta_jax.adapt import AdaptConfig, StepInput, init_state, make_optimizer, make_step
 from pitta_jax.methods import build
 from pitta_jax.methods.actmad import RESOURCE, ActmadConfig, source_statistics
@@ -65,7 +64,7 @@ def jax_run(case):
     stats = source_statistics(model, v64, [source[:2].astype(np.float64), source[2:].astype(np.float64)])
     method = build("actmad", ACTMAD)
     tx = make_optimizer(CFG, method)
-    step = jax.jit(make_step(model, method, CFG, tx), compiler_options=QUICK_COMPILE)
+    step = jax.jit(make_step(model, method, CFG, tx))
     init, consts = init_state(v64, method, CFG, tx, model, {RESOURCE: stats})
     frame = lambda t: StepInput(*(jnp.asarray(v[t], jnp.float64 if v.dtype == np.float32 else None)
                                   for v in frames))

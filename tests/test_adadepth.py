@@ -41,6 +41,7 @@ import adapt_frames
 import torch_monodepth2 as tm
 import torch_sfm
 import torch_tta
+from xla_options import RUN_OPTIMIZED
 from pitta_jax.adapt import AdaptConfig, StepInput, init_state, make_optimizer, make_step
 from pitta_jax.adapt.inputs import step_input
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
@@ -271,7 +272,7 @@ def jax_run(case):
     model = network("monodepth2", {"num_layers": 18})
     method = adadepth.build(_method(case))
     tx = make_optimizer(CFG, method)
-    step = jax.jit(make_step(model, method, CFG, tx))
+    step = jax.jit(make_step(model, method, CFG, tx), compiler_options=RUN_OPTIMIZED)
     pose = PoseNet(PoseModule(18), variables64([penc, pdec], POSE_RULES))
     fresh, consts = init_state(variables64([enc, dec], DEPTH_RULES), method, CFG, tx, model,
                                {POSE: pose, INPUT_SIZE: (H, W), METRIC_FACTOR: case["scale"]})

@@ -40,6 +40,7 @@ from flax.traverse_util import flatten_dict
 import torch_monodepth2 as tm
 import torch_sfm
 import torch_tta
+from xla_options import RUN_OPTIMIZED
 from pitta_jax.adapt import AdaptConfig, init_state, make_chunk_runner, make_optimizer, make_step
 from pitta_jax.adapt.inputs import stack, step_input
 from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
@@ -95,7 +96,7 @@ def jax_runs(case):
     model = network("monodepth2", {"num_layers": 18})
     method = build(CONFIG)
     tx = make_optimizer(CFG, method)
-    run = make_chunk_runner(make_step(model, method, CFG, tx))
+    run = make_chunk_runner(make_step(model, method, CFG, tx), RUN_OPTIMIZED)
     resources = {POSE: PoseNet(FlaxPoseNet(18), _x64(pose_vars)), **replay}
     init, consts = init_state(_x64(depth_vars), method, CFG, tx, model, resources)
     chunk = chunk._replace(image=chunk.image.astype(np.float64),

@@ -13,6 +13,7 @@ from jax import lax
 
 from pitta_jax.models import conv_vjp
 from pitta_jax.models.layers import Conv
+from xla_options import RUN_OPTIMIZED
 
 NHWC = ("NHWC", "HWIO", "NHWC")
 
@@ -65,7 +66,8 @@ def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding,
   x = rng.standard_normal((batch, *size, cin), np.float32)
   k = rng.standard_normal((ksize, ksize, cin, out), np.float32)
 
-  ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding, dilation))(x, k)
+  ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding, dilation),
+                     compiler_options=RUN_OPTIMIZED)(x, k)
   for name, a, b in zip(("value", "input grad", "kernel grad"), ref, got):
     a, b = np.asarray(a), np.asarray(b)
     assert a.shape == b.shape, name
@@ -93,7 +95,8 @@ def test_few_pixels_many_features_take_patches_and_match_jax_rule(strides, paddi
   assert "convolution" not in text and "dot_general" in text
   with jax.enable_x64(True):
     assert "convolution" in forward(x.astype(np.float64), k.astype(np.float64))
-  ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding))(x, k)
+  ref, got = jax.jit(lambda x, k: _both_rules(x, k, strides, padding),
+                     compiler_options=RUN_OPTIMIZED)(x, k)
   # each value is a float32 sum of 9c products, which the two forms (and XLA:CPU's convolution
   # libraries) add in different orders: they agree to about eps * sqrt(9c) of the largest value
   # (8e-6 at c = 512; measured 1.5e-6 with YNNPACK on an AMD Zen 3, < 1e-6 on an Intel Xeon)

@@ -33,7 +33,6 @@ from flax.traverse_util import flatten_dict, unflatten_dict
 import adapt_frames
 import torch_monodepth2 as tm
 import torch_tta
-from xla_options import QUICK_COMPILE
 from pitta_jax.adapt import AdaptConfig, StepInput, init_state, make_optimizer, make_step
 from pitta_jax.methods import build
 from pitta_jax.methods.cotta import CottaConfig, restore_masks, sample_augment
@@ -265,7 +264,7 @@ def _float64_step(case, cfg: AdaptConfig, restore_p: float, **mcfg_kw):
   v64 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float64), variables)
   model, method = network("monodepth2", {"num_layers": 18}), build("cotta", mcfg)
   tx = make_optimizer(cfg, method)
-  step = jax.jit(make_step(model, method, cfg, tx), compiler_options=QUICK_COMPILE)
+  step = jax.jit(make_step(model, method, cfg, tx))
   init, consts = init_state(v64, method, cfg, tx, model)
   paths = flatten_dict(init.trainable, sep="/")
   perturbed = unflatten_dict({k: jnp.asarray(v) for k, v in _torch_tree(ema, paths).items()},

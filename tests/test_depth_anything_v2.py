@@ -37,7 +37,6 @@ from flax.traverse_util import flatten_dict, unflatten_dict
 from safetensors.torch import save_file
 
 import torch_depth_anything_v2 as tda
-from xla_options import QUICK_COMPILE
 from pitta_jax.checkpoint import load_tree
 from pitta_jax.models.depth_anything_v2 import SPEC, build
 from pitta_jax.models.depth_anything_v2.dinov2 import pos_embed_matrix
@@ -233,7 +232,7 @@ def _ln_grads_jax(cfg, variables, x, weights):
       params = unflatten_dict({**ln, **rest}, sep="/")
       return jnp.mean(module.apply({"params": params}, x)[0] * w)
 
-    loss, grads = jax.jit(jax.value_and_grad(loss_fn), compiler_options=QUICK_COMPILE)(
+    loss, grads = jax.jit(jax.value_and_grad(loss_fn))(
         ln, rest, jnp.asarray(x, jnp.float64), jnp.asarray(weights, jnp.float64))
     return float(loss), {k[len("encoder/"):]: np.asarray(v) for k, v in grads.items()}
 

@@ -23,7 +23,6 @@ import flax.linen as nn
 from flax.traverse_util import flatten_dict, unflatten_dict
 
 import torch_litemono as tl
-from xla_options import QUICK_COMPILE
 from pitta_jax.checkpoint import load_tree
 from pitta_jax.models.litemono import SPEC
 from weights_convert.litemono import convert_litemono, run
@@ -154,7 +153,7 @@ def test_norm_gradients_match_torch_autograd_float64(base):
     flat = flatten_dict(variables["params"]["encoder"], sep="/")
     norm_layers = {k.rsplit("/", 1)[0] for k in flat if k.endswith("/scale")}  # BN and LN
     norms = {k: v for k, v in flat.items() if k.rsplit("/", 1)[0] in norm_layers}
-    loss_j, grads = jax.jit(jax.value_and_grad(loss_fn), compiler_options=QUICK_COMPILE)(
+    loss_j, grads = jax.jit(jax.value_and_grad(loss_fn))(
         norms, variables, f64(x), f64(weights))
     grads = {k: np.asarray(v) for k, v in grads.items()}
     loss_j = float(loss_j)

@@ -22,7 +22,6 @@ import pytest
 import torch
 
 import torch_monodepth2 as tm
-from xla_options import QUICK_COMPILE
 from pitta_jax import trainable
 from pitta_jax.checkpoint import load_weights
 from pitta_jax.models.depth_decoder import DepthNet
@@ -191,7 +190,7 @@ def _bn_grads_jax(variables, x, weights, dtype):
     disps = net.apply(trainable.merge(tr, frozen, batch_stats), x, train=True)
     return sum(jnp.mean(d * w) for d, w in zip(disps, weights))
 
-  loss, grads = jax.jit(jax.value_and_grad(loss_fn), compiler_options=QUICK_COMPILE)(
+  loss, grads = jax.jit(jax.value_and_grad(loss_fn))(
       parts.trainable, parts.frozen, parts.batch_stats, cast(x), cast(weights))
   flat = flatten_dict(grads["encoder"], sep="/")
   return float(loss), {k: np.asarray(v, np.float64) for k, v in flat.items()}

@@ -25,7 +25,6 @@ from pitta_jax.models.registry import MODELS, Network, network
 from pitta_jax.models.spec import ModelSpec
 
 import adapt_frames
-from xla_options import QUICK_COMPILE
 
 # network -> (config, input (H, W), default selector, its norm kind)
 CASES = {
@@ -105,7 +104,7 @@ def test_pitta_and_none_run_on_other_networks(name):
   for method in (pitta, build("none")):
     tx = make_optimizer(cfg)
     state, consts = init_state(variables, method, cfg, tx, net)
-    runner = make_chunk_runner(make_step(net, method, cfg, tx), QUICK_COMPILE)
+    runner = make_chunk_runner(make_step(net, method, cfg, tx))
     (state, out), = adapt_stream(state, consts, [frames], runner)
     assert np.all(np.isfinite(out.depth)) and not np.any(out.skipped)
     depths[method.name] = out.depth
@@ -193,7 +192,7 @@ def test_a_flax_linen_batchnorm_network_adapts_with_batch_statistics():
   method = build("pitta", PittaConfig(ld=DepthRefiningConfig(max_instances=4, window=3)))
   tx = make_optimizer(cfg)
   state, consts = init_state(variables, method, cfg, tx, net)
-  runner = make_chunk_runner(make_step(net, method, cfg, tx), QUICK_COMPILE)
+  runner = make_chunk_runner(make_step(net, method, cfg, tx))
   (state, out), = adapt_stream(state, consts, [frames], runner)
   assert np.isfinite(out.loss).all() and not np.any(out.skipped)
   assert sorted(flatten_dict(state.trainable, sep="/")) == ["encoder/bn1/bias", "encoder/bn1/scale"]

@@ -21,7 +21,6 @@ from flax.traverse_util import flatten_dict, unflatten_dict
 
 import torch_monodepth2 as tm
 import torch_sgdepth as ts
-from xla_options import QUICK_COMPILE
 from pitta_jax.models.sgdepth import SPEC, SGDepthNet
 from weights_convert import sgdepth as conv
 from weights_convert.pth import CheckpointError
@@ -159,7 +158,7 @@ def encoder_bn_grads(net, variables, x, weights):
     disps = net.apply({"params": params, "batch_stats": stats}, x, train=True)
     return sum(jnp.mean(d * w) for d, w in zip(disps, weights))
 
-  loss, grads = jax.jit(jax.value_and_grad(loss_fn), compiler_options=QUICK_COMPILE)(
+  loss, grads = jax.jit(jax.value_and_grad(loss_fn))(
       bn, rest, jnp.asarray(x, jnp.float64))
   return float(loss), {k[len("encoder/"):]: np.asarray(g) for k, g in grads.items()}
 
