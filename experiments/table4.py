@@ -48,7 +48,8 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from pitta_jax.methods.depth_refining import dynamic_classes
   from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, frame_metrics,
                              input_size, load_resume_point, model_alignment, note_compile,
-                             record_marks, run_fingerprint, save_checkpoint, truncate_record)
+                             record_marks, run_fingerprint, run_status, save_checkpoint,
+                             truncate_record)
   cfg = common.adapt_config("pitta", quick=quick)
   pitta = build("pitta")  # every lambda's method but for lambda (the vmapped axis)
   every = common.CHECKPOINT_EVERY if checkpoint_dir is not None else 0
@@ -123,9 +124,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   results = []
   for p, bad, series in zip(per_frame, record["nonfinite"], record["abs_rel"]):
     mean = metrics_lib.mean_metrics(p) if p else {}
-    status = (f"diverged: non-finite depth from frame {bad[0]} of {len(frames)} ({len(bad)} "
-              f"frames not scored)" if bad else "ok" if p
-              else "not scored: no frame has valid ground truth")
+    status = run_status(bad, len(frames), len(p))
     results.append({"metrics": mean if status == "ok" else {}, "status": status,
                     "metrics_before_divergence": mean if bad else None, "frames": len(frames),
                     "abs_rel_per_frame": [float("nan") if v is None else v for v in series]})

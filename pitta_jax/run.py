@@ -74,6 +74,19 @@ class EvalConfig:
           f"valid_gt must be {' or '.join(metrics_lib.VALID_GT)}, got {self.valid_gt!r}")
 
 
+def run_status(nonfinite_indices: Sequence[int], n_frames: int, n_scored: int) -> str:
+  """A run's status: "ok"; "diverged: ..." from the first frame whose depth is not finite
+  (`nonfinite_indices`, ascending, of `n_frames`); "not scored: ..." when none of its frames
+  could be scored. What a results table shows instead of a row's means (`RunResult.status`,
+  and each lambda of Table 4's sweep)."""
+  if nonfinite_indices:
+    return (f"diverged: non-finite depth from frame {nonfinite_indices[0]} of {n_frames} "
+            f"({len(nonfinite_indices)} frames not scored)")
+  if not n_scored:
+    return "not scored: no frame has valid ground truth"
+  return "ok"
+
+
 @dataclasses.dataclass
 class RunResult:
   """Everything one run produced (host NumPy)."""
@@ -124,13 +137,8 @@ class RunResult:
   @property
   def status(self) -> str:
     """"ok", where the method diverged, or that no frame could be scored: what a results
-    table shows instead of its means."""
-    if self.nonfinite_indices:
-      return (f"diverged: non-finite depth from frame {self.diverged_at} of "
-              f"{len(self.frame_names)} ({len(self.nonfinite_indices)} frames not scored)")
-    if not self.per_frame:
-      return "not scored: no frame has valid ground truth"
-    return "ok"
+    table shows instead of its means (`run_status`)."""
+    return run_status(self.nonfinite_indices, len(self.frame_names), len(self.per_frame))
 
   @property
   def fps(self) -> float:
