@@ -826,26 +826,22 @@ def interruptible(body: Callable[[], int], debug: bool | None = None,
   `debug` (default: --debug on the command line) the libraries' log lines are silenced
   (`_quiet_libraries`), and what the process still prints after a signal. `in_process`: the
   caller's process goes on after the command (`main(argv)` from a script), so the libraries'
-  log levels are put back once the command has returned or raised."""
+  log levels are put back once the command has returned, raised or been interrupted."""
   debug = ("--debug" in sys.argv) if debug is None else debug
   restore = None
   try:
     with terminate_as_interrupt():
       if not debug:
         restore = _quiet_libraries()
-      status = body()
+      return body()
   except KeyboardInterrupt as e:
     if not debug:
       _silence_teardown()
     say_stopped("interrupted")
     return exit_status(e)
-  except BaseException:
+  finally:
     if in_process and restore is not None:
       restore()
-    raise
-  if in_process and restore is not None:
-    restore()
-  return status
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -145,16 +145,23 @@ def test_weights_files_leave_the_root_logger_alone(tmp_path):
   assert out.stdout.split() == ["0"], out.stdout
 
 
-def test_the_commands_run_in_process_leave_the_log_levels_as_they_were(tmp_path):
+def test_the_commands_run_in_process_leave_the_log_levels_as_they_were(tmp_path, monkeypatch):
   """The commands on a network of one's own run from a script (`pitta_jax.cli.main(argv)`
   after registering it): the command silenced OpenCV's and absl's logs for the rest of the
-  caller's process."""
+  caller's process; an interrupted one (Ctrl-C, exit 130) did too."""
   import cv2.utils.logging as cv_logging
-  from pitta_jax.cli import main
+  from pitta_jax import cli
   absl = logging.getLogger("absl")
   before = (cv_logging.getLogLevel(), absl.level)
-  assert main(["predict", "--weights", str(tmp_path / "none"), "--images", str(tmp_path),
-               "--out", str(tmp_path / "out")]) == 2
+  assert cli.main(["predict", "--weights", str(tmp_path / "none"), "--images", str(tmp_path),
+                   "--out", str(tmp_path / "out")]) == 2
+  assert (cv_logging.getLogLevel(), absl.level) == before
+
+  def interrupted(argv):
+    raise KeyboardInterrupt
+  monkeypatch.setattr(cli, "_main", interrupted)
+  monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # the teardown's, put back
+  assert cli.main(["predict"]) == 130
   assert (cv_logging.getLogLevel(), absl.level) == before
 
 
