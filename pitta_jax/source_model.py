@@ -265,6 +265,23 @@ def _augment(rng: np.random.Generator, images: np.ndarray, depths: np.ndarray | 
   return np.clip(images * gain, 0.0, 1.0), depths, flip
 
 
+def augment_pose_pairs(rng: np.random.Generator, pairs: np.ndarray, motions: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """The depth net's augmentation (`_augment`) on stacked frame pairs, with each flipped pair's
+  true motion mirrored to match its images.
+
+  pairs: (B, H, W, 6) (first, second) stacked; motions: (B, 4, 4) T from the first camera to
+  the second. A horizontal flip maps camera points (x, y, z) to (-x, y, z) (FLIP, for a centred
+  principal point), so the flipped pair's motion is FLIP T FLIP: its sideways translation and
+  its yaw and roll change sign. (The synthetic streets' motion is straight ahead, which the flip
+  leaves as it is; a pair that turns or drifts sideways would otherwise teach the pose net the
+  mirror image of its motion.) Returns the pairs, the motions and the flip mask (B,).
+  """
+  pairs, _, flip = _augment(rng, pairs)
+  motions = np.where(flip[:, None, None], FLIP @ motions @ FLIP, motions)
+  return pairs, motions, flip
+
+
 # ----------------------------------------------------------------------------- losses
 
 
@@ -369,8 +386,7 @@ def train_source(cfg: SourceConfig = SourceConfig(), quiet: bool = False
     def pose_batch():
       first, second, motions = sample_pairs(pose_rng, cfg, cfg.batch_size)
       pairs = np.concatenate([images[first], images[second]], axis=-1)  # (B, H, W, 6)
-      pairs, _, flip = _augment(pose_rng, pairs)
-      motions = np.where(flip[:, None, None], FLIP @ motions @ FLIP, motions)
+      pairs, motions, _ = augment_pose_pairs(pose_rng, pairs, motions)
       return pairs, motions.astype(np.float32)
 
     t1 = time.perf_counter()

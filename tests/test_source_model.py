@@ -120,6 +120,31 @@ def test_pose_pairs_follow_the_sequences():
     np.testing.assert_array_equal(T, camera_motion(street, a % n, b % n))
 
 
+def test_a_flipped_pose_pair_is_given_the_mirrored_motion():
+  """A pair that turns and drifts sideways: where the augmentation flips its images, its target
+  is the motion of the mirrored scene, sideways translation and yaw negated (written out by
+  hand), and for any 3-D point the flipped motion maps the mirrored point to the mirror of the
+  moved one; an unflipped pair keeps its images (up to the gain) and its motion."""
+  c, s = np.cos(0.1), np.sin(0.1)
+  turn = np.array([[c, 0, s, 0.3], [0, 1, 0, 0.02], [-s, 0, c, -0.8], [0, 0, 0, 1]])  # yaw, x drift
+  mirrored = np.array([[c, 0, -s, -0.3], [0, 1, 0, 0.02], [s, 0, c, -0.8], [0, 0, 0, 1]])
+  rng = np.random.default_rng(3)
+  pairs = rng.uniform(0.2, 0.6, (16, 4, 5, 6))  # no value clipped by the gain of 0.9..1.1
+  got_pairs, got, flip = source_model.augment_pose_pairs(
+      np.random.default_rng(0), pairs, np.repeat(turn[None], 16, axis=0))
+  assert 0 < flip.sum() < 16
+  mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+  points = np.concatenate([rng.normal(size=(3, 7)), np.ones((1, 7))])  # homogeneous (4, 7)
+  for i in range(16):
+    seen = pairs[i, :, ::-1] if flip[i] else pairs[i]
+    ratio = got_pairs[i] / seen
+    np.testing.assert_allclose(ratio, ratio.flat[0], rtol=1e-6)  # one gain for both frames
+    np.testing.assert_allclose(got[i], mirrored if flip[i] else turn, atol=1e-15)
+    if flip[i]:
+      np.testing.assert_allclose(got[i] @ (mirror @ points), mirror @ (turn @ points),
+                                 atol=1e-12)
+
+
 # ----------------------------------------------------------------------------- shipped model
 
 
