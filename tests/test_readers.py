@@ -644,6 +644,42 @@ def test_camera_matrices_that_are_not_pinhole_are_refused(tmp_path, values, mess
     read_calib_json(j)
 
 
+@pytest.mark.parametrize("size", ["inf 96", "320 nan", "-inf 96", "320.5 96", "320"])
+def test_a_rectified_size_that_is_not_two_positive_integers_names_the_file(tmp_path, size):
+  """S_rect_02 inf (a float that int() cannot take) is refused like any other bad size."""
+  from pitta_jax.data.kitti import read_cam_to_cam
+  p = tmp_path / "calib_cam_to_cam.txt"
+  p.write_text(f"S_rect_02: {size}\nP_rect_02: 721.5 0 160 0 0 721.5 48 0 0 0 1 0\n")
+  with pytest.raises(DataError, match=f"^{re.escape(str(p))}: S_rect_02 must be 2 positive "):
+    read_cam_to_cam(p, 2)
+
+
+def test_images_of_more_pixels_than_opencv_decodes_name_the_file(tmp_path):
+  """A PNG whose header declares 60000x60000 pixels is refused from its header, before any
+  decoding (the check of a sequence before work, and the read itself); a JPEG's header is
+  OpenCV's to read, and its refusal becomes the same kind of one-line error."""
+  import struct
+  import zlib
+  from pitta_jax.data.image_io import check_image_file, decode_file
+
+  def chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+  png = tmp_path / "big.png"
+  png.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 60000, 60000,
+                                                                      8, 2, 0, 0, 0))
+                  + chunk(b"IDAT", zlib.compress(b"\0" * 16)) + chunk(b"IEND", b""))
+  for check in (check_image_file, lambda p: decode_file(p, "image")):
+    with pytest.raises(DataError, match=f"^{re.escape(str(png))}: image of 60000x60000 pixels"):
+      check(png)
+  ok, data = cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))
+  jpeg = bytearray(data.tobytes())
+  sof = jpeg.find(b"\xff\xc0")   # baseline frame header: height and width at +5 and +7
+  jpeg[sof + 5:sof + 9] = struct.pack(">HH", 60000, 60000)
+  (tmp_path / "big.jpg").write_bytes(bytes(jpeg))
+  with pytest.raises(DataError, match="big.jpg: cannot decode image .more pixels than OpenCV"):
+    decode_file(tmp_path / "big.jpg", "image")
+
+
 def test_calib_json_sizes_must_be_integers_not_booleans(tmp_path):
   from pitta_jax.data.calib import read_calib_json
   j = tmp_path / "calib.json"

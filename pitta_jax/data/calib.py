@@ -81,7 +81,8 @@ def rectified_calib(path: PathLike, camera: str) -> Calib:
   size = entries.get(f"S_rect_{camera}")
   width = height = None
   if size is not None:
-    if size.size != 2 or not np.all(size > 0) or not np.all(size == np.round(size)):
+    if (size.size != 2 or not np.all(np.isfinite(size)) or not np.all(size > 0)
+        or not np.all(size == np.round(size))):
       raise DataError(path, f"S_rect_{camera} must be 2 positive integers (width height), got "
                             f"{size.tolist()}")
     width, height = int(size[0]), int(size[1])

@@ -55,13 +55,39 @@ def decode_file(path: Path, what: str) -> np.ndarray:
     raise DataError(path, f"cannot read {what} ({e.strerror or e})") from None
   if _png_cut_short(data[:8].tobytes(), data[-12:].tobytes(), data.tobytes):
     raise DataError(path, _cut_short(what))  # (libpng would print its own line first)
-  array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+  _check_png_size(path, data[:24].tobytes(), what)
+  try:
+    array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+  except cv2.error as e:
+    if "Insufficient memory" in str(e):
+      raise  # the commands' out-of-memory line
+    # e.g. a JPEG whose header declares more pixels than OpenCV decodes (a PNG's is checked above)
+    failed = str(getattr(e, "err", "") or e).strip()
+    reason = ("more pixels than OpenCV decodes" if "MAX_IMAGE_PIXELS" in failed
+              else f"OpenCV: {failed}")
+    raise DataError(path, f"cannot decode {what} ({reason})") from None
   if array is None:
     raise DataError(path, _undecodable(what))
   return array
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# the most pixels OpenCV's imdecode takes (its CV_IO_MAX_IMAGE_PIXELS default); a larger image
+# stops it with an assertion
+MAX_DECODED_PIXELS = 1 << 30
+
+
+def _check_png_size(path: Path, head: bytes, what: str) -> None:
+  """DataError when `head` (a file's first 24 bytes) is a PNG's whose header declares more
+  pixels than OpenCV decodes (`MAX_DECODED_PIXELS`, or the OPENCV_IO_MAX_IMAGE_PIXELS it reads)."""
+  if head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR" or len(head) < 24:
+    return
+  width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+  limit = os.environ.get("OPENCV_IO_MAX_IMAGE_PIXELS", "")
+  limit = int(limit) if limit.isdigit() else MAX_DECODED_PIXELS
+  if width * height > limit:
+    raise DataError(path, f"{what} of {width}x{height} pixels: more than OpenCV decodes "
+                          f"({limit} pixels)")
 
 
 def _cut_short(what: str) -> str:
@@ -81,13 +107,14 @@ def _png_cut_short(head: bytes, tail: bytes, whole: Callable[[], bytes]) -> bool
 
 def check_image_file(path: PathLike, what: str = "image") -> Path:
   """`path`, checked without decoding for the damage `decode_file` would report when the file
-  is read: missing, not a file, empty, or a PNG cut short (no IEND chunk). Reads 20 bytes of a
-  sound file, so that a long sequence can be checked before any work. DataError (the message
-  `decode_file` gives) otherwise; damage only a decoder sees still shows when it is read."""
+  is read: missing, not a file, empty, a PNG cut short (no IEND chunk) or one of more pixels
+  than OpenCV decodes. Reads 36 bytes of a sound file, so that a long sequence can be checked
+  before any work. DataError (the message `decode_file` gives) otherwise; damage only a decoder
+  sees still shows when it is read."""
   path = require_file(path, what)
   try:
     with open(path, "rb") as f:
-      head = f.read(8)
+      head = f.read(24)
       size = f.seek(0, os.SEEK_END)
       f.seek(max(size - 12, 0))
       tail = f.read(12)
@@ -97,6 +124,7 @@ def check_image_file(path: PathLike, what: str = "image") -> Path:
     raise DataError(path, _undecodable(what))
   if _png_cut_short(head, tail, path.read_bytes):
     raise DataError(path, _cut_short(what))
+  _check_png_size(path, head, what)
   return path
 
 
