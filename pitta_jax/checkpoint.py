@@ -229,7 +229,7 @@ def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]
                        f"...` or `pitta-jax train-source`{hint}")
   meta = read_json_object(path)
   arch = meta.get("architecture")
-  if arch not in MODELS:
+  if not isinstance(arch, str) or arch not in MODELS:
     raise WeightsError(f"{path}: architecture {arch!r} is not one of {', '.join(sorted(MODELS))} "
                        f"({REGISTER_HINT})")
   spec = MODELS[arch]
@@ -240,12 +240,20 @@ def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]
     v = config[key]
     if not isinstance(v, int) or isinstance(v, bool) or v <= 0:
       raise WeightsError(f"{path}: {key} must be a positive integer, got {v!r}")
+  for key in ("has_pose", "use_stereo"):  # ("no" would read as true)
+    if not isinstance(config.get(key, False), bool):
+      raise WeightsError(f"{path}: {key} must be true or false, got {config[key]!r}")
   try:
     spec.check_size(config["height"], config["width"])
     spec.build(dict(config))  # the network's own fields (e.g. num_layers), checked here
-  except (ValueError, TypeError, KeyError) as e:
+  except BUILD_ERRORS as e:
     raise WeightsError(f"{path}: {e}") from None
   return spec, config
+
+
+# what building a network from model.json's fields raises where a field is out of its range
+# (MonoViT's num_heads 0 divides by zero, a per-stage list too short indexes past its end)
+BUILD_ERRORS = (ValueError, TypeError, KeyError, IndexError, ArithmeticError)
 
 
 def _check_tree(tree: Any, module, config: dict, path: Path, channels: int) -> Any:
@@ -257,9 +265,9 @@ def _check_tree(tree: Any, module, config: dict, path: Path, channels: int) -> A
   try:
     abstract = jax.eval_shape(lambda: module.init(jax.random.PRNGKey(0),
                                                   jnp.zeros((1, h, w, channels), jnp.float32)))
-  except (ValueError, TypeError) as e:
+  except BUILD_ERRORS as e:  # a field the module's own checks let through (num_heads 0, ...)
     raise WeightsError(f"{path.parent / MODEL_JSON}: cannot build the network it describes "
-                       f"({e})") from None
+                       f"({type(e).__name__}: {e})") from None
   want = {k: tuple(v.shape) for k, v in flatten_dict(abstract).items()}
   got = flatten_dict(tree) if isinstance(tree, dict) else {}
   missing = sorted("/".join(k) for k in want if k not in got)

@@ -141,6 +141,10 @@ def load_source_stats(path: str | Path, weights: Weights, layers: str) -> Stats:
   path = Path(path)
   meta, stats = read_source_stats(path)
   network = (meta.get("architecture"), meta.get("width"), meta.get("height"))
+  bad = [f"meta:{k} {v!r}" for k, v in zip(("width", "height"), network[1:])
+         if not isinstance(v, int) or isinstance(v, bool)]
+  if bad:
+    raise DataError(path, f"{', '.join(bad)}: the input size must be integers")
   if network != (weights.spec.name, weights.width, weights.height):
     raise DataError(path, f"statistics of a {network[0]} at {network[1]}x{network[2]}, but the "
                           f"weights are a {weights.spec.name} at {weights.width}x{weights.height}")
@@ -154,6 +158,8 @@ def load_source_stats(path: str | Path, weights: Weights, layers: str) -> Stats:
                           f"the file was computed with layers {meta.get('layers')!r})")
   for layer, (mean, var) in stats.items():
     for name, array in (("mean", mean), ("var", var)):
+      if array.dtype.kind != "f":
+        raise DataError(path, f"{name} of layer {layer} is {array.dtype}, not floating point")
       if tuple(array.shape) != expected[layer]:
         raise DataError(path, f"{name} of layer {layer} is {tuple(array.shape)}, the network "
                               f"gives {expected[layer]}")

@@ -482,6 +482,11 @@ def test_unexpected_missing_and_misshapen_keys_are_named(small, tmp_path):
             str(tmp_path / "model.safetensors"))
   with pytest.raises(CheckpointError, match=r"1 missing keys: " + re.escape(key)):
     conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf", arch)
+  # a head count that does not divide the width (48) is named (NumPy's reshape error was not)
+  official = small["root"] / "official" / "depth_anything_v2.pth"
+  with pytest.raises(CheckpointError, match=re.escape(str(official)) + r": num_heads "
+                     r"\(--num-heads\) 5 does not divide the ViT's width 48"):
+    conv.convert_depth_anything_v2(official, "official", {**arch, "num_heads": 5})
 
 
 def test_cli_writes_a_weights_directory_spec_builds(small, tmp_path):

@@ -528,6 +528,15 @@ def test_rules_engine_gives_float32_and_names_bad_entries():
     np.testing.assert_array_equal(kernel, [[0.5, 2.0], [-1.25, 0.0], [3.0, -0.75]])
   with pytest.raises(CheckpointError, match=r"^x\.pth: w\.weight is a int, expected a tensor$"):
     R.apply_rules({"w.weight": 3}, rules, lambda k: False, "x.pth", expected)
+  import ml_dtypes  # bfloat16 tensors convert; complex and integer ones (cast silently) do not
+  flat = R.apply_rules({"w.weight": np.array(values, ml_dtypes.bfloat16)}, rules,
+                       lambda k: False, "x.pth", expected)
+  np.testing.assert_array_equal(flat[("params", "w", "kernel")], np.array(values).T)
+  for dtype in (np.complex64, np.int64, bool):
+    with pytest.raises(CheckpointError, match=rf"^x\.pth: w\.weight is a {np.dtype(dtype)} "
+                                              rf"tensor, expected floating-point weights$"):
+      R.apply_rules({"w.weight": np.array(values).astype(dtype)}, rules, lambda k: False,
+                    "x.pth", expected)
   rows: R.Rules = []
   R.in_proj(rows, ("params", "a"), "attn", 2)  # q, k, v: rows 0:2, 2:4, 4:6
   short = {"attn.in_proj_weight": np.zeros((5, 2), np.float32),
@@ -556,6 +565,13 @@ def test_use_stereo_is_carried_over_and_absent_means_monocular(r18, tmp_path):
   torch.save({k: v for k, v in state.items() if k != "use_stereo"}, tmp_path / "no_flag.pth")
   assert convert_monodepth2(tmp_path / "stereo.pth", root / "depth.pth")[0]["use_stereo"] is True
   assert convert_monodepth2(tmp_path / "no_flag.pth", root / "depth.pth")[0]["use_stereo"] is False
+  # a flag written as text was read as true ('False' is a non-empty string): refused instead
+  torch.save(dict(state, use_stereo="False"), tmp_path / "text.pth")
+  with pytest.raises(CheckpointError, match=r"text\.pth: its 'use_stereo' entry is 'False', "
+                                            r"expected True or False"):
+    convert_monodepth2(tmp_path / "text.pth", root / "depth.pth")
+  torch.save(dict(state, use_stereo=torch.tensor(1)), tmp_path / "one.pth")
+  assert convert_monodepth2(tmp_path / "one.pth", root / "depth.pth")[0]["use_stereo"] is True
 
 
 def test_argument_mistakes_are_named(r18, tmp_path):

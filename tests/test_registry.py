@@ -83,6 +83,11 @@ def _edit_json(root, **changes):
     ({"height": 70}, "multiples of 32"),
     ({"architecture": "resnet"}, "architecture 'resnet' is not one of"),
     ({"num_layers": 34}, "does not match the network in model.json"),
+    ({"architecture": ["monodepth2"]}, re.escape("architecture ['monodepth2'] is not one of")),
+    ({"has_pose": "no"}, "has_pose must be true or false, got 'no'"),
+    ({"use_stereo": 1}, "use_stereo must be true or false, got 1"),
+    ({"architecture": "monovit", "num_layers": [1, 3, 6, 3], "num_heads": [0, 0, 0, 0]},
+     "cannot build the network it describes .ZeroDivisionError"),
 ])
 def test_bad_model_json_is_one_error_naming_the_file(weights_dir, tmp_path, change, match):
   import shutil

@@ -10,6 +10,8 @@ is checked by counting the computations.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -120,6 +122,23 @@ def test_round_trip_and_mismatches(written):
     with pytest.raises(DataError, match=rf"bad\.npz: {key.split(':')[0]} of layer encoder/bn1 "
                                         rf"holds non-finite or negative values"):
       load_source_stats(bad, weights, ActmadConfig().layers)
+  # arrays of another kind than floats (a complex one failed inside the step's trace, a bool
+  # one ran), and an input size written as text
+  for dtype in (np.complex64, bool, np.int64, "U3"):
+    with np.load(out) as data:
+      other = {k: np.array(data[k]) for k in data.files}
+    other["mean:encoder/bn1"] = other["mean:encoder/bn1"].astype(dtype)
+    np.savez(bad, **other)
+    with pytest.raises(DataError, match=rf"bad\.npz: mean of layer encoder/bn1 is "
+                                        rf"{re.escape(str(np.dtype(dtype)))}, not floating point"):
+      load_source_stats(bad, weights, ActmadConfig().layers)
+  with np.load(out) as data:
+    other = {k: np.array(data[k]) for k in data.files}
+  other["meta:height"] = np.asarray(str(other["meta:height"]))
+  np.savez(bad, **other)
+  with pytest.raises(DataError, match=r"bad\.npz: meta:height '\d+': the input size must be "
+                                      r"integers"):
+    load_source_stats(bad, weights, ActmadConfig().layers)
   np.savez(bad, data=np.zeros(3))
   with pytest.raises(DataError, match=r"bad\.npz: not a source statistics file"):
     read_source_stats(bad)

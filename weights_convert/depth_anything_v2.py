@@ -317,6 +317,10 @@ def infer_config(state: dict, source: str, path: str, arch: Mapping[str, Any] | 
     raise CheckpointError(f"{path}: a ViT with width {embed_dim} and {depth} blocks is not one "
                           f"of {sorted(VIT_VARIANTS)}; give {missing} explicitly "
                           f"(--num-heads, --layer-idx)")
+  if embed_dim % known["num_heads"]:
+    raise CheckpointError(f"{path}: num_heads (--num-heads) {known['num_heads']} does not divide "
+                          f"the ViT's width {embed_dim} (each head takes width / num_heads "
+                          f"features)")
   standard = variant is not None and (known["num_heads"], tuple(known["layer_idx"])) == (
       VIT_VARIANTS[variant].num_heads, VIT_VARIANTS[variant].layer_idx)
   return {

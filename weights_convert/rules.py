@@ -160,6 +160,9 @@ def apply_rules(state: dict, rules: Rules, ignorable: Callable[[str], bool], pat
       value = state[s]
       if not isinstance(value, np.ndarray):
         raise CheckpointError(f"{path}: {s} is a {type(value).__name__}, expected a tensor")
+      if value.dtype.kind != "f" and "float" not in value.dtype.name:  # (ml_dtypes' bfloat16)
+        raise CheckpointError(f"{path}: {s} is a {value.dtype} tensor, expected floating-point "
+                              f"weights")
       value = value.astype(np.float32)
       if not np.all(np.isfinite(value)):
         bad = int(np.size(value) - np.count_nonzero(np.isfinite(value)))
