@@ -693,6 +693,9 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   weights: dict[str, str] = {}
   for item in args.weights:
     model, sep, directory = item.rpartition("=") if "=" in item else ("", "", item)
+    if sep and not model:
+      raise DataError(None, f"--weights {item}: no network before '=' (NAME=DIR, or DIR alone "
+                            f"for a monodepth2)")
     model = model or "monodepth2"
     if model not in MODELS:
       raise DataError(None, f"--weights {item}: unknown network {model!r} "

@@ -63,10 +63,10 @@ def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
   if not str(path).strip():  # Path("") is the working directory: never meant
     raise OutputError(f"{what}: an empty path")
   p = Path(path)
-  if p.exists() and not p.is_dir():
-    raise OutputError(f"{what} {p}: exists and is not a directory")
-  created = [a for a in reversed((p, *p.parents)) if not a.exists()]
-  try:
+  try:  # (exists() itself raises for a name too long)
+    if p.exists() and not p.is_dir():
+      raise OutputError(f"{what} {p}: exists and is not a directory")
+    created = [a for a in reversed((p, *p.parents)) if not a.exists()]
     p.mkdir(parents=True, exist_ok=True)
     _write_probe(p)
   except OSError as e:

@@ -213,6 +213,11 @@ def test_flags_beyond_any_use_are_refused_before_work(capsys, tmp_path):
                                    "4097"),
       (("--max-instances", "1025"), "--pitta.ld.max-instances: max_instances must be an int in "
                                     "1..1024, got 1025"),
+      # both overflowed int32 when the step was called, after the weights had loaded
+      (("--reset-every", "3000000000"), "--adapt.reset-every: reset_every must be in [0, 2^31), "
+                                        "got 3000000000"),
+      (("--method", "cotta", "--bn-stats", "running", "--cotta.n-augment", "1000000000000"),
+       "--cotta.n-augment: n_augment must be in 1..1024, got 1000000000000"),
       (("--momentum", "0.9"), "--adapt.optimizer, --adapt.momentum: momentum applies to "
                               "optimizer sgd only, got momentum 0.9 with adam")]:
     assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", out, *flags]) == 2

@@ -229,6 +229,9 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   assert "--root" in err and err.count("\n") == 1 and not (tmp_path / "o").exists()
   assert table1.main(["--weights", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
   assert "model.json" in capsys.readouterr().err
+  assert table1.main(["--weights", f"={tmp_path}", "--out", str(tmp_path / "o")]) == 2
+  assert capsys.readouterr().err == (f"error: --weights ={tmp_path}: no network before '=' "
+                                     f"(NAME=DIR, or DIR alone for a monodepth2)\n")
   # --rows that selects nothing, an --out that is a file: one line, nothing written
   assert table1.main(["--quick", "--rows", "zzz", "--out", str(tmp_path / "o")]) == 2
   err = capsys.readouterr().err

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -54,6 +55,10 @@ def test_output_dir_checked_and_locked(tmp_path):
     open_output_dir(blocker)
   with pytest.raises(OutputError, match="cannot write there"):
     open_output_dir(blocker / "sub")  # a file in place of a parent directory
+  long = tmp_path / ("a" * 300)  # one name past the file system's 255 bytes
+  with pytest.raises(OutputError, match=rf"^--out {re.escape(str(long))}: cannot write there "
+                                        rf"\(File name too long\)$"):
+    open_output_dir(long)
   first = open_output_dir(tmp_path / "out")
   with pytest.raises(OutputError, match="another pitta-jax run is writing there"):
     open_output_dir(tmp_path / "out")

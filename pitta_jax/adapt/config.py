@@ -59,7 +59,8 @@ class AdaptConfig:
     check(self.bn_stats in ("batch", "running"),
           f"bn_stats must be batch or running, got {self.bn_stats!r}")
     parse_selector(self.selector)  # raises ValueError naming the selector
-    check(self.reset_every >= 0, f"reset_every must be >= 0, got {self.reset_every}")
+    check(0 <= self.reset_every < 2**31,  # compared with the int32 frame counter
+          f"reset_every must be in [0, 2^31), got {self.reset_every}")
     check(1 <= self.max_segments <= MAX_SEGMENTS,
           f"max_segments must be in 1..{MAX_SEGMENTS}, got {self.max_segments}")
     check(self.chunk_size >= 1, f"chunk_size must be >= 1, got {self.chunk_size}")

@@ -63,12 +63,15 @@ from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining
 
 JITTERS = ("brightness", "contrast", "saturation", "gamma")  # the order index of AugParams
 GATES = ("always", "spread")  # CottaConfig.gate
+# the most augmented views taken (32x upstream's 32): the views are one batch of the teacher's
+# forward, and far more than this only ends in an allocation failure (10^12 overflowed an index)
+MAX_AUGMENT = 1024
 
 
 @dataclasses.dataclass(frozen=True)
 class CottaConfig:
   """CoTTA's knobs (upstream cifar/cotta.py, get_tta_transforms non-soft) and the paper's L_d."""
-  n_augment: int = option(32, "N augmented teacher views (upstream: 32)")
+  n_augment: int = option(32, f"N augmented teacher views, 1..{MAX_AUGMENT} (upstream: 32)")
   gate: str = option("always", "where the pseudo label is the augmented mean: 'always' (upstream "
                                "under a domain shift, where the anchor is not confident) or "
                                "'spread' (per pixel, where the views' std / mean > threshold)")
@@ -92,7 +95,8 @@ class CottaConfig:
 
   def __post_init__(self):
     check_types(self)
-    check(self.n_augment >= 1, f"n_augment must be >= 1, got {self.n_augment}")
+    check(1 <= self.n_augment <= MAX_AUGMENT,
+          f"n_augment must be in 1..{MAX_AUGMENT}, got {self.n_augment}")
     check(self.gate in GATES, f"gate must be one of {', '.join(GATES)}, got {self.gate!r}")
     check(self.gate != "spread" or self.n_augment >= 2,
           f"gate='spread' needs n_augment >= 2 (the views' spread), got {self.n_augment}")
