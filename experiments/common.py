@@ -464,6 +464,15 @@ def stored_result(stored: Any, field: str) -> bool:
              and isinstance(r.get("status", ""), str) for r in results)
 
 
+def _check_out(ctx: Context) -> None:
+  """OutputError when --out was removed while the command ran: a row written now (or its
+  checkpoints) would re-make it without the command's lock."""
+  from pitta_jax.outputs import OutputError
+  if not ctx.out.is_dir():
+    raise OutputError(f"--out {ctx.out}: removed while the command ran; its rows are not "
+                      f"written (run it again)")
+
+
 def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "metrics") -> dict:
   """The row result stored under `key`, computed (and stored atomically) when absent or not a
   result (`stored_result`: a row's "metrics", a lambda sweep's "sweep"), with a warning then."""
@@ -478,8 +487,10 @@ def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "me
       return stored
     print(f"warning: {path}: not a stored row result (edited or damaged); computing the row "
           f"again", file=sys.stderr)
+  _check_out(ctx)
   result = compute()
-  path.parent.mkdir(parents=True, exist_ok=True)
+  _check_out(ctx)
+  path.parent.mkdir(exist_ok=True)
   atomic_write_text(path, json.dumps(json_safe(result)[0], indent=1) + "\n")
   return result
 

@@ -94,6 +94,13 @@ def _wait_for_save_threads(before: set, timeout: float = 60.0) -> None:
     time.sleep(0.02)
 
 
+def saves_running() -> bool:
+  """Whether orbax's save threads are still writing: a save whose wait a second Ctrl-C cut
+  short (`save_tree`) goes on in them, and nothing should be saved at its path meanwhile."""
+  import threading
+  return any(t.name in ORBAX_SAVE_THREADS for t in threading.enumerate())
+
+
 def save_tree(path: str | os.PathLike, tree: Any) -> None:
   """Writes a pytree of arrays as an orbax checkpoint at `path` (overwrites)."""
   import threading

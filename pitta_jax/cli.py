@@ -11,6 +11,7 @@ import contextlib
 import os
 import signal
 import sys
+import threading
 from typing import Callable, NoReturn
 
 from pitta_jax.data.errors import DataError
@@ -449,7 +450,7 @@ def _run_adapt(args) -> int:
   if args.source_stats and len(source_flags) > 1:  # the statistics file would win, silently
     raise DataError(None, f"{' and '.join(source_flags)}: --source-stats holds the statistics "
                           f"the source data would give; give one of them")
-  with open_output_dir(args.out):  # checked and locked first; removed again if a check fails
+  with open_output_dir(args.out) as held:  # checked and locked first; removed if a check fails
     check_results_owner(args.out, args.command)
     checkpoints = Path(args.out) / "checkpoints"
     if args.checkpoint_every and checkpoints.exists() and not checkpoints.is_dir():
@@ -522,6 +523,7 @@ def _run_adapt(args) -> int:
             "seconds": {"total": round(res.total_seconds, 2),
                         "this_call": round(res.seconds, 2)},
             "logs": {k: v.tolist() for k, v in res.logs.items()}}
+    held.check()  # --out still the directory this command locked
     table = write_results(out, [row], meta, group_title="Dataset")
     if not args.quiet:
       print(table)
@@ -872,10 +874,10 @@ def _main(argv: list[str]) -> int:
   except KeyboardInterrupt as e:
     if not args.debug:  # the process ends now: what the save threads still report is noise
       _silence_teardown()
-    from pitta_jax.run import complete_checkpoints
+    from pitta_jax.run import checkpointed_frames
     checkpointing = getattr(args, "checkpoint_every", 0)  # adapt and evaluate
-    saved = checkpointing and bool(complete_checkpoints(os.path.join(args.out, "checkpoints")))
-    say_stopped("interrupted" + ("; the last completed chunk is checkpointed: run the same "
+    saved = checkpointing and checkpointed_frames(os.path.join(args.out, "checkpoints"))
+    say_stopped("interrupted" + (f"; its first {saved} frames are checkpointed: run the same "
                                  "command with --resume to continue" if saved else
                                  "; no checkpoint was saved yet" if checkpointing else ""))
     return exit_status(e)
@@ -895,11 +897,15 @@ def exit_with(code: int) -> NoReturn:
   is handled only once the compile returns to Python, and another may be under way), and
   tensorstore's reads of a damaged checkpoint may still be pending; the interpreter's teardown
   frees what they use, which crashed the process (SIGSEGV instead of exit 130) or printed
-  asyncio tracebacks after the error line. Every file the command writes is closed by then."""
+  asyncio tracebacks after the error line. Every file the command writes is closed by then.
+  A command that succeeded ends through the interpreter's teardown with Ctrl-C ignored: its
+  work is done, and a Ctrl-C landing in JAX's exit handler printed a traceback."""
   sys.stdout.flush()
   sys.stderr.flush()
   if code:
     os._exit(code)
+  if threading.current_thread() is threading.main_thread():
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
   sys.exit(code)
 
 

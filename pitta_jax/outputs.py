@@ -33,17 +33,31 @@ class OutputError(ValueError):
 class OutputDir:
   """A checked, locked output directory; release with `close()` (or let the process end)."""
 
-  def __init__(self, path: Path, lock_fd: int, created: list[Path]):
+  def __init__(self, path: Path, lock_fd: int, created: list[Path], what: str = "--out"):
     self.path = path
     self._fd = lock_fd
     self._created = created  # directories this call made (removed again if left empty)
+    self._what = what
+
+  def check(self) -> None:
+    """OutputError when the directory (or its lock file) was removed or replaced since it was
+    locked: what the command would write now would re-make it without the lock, where a second
+    run could take it."""
+    if self._fd < 0 or not self._holds_lock_file():
+      raise OutputError(f"{self._what} {self.path}: removed while the command ran; its results "
+                        f"are not written (run it again)")
 
   def close(self) -> None:
     """Releases the lock and removes the lock file (a killed run leaves the file, unlocked)."""
     if self._fd >= 0:
-      (self.path / LOCK_NAME).unlink(missing_ok=True)
+      if self._holds_lock_file():  # not another run's, in a directory made again meanwhile
+        (self.path / LOCK_NAME).unlink(missing_ok=True)
       os.close(self._fd)  # releases the flock
       self._fd = -1
+
+  def _holds_lock_file(self) -> bool:
+    """Whether DIR/.pitta-jax.lock is still the file this object locked."""
+    return _is_open_file(self._fd, self.path / LOCK_NAME)
 
   def __enter__(self) -> "OutputDir":
     return self
@@ -76,7 +90,7 @@ def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
     raise OutputError(f"{what} {p}: another pitta-jax run is writing there; wait for it or "
                       f"choose another directory")
   remove_stale_temps(p)  # a killed run's half-written files (its results' temporaries)
-  return OutputDir(p, fd, created)
+  return OutputDir(p, fd, created, what)
 
 
 def _lock(path: Path) -> int:
@@ -91,14 +105,19 @@ def _lock(path: Path) -> int:
     except BlockingIOError:
       os.close(fd)
       return -1
-    held = os.fstat(fd)
-    try:
-      now = os.stat(path)
-    except FileNotFoundError:
-      now = None
-    if now is not None and (now.st_ino, now.st_dev) == (held.st_ino, held.st_dev):
+    if _is_open_file(fd, path):
       return fd
     os.close(fd)  # the file was replaced or removed since it was opened: try again
+
+
+def _is_open_file(fd: int, path: Path) -> bool:
+  """Whether `path` names the file open as `fd` (not removed, not replaced by another)."""
+  try:
+    now = os.stat(path)
+  except OSError:
+    return False
+  held = os.fstat(fd)
+  return (now.st_ino, now.st_dev) == (held.st_ino, held.st_dev)
 
 
 def _write_probe(folder: Path) -> None:

@@ -25,7 +25,7 @@ from pitta_jax import metrics as metrics_lib
 from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, load_state,
                              make_method_runner, make_optimizer, save_state)
 from pitta_jax.adapt.inputs import chunks
-from pitta_jax.checkpoint import Weights
+from pitta_jax.checkpoint import Weights, saves_running
 from pitta_jax.configs import check, check_types, option
 from pitta_jax.methods import Method, build as build_method
 from pitta_jax.methods.base import INPUT_SIZE, METRIC_FACTOR
@@ -566,6 +566,13 @@ def complete_checkpoints(directory: str | Path) -> list[Path]:
   return sorted(Path(directory).glob(CHECKPOINT_PATTERN + ".json"))
 
 
+def checkpointed_frames(directory: str | Path) -> int | None:
+  """How many frames the newest complete checkpoint under `directory` has done (its name,
+  `state_NNNNNN`); None without one."""
+  found = complete_checkpoints(directory)
+  return int(found[-1].name[len("state_"):len("state_") + 6]) if found else None
+
+
 def _clear_checkpoints(directory: Path) -> int:
   """Removes the checkpoints a previous run left under `directory` (a fresh run's first step:
   they would otherwise mix with its own), and any save a kill interrupted; returns how many
@@ -609,9 +616,13 @@ def save_checkpoint(directory: Path, state, record: dict) -> None:
   """The carry (orbax) and every per-frame result so far (JSON sidecar, written last and
   atomically: a state without its sidecar is never used); the record's "names" are the frames
   done, which name the checkpoint (`state_NNNNNN`)."""
-  from pitta_jax.outputs import atomic_write_text, json_safe
+  from pitta_jax.outputs import OutputError, atomic_write_text, json_safe
   created = not directory.exists()
-  directory.mkdir(parents=True, exist_ok=True)
+  if created and not directory.parent.is_dir():
+    raise OutputError(f"{directory.parent}: removed while the run was writing there; the run "
+                      f"stops (its checkpoints and results would go to a directory re-made "
+                      f"without the run's lock)")
+  directory.mkdir(exist_ok=True)
   path = directory / f"state_{len(record['names']):06d}"
   new = not path.exists()
   try:
@@ -694,6 +705,10 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                               METRIC_FACTOR: metric_factor(weights.spec, weights.config),
                               **(resources or {})})
   directory = Path(checkpoint_dir) if checkpoint_dir else None
+  if directory is not None and checkpoint_every:
+    # where the checkpoints go is made now: a save re-creates only the checkpoint directory
+    # itself, never a parent removed while the run went on (a command's locked --out)
+    directory.parent.mkdir(parents=True, exist_ok=True)
   names = None if directory is None else _frame_names(frames)
   fingerprint = None if directory is None else run_fingerprint(weights, method, cfg, eval_cfg,
                                                                names, data)
@@ -789,9 +804,16 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       bar.update(len(originals))
   except KeyboardInterrupt:
     done_state, marks, done_index, done_elapsed = done
-    if directory is not None and checkpoint_every and done_index > last_saved:
+    # the last completed chunk is not lost; unless a second signal cut short the wait for the
+    # save it interrupted, whose writer threads go on (a save beside them failed, and its
+    # error replaced the interrupt): the checkpoint before it stays the newest then
+    if (directory is not None and checkpoint_every and done_index > last_saved
+        and not saves_running()):
       truncate_record(record, marks)
-      save(done_state, done_elapsed)  # the last completed chunk is not lost
+      try:
+        save(done_state, done_elapsed)
+      except Exception:  # the run stops all the same; the command names the newest checkpoint
+        pass
     raise
   finally:
     bar.close()

@@ -299,8 +299,10 @@ def test_a_flag_given_as_zero_or_false_is_a_flag_given():
 def test_a_failed_or_interrupted_command_ends_the_process_at_once(monkeypatch):
   """`exit_with` (the console scripts' exit): a non-zero code ends the process with os._exit
   (no interpreter teardown under a compile still running on JAX's thread, which crashed a
-  Ctrl-C'd run with SIGSEGV); 0 exits normally."""
+  Ctrl-C'd run with SIGSEGV); 0 exits normally, with Ctrl-C ignored from then on (one landing
+  in JAX's exit handler, after a finished run had printed its table, printed a traceback)."""
   import os
+  import signal
   from pitta_jax import cli
   ended = []
 
@@ -308,11 +310,17 @@ def test_a_failed_or_interrupted_command_ends_the_process_at_once(monkeypatch):
     ended.append(code)
     raise SystemExit(code)
   monkeypatch.setattr(os, "_exit", fake_exit)
-  for code in (2, 130, 143):
-    with pytest.raises(SystemExit):
-      cli.exit_with(code)
-  with pytest.raises(SystemExit) as e:
-    cli.exit_with(0)
+  before = signal.getsignal(signal.SIGINT)
+  try:
+    for code in (2, 130, 143):
+      with pytest.raises(SystemExit):
+        cli.exit_with(code)
+      assert signal.getsignal(signal.SIGINT) is before
+    with pytest.raises(SystemExit) as e:
+      cli.exit_with(0)
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+  finally:
+    signal.signal(signal.SIGINT, before)
   assert ended == [2, 130, 143] and e.value.code == 0
 
 

@@ -346,7 +346,7 @@ def test_ctrl_c_while_a_chunk_is_scored_loses_no_frame(tiny_weights, tmp_path, m
       "checkpoints", "notes.txt"]
   assert (f"warning: {out}: removed an earlier run's results (results.json, results.csv, "
           f"table.md)") in err
-  assert "the last completed chunk is checkpointed" in err
+  assert f"interrupted; its first {2 * K} frames are checkpointed" in err
   assert f"--checkpoint-every {K} runs chunks of {K} frames, not --chunk-size 32" in err
   monkeypatch.setattr(run_lib, "frame_metrics", real)
   saved = sorted(p.name for p in (out / "checkpoints").glob("state_??????.json"))
@@ -384,7 +384,8 @@ def test_sigterm_stops_like_ctrl_c(tiny_weights, tmp_path):
   proc.send_signal(signal.SIGTERM)
   assert proc.wait(timeout=120) == 143
   err = proc.stderr.read().decode()
-  assert "interrupted; the last completed chunk is checkpointed" in err and "--resume" in err
+  assert re.search(r"^interrupted; its first \d+ frames are checkpointed: run the same command "
+                   r"with --resume to continue$", err, re.M)
   assert not (out / ".pitta-jax.lock").exists() and not (out / "results.json").exists()
   assert sorted(out.glob("checkpoints/state_??????.json"))
 
@@ -435,7 +436,7 @@ def test_ctrl_c_between_checkpoints_saves_the_last_chunk_without_the_cut_ones_fr
   out = tmp_path / "cut"
   monkeypatch.setattr(run_lib, "frame_metrics", interrupting)
   assert main(_adapt_args(tiny_weights, out, *every)) == 130
-  assert "the last completed chunk is checkpointed" in capfd.readouterr().err
+  assert f"interrupted; its first {K} frames are checkpointed" in capfd.readouterr().err
   monkeypatch.setattr(run_lib, "frame_metrics", real)
   monkeypatch.setattr(run_lib, "time", time)
   saved = sorted(p.name for p in (out / "checkpoints").glob("state_??????.json"))
@@ -489,7 +490,7 @@ def test_ctrl_c_as_a_checkpoint_save_ends_keeps_the_chunk_it_saved(tiny_weights,
   out = tmp_path / "cut"
   monkeypatch.setattr(run_lib, "save_state", interrupted)
   assert main(_adapt_args(tiny_weights, out, frames=2 * K)) == 130
-  assert "the last completed chunk is checkpointed" in capfd.readouterr().err
+  assert f"interrupted; its first {K} frames are checkpointed" in capfd.readouterr().err
   monkeypatch.setattr(run_lib, "save_state", real)
   saved = sorted(p.name for p in (out / "checkpoints").glob("state_??????.json"))
   assert saved == [f"state_{K:06d}.json"]
@@ -531,6 +532,53 @@ def test_a_run_with_other_pose_weights_is_another_run(tiny_weights):
                               EvalConfig(), names) for p in (pose, moved)}
     assert (len(prints) == 2) == differ, method.name
     assert "pose" in method.needs or not differ
+
+
+@pytest.mark.parametrize("checkpointing", [True, False])
+def test_an_out_removed_while_a_run_goes_on_is_not_made_again(tiny_weights, tmp_path,
+                                                              monkeypatch, capsys, checkpointing):
+  """--out removed (rm -rf) while adapt runs: the run stops with one line at its next write (a
+  checkpoint, or its results) instead of re-making the directory without its lock, where a
+  second run on it was not refused and removed the first one's files as they were written."""
+  import shutil
+  from pitta_jax import run as run_lib
+  real, calls = run_lib.frame_metrics, []
+  out = tmp_path / "out"
+
+  def removing(*args, **kwargs):
+    calls.append(1)
+    if len(calls) == K + 1:  # a frame of the second chunk, after the first checkpoint
+      shutil.rmtree(out)
+    return real(*args, **kwargs)
+
+  monkeypatch.setattr(run_lib, "frame_metrics", removing)
+  args = _adapt_args(tiny_weights, out)
+  if not checkpointing:
+    at = args.index("--checkpoint-every")
+    args = args[:at] + args[at + 2:]
+  capsys.readouterr()
+  assert main(args) == 2
+  err = capsys.readouterr().err.splitlines()
+  message = (f"error: {out}: removed while the run was writing there; the run stops"
+             if checkpointing else f"error: --out {out}: removed while the command ran; its "
+                                   f"results are not written (run it again)")
+  assert err[-1].startswith(message), err
+  assert not out.exists()
+
+
+def test_a_held_output_directory_knows_when_it_was_removed(tmp_path):
+  import shutil
+  held = open_output_dir(tmp_path / "out")
+  held.check()
+  shutil.rmtree(tmp_path / "out")
+  with pytest.raises(OutputError, match=r"^--out .*out: removed while the command ran"):
+    held.check()
+  (tmp_path / "out").mkdir()  # made again, by hand or by another run: not this one's lock
+  (tmp_path / "out" / ".pitta-jax.lock").write_text("")
+  with pytest.raises(OutputError, match="removed while the command ran"):
+    held.check()
+  held.close()
+  assert (tmp_path / "out" / ".pitta-jax.lock").exists()  # close() leaves a lock not its own
 
 
 def test_fps_after_a_resume_counts_this_calls_frames():
@@ -954,18 +1002,18 @@ def test_the_interrupted_line_offers_resume_only_for_a_run_that_checkpoints(tmp_
   def stop(args):
     raise KeyboardInterrupt
   monkeypatch.setattr(cli, "_run_adapt", stop)
-  found = ["an earlier run's"]
+  found = [tmp_path / "state_000004.json", tmp_path / "state_000008.json"]
   monkeypatch.setattr(run, "complete_checkpoints", lambda directory: found)
   argv = ["adapt", "--dataset", "synthetic", "--quiet", "--out", str(tmp_path / "o")]
   assert main(argv) == 130
   assert capsys.readouterr().err == "interrupted\n"
   assert main([*argv, "--checkpoint-every", "4"]) == 130
-  assert capsys.readouterr().err == ("interrupted; the last completed chunk is checkpointed: run "
-                                     "the same command with --resume to continue\n")
+  assert capsys.readouterr().err == ("interrupted; its first 8 frames are checkpointed: run the "
+                                     "same command with --resume to continue\n")
   # evaluate checkpoints and resumes alike (it said only "interrupted")
   assert main(["evaluate", *argv[1:], "--checkpoint-every", "4"]) == 130
-  assert capsys.readouterr().err == ("interrupted; the last completed chunk is checkpointed: run "
-                                     "the same command with --resume to continue\n")
+  assert capsys.readouterr().err == ("interrupted; its first 8 frames are checkpointed: run the "
+                                     "same command with --resume to continue\n")
   found.clear()
   assert main([*argv, "--checkpoint-every", "4"]) == 130
   assert capsys.readouterr().err == "interrupted; no checkpoint was saved yet\n"
