@@ -645,7 +645,7 @@ def save_checkpoint(directory: Path, state, record: dict) -> None:
 
 
 def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
-                 method: Method | None = None, eval_cfg: EvalConfig = EvalConfig(),
+                 method: Method | None = None, eval_cfg: EvalConfig | None = None,
                  name: str = "", quiet: bool = False, keep: Sequence[int] = (),
                  checkpoint_dir: str | Path | None = None, checkpoint_every: int = 0,
                  runners: Runners | None = None, resume: bool | str = False,
@@ -668,6 +668,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     frames: the sequence, any length; read lazily chunk by chunk.
     cfg: the run's config; method: the method (default: `cfg.method` with its paper defaults;
       a method given here is what runs, and `cfg.method` is set to its name).
+    eval_cfg: how each frame is scored; None: `EvalConfig`'s defaults with the dataset's own
+      protocol (a `FrameSequence`'s `evaluation`, e.g. the Garg crop of KITTI's Eigen split, as
+      MonoDepth2's evaluate_depth.py scores it), as the commands do where no --eval flag is given.
     keep: frame indices whose predicted depth is returned (for figures).
     checkpoint_dir, checkpoint_every: save the state and the results so far after every K
       frames (exactly: the chunk size becomes a divisor of K), and on Ctrl-C.
@@ -688,6 +691,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   from pitta_jax.sources import check_frame_needs, check_needs
   if len(frames) == 0:
     raise DataError(name or "sequence", "no frames to adapt on")
+  if eval_cfg is None:
+    eval_cfg = dataclasses.replace(EvalConfig(), **getattr(frames, "evaluation", {}))
   if method is None:
     method = build_method(cfg.method)
   elif cfg.method != method.name:  # the run, its progress bar and its records name what runs

@@ -230,6 +230,21 @@ def test_kitti_eigen_gt(tmp_path):
   assert len(frames) == 3
   # splits/eigen/: scored inside the Garg crop (MonoDepth2's --eval_split eigen), kept by slicing
   assert frames.evaluation == frames[1:].evaluation == {"garg_crop": True}
+  # a split file linked from elsewhere is the split its path names; a relative path too
+  store = tmp_path / "store" / "eigen_test_files.txt"
+  store.parent.mkdir()
+  store.write_text(split.read_text())
+  linked = tmp_path / "linked" / "eigen" / "test_files.txt"
+  linked.parent.mkdir(parents=True)
+  linked.symlink_to(store)
+  assert kitti.split_evaluation(linked) == {"garg_crop": True}
+  assert kitti.split_evaluation(store) == {}
+  monkey = pytest.MonkeyPatch()
+  monkey.chdir(split.parent)
+  try:
+    assert kitti.split_evaluation(Path("test_files.txt")) == {"garg_crop": True}
+  finally:
+    monkey.undo()
   # the `r` line's image is camera 3's, MonoDepth2's exported ground truth camera 2's
   assert frames.notes == ("test_files.txt: 1 line(s) take the right camera's image (image_03), "
                           "but gt_depths.npz holds the left camera's ground truth for every line "
@@ -242,6 +257,32 @@ def test_kitti_eigen_gt(tmp_path):
     assert frame.depth.dtype == np.float32
     np.testing.assert_array_equal(frame.depth, gt)
     assert frame.depth_file == f"{split.parent / 'gt_depths.npz'}[{index}]"
+
+
+def test_a_run_scores_the_eigen_split_as_published_without_being_told(tmp_path):
+  """run_sequence without an EvalConfig takes the sequence's own protocol, as the commands do:
+  the Eigen split inside the Garg crop (MonoDepth2's evaluate_depth.py --eval_split eigen);
+  the library call scored the whole frame. An EvalConfig given is what scores."""
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.checkpoint import Weights
+  from pitta_jax.models.random_init import random_monodepth2_variables
+  from pitta_jax.models.registry import get_spec
+  from pitta_jax.run import EvalConfig, frame_metrics, run_sequence
+  split, _, maps = make_kitti(tmp_path)
+  maps = [m[:H, :W] for m in maps]  # the images' size (a run checks the aspect ratio)
+  _save_object_npz(split.parent / "gt_depths.npz", maps)
+  frames = kitti.open_kitti(tmp_path / "data", split)
+  weights = Weights(get_spec("monodepth2"), {"num_layers": 18, "height": 64, "width": 96},
+                    random_monodepth2_variables(0), None)
+  cfg = AdaptConfig(method="none", bn_stats="running")
+  res = run_sequence(weights, frames, cfg, quiet=True, keep=range(3))
+  whole = run_sequence(weights, frames, cfg, eval_cfg=EvalConfig(), quiet=True)
+  for k, gt in enumerate(maps):
+    depth = res.kept_depths[k]
+    cropped = frame_metrics(depth, gt, EvalConfig(garg_crop=True), "median")["abs_rel"]
+    full = frame_metrics(depth, gt, EvalConfig(), "median")["abs_rel"]
+    assert res.per_frame[k]["abs_rel"] == cropped != full
+    assert whole.per_frame[k]["abs_rel"] == full
 
 
 def test_kitti_plain_npz_and_jpg(tmp_path):

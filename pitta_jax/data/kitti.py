@@ -41,6 +41,7 @@ lines are runs of consecutive frames (`split_is_temporal`).
 from __future__ import annotations
 
 import functools
+import os
 import pickle
 import zipfile
 from pathlib import Path
@@ -316,9 +317,12 @@ def _velodyne_loaders(data: Path, entries: list[tuple[str, int, int]]) -> list:
 def split_evaluation(split_file: Path) -> dict[str, object]:
   """The evaluation protocol of a MonoDepth2 split (`run.EvalConfig` values), as MonoDepth2's
   `evaluate_depth.py` applies it: the Garg crop for `--eval_split eigen` (`splits/eigen/...`),
-  every ground-truth pixel > 0 (no 80 m cap) for `eigen_benchmark`, neither for other splits."""
+  every ground-truth pixel > 0 (no 80 m cap) for `eigen_benchmark`, neither for other splits.
+  The folder is the one the path names (made absolute, symbolic links not followed: a
+  `splits/eigen/test_files.txt` linked to a file elsewhere is still the Eigen split)."""
   return {"eigen": {"garg_crop": True},
-          "eigen_benchmark": {"valid_gt": "positive"}}.get(split_file.resolve().parent.name, {})
+          "eigen_benchmark": {"valid_gt": "positive"}}.get(
+              Path(os.path.abspath(split_file)).parent.name, {})
 
 
 def split_is_temporal(entries: list[tuple[str, int, int]]) -> bool:
