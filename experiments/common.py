@@ -467,10 +467,9 @@ def stored_result(stored: Any, field: str) -> bool:
 def _check_out(ctx: Context) -> None:
   """OutputError when --out was removed while the command ran: a row written now (or its
   checkpoints) would re-make it without the command's lock."""
-  from pitta_jax.outputs import OutputError
+  from pitta_jax.outputs import removed_while_running
   if not ctx.out.is_dir():
-    raise OutputError(f"--out {ctx.out}: removed while the command ran; its rows are not "
-                      f"written (run it again)")
+    raise removed_while_running(ctx.out)
 
 
 def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "metrics") -> dict:

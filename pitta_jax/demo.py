@@ -30,6 +30,7 @@ from pitta_jax.adapt import AdaptConfig
 from pitta_jax.configs import check, option
 from pitta_jax.methods import build as build_method
 from pitta_jax.methods.pitta import PittaConfig
+from pitta_jax.outputs import removed_while_running
 from pitta_jax.plots import PlotConfig, per_frame_figure, save_figure
 from pitta_jax.data.image_io import write_image
 from pitta_jax.data.resize import resize_frame
@@ -113,6 +114,13 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
   weights, train_report = load_or_train_source(source, quiet=quiet)
   clear_earlier_results(out, FIGURES)
   figures_existed = (out / "figures").exists()
+  out_existed = out.is_dir()  # (the command's --out, created and locked before)
+
+  def check_out() -> None:
+    """OutputError when `out` was removed while the demo ran (a figure written now would make
+    it again)."""
+    if out_existed and not out.is_dir():
+      raise removed_while_running(out)
   try:
     h, w = weights.height, weights.width
     runners = Runners()  # one compile per row serves every shift
@@ -145,9 +153,11 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
             **({"mean_instances": float(np.mean(res.logs["n_instances"]))}
                if "n_instances" in res.logs else {})}, status=res.status))
       per_frame[domain] = {r: [m["abs_rel"] for m in res.per_frame] for r, res in results.items()}
+      check_out()
       _figures(out / "figures", domain, frames, results, h, w)
     # every figure before the results: an interrupt removes this run's figures, and results
     # written before them would have stayed, complete-looking, without their figures
+    check_out()
     for domain, series in per_frame.items():
       figure = per_frame_figure(series, "abs_rel", f"Per-frame AbsRel, {domain}", demo.figures)
       save_figure(figure, out / "figures" / f"{domain}_abs_rel_per_frame.png", demo.figures)

@@ -44,8 +44,7 @@ class OutputDir:
     locked: what the command would write now would re-make it without the lock, where a second
     run could take it."""
     if self._fd < 0 or not self._holds_lock_file():
-      raise OutputError(f"{self._what} {self.path}: removed while the command ran; its results "
-                        f"are not written (run it again)")
+      raise removed_while_running(self.path, self._what)
 
   def close(self) -> None:
     """Releases the lock and removes the lock file (a killed run leaves the file, unlocked)."""
@@ -70,6 +69,13 @@ class OutputDir:
           d.rmdir()
         except OSError:
           break
+
+
+def removed_while_running(path: Path, what: str = "--out") -> OutputError:
+  """The error of a command whose output directory was removed while it ran: what it would
+  write now would make the directory again without the command's lock."""
+  return OutputError(f"{what} {path}: removed while the command ran; its results are not "
+                     f"written (run it again)")
 
 
 def open_output_dir(path: str | os.PathLike, what: str = "--out") -> OutputDir:
