@@ -16,10 +16,12 @@ flows:
                                                   amax and max(); torch.max(x, dim) sends it
                                                   all to the returned index)
   elu(x) at 0                   d/dx = 1         (jax.nn.elu already agrees)
+  the L2 norm ||x|| at x = 0    d/dx = 0         (torch.norm; jnp.linalg.norm gives NaN: the
+                                                  pose net's axis-angle at rest, `norm`)
   the stem's 3x3/2 max pool     first maximum    (`models.layers.max_pool_3x3_s2`)
 
-`absolute` and `clamp` below are the two that differ; every loss uses them instead of jnp.abs /
-jnp.clip. The median filter's selection is never differentiated (pseudo labels are constants).
+`absolute`, `clamp` and `norm` below are the three that differ; every loss uses them instead of
+jnp.abs / jnp.clip / jnp.linalg.norm. The median filter's selection is never differentiated (pseudo labels are constants).
 """
 
 from __future__ import annotations
@@ -43,6 +45,16 @@ def _absolute_jvp(primals, tangents):
   # derivative poisons the gradient of an entry that a `where` masks out, 0 * NaN = NaN)
   sgn = (x > 0).astype(x.dtype) - (x < 0).astype(x.dtype)
   return jnp.abs(x), sgn * t
+
+
+def norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
+  """The L2 norm of `x` along `axis`, with PyTorch's derivative x / ||x|| and 0 where ||x|| = 0
+  (jnp.linalg.norm's is NaN there: 0 / 0). A vector whose squares underflow counts as 0."""
+  squares = jnp.sum(x * x, axis=axis, keepdims=True)
+  positive = squares > 0
+  # the sqrt never sees a 0 (its derivative there is inf, and inf * 0 is NaN)
+  n = jnp.where(positive, jnp.sqrt(jnp.where(positive, squares, 1.0)), 0.0)
+  return n if keepdims else jnp.squeeze(n, axis)
 
 
 def clamp(x: Array, lo: float | Array | None = None, hi: float | Array | None = None) -> Array:

@@ -135,6 +135,24 @@ def test_transformation_from_parameters_is_monodepth2s():
     _close(f"T (invert={invert})", got, want, 1e-12, 1e-14)
 
 
+def test_the_pose_gradient_at_rest_is_torchs():
+  """At an axis-angle of exactly 0 (a pose net at rest, a zero-initialised head) MonoDepth2's
+  torch.norm gives the rotation a zero derivative; jnp.linalg.norm gave NaN, which made a
+  CoMoDa or Ada-Depth step non-finite (skipped). Away from 0 the gradients agree as well."""
+  r = np.random.default_rng(3)
+  tr = 0.1 * r.standard_normal((2, 1, 3))
+  weights = r.standard_normal((2, 4, 4))
+  for aa in (np.zeros((2, 1, 3)), 0.02 * r.standard_normal((2, 1, 3))):
+    with jax.enable_x64(True):
+      got = jax.grad(lambda a: jnp.sum(sfm.transformation_from_parameters(
+          a, jnp.asarray(tr)) * weights))(jnp.asarray(aa))
+    a = torch.tensor(aa, requires_grad=True)
+    (ts.transformation_from_parameters(a, _t(tr, np.float64)) * torch.tensor(weights)).sum(
+        ).backward()
+    assert np.all(np.isfinite(np.asarray(got)))
+    np.testing.assert_allclose(np.asarray(got), a.grad.numpy(), rtol=1e-9, atol=1e-12)
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_backproject_project(dtype):
   """BackprojectDepth + Project3D: coordinates and their gradient w.r.t. depth and T."""

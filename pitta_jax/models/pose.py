@@ -14,6 +14,7 @@ import flax.linen as nn
 
 from pitta_jax.models.layers import Conv, ModuleDef, conv
 from pitta_jax.models.resnet import ResnetEncoder
+from pitta_jax.nonsmooth import norm
 
 
 class PoseDecoder(nn.Module):
@@ -54,7 +55,7 @@ class PoseNet(nn.Module):
 
 def rot_from_axisangle(vec: jax.Array) -> jax.Array:
   """(B, 1, 3) axis-angle -> (B, 4, 4) homogeneous rotation (Rodrigues), as MonoDepth2."""
-  angle = jnp.linalg.norm(vec, axis=2, keepdims=True)  # (B, 1, 1)
+  angle = norm(vec, axis=2, keepdims=True)  # (B, 1, 1); torch's derivative at rest (0, not NaN)
   axis = vec / (angle + 1e-7)
   ca, sa = jnp.cos(angle), jnp.sin(angle)
   c = 1.0 - ca
