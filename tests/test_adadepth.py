@@ -441,6 +441,25 @@ def test_u_keeps_its_weights_when_the_students_step_is_rejected(jax_run):
              for k, v in _flat(moved.method_state["u"].params).items())
 
 
+def test_lower_median_is_torch_median_of_the_masked_values():
+  """Hand cases and random ones against torch.median(x[mask]) (the lower middle value of an
+  even count), with ties and a NaN inside the mask (torch: NaN; the sort skipped it) or only
+  outside it (no effect); an empty mask gives NaN."""
+  r = np.random.default_rng(0)
+  cases = [(np.array([[1.0, np.nan], [3.0, 2.0]]), np.ones((2, 2), bool)),
+           (np.array([[1.0, np.nan], [3.0, 2.0]]), np.array([[True, False], [True, True]]))]
+  for _ in range(20):
+    x = r.integers(0, 4, (3, 5)).astype(np.float64)  # ties
+    x[r.random((3, 5)) < 0.1] = np.nan
+    cases.append((x, r.random((3, 5)) < 0.6))
+  for x, mask in cases:
+    with jax.enable_x64(True):
+      got = float(adadepth.lower_median(jnp.asarray(x), jnp.asarray(mask)))
+    want = (float(torch.median(torch.from_numpy(x)[torch.from_numpy(mask)])) if mask.any()
+            else float("nan"))
+    np.testing.assert_equal(got, want)
+
+
 def test_requirements_fail_before_work():
   """BN eval mode and one step per frame are required (one-line errors naming the flag), and a
   missing pose network or input size is named at init."""

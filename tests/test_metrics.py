@@ -158,6 +158,11 @@ def test_clear_errors():
     metrics.depth_metrics(np.ones((4, 4)), np.full((4, 4), 100.0))  # all beyond max_depth
   with pytest.raises(ValueError, match="positive"):
     metrics.depth_metrics(-np.ones((4, 4)), gt, median_scaling=False, clamp=False)
+  # a zero depth resized as disparity (inf) spreads: the prediction's median is 0, and the
+  # message told a caller that already clamps to "use clamp=True"
+  with pytest.raises(ValueError, match=r"^the prediction's median on the valid pixels is 0\.0: "
+                                       r"median scaling needs a positive one"):
+    metrics.depth_metrics(np.array([[0.0, 1.0]], np.float32), np.full((2, 4), 10.0, np.float32))
 
 
 def test_mean_metrics():

@@ -149,11 +149,14 @@ class PseudoLabels(NamedTuple):
 def lower_median(x: jax.Array, mask: jax.Array) -> jax.Array:
   """`torch.median(x[mask])`: the middle value, the lower of the two for an even count.
 
-  x, mask: (H, W). NaN when the mask is empty (upstream's median of nothing fails too).
+  x, mask: (H, W). NaN when the mask is empty (upstream's median of nothing fails too), and
+  when a masked value is NaN (torch.median propagates it; the sort puts NaN last, which would
+  skip it).
   """
   n = jnp.sum(mask.astype(jnp.int32))
   ordered = jnp.sort(jnp.where(mask, x, jnp.inf).ravel())
-  return jnp.where(n > 0, ordered[jnp.maximum((n - 1) // 2, 0)], jnp.nan)
+  nan = jnp.any(mask & jnp.isnan(x))
+  return jnp.where((n > 0) & ~nan, ordered[jnp.maximum((n - 1) // 2, 0)], jnp.nan)
 
 
 def pseudo_labels(ref: jax.Array, ema: jax.Array, unsup: jax.Array,
