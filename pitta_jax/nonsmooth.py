@@ -21,7 +21,8 @@ flows:
   the stem's 3x3/2 max pool     first maximum    (`models.layers.max_pool_3x3_s2`)
 
 `absolute`, `clamp` and `norm` below are the three that differ; every loss uses them instead of
-jnp.abs / jnp.clip / jnp.linalg.norm. The median filter's selection is never differentiated (pseudo labels are constants).
+jnp.abs / jnp.clip / jnp.linalg.norm. The median filter's selection is never differentiated
+(pseudo labels are constants).
 """
 
 from __future__ import annotations
