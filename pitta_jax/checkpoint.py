@@ -20,7 +20,7 @@ import dataclasses
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Collection
 
 import numpy as np
 
@@ -86,19 +86,18 @@ def _wait_for_save_threads(before: set, timeout: float = 60.0) -> None:
   in `threading.enumerate()`, not `join()`: on Python 3.11 a Ctrl-C that interrupts
   `Thread.join` marks the thread stopped while it runs on, so orbax's own wait returned at once
   and its commit thread re-created the temporary directory removed after it."""
-  import threading
   import time
   deadline = time.monotonic() + timeout
-  while time.monotonic() < deadline and any(
-      t.name in ORBAX_SAVE_THREADS for t in threading.enumerate() if t not in before):
+  while time.monotonic() < deadline and saves_running(before):
     time.sleep(0.02)
 
 
-def saves_running() -> bool:
-  """Whether orbax's save threads are still writing: a save whose wait a second Ctrl-C cut
-  short (`save_tree`) goes on in them, and nothing should be saved at its path meanwhile."""
+def saves_running(before: Collection = frozenset()) -> bool:
+  """Whether orbax's save threads (those not in `before`) are still writing: a save whose wait a
+  second Ctrl-C cut short (`save_tree`) goes on in them, and nothing should be saved at its path
+  meanwhile."""
   import threading
-  return any(t.name in ORBAX_SAVE_THREADS for t in threading.enumerate())
+  return any(t.name in ORBAX_SAVE_THREADS for t in threading.enumerate() if t not in before)
 
 
 def save_tree(path: str | os.PathLike, tree: Any) -> None:

@@ -170,10 +170,11 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
   if alignment is None:
     alignment = "median" if median_scaling else "none"
   if alignment == "median":
-    if not np.median(pred_v) > 0:  # (a ratio of inf or NaN, whatever the clamping)
-      raise ValueError(f"the prediction's median on the valid pixels is {np.median(pred_v)}: "
-                       f"median scaling needs a positive one; check the prediction")
-    pred_v = pred_v * (np.median(gt_v) / np.median(pred_v))
+    median = np.median(pred_v)
+    if not median > 0:  # (a ratio of inf or NaN, whatever the clamping)
+      raise ValueError(f"the prediction's median on the valid pixels is {median}: median "
+                       f"scaling needs a positive one; check the prediction")
+    pred_v = pred_v * (np.median(gt_v) / median)
   elif alignment == "scale_shift":
     pred_v = 1.0 / np.maximum(scale_shift_inverse(1.0 / pred_v, 1.0 / gt_v), 1.0 / max_depth)
   elif alignment == "stereo":

@@ -486,7 +486,7 @@ def _resume_points(directory: Path, fingerprint: str, names: Sequence[str], temp
       if not differ and isinstance(record, dict):  # the newest readable one's, for the error
         differ = setting_differences(record.get("settings"), template.get("settings", {}))
       continue
-    if len(done) != int(path.name[len("state_"):]):  # a sidecar not of its state's frames
+    if len(done) != checkpoint_frames(path):  # a sidecar not of its state's frames
       others += 1
       continue
     problem = _sidecar_problem(record, template)
@@ -566,11 +566,17 @@ def complete_checkpoints(directory: str | Path) -> list[Path]:
   return sorted(Path(directory).glob(CHECKPOINT_PATTERN + ".json"))
 
 
+def checkpoint_frames(path: Path) -> int:
+  """How many frames a checkpoint (`state_NNNNNN`, or its sidecar `state_NNNNNN.json`) has done:
+  the number in its name."""
+  return int(path.name[len("state_"):len("state_") + 6])
+
+
 def checkpointed_frames(directory: str | Path) -> int | None:
-  """How many frames the newest complete checkpoint under `directory` has done (its name,
-  `state_NNNNNN`); None without one."""
+  """How many frames the newest complete checkpoint under `directory` has done; None without
+  one."""
   found = complete_checkpoints(directory)
-  return int(found[-1].name[len("state_"):len("state_") + 6]) if found else None
+  return checkpoint_frames(found[-1]) if found else None
 
 
 def _clear_checkpoints(directory: Path) -> int:
