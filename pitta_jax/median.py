@@ -8,12 +8,15 @@ of an even count is the mean of the two middle values, `(a + b) / 2` in float32 
 convention), so the result equals a literal `np.median` loop bit for bit.
 
 How: the s*s shifted views of the map, padded with +inf, go through a Batcher odd-even merge
-sorting network made of elementwise min/max (XLA fuses it into one loop over the pixels). The
-padding sorts last, so the c valid values of a window occupy the first c sorted slots and the
-two middle ones sit at (c-1)//2 and c//2, with c a function of the position. Only the
-comparators that feed the slots needed somewhere are kept (124 of them for s = 5, 352 for
+sorting network made of elementwise compare-exchanges (XLA fuses it into one loop over the
+pixels). The padding sorts last, so the c valid values of a window occupy the first c sorted
+slots and the two middle ones sit at (c-1)//2 and c//2, with c a function of the position. Only
+the comparators that feed the slots needed somewhere are kept (124 of them for s = 5, 352 for
 s = 7), and a select chain picks each pixel's slots. A network is exact: it permutes the values,
-so ties come out as they are. About 2-4 ms at 640x192 with s = 5 on 2 CPU cores, where
+so ties come out as they are. Each comparator moves whole elements (a select on b < a, not
+min/max), so the gradient of a slot reaches one element of the window, as through a sort
+(`torch.sort`, `torch.median`), also at ties; which of several tied elements is the network's
+choice, as it is torch's. About 2-4 ms at 640x192 with s = 5 on 2 CPU cores, where
 `jnp.sort` along the window axis takes about 250 ms.
 
 From s = `SORT_FROM_WINDOW` on, the windows are stacked on an array axis instead and their two
@@ -22,12 +25,13 @@ keys, exact): the network's compile time doubles with every step of s (at 640x19
 s = 11 2.1 s, 13 6.6 s, 15 12.6 s, and minutes beyond), the stacked form's stays near 1 s
 (s = 17-31; `stack_windows` takes 2s slices of the map), while it runs far slower (s = 11: 28 ms
 as a network; s = 17: 1.4-1.6 s, against 3.8-4.7 s for `jnp.sort` of the stacked windows,
-interleaved). The same values either way (both return elements of the window), and the same
-gradient as through a stable sort. The stacked windows take s*s times the map's memory, so they
-are built and selected from a block of rows at a time (`map_row_blocks`, `BLOCK_BYTES` per
-block): at 640x192, s = 31, the median filter's working memory is 100 MB instead of 3.2 GB for
-the whole image's stack, and it runs faster (s = 17: 0.97 against 1.31 s, s = 31: 3.2 against
-4.5 s, best of 4, interleaved; 4 MB blocks ran within 10-20% of 16 MB, 64 MB blocks slower).
+interleaved). The same values either way (both return elements of the window), and a gradient
+that reaches one element per slot either way (here the one a stable sort puts there). The
+stacked windows take s*s times the map's memory, so they are built and selected from a block of
+rows at a time (`map_row_blocks`, `BLOCK_BYTES` per block): at 640x192, s = 31, the median
+filter's working memory is 100 MB instead of 3.2 GB for the whole image's stack, and it runs
+faster (s = 17: 0.97 against 1.31 s, s = 31: 3.2 against 4.5 s, best of 4, interleaved; 4 MB
+blocks ran within 10-20% of 16 MB, 64 MB blocks slower).
 `map_row_blocks` and `select_middles` serve callers that keep the windows stacked (the fast L_d
 from `losses.STACKED_FROM_WINDOW` on).
 """
@@ -248,10 +252,13 @@ def middle_order_statistics(views: list[Array], s: int) -> tuple[Array, Array]:
   wires = list(views)
   for i, j, need_min, need_max in _selection_network(len(wires), tuple(ranks)):
     a, b = wires[i], wires[j]
+    # A compare-exchange that moves whole elements: jnp.minimum/maximum would split a tie's
+    # gradient between the two, where a sort (torch.sort, torch.median) gives each slot one.
+    swap = b < a
     if need_min:
-      wires[i] = jnp.minimum(a, b)
+      wires[i] = jnp.where(swap, b, a)
     if need_max:
-      wires[j] = jnp.maximum(a, b)
+      wires[j] = jnp.where(swap, a, b)
   lo_rank, hi_rank = middle_ranks(h, w, s)
   # A select chain, not a stack + gather: XLA would fuse a stack of the network outputs into one
   # loop that recomputes the whole network for every stacked slot.
@@ -358,7 +365,8 @@ def median_filter(x: Array, s: int = WINDOW, block_bytes: int = BLOCK_BYTES) -> 
   Equals a loop of `np.median(x[max(i-r,0):min(i+r,H-1)+1, max(j-r,0):min(j+r,W-1)+1])` over
   the pixels exactly (float32), including even counts at the border (mean of the two middle
   values) and windows larger than the image. Not differentiated in PITTA (pseudo labels are
-  stop-gradient), but min/max have gradients if needed.
+  stop-gradient); differentiated, each middle value's cotangent reaches one element of its
+  window (half each for an even count's two), ties included, as through torch.sort.
 
   Args:
     x: (H, W) float map (float32, or float64 kept: `dtypes.as_float`). NaN: unspecified.

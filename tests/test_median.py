@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -157,6 +158,34 @@ def test_stacked_median_gradient_reaches_the_middle_values(rows):
       for k in middles:
         want[cells[k]] += cot[i, j] / len(middles)
   np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("s", [3, 5, median_lib.SORT_FROM_WINDOW])  # network; stacked
+def test_gradient_at_ties_reaches_one_element_per_slot_as_torch_sort(s):
+  # Reference: PyTorch autograd of eq. 7 as a PyTorch user writes it, per pixel the border-shrunk
+  # window's torch.sort and the mean of its two middle values: each middle slot's cotangent goes
+  # to one element (the one the sort's index names). On maps of three values (ties everywhere)
+  # each Jacobian row must then have torch's nonzero entries (one 1, or two halves) and, per
+  # distinct value of the window, the same total; which of several tied elements receives it is
+  # each implementation's choice. min/max comparators would split a tie's share between them.
+  h, w = 6, 7
+  r = s // 2
+  x = np.random.default_rng(s).integers(0, 3, (h, w)).astype(np.float32)
+  got = np.asarray(jax.jit(jax.jacrev(lambda v: median_lib.median_filter(v, s)))(x))
+  got = got.reshape(h * w, h * w)
+  xt = torch.tensor(x, dtype=torch.float64, requires_grad=True)
+  flat = x.reshape(-1)
+  for i in range(h):
+    for j in range(w):
+      window = xt[max(i - r, 0):i + r + 1, max(j - r, 0):j + r + 1].reshape(-1)
+      ordered = torch.sort(window).values
+      c = window.numel()
+      (want,) = torch.autograd.grad((ordered[(c - 1) // 2] + ordered[c // 2]) / 2, xt)
+      want = want.numpy().reshape(-1)
+      row = got[i * w + j]
+      np.testing.assert_array_equal(np.sort(row[row != 0]), np.sort(want[want != 0]))
+      for value in np.unique(flat):
+        assert row[flat == value].sum() == want[flat == value].sum(), (i, j, value)
 
 
 def test_stacked_working_memory_is_bounded_by_blocks():
