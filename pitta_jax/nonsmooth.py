@@ -19,10 +19,12 @@ flows:
   the L2 norm ||x|| at x = 0    d/dx = 0         (torch.norm; jnp.linalg.norm gives NaN: the
                                                   pose net's axis-angle at rest, `norm`)
   the stem's 3x3/2 max pool     first maximum    (`models.layers.max_pool_3x3_s2`)
+  a median's middle values      one element      (torch.sort; `median.median_filter`, never
+    at ties                     per slot          differentiated in PITTA: pseudo labels are
+                                                  constants)
 
 `absolute`, `clamp` and `norm` below are the three that differ; every loss uses them instead of
-jnp.abs / jnp.clip / jnp.linalg.norm. The median filter's selection is never differentiated
-(pseudo labels are constants).
+jnp.abs / jnp.clip / jnp.linalg.norm.
 """
 
 from __future__ import annotations
