@@ -128,6 +128,9 @@ class Context:
   identities: dict[str, dict] = dataclasses.field(default_factory=dict)
   files_id: str | None = None   # `files_identity`, once per command
   notes: list[str] = dataclasses.field(default_factory=list)  # for the caption (`check_rows`)
+  # raises when --out was removed or replaced since the command locked it (its
+  # `OutputDir.check`); None (a Context built by hand): `check_out` tests that it exists
+  out_check: Callable[[], Any] | None = None
 
   def wants(self, label: str, *names: str) -> bool:
     """Whether --rows selects the row `label` (no --rows: every row): a --rows entry that is a
@@ -464,11 +467,13 @@ def stored_result(stored: Any, field: str) -> bool:
              and isinstance(r.get("status", ""), str) for r in results)
 
 
-def _check_out(ctx: Context) -> None:
-  """OutputError when --out was removed while the command ran: a row written now (or its
-  checkpoints) would re-make it without the command's lock."""
+def check_out(ctx: Context) -> None:
+  """OutputError when --out was removed or replaced while the command ran: a row written now
+  (or its checkpoints) would go to a directory without the command's lock."""
   from pitta_jax.outputs import removed_while_running
-  if not ctx.out.is_dir():
+  if ctx.out_check is not None:
+    ctx.out_check()
+  elif not ctx.out.is_dir():
     raise removed_while_running(ctx.out)
 
 
@@ -486,9 +491,9 @@ def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "me
       return stored
     print(f"warning: {path}: not a stored row result (edited or damaged); computing the row "
           f"again", file=sys.stderr)
-  _check_out(ctx)
+  check_out(ctx)
   result = compute()
-  _check_out(ctx)
+  check_out(ctx)
   path.parent.mkdir(exist_ok=True)
   atomic_write_text(path, json.dumps(json_safe(result)[0], indent=1) + "\n")
   return result
@@ -517,7 +522,8 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
     res = run_sequence(weights, frames, cfg, method, ctx.evaluation(),
                        name=f"{case}: {row.label}", quiet=ctx.quiet, runners=runners,
                        resources=resources[res_key], checkpoint_dir=ckpt,
-                       checkpoint_every=CHECKPOINT_EVERY if ckpt else 0, resume=RESUME_OWN)
+                       checkpoint_every=CHECKPOINT_EVERY if ckpt else 0, resume=RESUME_OWN,
+                       check_out=lambda: check_out(ctx))
     return {"metrics": res.mean if res.status == "ok" else {}, "status": res.status,
             "metrics_before_divergence": res.mean if res.status != "ok" else None,
             "frames": len(frames), "seconds": round(res.total_seconds, 2),
@@ -706,6 +712,9 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
     if sep and not model:
       raise DataError(None, f"--weights {item}: no network before '=' (NAME=DIR, or DIR alone "
                             f"for a monodepth2)")
+    if not directory.strip():
+      raise DataError(None, f"--weights {item}: no directory (NAME=DIR, or DIR alone for a "
+                            f"monodepth2)")
     model = model or "monodepth2"
     if model not in MODELS:
       raise DataError(None, f"--weights {item}: unknown network {model!r} "
@@ -724,8 +733,11 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   frames = args.frames or (QUICK_FRAMES if args.quick else (FRAMES if args.dataset == "synthetic"
                                                             else 0))
   out = Path(args.out or Path("experiments_out") / name)
-  if out.exists() and not out.is_dir():
-    raise DataError(None, f"--out {out}: exists and is not a directory")  # as open_output_dir
+  try:  # (exists() itself raises for a name too long)
+    if out.exists() and not out.is_dir():
+      raise DataError(None, f"--out {out}: exists and is not a directory")  # as open_output_dir
+  except OSError as e:
+    raise DataError(None, f"--out {out}: cannot write there ({e.strerror or e})") from None
   from pitta_jax.config_cli import config_from_args
   from pitta_jax.run import EvalConfig
   eval_cfg = config_from_args(EvalConfig, args, "eval")
@@ -735,12 +747,13 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   if text.strip() and not rows:
     raise DataError(None, f"--rows {text!r}: no row name in it (comma-separated labels)")
   # created, proved writable and locked before any row runs; `main_wrapper` releases it
-  vars(args).setdefault("open_outputs", []).append(open_output_dir(out, "--out"))
+  held = open_output_dir(out, "--out")
+  vars(args).setdefault("open_outputs", []).append(held)
   from pitta_jax.report import check_results_owner
   check_results_owner(out, f"experiment {name}")
   return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
                  args.quick, frames, args.quiet, args.source_images, args.replay_root,
-                 runners, rows, eval_cfg=eval_cfg, name=name)
+                 runners, rows, eval_cfg=eval_cfg, name=name, out_check=held.check)
 
 
 def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,

@@ -28,7 +28,7 @@ def label(lam: float) -> str:
 
 def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
                  quick: bool = False, runners=None, checkpoint_dir=None,
-                 eval_cfg=None) -> list[dict]:
+                 eval_cfg=None, check_out=None) -> list[dict]:
   """PITTA with each lambda of `lams` over `frames`, as one vmapped run; per lambda
   {"metrics": mean of the 7, "abs_rel_per_frame": [...] (every frame, NaN where not scored),
   "frames": n, "status": "ok" or why there are no metrics, "metrics_before_divergence"}: a
@@ -38,7 +38,9 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   sweep's states and results so far are saved there every `common.CHECKPOINT_EVERY` frames (and
   on Ctrl-C), and a sweep interrupted before resumes from its newest checkpoint (one of another
   sweep is removed, with a warning), with the result of an uninterrupted one. eval_cfg: the
-  `run.EvalConfig` each frame is scored with (None: its defaults)."""
+  `run.EvalConfig` each frame is scored with (None: its defaults). check_out: called before
+  each checkpoint save, it raises to stop the sweep where the folder of `checkpoint_dir` was
+  removed or replaced (`run.run_sequence`'s check_out; None: no check)."""
   from pathlib import Path
   from tqdm import tqdm
   from pitta_jax import metrics as metrics_lib
@@ -46,6 +48,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from pitta_jax.adapt.inputs import chunks
   from pitta_jax.methods import build
   from pitta_jax.methods.depth_refining import dynamic_classes
+  from pitta_jax.outputs import check_passes
   from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, frame_metrics,
                              input_size, load_resume_point, model_alignment, note_compile,
                              record_marks, run_fingerprint, run_status, save_checkpoint,
@@ -103,6 +106,8 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
       n = len(record["names"])
       done = (states, record_marks(record))
       if every and n < len(frames) and n % every == 0:
+        if check_out is not None:
+          check_out()
         save_checkpoint(directory, states, record)
         last_saved = n
       bar.set_postfix_str("", refresh=False)
@@ -112,7 +117,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
     n = marks["names"][0]
     # the last whole chunk is not lost, nor one whose save the Ctrl-C cut (the save removes
     # what it wrote)
-    if every and n > last_saved:
+    if every and n > last_saved and check_passes(check_out):
       truncate_record(record, marks)
       save_checkpoint(directory, done_states, record)
     raise
@@ -167,7 +172,8 @@ def run(args, runners=None) -> int:
       frames = common.case_frames(ctx, parts, weights.height, weights.width)
       took = common.timer()
       sweep = lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick, common.runners(ctx),
-                           common.checkpoints(ctx, key), ctx.evaluation())
+                           common.checkpoints(ctx, key), ctx.evaluation(),
+                           lambda: common.check_out(ctx))
       return {"sweep": sweep, "seconds": round(took(), 2)}
     cached = common.cached(ctx, key, compute, field="sweep")
     common.remove_checkpoints(ctx, key)

@@ -241,12 +241,13 @@ def _run_demo(args) -> int:
             file=sys.stderr)
   from pitta_jax.outputs import open_output_dir
   from pitta_jax.report import check_results_owner
-  with open_output_dir(demo.out):  # checked and locked before any work
+  with open_output_dir(demo.out) as held:  # checked and locked before any work
     check_results_owner(demo.out, "demo")
     enable_compilation_cache()  # the process's choice, made here, not by the library
     if args.retrain:
       load_or_train_source(SourceConfig(), quiet=args.quiet, retrain=True)
-    run_demo(demo, adapt, pitta, quiet=args.quiet, method_configs=configs, given=given)
+    run_demo(demo, adapt, pitta, quiet=args.quiet, method_configs=configs, given=given,
+             check_out=held.check)
   return 0
 
 
@@ -300,6 +301,13 @@ def _model_names() -> list[str]:
   return sorted(MODELS)
 
 
+def _models_without_source_model() -> str:
+  """The networks the synthetic benchmark trains no source model for (`sources.open_weights`:
+  only the MonoDepth2 family's sigmoid disparity), for --model's help."""
+  from pitta_jax.models.registry import MODELS
+  return " and ".join(n for n in sorted(MODELS) if MODELS[n].output != "sigmoid_disparity")
+
+
 def _add_adapt(sub, name: str) -> None:
   from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.run import EvalConfig
@@ -321,7 +329,8 @@ def _add_adapt(sub, name: str) -> None:
                  "source model of --model (trained on first use)")
   p.add_argument("--model", choices=_model_names(),
                  help="the network (default: the one the weights' model.json names; on synthetic "
-                      "without --weights: monodepth2). depth_anything_v2 needs --weights")
+                      f"without --weights: monodepth2). {_models_without_source_model()} "
+                      f"need --weights")
   p.add_argument("--segmentation", default="gt",
                  help="gt (the dataset's own panoptic maps; the default), png:DIR "
                       "(COCO-panoptic PNG + JSON per frame stem), or mask2former:DIR (converted "
@@ -492,8 +501,8 @@ def _run_adapt(args) -> int:
                        quiet=args.quiet,
                        checkpoint_dir=f"{out}/checkpoints" if args.checkpoint_every else None,
                        checkpoint_every=args.checkpoint_every, resume=args.resume,
-                       resources=resources, on_start=lambda: clear_earlier_results(out),
-                       data=run_data(args))
+                       resources=resources, on_start=lambda: _frames_start(args, out),
+                       data=run_data(args), check_out=held.check)
     # fps over every frame: after --resume, the earlier call's time up to its checkpoint too;
     # steady_fps: this call's chunks after the step compiled; compile_seconds: those that did
     row = Row(args.dataset, cfg.method, res.mean, {"fps": rounded_or_none(res.total_fps, 2),
@@ -876,11 +885,24 @@ def _main(argv: list[str]) -> int:
       _silence_teardown()
     from pitta_jax.run import checkpointed_frames
     checkpointing = getattr(args, "checkpoint_every", 0)  # adapt and evaluate
+    if checkpointing and not getattr(args, "frames_started", False):
+      # before `_frames_start` the checkpoints there may be another run's, not yet removed
+      say_stopped("interrupted before its first frame")
+      return exit_status(e)
     saved = checkpointing and checkpointed_frames(os.path.join(args.out, "checkpoints"))
     say_stopped("interrupted" + (f"; its first {saved} frames are checkpointed: run the same "
                                  "command with --resume to continue" if saved else
                                  "; no checkpoint was saved yet" if checkpointing else ""))
     return exit_status(e)
+
+
+def _frames_start(args, out: str) -> None:
+  """adapt's and evaluate's `run_sequence(on_start=...)`: an earlier run's result files go
+  (a refused --resume has kept them), and from now on the checkpoints under --out are this
+  run's (an earlier run's are removed or resumed by then), which the stopped line counts."""
+  from pitta_jax.report import clear_earlier_results
+  clear_earlier_results(out)
+  args.frames_started = True
 
 
 def _silence_teardown() -> None:

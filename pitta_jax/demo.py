@@ -21,7 +21,7 @@ import contextlib
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any, Collection, Mapping
+from typing import Any, Callable, Collection, Mapping
 
 import numpy as np
 
@@ -30,7 +30,7 @@ from pitta_jax.adapt import AdaptConfig
 from pitta_jax.configs import check, option
 from pitta_jax.methods import build as build_method
 from pitta_jax.methods.pitta import PittaConfig
-from pitta_jax.outputs import removed_while_running
+from pitta_jax.outputs import WatchedDirectory, check_passes
 from pitta_jax.plots import PlotConfig, per_frame_figure, save_figure
 from pitta_jax.data.image_io import write_image
 from pitta_jax.data.resize import resize_frame
@@ -102,25 +102,28 @@ def row_config(adapt: AdaptConfig, method, changes: Mapping[str, Any],
 def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig(),
              pitta: PittaConfig = PittaConfig(), source: SourceConfig = SourceConfig(),
              quiet: bool = False, method_configs: Mapping[str, Any] | None = None,
-             given: Collection[str] = ()) -> dict:
+             given: Collection[str] = (),
+             check_out: Callable[[], Any] | None = None) -> dict:
   """Runs the demo; returns the results dict (also written to `demo.out`).
 
   adapt: the AdaptConfig every row starts from (each method's own setting is applied on top,
   except for the fields in `given`: `row_config`);
-  pitta, method_configs: the methods' configs by name (default: their paper defaults)."""
+  pitta, method_configs: the methods' configs by name (default: their paper defaults).
+  check_out: called before each figure and before the results are written; it raises to stop
+  the demo when `demo.out` was removed or replaced meanwhile (the command passes its locked
+  --out's `OutputDir.check`). None: `demo.out` as it is at the start, where it exists
+  (`outputs.WatchedDirectory`)."""
   configs = {**(method_configs or {}), "pitta": pitta}
   t_start = time.perf_counter()
   out = Path(demo.out)
   weights, train_report = load_or_train_source(source, quiet=quiet)
   clear_earlier_results(out, FIGURES)
   figures_existed = (out / "figures").exists()
-  out_existed = out.is_dir()  # (the command's --out, created and locked before)
-
-  def check_out() -> None:
-    """OutputError when `out` was removed while the demo ran (a figure written now would make
-    it again)."""
-    if out_existed and not out.is_dir():
-      raise removed_while_running(out)
+  watch = WatchedDirectory(out) if check_out is None and out.is_dir() else None
+  if watch is not None:
+    check_out = watch.check
+  elif check_out is None:  # a library call whose demo.out is made by its results
+    check_out = lambda: None  # noqa: E731
   try:
     h, w = weights.height, weights.width
     runners = Runners()  # one compile per row serves every shift
@@ -165,6 +168,7 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
     meta = {"demo": dataclasses.asdict(demo), "adapt": dataclasses.asdict(adapt),
             "pitta": dataclasses.asdict(pitta),
             "source": train_report, "per_frame_abs_rel": per_frame, "seconds": round(seconds, 1)}
+    check_out()
     table = write_results(out, rows, meta)
     if not quiet:
       print(f"\nSource model: {train_report.get('weights_dir')} "
@@ -174,13 +178,18 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
           f"table.md, figures/)")
     return {**meta, "rows": rows, "table": table}
   except BaseException:  # interrupted or failed: no figures of this run without its results
-    for pattern in FIGURES:
-      for path in out.glob(pattern):
-        path.unlink(missing_ok=True)
-    if not figures_existed:  # nor the directory it made for them, once empty
-      with contextlib.suppress(OSError):
-        (out / "figures").rmdir()
+    if check_passes(check_out):  # (a directory made again there is not this run's)
+      for pattern in FIGURES:
+        for path in out.glob(pattern):
+          path.unlink(missing_ok=True)
+      if not figures_existed:  # nor the directory it made for them, once empty
+        with contextlib.suppress(OSError):
+          (out / "figures").rmdir()
     raise
+  finally:
+    if watch is not None:
+      watch.close()
+
 
 
 def _figures(directory: Path, domain: str, frames, results: dict[str, RunResult], h: int,

@@ -19,7 +19,7 @@ import fcntl
 import math
 import os
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Callable, Iterable
 
 import numpy as np
 
@@ -71,6 +71,50 @@ class OutputDir:
           break
 
 
+class WatchedDirectory:
+  """`path` as it is when watched, to tell later whether that name still is this directory: an
+  open descriptor of it keeps its inode in use, so a directory removed and made again under the
+  same name (whose new inode could otherwise take the freed number) is told apart, as
+  `OutputDir.check` tells its lock file apart. For library calls that write into a directory
+  given to them without its `OutputDir` (a run's checkpoints, the demo's figures)."""
+
+  def __init__(self, path: str | os.PathLike, what: str = "--out"):
+    self.path = Path(path)
+    self._what = what
+    try:
+      self._fd = os.open(self.path, os.O_RDONLY | os.O_DIRECTORY)
+    except (FileNotFoundError, NotADirectoryError):
+      raise removed_while_running(self.path, what) from None
+
+  def check(self) -> None:
+    """OutputError when `path` was removed or replaced since it was watched (or closed)."""
+    if self._fd < 0 or not _is_open_file(self._fd, self.path):
+      raise removed_while_running(self.path, self._what)
+
+  def close(self) -> None:
+    if self._fd >= 0:
+      os.close(self._fd)
+      self._fd = -1
+
+  def __enter__(self) -> "WatchedDirectory":
+    return self
+
+  def __exit__(self, *exc) -> None:
+    self.close()
+
+
+def check_passes(check: Callable[[], Any] | None) -> bool:
+  """Whether an output directory's check (`OutputDir.check`, `WatchedDirectory.check`; None:
+  none) passes: an interrupted run saves or clears files only in a directory still its own."""
+  if check is None:
+    return True
+  try:
+    check()
+  except OutputError:
+    return False
+  return True
+
+
 def removed_while_running(path: Path, what: str = "--out") -> OutputError:
   """The error of a command whose output directory was removed while it ran: what it would
   write now would make the directory again without the command's lock."""
@@ -117,7 +161,8 @@ def _lock(path: Path) -> int:
 
 
 def _is_open_file(fd: int, path: Path) -> bool:
-  """Whether `path` names the file open as `fd` (not removed, not replaced by another)."""
+  """Whether `path` names the file (or directory) open as `fd` (not removed, not replaced by
+  another)."""
   try:
     now = os.stat(path)
   except OSError:

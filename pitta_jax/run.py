@@ -657,7 +657,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                  runners: Runners | None = None, resume: bool | str = False,
                  resources: dict | None = None,
                  on_start: Callable[[], Any] | None = None,
-                 data: dict | None = None) -> RunResult:
+                 data: dict | None = None,
+                 check_out: Callable[[], Any] | None = None) -> RunResult:
   """Runs a method online over `frames` (predict-then-adapt) and evaluates each prediction
   against the frame's ground truth (when it has one).
 
@@ -693,7 +694,13 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     data: what the frames are beyond their names (JSON values: the dataset flags, the method's
       source data), part of the checkpoints' fingerprint, so that a --resume with other data
       under the same frame names is refused instead of continuing the old run's numbers.
+    check_out: with checkpoints, called before `checkpoint_dir` is made and before every save;
+      it raises to stop the run when the directory the checkpoints go into was removed or
+      replaced meanwhile (a command passes its locked --out's `OutputDir.check`). None: the
+      checkpoint directory's folder as it is at the start (`outputs.WatchedDirectory`). A save
+      never re-makes a folder removed while the run went on.
   """
+  from pitta_jax.outputs import WatchedDirectory
   from pitta_jax.sources import check_frame_needs, check_needs
   if len(frames) == 0:
     raise DataError(name or "sequence", "no frames to adapt on")
@@ -717,6 +724,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
                               **(resources or {})})
   directory = Path(checkpoint_dir) if checkpoint_dir else None
   if directory is not None and checkpoint_every:
+    if check_out is not None:
+      check_out()  # the caller's folder (a command's locked --out) is never made again here
     # where the checkpoints go is made now: a save re-creates only the checkpoint directory
     # itself, never a parent removed while the run went on (a command's locked --out)
     directory.parent.mkdir(parents=True, exist_ok=True)
@@ -742,6 +751,10 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
           f"resume=True a run starts afresh)", file=sys.stderr)
   if on_start is not None:
     on_start()
+  watch = None  # closed when the run ends (its frames' loop below)
+  if directory is not None and checkpoint_every and check_out is None:
+    watch = WatchedDirectory(directory.parent, "checkpoint_dir's folder")
+    check_out = watch.check
   start = int(state.step)
   kept: dict[int, np.ndarray] = {}
   keep = set(keep)
@@ -750,9 +763,11 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   t0 = time.perf_counter()
   seconds_before = float(record["seconds"])
 
+
   def save(state, elapsed: float) -> None:
     """A checkpoint of `state` with the record, whose time is `elapsed` s of this call."""
     record["seconds"] = seconds_before + elapsed
+    check_out()
     save_checkpoint(directory, state, record)
 
   # a sequence shorter than a chunk is one chunk of its own length (no padded steps)
@@ -828,6 +843,8 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     raise
   finally:
     bar.close()
+    if watch is not None:
+      watch.close()
   seconds = time.perf_counter() - t0
   per_frame = [{k: float("nan") if v is None else v for k, v in m.items()}
                for m in record["per_frame"]]  # {"name", 7 metrics} per scored frame

@@ -43,27 +43,38 @@ def demo_out(tmp_path_factory):
   mp.undo()
 
 
+@pytest.mark.parametrize("replaced", [False, True])
 def test_a_demo_whose_out_is_removed_stops_without_making_it_again(demo_out, tmp_path,
-                                                                  monkeypatch):
-  """--out removed (rm -rf) while the demo runs a row: the demo stops with one OutputError
-  before its next figure, instead of making the directory again without the command's lock."""
+                                                                  monkeypatch, replaced):
+  """--out removed (rm -rf), or removed and made again (another run's now), while the demo runs
+  a row: the demo stops with one OutputError before its next figure, instead of making the
+  directory again without the command's lock or writing into the new one, and it leaves the
+  new one's files alone (a failed demo removes its own figures)."""
   import shutil
   from pitta_jax import demo as demo_lib
   from pitta_jax.outputs import OutputError
   real = demo_lib.run_sequence
   out = tmp_path / "d"
   out.mkdir()
+  theirs = out / "figures" / "fog_frame002.png"  # a name this demo's figures take
 
   def removing(weights, frames, cfg, method, *a, name="", **k):
     result = real(weights, frames, cfg, method, *a, name=name, **k)
     if name.startswith("fog"):
       shutil.rmtree(out)
+      if replaced:
+        theirs.parent.mkdir(parents=True)
+        theirs.write_text("another run's")
     return result
   monkeypatch.setattr(demo_lib, "run_sequence", removing)
   with pytest.raises(OutputError, match=f"^--out {out}: removed while the command ran"):
     run_demo(DemoConfig(shifts=("fog",), num_frames=3, methods=("none",), out=str(out)),
              AdaptConfig(), source=TINY, quiet=True)
-  assert not out.exists()
+  if replaced:
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [
+        "figures", "figures/fog_frame002.png"]
+  else:
+    assert not out.exists()
 
 
 def test_an_interrupted_demo_leaves_no_figures_without_results(demo_out, tmp_path, monkeypatch):

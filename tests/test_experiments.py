@@ -190,6 +190,28 @@ def test_cached_rows_are_computed_once(tmp_path, capsys):
   assert len(calls) == 3 and "not a stored row result" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("replaced", [False, True])
+def test_a_row_is_not_written_where_out_was_removed_or_replaced(tmp_path, replaced):
+  """--out removed, or removed and made again (another run's), while a row computes: the row's
+  result is not written (it would re-make the directory without the command's lock, or go into
+  the other run's), the command stops with one line."""
+  import shutil
+  from pitta_jax.outputs import OutputError, open_output_dir
+  out = tmp_path / "out"
+  held = open_output_dir(out)
+  ctx = common.Context("synthetic", None, [], "gt", {}, out, True, 2, True, out_check=held.check)
+
+  def compute():
+    shutil.rmtree(out)
+    if replaced:
+      out.mkdir()
+    return {"metrics": {"abs_rel": 0.5}}
+  with pytest.raises(OutputError, match=f"^--out {out}: removed while the command ran"):
+    common.cached(ctx, "k", compute)
+  assert (list(out.iterdir()) == []) if replaced else not out.exists()
+  held.close()
+
+
 def test_captions_say_quick_weights_and_row_subsets():
   ctx = common.Context("synthetic", None, [], "gt", {"monodepth2": "w/md2"}, None, True, 2, True,
                        rows=("PITTA",))

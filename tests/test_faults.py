@@ -534,12 +534,36 @@ def test_a_run_with_other_pose_weights_is_another_run(tiny_weights):
     assert "pose" in method.needs or not differ
 
 
+def test_an_interrupt_before_the_first_frame_claims_no_checkpoint(tiny_weights, tmp_path,
+                                                                   monkeypatch, capfd):
+  """Ctrl-C while a run loads, before its first frame: the checkpoints in --out are still an
+  earlier run's (other settings), not yet removed. The stopped line says the run had not begun;
+  it had said "its first 4 frames are checkpointed: run the same command with --resume", which
+  the --resume then refused."""
+  from pitta_jax import run as run_lib
+  out = tmp_path / "out"
+  earlier = out / "checkpoints"
+  earlier.mkdir(parents=True)
+  (earlier / "state_000004").mkdir()
+  (earlier / "state_000004.json").write_text("{}")
+
+  def interrupted(directory):
+    raise KeyboardInterrupt
+  monkeypatch.setattr(run_lib, "_clear_checkpoints", interrupted)
+  capfd.readouterr()
+  assert main(_adapt_args(tiny_weights, out)) == 130
+  assert capfd.readouterr().err.splitlines()[-1] == "interrupted before its first frame"
+
+
+@pytest.mark.parametrize("replaced", [False, True])
 @pytest.mark.parametrize("checkpointing", [True, False])
 def test_an_out_removed_while_a_run_goes_on_is_not_made_again(tiny_weights, tmp_path,
-                                                              monkeypatch, capsys, checkpointing):
-  """--out removed (rm -rf) while adapt runs: the run stops with one line at its next write (a
-  checkpoint, or its results) instead of re-making the directory without its lock, where a
-  second run on it was not refused and removed the first one's files as they were written."""
+                                                              monkeypatch, capsys, checkpointing,
+                                                              replaced):
+  """--out removed (rm -rf), or removed and made again (by hand, or by a second run that locks
+  it), while adapt runs: the run stops with one line at its next write (a checkpoint, or its
+  results). It had re-made a removed directory without its lock, and went on saving into one
+  made again, where its pruning of old checkpoints removed the second run's."""
   import shutil
   from pitta_jax import run as run_lib
   real, calls = run_lib.frame_metrics, []
@@ -549,6 +573,10 @@ def test_an_out_removed_while_a_run_goes_on_is_not_made_again(tiny_weights, tmp_
     calls.append(1)
     if len(calls) == K + 1:  # a frame of the second chunk, after the first checkpoint
       shutil.rmtree(out)
+      if replaced:  # a second run's directory: its lock and a checkpoint of its own
+        (out / "checkpoints" / "state_000002").mkdir(parents=True)
+        (out / "checkpoints" / "state_000002.json").write_text("{}")
+        (out / ".pitta-jax.lock").write_text("")
     return real(*args, **kwargs)
 
   monkeypatch.setattr(run_lib, "frame_metrics", removing)
@@ -559,11 +587,44 @@ def test_an_out_removed_while_a_run_goes_on_is_not_made_again(tiny_weights, tmp_
   capsys.readouterr()
   assert main(args) == 2
   err = capsys.readouterr().err.splitlines()
-  message = (f"error: {out}: removed while the run was writing there; the run stops"
-             if checkpointing else f"error: --out {out}: removed while the command ran; its "
-                                   f"results are not written (run it again)")
-  assert err[-1].startswith(message), err
-  assert not out.exists()
+  assert err[-1] == (f"error: --out {out}: removed while the command ran; its results are not "
+                     f"written (run it again)"), err
+  if replaced:  # the second run's files as they were, nothing of the first run's beside them
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == [
+        ".pitta-jax.lock", "checkpoints", "checkpoints/state_000002",
+        "checkpoints/state_000002.json"]
+  else:
+    assert not out.exists()
+
+
+def test_a_checkpoint_folder_replaced_under_a_library_run_stops_it(tiny_weights, tmp_path,
+                                                                   monkeypatch):
+  """run_sequence called without a command's check watches its checkpoint folder itself: a
+  folder removed and made again under the same name stops the run at its next save."""
+  import shutil
+  from pitta_jax import run as run_lib
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.checkpoint import load_weights
+  from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  from pitta_jax.outputs import OutputError
+  real, calls = run_lib.frame_metrics, []
+  folder = tmp_path / "runs"
+
+  def replacing(*args, **kwargs):
+    calls.append(1)
+    if len(calls) == K + 1:
+      shutil.rmtree(folder)
+      folder.mkdir()
+    return real(*args, **kwargs)
+
+  monkeypatch.setattr(run_lib, "frame_metrics", replacing)
+  weights = load_weights(tiny_weights)
+  frames = list(generate_sequence(SyntheticConfig(height=weights.height, width=weights.width,
+                                                  num_frames=N, domain="fog")))
+  with pytest.raises(OutputError, match=f"^checkpoint_dir's folder {folder}: removed while"):
+    run_lib.run_sequence(weights, frames, AdaptConfig(chunk_size=K), quiet=True,
+                         checkpoint_dir=folder / "ckpt", checkpoint_every=K)
+  assert list(folder.iterdir()) == []
 
 
 def test_a_held_output_directory_knows_when_it_was_removed(tmp_path):
@@ -996,10 +1057,13 @@ def test_the_interrupted_line_offers_resume_only_for_a_run_that_checkpoints(tmp_
   continue, only for `adapt --checkpoint-every K` with a complete checkpoint; the same run
   before its first one says none was saved; a run without --checkpoint-every says nothing of
   checkpoints, even over an earlier run's (which --resume, needing the flag, would not take).
-  The command and the checkpoints found are stubbed: only the line is checked."""
+  The command and the checkpoints found are stubbed: only the line is checked (a run stopped
+  after its frames started; before, see test_an_interrupt_before_the_first_frame_claims_no_
+  checkpoint)."""
   from pitta_jax import cli, run
 
   def stop(args):
+    args.frames_started = True  # as run_sequence's on_start marks it
     raise KeyboardInterrupt
   monkeypatch.setattr(cli, "_run_adapt", stop)
   found = [tmp_path / "state_000004.json", tmp_path / "state_000008.json"]
