@@ -254,6 +254,15 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   assert table1.main(["--weights", f"={tmp_path}", "--out", str(tmp_path / "o")]) == 2
   assert capsys.readouterr().err == (f"error: --weights ={tmp_path}: no network before '=' "
                                      f"(NAME=DIR, or DIR alone for a monodepth2)\n")
+  # an empty DIR (it printed 'error: : --weights: no model.json'), an --out name too long (it
+  # printed the OS's message without the flag)
+  assert table1.main(["--weights", "monodepth2=", "--out", str(tmp_path / "o")]) == 2
+  assert capsys.readouterr().err == ("error: --weights monodepth2=: no directory (NAME=DIR, or "
+                                     "DIR alone for a monodepth2)\n")
+  long_out = tmp_path / ("x" * 300)
+  assert table1.main(["--out", str(long_out)]) == 2
+  assert capsys.readouterr().err == (f"error: --out {long_out}: cannot write there (File name "
+                                     f"too long)\n")
   # --rows that selects nothing, an --out that is a file: one line, nothing written
   assert table1.main(["--quick", "--rows", "zzz", "--out", str(tmp_path / "o")]) == 2
   err = capsys.readouterr().err
