@@ -218,6 +218,10 @@ def test_flags_beyond_any_use_are_refused_before_work(capsys, tmp_path):
                                         "got 3000000000"),
       (("--method", "cotta", "--bn-stats", "running", "--cotta.n-augment", "1000000000000"),
        "--cotta.n-augment: n_augment must be in 1..1024, got 1000000000000"),
+      # 2^32 overflowed fold_in's uint32 after the weights loaded (a traceback); 3e9 unrolled
+      # the step that many times before any frame ran
+      (("--adapt.steps-per-frame", "4294967296"), "--adapt.steps-per-frame: steps_per_frame "
+                                                  "must be in 1..1024, got 4294967296"),
       (("--momentum", "0.9"), "--adapt.optimizer, --adapt.momentum: momentum applies to "
                               "optimizer sgd only, got momentum 0.9 with adam")]:
     assert main(["adapt", "--dataset", "synthetic", "--quiet", "--out", out, *flags]) == 2

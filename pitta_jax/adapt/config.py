@@ -17,6 +17,9 @@ from pitta_jax.trainable import parse_selector
 # The largest S_max taken: more segments than any panoptic frame holds (COCO's and Cityscapes'
 # most crowded frames hold a few hundred); a larger table only costs memory (10^9 was killed).
 MAX_SEGMENTS = 4096
+# The most optimiser steps per frame: each is a copy of the step in the compiled program (the
+# steps are unrolled), so a few already multiply its compile; past this, a typo.
+MAX_STEPS_PER_FRAME = 1024
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,7 +31,8 @@ class AdaptConfig:
                                   "does not name the optimiser)")
   lr: float = option(1e-4, "learning rate alpha of eq. 11 (not stated in the paper)")
   momentum: float = option(0.0, "SGD momentum (sgd only)")
-  steps_per_frame: int = option(1, "optimiser steps per frame (online TTA: one)")
+  steps_per_frame: int = option(1, "optimiser steps per frame (online TTA: one), at most "
+                                    f"{MAX_STEPS_PER_FRAME}; each is compiled into the step")
   bn_stats: str = option("batch", "BatchNorm statistics while adapting: batch (the frame's, "
                                   "running ones untouched) | running")
   selector: str = option("encoder_bn", "adapted parameters: encoder_bn (paper Sec. 4.1), "
@@ -54,7 +58,8 @@ class AdaptConfig:
     check(self.momentum == 0 or self.optimizer == "sgd",  # Adam would ignore it
           f"momentum applies to optimizer sgd only, got momentum {self.momentum} with "
           f"{self.optimizer}")
-    check(self.steps_per_frame >= 1, f"steps_per_frame must be >= 1, got {self.steps_per_frame}")
+    check(1 <= self.steps_per_frame <= MAX_STEPS_PER_FRAME,
+          f"steps_per_frame must be in 1..{MAX_STEPS_PER_FRAME}, got {self.steps_per_frame}")
     check_seed(self.seed)
     check(self.bn_stats in ("batch", "running"),
           f"bn_stats must be batch or running, got {self.bn_stats!r}")
