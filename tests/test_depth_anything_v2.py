@@ -338,7 +338,24 @@ def test_hf_config_json_is_read(small, tmp_path):
                            r"a metric model needs max_depth > 0, got 0"),
                           ({"depth_estimation_type": "ordinal"},
                            r"depth_estimation_type 'ordinal'; expected relative or metric"),
-                          ({"max_depth": 5}, r"max_depth 5 scales the relative model's output")]:
+                          ({"max_depth": 5}, r"max_depth 5 scales the relative model's output"),
+                          # 0 heads was a ZeroDivisionError traceback, 5 (not dividing the
+                          # width 48) was blamed on a --num-heads flag not given
+                          *[({"backbone_config": dict(meta["backbone_config"],
+                                                      num_attention_heads=h)}, message)
+                            for h, message in [
+                                (0, r"backbone_config\.num_attention_heads must be a positive "
+                                    r"int, got 0"),
+                                ("3", r"num_attention_heads must be a positive int, got '3'"),
+                                (5, r"config\.json's num_attention_heads 5 does not divide the "
+                                    r"ViT's width 48")]],
+                          ({"backbone_config": dict(meta["backbone_config"],
+                                                    out_indices=[1, 1, 1, 1])},
+                           r"out_indices / out_features must name increasing blocks"),
+                          ({"backbone_config": {k: v for k, v in meta["backbone_config"].items()
+                                                if k != "out_indices"} | {
+                                                    "out_features": ["stem", "stage2"]}},
+                           r"out_indices / out_features must name increasing blocks")]:
     (tmp_path / "config.json").write_text(json.dumps(dict(meta, **change)))
     if message is None:
       config, _ = conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf")

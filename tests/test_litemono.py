@@ -269,6 +269,44 @@ def test_use_stereo_is_carried_over_and_one_file_twice_is_named(base, tmp_path):
   enc_path, dep_path = base["paths"]
   torch.save(dict(torch.load(enc_path), use_stereo=True), tmp_path / "stereo.pth")
   assert convert_litemono(tmp_path / "stereo.pth", dep_path)[0]["use_stereo"] is True
+  # the text 'False' (a non-empty string) was read as true, and evaluation scaled by x5.4
+  torch.save(dict(torch.load(enc_path), use_stereo="False"), tmp_path / "text.pth")
+  with pytest.raises(CheckpointError, match=r"text\.pth: its 'use_stereo' entry is 'False', "
+                                            r"expected True or False"):
+    convert_litemono(tmp_path / "text.pth", dep_path)
   with pytest.raises(CheckpointError, match=r"encoder\.pth: keys .* also occur in "
                                             r".*encoder\.pth; .*the same file\?"):
     convert_litemono(enc_path, enc_path)
+
+
+def test_xca_gradient_at_a_zero_token_is_torchs():
+  """Reference: upstream's XCA (torch_litemono) under torch autograd, float64. Queries and keys
+  of 0 (zero tokens through a bias-free qkv, e.g. a constant input after LayerNorm) are
+  F.normalize'd over the tokens at a norm of 0, where torch's derivative is finite; the JAX
+  sqrt-of-sum form gave NaN gradients for the qkv weights there."""
+  from pitta_jax.models.litemono.encoder import XCA
+  dim, heads, b, n = 8, 2, 1, 5
+  ref = tl.XCA(dim, heads, qkv_bias=False).double()
+  tl_rng = torch.Generator().manual_seed(0)
+  with torch.no_grad():
+    for p in ref.parameters():
+      p.copy_(torch.randn(p.shape, generator=tl_rng, dtype=torch.float64))
+  x = np.zeros((b, n, dim))  # every token 0: each channel's queries and keys have norm 0
+  xt = torch.tensor(x, requires_grad=True)
+  w = torch.randn(b, n, dim, generator=tl_rng, dtype=torch.float64)
+  (ref(xt) * w).sum().backward()
+  params = {"qkv": {"kernel": ref.qkv.weight.detach().numpy().T},
+            "temperature": ref.temperature.detach().numpy(),
+            "proj": {"kernel": ref.proj.weight.detach().numpy().T,
+                     "bias": ref.proj.bias.detach().numpy()}}
+  module = XCA(dim, heads, qkv_bias=False)
+  with jax.enable_x64(True):
+    def loss(params, x):
+      return jnp.sum(module.apply({"params": params}, x) * jnp.asarray(w.numpy()))
+    grads, gx = jax.grad(loss, argnums=(0, 1))(jax.tree_util.tree_map(jnp.asarray, params),
+                                               jnp.asarray(x))
+  np.testing.assert_allclose(np.asarray(grads["qkv"]["kernel"]), ref.qkv.weight.grad.numpy().T,
+                             rtol=1e-9, atol=1e-12)
+  np.testing.assert_allclose(np.asarray(grads["temperature"]), ref.temperature.grad.numpy(),
+                             rtol=1e-9, atol=1e-12)
+  np.testing.assert_allclose(np.asarray(gx), xt.grad.numpy(), rtol=1e-9, atol=1e-12)

@@ -213,7 +213,7 @@ def test_norm_gradients_match_torch_float64(tiny):
   assert max(rel_bn, rel_ln) < 1e-9
 
 
-def test_both_layouts_convert_identically(tiny):
+def test_both_layouts_convert_identically(tiny, tmp_path):
   """DeepNet via DataParallel (`module.encoder.*`, `module.decoder.*`, no size entries) and
   encoder.pth + depth.pth give the same variables; the former needs the size given."""
   root = tiny["root"]
@@ -221,6 +221,11 @@ def test_both_layouts_convert_identically(tiny):
     convert_monovit(None, root / "deepnet.pth")
   config, variables = convert_monovit(root / "encoder.pth", root / "depth.pth")
   assert (config["height"], config["width"], config["use_stereo"]) == (192, 640, False)
+  # the text 'False' (a non-empty string) was read as true, and evaluation scaled by x5.4
+  torch.save(dict(torch.load(root / "encoder.pth"), use_stereo="False"), tmp_path / "text.pth")
+  with pytest.raises(CheckpointError, match=r"text\.pth: its 'use_stereo' entry is 'False', "
+                                            r"expected True or False"):
+    convert_monovit(tmp_path / "text.pth", root / "depth.pth")
   leaves = jax.tree_util.tree_leaves
   for a, b in zip(leaves(variables), leaves(tiny["variables"])):
     np.testing.assert_array_equal(a, b)

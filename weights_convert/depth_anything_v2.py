@@ -270,12 +270,22 @@ def _hf_config_beside(path: str) -> dict | None:
                           f"output; only 1 (upstream's relative model) is supported")
   backbone = cfg.get("backbone_config") or {}
   if "num_attention_heads" in backbone:
-    arch["num_heads"] = int(backbone["num_attention_heads"])
+    heads = backbone["num_attention_heads"]
+    if not (isinstance(heads, int) and not isinstance(heads, bool) and heads >= 1):
+      raise CheckpointError(f"{cfg_path}: backbone_config.num_attention_heads must be a "
+                            f"positive int, got {heads!r}")
+    arch["num_heads"] = heads
   # hidden-state indices (stage names "stageK"): 0 is the embeddings, K the output of block K - 1
+  names = backbone.get("out_features") or []
   stages = backbone.get("out_indices") or [
-      int(name[len("stage"):]) for name in backbone.get("out_features") or []]
+      int(n[len("stage"):]) if isinstance(n, str) and n[len("stage"):].isdigit() else n
+      for n in names]
   if stages:
-    arch["layer_idx"] = [int(i) - 1 for i in stages]
+    if not (all(isinstance(i, int) and not isinstance(i, bool) and i >= 1 for i in stages)
+            and list(stages) == sorted(set(stages))):
+      raise CheckpointError(f"{cfg_path}: backbone_config's out_indices / out_features must "
+                            f"name increasing blocks (stage1, stage2, ...), got {stages!r}")
+    arch["layer_idx"] = [i - 1 for i in stages]
   return arch
 
 
@@ -318,9 +328,10 @@ def infer_config(state: dict, source: str, path: str, arch: Mapping[str, Any] | 
                           f"of {sorted(VIT_VARIANTS)}; give {missing} explicitly "
                           f"(--num-heads, --layer-idx)")
   if embed_dim % known["num_heads"]:
-    raise CheckpointError(f"{path}: num_heads (--num-heads) {known['num_heads']} does not divide "
-                          f"the ViT's width {embed_dim} (each head takes width / num_heads "
-                          f"features)")
+    said = ("num_heads (--num-heads)" if "num_heads" in (arch or {}) else
+            f"{Path(path).with_name('config.json')}'s num_attention_heads")
+    raise CheckpointError(f"{path}: {said} {known['num_heads']} does not divide the ViT's width "
+                          f"{embed_dim} (each head takes width / num_heads features)")
   standard = variant is not None and (known["num_heads"], tuple(known["layer_idx"])) == (
       VIT_VARIANTS[variant].num_heads, VIT_VARIANTS[variant].layer_idx)
   return {

@@ -30,7 +30,8 @@ from pathlib import Path
 
 
 from weights_convert import rules as R
-from weights_convert.pth import METADATA_KEYS, CheckpointError, int_entry, load_state_dict
+from weights_convert.pth import (METADATA_KEYS, CheckpointError, flag_entry, int_entry,
+                                 load_state_dict)
 from weights_convert.strict import looks_like
 
 # upstream's decoder ModuleList order: (upconv, 2, 0), (upconv, 2, 1), ..., (upconv, 0, 1),
@@ -149,7 +150,7 @@ def convert_litemono(encoder: str | os.PathLike, depth: str | os.PathLike,
   config = {"model": model,
             "height": int_entry(enc_state, "height", encoder, DEFAULT_SIZE[0]),
             "width": int_entry(enc_state, "width", encoder, DEFAULT_SIZE[1]),
-            "use_stereo": bool(enc_state.get("use_stereo", False))}
+            "use_stereo": flag_entry(enc_state, "use_stereo", encoder)}
   try:
     module = SPEC.build(config)
     expected = R.expected_shapes(module, (1, 64, 64, 3))

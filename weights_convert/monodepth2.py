@@ -17,10 +17,10 @@ import argparse
 import os
 import sys
 from pathlib import Path
-import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import METADATA_KEYS, CheckpointError, int_entry, load_state_dict
+from weights_convert.pth import (METADATA_KEYS, CheckpointError, flag_entry, int_entry,
+                                 load_state_dict)
 from weights_convert.strict import layout_of
 
 RESNET_BLOCKS = {18: ("basic", (2, 2, 2, 2)), 34: ("basic", (3, 4, 6, 3)),
@@ -103,19 +103,6 @@ def infer_num_layers(state: dict, path: str) -> int:
                         f"(ResNet-34))")
 
 
-
-def _flag(state: dict, key: str, path: str | os.PathLike) -> bool:
-  """A boolean metadata entry (`use_stereo`, upstream's `opt.use_stereo`), False when absent;
-  a bool, 0 or 1 (also as a one-element array). Anything else (the text 'False', which `bool`
-  reads as true) is refused, naming the file."""
-  value = state.get(key, False)
-  if isinstance(value, np.ndarray) and value.size == 1:
-    value = value.item()
-  if not isinstance(value, (bool, int, np.bool_, np.integer)) or value not in (0, 1):
-    raise CheckpointError(f"{path}: its {key!r} entry is {value!r}, expected True or False")
-  return bool(value)
-
-
 def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
                        pose_encoder: str | os.PathLike | None = None,
                        pose: str | os.PathLike | None = None, num_layers: int | None = None,
@@ -140,7 +127,7 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
     raise CheckpointError("--pose-encoder and --pose go together: give both or neither")
   enc_state = load_state_dict(encoder)
   missing = [p for p in (pose_encoder, pose) if p is not None and not os.path.exists(p)]
-  if missing and _flag(enc_state, "use_stereo", encoder):
+  if missing and flag_entry(enc_state, "use_stereo", encoder):
     raise CheckpointError(f"{missing[0]}: no such file; a stereo-trained release (use_stereo in "
                           f"{encoder}) may ship no pose network: leave out --pose-encoder and "
                           f"--pose")
@@ -166,7 +153,7 @@ def convert_monodepth2(encoder: str | os.PathLike, depth: str | os.PathLike,
   config = {"num_layers": num_layers,
             "height": int_entry(enc_state, "height", encoder, DEFAULT_SIZE[0]),
             "width": int_entry(enc_state, "width", encoder, DEFAULT_SIZE[1]),
-            "use_stereo": _flag(enc_state, "use_stereo", encoder)}
+            "use_stereo": flag_entry(enc_state, "use_stereo", encoder)}
   try:  # the size the weights were trained at must be one the network takes
     get_spec("monodepth2").check_size(config["height"], config["width"])
   except ValueError as e:

@@ -42,7 +42,8 @@ from typing import Callable
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import METADATA_KEYS, CheckpointError, int_entry, load_state_dict
+from weights_convert.pth import (METADATA_KEYS, CheckpointError, flag_entry, int_entry,
+                                 load_state_dict)
 from weights_convert.strict import check_keys, looks_like
 
 NUM_STAGES = 4  # the decoder takes the stem and four stage outputs
@@ -317,7 +318,7 @@ def convert_monovit(encoder: str | os.PathLike | None, depth: str | os.PathLike,
   if use_stereo is not None:
     config["use_stereo"] = bool(use_stereo)
   elif "use_stereo" in meta_state:
-    config["use_stereo"] = bool(np.asarray(meta_state["use_stereo"]).item())
+    config["use_stereo"] = flag_entry(meta_state, "use_stereo", meta_path)
   config.update({k: list(v) for k, v in layout.items()})
 
   expected = R.expected_shapes(MonoViT(**layout), (1, 64, 64, 3))

@@ -710,6 +710,18 @@ def strip_data_parallel(state: dict, path: str) -> dict:
 _REQUIRED = object()
 
 
+def flag_entry(state: dict, key: str, path: str | os.PathLike) -> bool:
+  """A boolean metadata entry (`use_stereo`, upstream's `opt.use_stereo`), False when absent;
+  a bool, 0 or 1 (also as a one-element array). Anything else (the text 'False', which `bool`
+  reads as true) is refused, naming the file."""
+  value = state.get(key, False)
+  if isinstance(value, np.ndarray) and value.size == 1:
+    value = value.item()
+  if not isinstance(value, (bool, int, np.bool_, np.integer)) or value not in (0, 1):
+    raise CheckpointError(f"{path}: its {key!r} entry is {value!r}, expected True or False")
+  return bool(value)
+
+
 def int_entry(state: dict, key: str, path: str | os.PathLike, default: Any = _REQUIRED) -> Any:
   """A positive-integer metadata entry of a state dict (e.g. encoder.pth's "height"), as int.
 

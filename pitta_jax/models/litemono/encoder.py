@@ -34,6 +34,7 @@ import flax.linen as nn
 import numpy as np
 
 from pitta_jax.models.layers import BatchNorm, Conv, conv
+from pitta_jax.nonsmooth import clamp, norm
 
 SQRT_HALF = 0.7071067811865476  # 1 / sqrt(2), for the exact GELU
 LN_EPS = 1e-6          # upstream LayerNorm(eps=1e-6) everywhere in the encoder
@@ -224,9 +225,10 @@ class XCA(nn.Module):
     qkv = nn.Dense(3 * c, use_bias=self.qkv_bias, name="qkv")(x).reshape(b, n, 3, h, d)
     q, k, v = (jnp.transpose(qkv[:, :, i], (0, 2, 3, 1)) for i in range(3))  # (B, h, d, N)
 
-    def l2_normalize(t: jax.Array) -> jax.Array:  # F.normalize(t, dim=-1)
-      norm = jnp.sqrt(jnp.sum(t * t, axis=-1, keepdims=True))
-      return t / jnp.maximum(norm, NORMALIZE_EPS)
+    def l2_normalize(t: jax.Array) -> jax.Array:
+      # F.normalize(t, dim=-1): t / norm(t).clamp_min(eps), with torch's derivatives (a norm
+      # of 0, e.g. a token of zeros, has a zero gradient, not a NaN one)
+      return t / clamp(norm(t, axis=-1, keepdims=True), lo=NORMALIZE_EPS)
 
     temperature = self.param("temperature", nn.initializers.ones, (h, 1, 1), jnp.float32)
     attn = jnp.einsum("bhdn,bhen->bhde", l2_normalize(q), l2_normalize(k)) * temperature
