@@ -252,6 +252,8 @@ def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]
   try:
     spec.check_size(config["height"], config["width"])
     spec.build(dict(config))  # the network's own fields (e.g. num_layers), checked here
+    if config.get("has_pose") and spec.build_pose is not None:
+      spec.build_pose(dict(config))  # and the pose network's (pose_num_layers)
   except BUILD_ERRORS as e:
     raise WeightsError(f"{path}: {e}") from None
   return spec, config

@@ -171,9 +171,9 @@ def depth_metrics(pred: np.ndarray, gt: np.ndarray, *, min_depth: float = MIN_DE
     alignment = "median" if median_scaling else "none"
   if alignment == "median":
     median = np.median(pred_v)
-    if not median > 0:  # (a ratio of inf or NaN, whatever the clamping)
+    if not 0 < median < np.inf:  # (a ratio of inf, 0 or NaN, whatever the clamping)
       raise ValueError(f"the prediction's median on the valid pixels is {median}: median "
-                       f"scaling needs a positive one; check the prediction")
+                       f"scaling needs a positive finite one; check the prediction")
     pred_v = pred_v * (np.median(gt_v) / median)
   elif alignment == "scale_shift":
     pred_v = 1.0 / np.maximum(scale_shift_inverse(1.0 / pred_v, 1.0 / gt_v), 1.0 / max_depth)

@@ -46,6 +46,7 @@ def _absolute_jvp(primals, tangents):
   (x,), (t,) = primals, tangents
   # torch's sgn(x) = (0 < x) - (x < 0): 0 at 0 and at NaN (jnp.sign(NaN) is NaN, and a NaN
   # derivative poisons the gradient of an entry that a `where` masks out, 0 * NaN = NaN)
+  x = jnp.asarray(x)  # (a Python number too)
   sgn = (x > 0).astype(x.dtype) - (x < 0).astype(x.dtype)
   return jnp.abs(x), sgn * t
 

@@ -161,8 +161,15 @@ def test_clear_errors():
   # a zero depth resized as disparity (inf) spreads: the prediction's median is 0, and the
   # message told a caller that already clamps to "use clamp=True"
   with pytest.raises(ValueError, match=r"^the prediction's median on the valid pixels is 0\.0: "
-                                       r"median scaling needs a positive one"):
+                                       r"median scaling needs a positive finite one"):
     metrics.depth_metrics(np.array([[0.0, 1.0]], np.float32), np.full((2, 4), 10.0, np.float32))
+  # an infinite median: the ratio is 0 and inf * 0 NaN, which no clamp fixes (it was told to
+  # "use clamp=True")
+  inf_pred = np.full((4, 4), np.inf)
+  inf_pred[0, 0] = 5.0
+  with pytest.raises(ValueError, match=r"^the prediction's median on the valid pixels is inf: "
+                                       r"median scaling needs a positive finite one"):
+    metrics.depth_metrics(inf_pred, gt, clamp=True)
 
 
 def test_mean_metrics():

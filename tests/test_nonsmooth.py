@@ -34,6 +34,8 @@ def test_absolute_has_torch_abs_derivative_zero_at_zero():
   np.testing.assert_array_equal(_jax_grad(absolute), _torch_grad(lambda t: t.abs()))
   np.testing.assert_array_equal(np.asarray(absolute(jnp.asarray(X))), np.abs(X))
   assert _jax_grad(absolute)[3] == 0.0 and _jax_grad(jnp.abs)[3] == W[3]  # why it exists
+  # a Python number, as jnp.abs takes it (the rule called .astype on a bool)
+  assert [float(jax.grad(absolute)(v)) for v in (0.0, 2.0, -2.0)] == [0.0, 1.0, -1.0]
 
 
 def test_clamp_passes_the_gradient_at_the_bounds_as_torch_clamp():

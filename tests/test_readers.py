@@ -239,6 +239,13 @@ def test_kitti_eigen_gt(tmp_path):
   linked.symlink_to(store)
   assert kitti.split_evaluation(linked) == {"garg_crop": True}
   assert kitti.split_evaluation(store) == {}
+  # and a link from elsewhere to the split's file, or to its folder, is that split (it was
+  # scored on the whole frame once the link's own folder was taken)
+  (tmp_path / "mine").mkdir()
+  (tmp_path / "mine" / "my_split.txt").symlink_to(split)
+  (tmp_path / "kitti_eigen").symlink_to(split.parent, target_is_directory=True)
+  for path in (tmp_path / "mine" / "my_split.txt", tmp_path / "kitti_eigen" / split.name):
+    assert kitti.split_evaluation(path) == {"garg_crop": True}, path
   monkey = pytest.MonkeyPatch()
   monkey.chdir(split.parent)
   try:

@@ -88,6 +88,11 @@ def _edit_json(root, **changes):
     ({"use_stereo": 1}, "use_stereo must be true or false, got 1"),
     ({"architecture": "monovit", "num_layers": [1, 3, 6, 3], "num_heads": [0, 0, 0, 0]},
      "cannot build the network it describes .ZeroDivisionError"),
+    # the text "18" printed as 18 ("must be one of [18, 34, 50], got 18"), and the pose
+    # network's depth was checked only once its tree loaded
+    ({"num_layers": 18.0}, re.escape("num_layers must be one of [18, 34, 50], got 18.0")),
+    ({"has_pose": True, "pose_num_layers": "18"},
+     re.escape("pose_num_layers must be one of [18, 34, 50], got '18'")),
 ])
 def test_bad_model_json_is_one_error_naming_the_file(weights_dir, tmp_path, change, match):
   import shutil

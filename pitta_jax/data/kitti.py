@@ -319,10 +319,14 @@ def split_evaluation(split_file: Path) -> dict[str, object]:
   `evaluate_depth.py` applies it: the Garg crop for `--eval_split eigen` (`splits/eigen/...`),
   every ground-truth pixel > 0 (no 80 m cap) for `eigen_benchmark`, neither for other splits.
   The folder is the one the path names (made absolute, symbolic links not followed: a
-  `splits/eigen/test_files.txt` linked to a file elsewhere is still the Eigen split)."""
-  return {"eigen": {"garg_crop": True},
-          "eigen_benchmark": {"valid_gt": "positive"}}.get(
-              Path(os.path.abspath(split_file)).parent.name, {})
+  `splits/eigen/test_files.txt` linked to a file elsewhere is still the Eigen split), else the
+  one it leads to (a link `my_split/test_files.txt`, or a linked folder, to a file of
+  `splits/eigen/` is the Eigen split too)."""
+  protocols = {"eigen": {"garg_crop": True}, "eigen_benchmark": {"valid_gt": "positive"}}
+  for folder in (Path(os.path.abspath(split_file)).parent, Path(split_file).resolve().parent):
+    if folder.name in protocols:
+      return protocols[folder.name]
+  return {}
 
 
 def split_is_temporal(entries: list[tuple[str, int, int]]) -> bool:

@@ -18,17 +18,19 @@ from pitta_jax.models.spec import ModelSpec
 DEFAULT_SIZE = (192, 640)  # (H, W) of the released mono_640x192 weights
 
 
-def _num_layers(config: Mapping[str, Any]) -> int:
-  n = config.get("num_layers", 18)
-  if n not in RESNET_SPECS:
-    raise ValueError(f"num_layers must be one of {sorted(RESNET_SPECS)}, got {n!r}")
+def _num_layers(config: Mapping[str, Any], key: str = "num_layers") -> int:
+  """config[key], a ResNet depth (an int: the text "18" or 18.0 is refused); the pose
+  network's `pose_num_layers` defaults to the depth network's `num_layers`."""
+  n = config.get(key, _num_layers(config) if key != "num_layers" else 18)
+  if not isinstance(n, int) or isinstance(n, bool) or n not in RESNET_SPECS:
+    raise ValueError(f"{key} must be one of {sorted(RESNET_SPECS)}, got {n!r}")
   return n
 
 
 SPEC = ModelSpec(
     name="monodepth2",
     build=lambda config: DepthNet(_num_layers(config)),
-    build_pose=lambda config: PoseNet(config.get("pose_num_layers", _num_layers(config))),
+    build_pose=lambda config: PoseNet(_num_layers(config, "pose_num_layers")),
     output="sigmoid_disparity",
     size_multiple=32,
     default_size=DEFAULT_SIZE,
