@@ -10,9 +10,9 @@
   sensitivity  where PITTA's loss matters on the synthetic benchmark (lr, steps per frame,
                lambda, sequence length, BN mode, traffic density)
 
-Each writes NAME.md / NAME.csv / NAME.tex / results.json (+ figures) to --out, runs on the
-embedded synthetic benchmark by default and on the real dataset with --dataset/--root, caches
-every finished row, and runs a tiny version with --quick.
+Each writes NAME.md / NAME.csv / NAME.tex / results.json (+ figures, but the sensitivity
+study) to --out, runs on the embedded synthetic benchmark by default and on the real dataset
+with --dataset/--root, caches every finished row, and runs a tiny version with --quick.
 """
 
 from __future__ import annotations
