@@ -44,7 +44,8 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   entries = rows_table(ctx, ROWS, CASES, table=1)
   caption = f"{TITLE} Dataset: {_dataset_caption(ctx)}."
-  per_frame_figures(ctx.out, "table1", entries, ctx.quick)
+  per_frame_figures(ctx.out, "table1", entries, ctx.quick,
+                    check=lambda: common.check_out(ctx))
   return publish(ctx, "table1", entries, elapsed(), layout="rows", caption=caption,
                  group_title="Weather", row_title="Method")
 

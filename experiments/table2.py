@@ -20,7 +20,8 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   entries = rows_table(ctx, ROWS, ("Waymo",), table=2, with_case=False)
   caption = f"{TITLE} Dataset: {waymo_caption(ctx)}."
-  per_frame_figures(ctx.out, "table2", entries, ctx.quick)
+  per_frame_figures(ctx.out, "table2", entries, ctx.quick,
+                    check=lambda: common.check_out(ctx))
   return publish(ctx, "table2", entries, elapsed(), layout="rows", caption=caption,
                  group_title="Dataset", row_title="Method")
 

@@ -99,7 +99,8 @@ def run(args, runners=None) -> int:
                 if ctx.dataset == "synthetic" else f"DrivingStereo at {ctx.root}")
              + ". No adaptation is measured on All (the paper's row) and on Sunny (ours). Unmarked, as in the paper: a network's rows "
                "are different test cases, not competing methods.")
-  per_frame_figures(ctx.out, "table3", _aligned_for_figures(entries), ctx.quick)
+  per_frame_figures(ctx.out, "table3", _aligned_for_figures(entries), ctx.quick,
+                    check=lambda: common.check_out(ctx))
   return publish(ctx, "table3", entries, elapsed(), layout="rows", caption=caption,
                  group_title="MDE Net", row_title="Weather", marked=False)
 

@@ -69,6 +69,10 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
             "abs_rel": [[] for _ in lams], "fingerprint": None}
   directory = Path(checkpoint_dir) if checkpoint_dir is not None else None
   if directory is not None:
+    if check_out is not None:
+      check_out()
+    directory.parent.mkdir(parents=True, exist_ok=True)  # (e.g. --out/rows: made now, as
+    # run_sequence does, never by a save: a save refuses a folder gone while the run went on)
     record["fingerprint"] = run_fingerprint(weights, pitta, cfg, ev,
                                             [*names, f"lambdas {list(lams)}"])
     found = load_resume_point(directory, record["fingerprint"], names, states, strict=False,
@@ -108,7 +112,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
       if every and n < len(frames) and n % every == 0:
         if check_out is not None:
           check_out()
-        save_checkpoint(directory, states, record)
+        save_checkpoint(directory, states, record, check_out)
         last_saved = n
       bar.set_postfix_str("", refresh=False)
       bar.update(len(originals))
@@ -119,7 +123,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
     # what it wrote)
     if every and n > last_saved and check_passes(check_out):
       truncate_record(record, marks)
-      save_checkpoint(directory, done_states, record)
+      save_checkpoint(directory, done_states, record, check_out)
     raise
   finally:
     bar.close()
@@ -193,7 +197,8 @@ def run(args, runners=None) -> int:
   caption = (f"PITTA's lambda of eq. 10 (AbsRel, δ<1.25), 12 streams in one vmapped run (each "
              f"row's seconds are that run's). Best bold, second underlined (ours: the paper's "
              f"Table 4 marks none). Dataset: {waymo_caption(ctx)}.")
-  lambda_figure(ctx.out, "table4", entries, ctx.quick)
+  lambda_figure(ctx.out, "table4", entries, ctx.quick,
+                    check=lambda: common.check_out(ctx))
   return publish(ctx, "table4", entries, elapsed(), layout="columns", caption=caption,
                  group_title="Dataset", row_title="λ", metrics=("abs_rel", "a1"))
 

@@ -30,7 +30,7 @@ def run(args, runners=None) -> int:
                                                      fractions[e.label])))
   caption = (f"Adapted parameters of PITTA (AbsRel, δ<1.25). Best bold, second underlined "
              f"(ours: the paper's Table 5 marks none). Dataset: {waymo_caption(ctx)}.")
-  per_frame_figures(ctx.out, "table5", entries, ctx.quick)
+  per_frame_figures(ctx.out, "table5", entries, ctx.quick, check=lambda: common.check_out(ctx))
   return publish(ctx, "table5", entries, elapsed(), layout="columns", caption=caption,
                  group_title="Dataset", row_title="fraction", metrics=("abs_rel", "a1"))
 

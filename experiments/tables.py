@@ -46,7 +46,7 @@ def publish(ctx: Context, name: str, entries: Sequence[Entry], elapsed: float,
             **layout) -> int:
   """Writes the table's files (`render.write_table`, `layout` its keyword arguments) with the
   run's metadata, prints the markdown unless --quiet; the command's exit status (0)."""
-  from experiments.common import caption_notes, evaluation_note, meta, units_note
+  from experiments.common import caption_notes, check_out, evaluation_note, meta, units_note
   from experiments.render import write_table
   notes = " ".join(n for n in (evaluation_note(ctx.evaluation()), units_note(ctx, entries),
                                caption_notes(ctx)) if n)
@@ -54,6 +54,7 @@ def publish(ctx: Context, name: str, entries: Sequence[Entry], elapsed: float,
   if name.startswith("table") and any(e.paper for e in entries):  # e.g. Table 4's misprint
     from experiments.paper import load_paper_table
     layout = {**layout, "paper_notes": tuple(load_paper_table(int(name[5:])).get("notes", ()))}
+  check_out(ctx)  # --out still the command's: the files would re-make it, or go to another's
   md = write_table(ctx.out, name, entries, seconds=elapsed, meta=meta(ctx), **layout)
   if not ctx.quiet:
     print(md)

@@ -62,8 +62,9 @@ class OutputDir:
     return self
 
   def __exit__(self, exc_type, *exc) -> None:
+    ours = self._fd >= 0 and self._holds_lock_file()  # (not a directory made again meanwhile)
     self.close()
-    if exc_type is not None:  # a failed command leaves no empty directories behind
+    if exc_type is not None and ours:  # a failed command leaves no empty directories behind
       for d in reversed(self._created):
         try:
           d.rmdir()

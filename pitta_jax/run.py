@@ -618,10 +618,13 @@ def load_resume_point(directory: Path, fingerprint: str, names: Sequence[str], l
     return None
 
 
-def save_checkpoint(directory: Path, state, record: dict) -> None:
+def save_checkpoint(directory: Path, state, record: dict,
+                    check: Callable[[], Any] | None = None) -> None:
   """The carry (orbax) and every per-frame result so far (JSON sidecar, written last and
   atomically: a state without its sidecar is never used); the record's "names" are the frames
-  done, which name the checkpoint (`state_NNNNNN`)."""
+  done, which name the checkpoint (`state_NNNNNN`). check: called once both are written, before
+  older checkpoints are pruned (`run_sequence`'s check_out): where it raises (the folder was
+  replaced during the save), what this save wrote is removed again and nothing is pruned."""
   from pitta_jax.outputs import OutputError, atomic_write_text, json_safe
   created = not directory.exists()
   if created and not directory.parent.is_dir():
@@ -634,6 +637,8 @@ def save_checkpoint(directory: Path, state, record: dict) -> None:
   try:
     save_state(path, state)
     atomic_write_text(directory / f"{path.name}.json", json.dumps(json_safe(record)[0]))
+    if check is not None:
+      check()
   except BaseException:  # a full disk, Ctrl-C: the failed save leaves neither a new state
     try:                 # without its sidecar nor, when it was the first, an empty directory
       if new and path.exists():
@@ -751,10 +756,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
           f"resume=True a run starts afresh)", file=sys.stderr)
   if on_start is not None:
     on_start()
-  watch = None  # closed when the run ends (its frames' loop below)
-  if directory is not None and checkpoint_every and check_out is None:
-    watch = WatchedDirectory(directory.parent, "checkpoint_dir's folder")
-    check_out = watch.check
+  watch = None  # opened and closed by the frames' loop below
   start = int(state.step)
   kept: dict[int, np.ndarray] = {}
   keep = set(keep)
@@ -768,7 +770,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     """A checkpoint of `state` with the record, whose time is `elapsed` s of this call."""
     record["seconds"] = seconds_before + elapsed
     check_out()
-    save_checkpoint(directory, state, record)
+    save_checkpoint(directory, state, record, check_out)
 
   # a sequence shorter than a chunk is one chunk of its own length (no padded steps)
   stream = chunks(frames, h, w, min(cfg.chunk_size, max(len(frames), 1)), cfg.max_segments,
@@ -791,6 +793,9 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   # (and this call's time then: a resumed run does not count the cut chunk's time twice)
   done = (state, record_marks(record), index, 0.0)
   try:
+    if directory is not None and checkpoint_every and check_out is None:
+      watch = WatchedDirectory(directory.parent, "checkpoint_dir's folder")
+      check_out = watch.check
     for state, out in adapt_stream(state, consts, inputs(), runner):
       originals = chunk_frames.pop(0)
       now = _compile_count(runner)

@@ -212,6 +212,26 @@ def test_a_row_is_not_written_where_out_was_removed_or_replaced(tmp_path, replac
   held.close()
 
 
+def test_a_table_is_not_published_where_out_was_replaced(tmp_path, capsys):
+  """--out removed and made again after the rows ran: neither the figures nor the table's files
+  go into the new directory (they did, and the command exited 0)."""
+  import shutil
+  from experiments import figures, tables
+  from pitta_jax.outputs import OutputError, open_output_dir
+  out = tmp_path / "out"
+  held = open_output_dir(out)
+  ctx = common.Context("synthetic", None, [], "gt", {}, out, True, 2, True, out_check=held.check)
+  entry = common.Entry("fog", "PITTA", {"abs_rel": 0.5}, extra={"abs_rel_per_frame": [0.4, 0.6]})
+  shutil.rmtree(out)
+  out.mkdir()
+  with pytest.raises(OutputError, match=f"^--out {out}: removed while the command ran"):
+    figures.per_frame_figures(out, "table1", [entry], check=lambda: common.check_out(ctx))
+  with pytest.raises(OutputError, match=f"^--out {out}: removed while the command ran"):
+    tables.publish(ctx, "table1", [entry], 1.0, layout="rows", caption="c")
+  assert list(out.iterdir()) == []
+  held.close()
+
+
 def test_captions_say_quick_weights_and_row_subsets():
   ctx = common.Context("synthetic", None, [], "gt", {"monodepth2": "w/md2"}, None, True, 2, True,
                        rows=("PITTA",))
@@ -792,7 +812,10 @@ def test_lambda_sweep_resumes_after_an_interrupt(tmp_path, monkeypatch):
     if len(scored) == 7:  # frame 3's first lambda: frames 0-1 saved, 2-3 the cut chunk
       raise KeyboardInterrupt
     return real(depth, *a)
-  ckpt = tmp_path / "sweep.ckpt"
+  # in a folder not made yet, as --out/rows/KEY.ckpt on a fresh --out: the sweep makes it (a
+  # save had taken the missing folder for one removed while the run went on, and every
+  # non-quick Table 4 failed at its first checkpoint)
+  ckpt = tmp_path / "rows" / "sweep.ckpt"
   monkeypatch.setattr(run, "frame_metrics", interrupting)
   with pytest.raises(KeyboardInterrupt):
     table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=ckpt)

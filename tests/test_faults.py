@@ -1252,6 +1252,67 @@ def test_a_failed_first_checkpoint_leaves_no_empty_directory(tmp_path, monkeypat
   assert sorted(p.name for p in directory.iterdir()) == ["state_000001", "state_000001.json"]
 
 
+def test_a_save_whose_folder_is_replaced_meanwhile_takes_back_what_it_wrote(tmp_path):
+  """The folder's check after a save's files are written (before older checkpoints are
+  pruned): where --out was made again while the save wrote, the save removes its own files
+  and prunes nothing (the run had written a whole checkpoint into the new directory and pruned
+  the checkpoints there, another run's)."""
+  from pitta_jax import run as run_lib
+  from pitta_jax.outputs import OutputError, removed_while_running
+  directory = tmp_path / "checkpoints"
+  for k in (2, 3):  # with the new one, the oldest would be pruned (the newest two stay)
+    (directory / f"state_{k:06d}").mkdir(parents=True)
+    (directory / f"state_{k:06d}.json").write_text("{}")
+
+  def replaced():
+    raise removed_while_running(tmp_path)
+  state = {"w": np.zeros(3, np.float32)}
+  with pytest.raises(OutputError, match="removed while the command ran"):
+    run_lib.save_checkpoint(directory, state, {"names": ["f0", "f1", "f2", "f3"]}, replaced)
+  assert sorted(p.name for p in directory.iterdir()) == [
+      "state_000002", "state_000002.json", "state_000003", "state_000003.json"]
+  run_lib.save_checkpoint(directory, state, {"names": ["f0", "f1", "f2", "f3"]}, lambda: None)
+  assert sorted(p.name for p in directory.iterdir()) == [
+      "state_000003", "state_000003.json", "state_000004", "state_000004.json"]
+
+
+def test_a_failed_command_leaves_a_directory_made_again_alone(tmp_path):
+  """open_output_dir made --out; the command fails after --out was removed and made again
+  (someone else's now): the failed command's clean-up, which removes the empty directories it
+  made, leaves that one (it removed it)."""
+  import shutil
+  out = tmp_path / "a" / "out"
+  with pytest.raises(RuntimeError):
+    with open_output_dir(out):
+      shutil.rmtree(tmp_path / "a")
+      out.mkdir(parents=True)
+      raise RuntimeError("the command failed")
+  assert out.is_dir()
+  with pytest.raises(RuntimeError):  # still its own: removed, with the folder it made above
+    with open_output_dir(out / "mine"):
+      raise RuntimeError("the command failed")
+  assert not (out / "mine").exists() and out.is_dir()
+
+
+def test_an_early_failure_of_a_run_leaves_no_descriptor_open(tiny_weights, tmp_path):
+  """run_sequence watches its checkpoint folder through an open descriptor: a call that fails
+  before its frames' loop (here a bad `keep`) leaves none open (one leaked per call)."""
+  import os
+  from pitta_jax import run as run_lib
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.checkpoint import load_weights
+  from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  weights = load_weights(tiny_weights)
+  frames = list(generate_sequence(SyntheticConfig(height=weights.height, width=weights.width,
+                                                  num_frames=2, domain="fog")))
+  before = len(os.listdir("/proc/self/fd"))
+  for _ in range(3):
+    with pytest.raises(TypeError):
+      run_lib.run_sequence(weights, frames, AdaptConfig(), quiet=True, keep=5,
+                           checkpoint_dir=tmp_path / "ckpt", checkpoint_every=2)
+  assert len(os.listdir("/proc/self/fd")) == before
+
+
 def test_a_commands_stderr_holds_no_closed_event_loop_tracebacks(capsys):
   """A full disk during a checkpoint save: tensorstore's write callbacks then raise
   "RuntimeError: Event loop is closed" as unraisable exceptions (an audit: ~170 tracebacks of 4
