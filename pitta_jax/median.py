@@ -5,7 +5,8 @@
 
 No padding: at the border the window holds fewer pixels, c(x, y) = rows(x) * cols(y). The median
 of an even count is the mean of the two middle values, `(a + b) / 2` in float32 (NumPy's
-convention), so the result equals a literal `np.median` loop bit for bit.
+convention), so the result equals a literal `np.median` loop bit for bit (but for the sign of
+a zero: NumPy's median of -0.0 values may be +0.0, which compares equal).
 
 How: the s*s shifted views of the map, padded with +inf, go through a Batcher odd-even merge
 sorting network made of elementwise compare-exchanges (XLA fuses it into one loop over the

@@ -363,6 +363,12 @@ def test_hf_config_json_is_read(small, tmp_path):
       continue
     with pytest.raises(CheckpointError, match=message):
       conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf")
+  # transformers counts negative out_indices from the end of the depth + 1 stages (the
+  # embeddings are stage 0): [-4, -3, -2, -1] of 4 blocks are stages 1..4 (it was refused)
+  (tmp_path / "config.json").write_text(json.dumps(dict(meta, backbone_config=dict(
+      meta["backbone_config"], out_indices=[-4, -3, -2, -1]))))
+  config, _ = conv.convert_depth_anything_v2(tmp_path / "model.safetensors", "hf")
+  assert config["layer_idx"] == [0, 1, 2, 3] == cfg["layer_idx"]
 
 
 def test_training_checkpoints_unwrap_as_the_plain_file(small, tmp_path):

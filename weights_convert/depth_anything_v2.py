@@ -245,7 +245,7 @@ def _shape(state: dict, key: str, path: str, source: str) -> tuple[int, ...]:
   return tuple(getattr(state[key], "shape", ()))
 
 
-def _hf_config_beside(path: str) -> dict | None:
+def _hf_config_beside(path: str, depth: int) -> dict | None:
   """The `config.json` next to an HF weights file (a Hub snapshot), or None."""
   cfg_path = Path(path).with_name("config.json")
   if not cfg_path.is_file():
@@ -275,12 +275,15 @@ def _hf_config_beside(path: str) -> dict | None:
       raise CheckpointError(f"{cfg_path}: backbone_config.num_attention_heads must be a "
                             f"positive int, got {heads!r}")
     arch["num_heads"] = heads
-  # hidden-state indices (stage names "stageK"): 0 is the embeddings, K the output of block K - 1
+  # hidden-state indices (stage names "stageK"): 0 is the embeddings, K the output of block K - 1;
+  # transformers takes negative indices from the end of the depth + 1 stages, as Python does
   names = backbone.get("out_features") or []
   stages = backbone.get("out_indices") or [
       int(n[len("stage"):]) if isinstance(n, str) and n[len("stage"):].isdigit() else n
       for n in names]
   if stages:
+    stages = [i + depth + 1 if isinstance(i, int) and not isinstance(i, bool) and i < 0 else i
+              for i in stages]
     if not (all(isinstance(i, int) and not isinstance(i, bool) and i >= 1 for i in stages)
             and list(stages) == sorted(set(stages))):
       raise CheckpointError(f"{cfg_path}: backbone_config's out_indices / out_features must "
@@ -309,7 +312,7 @@ def infer_config(state: dict, source: str, path: str, arch: Mapping[str, Any] | 
   known = dict(num_heads=VIT_VARIANTS[variant].num_heads,
                layer_idx=list(VIT_VARIANTS[variant].layer_idx)) if variant else {}
   if source == "hf":
-    known.update(_hf_config_beside(path) or {})
+    known.update(_hf_config_beside(path, depth) or {})
   unknown = sorted(set(arch or {}) - {"num_heads", "layer_idx", "max_depth"})
   if unknown:
     raise ValueError(f"arch overrides {unknown} are not num_heads / layer_idx / max_depth")
