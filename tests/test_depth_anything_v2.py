@@ -352,6 +352,12 @@ def test_hf_config_json_is_read(small, tmp_path):
                           ({"backbone_config": dict(meta["backbone_config"],
                                                     out_indices=[1, 1, 1, 1])},
                            r"out_indices / out_features must name increasing blocks"),
+                          # three maps, or a stage past the 4 blocks: named as config.json's
+                          # (the weights file was blamed, in the network's words)
+                          *[({"backbone_config": dict(meta["backbone_config"], out_indices=i)},
+                             r"config\.json's out_indices / out_features \(as blocks: stage K "
+                             r"is block K - 1\) \[.*\] must name 4 of the ViT's 4 blocks")
+                            for i in ([2, 3, 4], [1, 2, 3, 5])],
                           ({"backbone_config": {k: v for k, v in meta["backbone_config"].items()
                                                 if k != "out_indices"} | {
                                                     "out_features": ["stem", "stage2"]}},

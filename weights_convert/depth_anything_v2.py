@@ -330,11 +330,19 @@ def infer_config(state: dict, source: str, path: str, arch: Mapping[str, Any] | 
     raise CheckpointError(f"{path}: a ViT with width {embed_dim} and {depth} blocks is not one "
                           f"of {sorted(VIT_VARIANTS)}; give {missing} explicitly "
                           f"(--num-heads, --layer-idx)")
+  config_json = Path(path).with_name("config.json")
   if embed_dim % known["num_heads"]:
     said = ("num_heads (--num-heads)" if "num_heads" in (arch or {}) else
-            f"{Path(path).with_name('config.json')}'s num_attention_heads")
+            f"{config_json}'s num_attention_heads")
     raise CheckpointError(f"{path}: {said} {known['num_heads']} does not divide the ViT's width "
                           f"{embed_dim} (each head takes width / num_heads features)")
+  idx = list(known["layer_idx"])
+  if len(idx) != 4 or max(idx) >= depth:  # the DPT head's four maps, from the ViT's blocks
+    said = ("layer_idx (--layer-idx)" if "layer_idx" in (arch or {}) else
+            f"{config_json}'s out_indices / out_features (as blocks: stage K is block K - 1)"
+            if source == "hf" and config_json.is_file() else "layer_idx")
+    raise CheckpointError(f"{path}: {said} {idx} must name 4 of the ViT's {depth} blocks "
+                          f"(0-based), one per feature map of the DPT head")
   standard = variant is not None and (known["num_heads"], tuple(known["layer_idx"])) == (
       VIT_VARIANTS[variant].num_heads, VIT_VARIANTS[variant].layer_idx)
   return {
