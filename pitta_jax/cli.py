@@ -62,8 +62,9 @@ def _size(args) -> tuple[int, int] | None:
 def _run_predict(args) -> int:
   from pitta_jax.outputs import open_output_dir
   from pitta_jax.predict import predict_images
-  with open_output_dir(args.out):
-    written = predict_images(args.weights, args.images, args.out, args.quiet, _size(args))
+  with open_output_dir(args.out) as held:
+    written = predict_images(args.weights, args.images, args.out, args.quiet, _size(args),
+                             held.check)
   print(f"wrote {len(written)} predictions to {args.out}")
   return 0
 
@@ -105,9 +106,10 @@ def _run_segment(args) -> int:
   if args.detectron2_resize and size is not None:
     raise ValueError("--detectron2-resize and --height/--width both choose the input size: "
                      "give one")
-  with open_output_dir(args.out):
+  with open_output_dir(args.out) as held:
     written = segment_images(args.weights, args.images, args.out,
-                             DETECTRON2_RESIZE if args.detectron2_resize else size, args.quiet)
+                             DETECTRON2_RESIZE if args.detectron2_resize else size, args.quiet,
+                             held.check)
   print(f"wrote {len(written)} panoptic maps to {args.out}")
   return 0
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import glob
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from pitta_jax import viz
 from pitta_jax.checkpoint import load_weights
-from pitta_jax.outputs import atomic_write_files, npy_bytes
+from pitta_jax.outputs import WatchedDirectory, atomic_write_files, npy_bytes
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.image_io import (IMAGE_SUFFIXES, exif_upright, image_bytes, list_images,
                                      read_image)
@@ -163,7 +163,8 @@ def make_predictor(network):
 
 
 def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_dir: str | Path,
-                   quiet: bool = False, size: tuple[int, int] | None = None) -> list[Path]:
+                   quiet: bool = False, size: tuple[int, int] | None = None,
+                   check_out: Callable[[], Any] | None = None) -> list[Path]:
   """Writes disparity/depth .npy and a colour PNG per image; returns the PNG paths.
 
   images: paths, or a spec for `expand_images` (expanded after the weights load, so a bad
@@ -171,6 +172,9 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   size: (H, W) network input size (default: the size the weights were trained at, or for a
     network that keeps the aspect ratio, e.g. Depth Anything V2, `ModelSpec.inference_size`
     of each image).
+  check_out: called before each image's files are written; it raises to stop where `out_dir`
+    was removed or replaced meanwhile (the command passes its locked --out's `OutputDir.check`;
+    None: `out_dir` as it is once made, `outputs.WatchedDirectory`).
   """
   weights = load_weights(weights_dir)
   if size is not None:
@@ -189,6 +193,15 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
   check_images(images, quiet)
   predict = make_predictor(weights.network())
   out.mkdir(parents=True, exist_ok=True)
+  with WatchedDirectory(out) as watch:
+    return _predict_each(weights, predict, images, out, size, trained, quiet,
+                         check_out or watch.check)
+
+
+def _predict_each(weights, predict, images: list[Path], out: Path,
+                  size: tuple[int, int] | None, trained: tuple[int, int], quiet: bool,
+                  check_out: Callable[[], Any]) -> list[Path]:
+  """`predict_images`' loop over the checked images."""
   written = []
   for path in tqdm(images, desc="predict", unit="img", disable=quiet):
     image = read_image(path, gray=True)
@@ -208,6 +221,7 @@ def predict_images(weights_dir: str | Path, images: str | Iterable[Path], out_di
     shown = 1.0 / depth if weights.spec.output == "metric_depth" else disp
     # the image's three files at once (all written, then renamed): an interrupted run leaves
     # an image with all of them or none, so its rerun takes them as its own
+    check_out()
     atomic_write_files(out, {
         f"{path.stem}{DISP_NPY}": npy_bytes(
             np.asarray(weights.spec.saved_disparity(disp)).astype(np.float32)),

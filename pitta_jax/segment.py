@@ -32,7 +32,7 @@ import json
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import overload
+from typing import Any, overload
 
 import numpy as np
 from tqdm import tqdm
@@ -43,6 +43,7 @@ from pitta_jax.data.frame import Frame, Segment
 from pitta_jax.data.image_io import read_image
 from pitta_jax.data.panoptic_io import write_panoptic
 from pitta_jax.data.sequence import FrameSequence
+from pitta_jax.outputs import WatchedDirectory
 from pitta_jax.models.mask2former import CONFIG_JSON, InferenceConfig, load_mask2former, segment
 from pitta_jax.predict import (Outputs, check_images, check_outputs_free, check_unique_stems,
                                expand_images, without_own_outputs)
@@ -180,8 +181,8 @@ SEGMENT_OUTPUTS = Outputs((".json", ".png"), looks_own=_is_segments_json)
 
 
 def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_dir: PathLike,
-                   input_size: tuple[int, int] | None = None, quiet: bool = False
-                   ) -> list[Path]:
+                   input_size: tuple[int, int] | None = None, quiet: bool = False,
+                   check_out: Callable[[], Any] | None = None) -> list[Path]:
   """Segments images into COCO panoptic files: OUT/<stem>.png + OUT/<stem>.json.
 
   Args:
@@ -193,6 +194,7 @@ def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_
     input_size: (H, W) network input; None = each image's own size (padded to a multiple of 32);
       DETECTRON2_RESIZE = detectron2's test-time resize (shortest edge 800, max 1333).
     quiet: no progress bar.
+    check_out: called before each image's files are written (as `predict.predict_images`').
 
   Returns:
     the written PNG paths, in input order. The maps have each image's own size.
@@ -213,9 +215,11 @@ def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_
   check_images(paths, quiet)
   out.mkdir(parents=True, exist_ok=True)
   written = []
-  for path in tqdm(paths, desc="segment", unit="img", disable=quiet):
-    ids, segments = segmenter(read_image(path, gray=True))
-    png = out / f"{path.stem}.png"
-    write_panoptic(png, ids, segments)
-    written.append(png)
+  with WatchedDirectory(out) as watch:
+    for path in tqdm(paths, desc="segment", unit="img", disable=quiet):
+      ids, segments = segmenter(read_image(path, gray=True))
+      png = out / f"{path.stem}.png"
+      (check_out or watch.check)()
+      write_panoptic(png, ids, segments)
+      written.append(png)
   return written

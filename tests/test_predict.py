@@ -141,6 +141,36 @@ def test_an_interrupted_predict_leaves_whole_images_and_reruns(converted, tmp_pa
   assert len(list(out.iterdir())) == 9
 
 
+@pytest.mark.parametrize("replaced", [False, True])
+def test_a_predict_whose_out_is_removed_stops_with_one_line(converted, tmp_path, capsys,
+                                                            monkeypatch, replaced):
+  """--out removed (or removed and made again) after the first image: the command stops before
+  the next image's files with one line naming --out (it named the .npy it could not write, or
+  wrote the rest into the new directory, without its lock)."""
+  import shutil
+  from pitta_jax import predict
+  rng = np.random.default_rng(3)
+  d = tmp_path / "imgs"
+  d.mkdir()
+  for name in ("000", "001"):
+    cv2.imwrite(str(d / f"{name}.png"), rng.integers(0, 256, (64, 96, 3), dtype=np.uint8))
+  out, real, written = tmp_path / "o", predict.atomic_write_files, []
+
+  def removing(folder, files):
+    real(folder, files)
+    written.append(1)
+    shutil.rmtree(out)
+    if replaced:
+      out.mkdir()
+  monkeypatch.setattr(predict, "atomic_write_files", removing)
+  args = ["predict", "--weights", str(converted[0]), "--images", str(d), "--quiet", "--out"]
+  capsys.readouterr()
+  assert main([*args, str(out)]) == 2
+  assert capsys.readouterr().err == (f"error: --out {out}: removed while the command ran; its "
+                                     f"results are not written (run it again)\n")
+  assert written == [1] and ((list(out.iterdir()) == []) if replaced else not out.exists())
+
+
 def test_nothing_to_predict_and_a_non_finite_prediction_are_one_line(converted, tmp_path,
                                                                     monkeypatch, capsys):
   """--images that name only a previous run's outputs (--out there) leave nothing to predict:

@@ -170,6 +170,28 @@ def test_cli_detectron2_resize(weights, image_dir, tmp_path, capsys):
   assert not (tmp_path / "d3").exists()
 
 
+def test_a_segment_whose_out_is_made_again_stops_with_one_line(weights, image_dir, tmp_path,
+                                                                 capsys, monkeypatch):
+  """--out removed and made again after the first map: the command stops before the next map
+  with one line naming --out (the rest went into the new directory, without its lock)."""
+  import shutil
+  from pitta_jax import segment as segment_lib
+  out, real, written = tmp_path / "o", segment_lib.write_panoptic, []
+
+  def replacing(png, ids, segments):
+    real(png, ids, segments)
+    written.append(png.name)
+    shutil.rmtree(out)
+    out.mkdir()
+  monkeypatch.setattr(segment_lib, "write_panoptic", replacing)
+  capsys.readouterr()
+  assert cli.main(["segment", "--weights", str(weights[0]), "--images", str(image_dir),
+                   "--out", str(out), "--quiet"]) == 2
+  assert capsys.readouterr().err == (f"error: --out {out}: removed while the command ran; its "
+                                     f"results are not written (run it again)\n")
+  assert written == ["a.png"] and list(out.iterdir()) == []
+
+
 def test_segmented_frames_over_a_frame_sequence(weights, image_dir):
   frames = segmented_frames(open_folder(image_dir), weights[0])
   assert len(frames) == 2 and frames.names == ("a", "b")  # still a lazy FrameSequence
