@@ -110,8 +110,6 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
       n = len(record["names"])
       done = (states, record_marks(record))
       if every and n < len(frames) and n % every == 0:
-        if check_out is not None:
-          check_out()
         save_checkpoint(directory, states, record, check_out)
         last_saved = n
       bar.set_postfix_str("", refresh=False)

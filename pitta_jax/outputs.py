@@ -43,8 +43,7 @@ class OutputDir:
     """OutputError when the directory (or its lock file) was removed or replaced since it was
     locked: what the command would write now would re-make it without the lock, where a second
     run could take it."""
-    if self._fd < 0 or not self._holds_lock_file():
-      raise removed_while_running(self.path, self._what)
+    _check_still_open(self._fd, self.path / LOCK_NAME, self.path, self._what)
 
   def close(self) -> None:
     """Releases the lock and removes the lock file (a killed run leaves the file, unlocked)."""
@@ -89,8 +88,7 @@ class WatchedDirectory:
 
   def check(self) -> None:
     """OutputError when `path` was removed or replaced since it was watched (or closed)."""
-    if self._fd < 0 or not _is_open_file(self._fd, self.path):
-      raise removed_while_running(self.path, self._what)
+    _check_still_open(self._fd, self.path, self.path, self._what)
 
   def close(self) -> None:
     if self._fd >= 0:
@@ -159,6 +157,13 @@ def _lock(path: Path) -> int:
     if _is_open_file(fd, path):
       return fd
     os.close(fd)  # the file was replaced or removed since it was opened: try again
+
+
+def _check_still_open(fd: int, path: Path, out: Path, what: str) -> None:
+  """OutputError naming `out` unless `path` still is the file (or directory) open as `fd`
+  (-1: closed)."""
+  if fd < 0 or not _is_open_file(fd, path):
+    raise removed_while_running(out, what)
 
 
 def _is_open_file(fd: int, path: Path) -> bool:

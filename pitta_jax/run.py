@@ -622,15 +622,17 @@ def save_checkpoint(directory: Path, state, record: dict,
                     check: Callable[[], Any] | None = None) -> None:
   """The carry (orbax) and every per-frame result so far (JSON sidecar, written last and
   atomically: a state without its sidecar is never used); the record's "names" are the frames
-  done, which name the checkpoint (`state_NNNNNN`). check: called once both are written, before
-  older checkpoints are pruned (`run_sequence`'s check_out): where it raises (the folder was
-  replaced during the save), what this save wrote is removed again and nothing is pruned."""
-  from pitta_jax.outputs import OutputError, atomic_write_text, json_safe
+  done, which name the checkpoint (`state_NNNNNN`). check: the caller's test that its folder is
+  still its own (`run_sequence`'s check_out), called before anything is written and again once
+  both files are, before older checkpoints are pruned: where it raises (the folder was removed
+  or replaced during the save), what this save wrote is removed again and nothing is pruned.
+  The checkpoint directory itself is made here when missing, never its parent."""
+  from pitta_jax.outputs import atomic_write_text, json_safe, removed_while_running
+  if check is not None:
+    check()
   created = not directory.exists()
   if created and not directory.parent.is_dir():
-    raise OutputError(f"{directory.parent}: removed while the run was writing there; the run "
-                      f"stops (its checkpoints and results would go to a directory re-made "
-                      f"without the run's lock)")
+    raise removed_while_running(directory.parent, "checkpoint_dir's folder")
   directory.mkdir(exist_ok=True)
   path = directory / f"state_{len(record['names']):06d}"
   new = not path.exists()
@@ -769,7 +771,6 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
   def save(state, elapsed: float) -> None:
     """A checkpoint of `state` with the record, whose time is `elapsed` s of this call."""
     record["seconds"] = seconds_before + elapsed
-    check_out()
     save_checkpoint(directory, state, record, check_out)
 
   # a sequence shorter than a chunk is one chunk of its own length (no padded steps)

@@ -1253,24 +1253,42 @@ def test_a_failed_first_checkpoint_leaves_no_empty_directory(tmp_path, monkeypat
 
 
 def test_a_save_whose_folder_is_replaced_meanwhile_takes_back_what_it_wrote(tmp_path):
-  """The folder's check after a save's files are written (before older checkpoints are
-  pruned): where --out was made again while the save wrote, the save removes its own files
-  and prunes nothing (the run had written a whole checkpoint into the new directory and pruned
-  the checkpoints there, another run's)."""
+  """The folder's check, before a save writes and again once its files are written (before
+  older checkpoints are pruned): where --out was made again while the save wrote, the save
+  removes its own files and prunes nothing (the run had written a whole checkpoint into the
+  new directory and pruned the checkpoints there, another run's); where it was made again
+  before the save, nothing is written, not even the checkpoint directory."""
   from pitta_jax import run as run_lib
   from pitta_jax.outputs import OutputError, removed_while_running
   directory = tmp_path / "checkpoints"
   for k in (2, 3):  # with the new one, the oldest would be pruned (the newest two stay)
     (directory / f"state_{k:06d}").mkdir(parents=True)
     (directory / f"state_{k:06d}.json").write_text("{}")
+  calls = []
+
+  def replaced_during_the_save():  # passes before the save, fails after it
+    calls.append(len(list(directory.iterdir())))
+    if len(calls) > 1:
+      raise removed_while_running(tmp_path)
+  state = {"w": np.zeros(3, np.float32)}
+  with pytest.raises(OutputError, match="removed while the command ran"):
+    run_lib.save_checkpoint(directory, state, {"names": ["f0", "f1", "f2", "f3"]},
+                            replaced_during_the_save)
+  assert calls == [4, 6]  # checked before the save wrote and once its two files were written
+  assert sorted(p.name for p in directory.iterdir()) == [
+      "state_000002", "state_000002.json", "state_000003", "state_000003.json"]
 
   def replaced():
     raise removed_while_running(tmp_path)
-  state = {"w": np.zeros(3, np.float32)}
+  fresh = tmp_path / "other" / "checkpoints"
+  fresh.parent.mkdir()
   with pytest.raises(OutputError, match="removed while the command ran"):
-    run_lib.save_checkpoint(directory, state, {"names": ["f0", "f1", "f2", "f3"]}, replaced)
-  assert sorted(p.name for p in directory.iterdir()) == [
-      "state_000002", "state_000002.json", "state_000003", "state_000003.json"]
+    run_lib.save_checkpoint(fresh, state, {"names": ["f0"]}, replaced)
+  assert not fresh.exists()
+  gone = tmp_path / "gone"  # without a check: a missing parent is never made again by a save
+  with pytest.raises(OutputError, match=f"^checkpoint_dir's folder {gone}: removed while"):
+    run_lib.save_checkpoint(gone / "checkpoints", state, {"names": ["f0"]})
+  assert not gone.exists()
   run_lib.save_checkpoint(directory, state, {"names": ["f0", "f1", "f2", "f3"]}, lambda: None)
   assert sorted(p.name for p in directory.iterdir()) == [
       "state_000003", "state_000003.json", "state_000004", "state_000004.json"]
