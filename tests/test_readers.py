@@ -728,6 +728,45 @@ def test_images_of_more_pixels_than_opencv_decodes_name_the_file(tmp_path):
     decode_file(tmp_path / "big.jpg", "image")
 
 
+def test_the_header_check_reads_opencv_io_max_image_pixels_as_opencv_does(tmp_path):
+  """OPENCV_IO_MAX_IMAGE_PIXELS in OpenCV's size syntax (digits, then KB or MB: x 1024, x 1024^2)
+  is the limit the PNG header check applies, the one OpenCV decodes under (a fresh process:
+  OpenCV reads the setting once, when it loads). "1MB" was read as the default limit: a PNG of
+  1100x1000 pixels passed the check and its decode then failed."""
+  import subprocess
+  import sys
+  big, small = tmp_path / "big.png", tmp_path / "small.png"
+  cv2.imwrite(str(big), np.zeros((1000, 1100), np.uint8))      # 1.1e6 > 2^20 pixels
+  cv2.imwrite(str(small), np.zeros((1000, 1048), np.uint8))    # 1048000 <= 2^20
+  code = """if True:
+    import sys, cv2
+    from pitta_jax.data.errors import DataError
+    from pitta_jax.data.image_io import check_image_file
+    for path in sys.argv[1:]:
+      try:  # (None, or an error, by how OpenCV was told to report failures)
+        opencv = cv2.imread(path, cv2.IMREAD_UNCHANGED) is not None
+      except cv2.error:
+        opencv = False
+      try:
+        check_image_file(path)
+        ours = True
+      except DataError as e:
+        ours = str(e)
+      print(opencv, ours)
+  """
+  for value, limit in [("1MB", 1 << 20), ("1mb", 1 << 20), ("1024Kb", 1 << 20),
+                       ("1048576", 1 << 20)]:
+    run = subprocess.run([sys.executable, "-c", code, str(big), str(small)], text=True,
+                         capture_output=True, env={**os.environ,
+                                                   "OPENCV_IO_MAX_IMAGE_PIXELS": value})
+    assert run.returncode == 0, run.stderr
+    (cv_big, ours_big), (cv_small, ours_small) = (line.split(" ", 1)
+                                                  for line in run.stdout.splitlines())
+    assert (cv_big, cv_small, ours_small) == ("False", "True", "True"), (value, run.stdout)
+    assert ours_big.endswith(f"image of 1100x1000 pixels: more than OpenCV decodes ({limit} "
+                             f"pixels)"), (value, ours_big)
+
+
 def test_calib_json_sizes_must_be_integers_not_booleans(tmp_path):
   from pitta_jax.data.calib import read_calib_json
   j = tmp_path / "calib.json"

@@ -77,14 +77,26 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 MAX_DECODED_PIXELS = 1 << 30
 
 
+def opencv_pixel_limit(value: str) -> int:
+  """The most pixels OpenCV decodes with OPENCV_IO_MAX_IMAGE_PIXELS = `value`, read as OpenCV
+  reads a size setting: decimal digits and an optional suffix KB / Kb / kb (x 1024) or MB / Mb /
+  mb (x 1024^2). Any other text (which stops OpenCV itself where it reads the setting, at
+  import): `MAX_DECODED_PIXELS`, its default."""
+  scale = {"": 1, "KB": 1 << 10, "Kb": 1 << 10, "kb": 1 << 10,
+           "MB": 1 << 20, "Mb": 1 << 20, "mb": 1 << 20}
+  digits = len(value) - len(value.lstrip("0123456789"))
+  if digits == 0 or value[digits:] not in scale:
+    return MAX_DECODED_PIXELS
+  return int(value[:digits]) * scale[value[digits:]]
+
+
 def _check_png_size(path: Path, head: bytes, what: str) -> None:
   """DataError when `head` (a file's first 24 bytes) is a PNG's whose header declares more
   pixels than OpenCV decodes (`MAX_DECODED_PIXELS`, or the OPENCV_IO_MAX_IMAGE_PIXELS it reads)."""
   if head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR" or len(head) < 24:
     return
   width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-  limit = os.environ.get("OPENCV_IO_MAX_IMAGE_PIXELS", "")
-  limit = int(limit) if limit.isdigit() else MAX_DECODED_PIXELS
+  limit = opencv_pixel_limit(os.environ.get("OPENCV_IO_MAX_IMAGE_PIXELS", ""))
   if width * height > limit:
     raise DataError(path, f"{what} of {width}x{height} pixels: more than OpenCV decodes "
                           f"({limit} pixels)")
