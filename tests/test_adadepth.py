@@ -22,7 +22,8 @@ its terms, U's loss, both gradient norms, the label fractions and U's scale, the
 U (depth and pose networks) after the step; with ld_weight 0 the loss and the student equal the
 original method's, and ld_weight 1 minus 0 is L_d of the same depth. Then a short run on
 synthetic frames with intrinsics is finite and bitwise reproducible (the compiled step of the
-parity test, called frame by frame: a second compile would double the file's time).
+parity test, called frame by frame: a second compile would double the file's time), and the
+tests of U's commits start from that run's states.
 """
 
 from __future__ import annotations
@@ -364,28 +365,49 @@ def test_ld_weight_zero_is_plain_adadepth(case, jax_run):
   assert rs < 1e-6
 
 
-def test_run_is_finite_and_reproducible(jax_run):
-  """3 synthetic frames with intrinsics, from the fresh state (empty ring, S = E = R), twice."""
+def _synthetic(n: int) -> list[StepInput]:
+  """The first n synthetic frames (seed 2, with intrinsics) as the float64 step takes them."""
   frames = [step_input(f, H, W, adapt_frames.S) for f in generate_sequence(
-      SyntheticConfig(height=H, width=W, num_frames=3, seed=2))]
+      SyntheticConfig(height=H, width=W, num_frames=3, seed=2))][:n]
   assert all(bool(f.has_intrinsics) for f in frames)
-  step, consts = jax_run["step"], jax_run["consts"]
+  with jax.enable_x64(True):
+    return [StepInput(*(jnp.asarray(v, jnp.float64 if v.dtype.kind == "f" else None) for v in f))
+            for f in frames]
 
-  def run():
-    with jax.enable_x64(True):
-      state, outs = jax_run["fresh"], []
-      for f in frames:
-        f = StepInput(*(jnp.asarray(v, jnp.float64 if v.dtype.kind == "f" else None) for v in f))
-        state, out = step(state, f, consts)
-        outs.append(jax.tree_util.tree_map(np.asarray, out))
-      return jax.tree_util.tree_map(np.asarray, state), outs
 
-  (state_a, outs_a), (state_b, outs_b) = run(), run()
+def _run(jax_run, frames: list[StepInput]) -> tuple[list, list]:
+  """The step over `frames` from the fresh state: the state and the output after each frame."""
+  states, outs, state = [], [], jax_run["fresh"]
+  with jax.enable_x64(True):
+    for f in frames:
+      state, out = jax_run["step"](state, f, jax_run["consts"])
+      states.append(state)
+      outs.append(jax.tree_util.tree_map(np.asarray, out))
+  return states, outs
+
+
+@pytest.fixture(scope="module")
+def synthetic_run(jax_run):
+  """Two synthetic frames from the fresh state (empty ring, S = E = R): the state after the
+  first, U's parameters after the second, the outputs and the whole final state as NumPy. The
+  tests below start from it rather than stepping those frames again (each float64 step takes
+  seconds)."""
+  states, outs = _run(jax_run, _synthetic(2))
+  return {"first": states[0], "u_second": _flat(states[1].method_state["u"].params),
+          "outs": outs, "final": jax.tree_util.tree_map(np.asarray, states[1])}
+
+
+def test_run_is_finite_and_reproducible(jax_run, synthetic_run):
+  """Two synthetic frames with intrinsics, from the fresh state, twice (the same compiled
+  step, a second time here)."""
+  outs_a, state_a = synthetic_run["outs"], synthetic_run["final"]
+  states_b, outs_b = _run(jax_run, _synthetic(2))
+  state_b = jax.tree_util.tree_map(np.asarray, states_b[-1])
   updated = [float(o.logs["u_updated"]) for o in outs_a]
   logs = {k: [round(float(o.logs[k]), 4) for o in outs_a]
           for k in ("loss_sup", "keep_sup", "loss_unsup", "keep_unsup", "loss_u")}
   print(f"losses {[round(float(o.loss), 4) for o in outs_a]}, U updated {updated}, {logs}")
-  assert updated == [0.0, 1.0, 1.0]   # no previous frame for the first one
+  assert updated == [0.0, 1.0]   # no previous frame for the first one
   # first frame: S = E = R, so SILog(S, P_S) = 0 where P_S keeps pixels, with a zero (not NaN)
   # gradient: no step is skipped
   assert logs["keep_sup"][0] > 0.3 and logs["loss_sup"][0] == 0.0
@@ -397,48 +419,44 @@ def test_run_is_finite_and_reproducible(jax_run):
     np.testing.assert_array_equal(a, b)
 
 
-def test_recording_start_has_no_previous_frame(jax_run):
+def test_recording_start_has_no_previous_frame(jax_run, synthetic_run):
   """A frame that starts a new recording is a first frame for U (upstream starts each video at
   its second frame): U keeps its weights there, and the next frame pairs with it."""
-  frames = [step_input(f, H, W, adapt_frames.S) for f in generate_sequence(
-      SyntheticConfig(height=H, width=W, num_frames=3, seed=2))]
-  frames[1] = frames[1]._replace(starts_recording=np.array(True))
+  f0, f1, f2 = _synthetic(3)
+  f1 = f1._replace(starts_recording=jnp.asarray(np.array(True)))
   step, consts = jax_run["step"], jax_run["consts"]
+  state = synthetic_run["first"]                    # after frame 0
+  u0 = _flat(state.method_state["u"].params)
+  updated = [float(synthetic_run["outs"][0].logs["u_updated"])]
   with jax.enable_x64(True):
-    state, updated, u_params = jax_run["fresh"], [], []
-    for f in frames:
-      f = StepInput(*(jnp.asarray(v, jnp.float64 if v.dtype.kind == "f" else None) for v in f))
-      state, out = step(state, f, consts)
-      updated.append(float(out.logs["u_updated"]))
-      u_params.append(_flat(state.method_state["u"].params))
+    state, out = step(state, f1, consts)
+    updated.append(float(out.logs["u_updated"]))
+    u1 = _flat(state.method_state["u"].params)
+    state, out = step(state, f2, consts)
+    updated.append(float(out.logs["u_updated"]))
   assert updated == [0.0, 0.0, 1.0]
-  for k, v in u_params[0].items():          # frame 1 left U as frame 0 did (no step at either)
-    np.testing.assert_array_equal(u_params[1][k], v)
+  for k, v in u0.items():                   # frame 1 left U as frame 0 did (no step at either)
+    np.testing.assert_array_equal(u1[k], v)
   ring = state.method_state["frames"]
   assert int(ring["count"]) == 1
-  np.testing.assert_array_equal(np.asarray(ring["items"][0]), frames[2].image)
+  np.testing.assert_array_equal(np.asarray(ring["items"][0]), np.asarray(f2.image))
 
 
-def test_u_keeps_its_weights_when_the_students_step_is_rejected(jax_run):
+def test_u_keeps_its_weights_when_the_students_step_is_rejected(jax_run, synthetic_run):
   """A frame whose student step is rejected (S's parameters NaN here) leaves U as it was,
-  although U's own step on the frame was finite: U is committed only with S's step."""
-  frames = [step_input(f, H, W, adapt_frames.S) for f in generate_sequence(
-      SyntheticConfig(height=H, width=W, num_frames=2, seed=2))]
-  step, consts = jax_run["step"], jax_run["consts"]
+  although U's own step on the frame was finite: U is committed only with S's step (the same
+  frame with a finite S moves U: `synthetic_run`'s second frame)."""
+  _, f1 = _synthetic(2)
+  state = synthetic_run["first"]                    # frame 0: the ring holds it now
+  before = _flat(state.method_state["u"].params)
+  poisoned = state.replace(trainable=jax.tree_util.tree_map(
+      lambda x: jnp.full_like(x, jnp.nan), state.trainable))
   with jax.enable_x64(True):
-    f0, f1 = (StepInput(*(jnp.asarray(v, jnp.float64 if v.dtype.kind == "f" else None)
-                          for v in f)) for f in frames)
-    state, _ = step(jax_run["fresh"], f0, consts)   # frame 0: the ring holds it now
-    before = _flat(state.method_state["u"].params)
-    poisoned = state.replace(trainable=jax.tree_util.tree_map(
-        lambda x: jnp.full_like(x, jnp.nan), state.trainable))
-    after, out = step(poisoned, f1, consts)
-    moved, _ = step(state, f1, consts)              # the same frame with a finite S
+    after, out = jax_run["step"](poisoned, f1, jax_run["consts"])
   assert bool(out.skipped) and float(out.logs["u_updated"]) == 1.0
   for k, v in _flat(after.method_state["u"].params).items():
     np.testing.assert_array_equal(v, before[k])
-  assert any(not np.array_equal(v, before[k])
-             for k, v in _flat(moved.method_state["u"].params).items())
+  assert any(not np.array_equal(v, before[k]) for k, v in synthetic_run["u_second"].items())
 
 
 def test_lower_median_is_torch_median_of_the_masked_values():
