@@ -391,6 +391,38 @@ def test_kitti_improved_gt(tmp_path):
                                      / f"{KITTI_LINES[1][1]:010d}.png")
 
 
+def test_kitti_eigen_benchmark_without_gt_depths_reads_the_improved_gt_in_the_drives(tmp_path):
+  """The eigen_benchmark split without its gt_depths.npz: the ground truth is KITTI's improved
+  maps where MonoDepth2's export_gt_depth.py --split eigen_benchmark reads them,
+  <data>/<folder>/proj_depth/groundtruth/image_0X/, not the Velodyne scans (which were
+  projected and scored as if they were the benchmark's); without those maps, one line naming
+  the split file."""
+  from pitta_jax.data.velodyne import velodyne_path
+  split, _, _ = make_kitti(tmp_path)
+  bench = tmp_path / "splits" / "eigen_benchmark" / "test_files.txt"
+  bench.parent.mkdir(parents=True)
+  bench.write_text(split.read_text())
+  data, written = tmp_path / "data", []
+  for k, (folder, frame, side) in enumerate(KITTI_LINES):
+    camera = {"l": 2, "r": 3, "2": 2}[side]
+    _velodyne_calibration(data / folder.split("/")[0])
+    _write_velodyne(velodyne_path(data, folder, frame))
+    written.append(_depth_u16(k))
+    _write_u16(data / folder / "proj_depth" / "groundtruth" / f"image_0{camera}"
+               / f"{frame:010d}.png", written[-1])
+  frames = kitti.open_kitti(data, bench)
+  assert frames.notes == () and frames.evaluation == {"valid_gt": "positive"}
+  for frame, depth in zip(frames, written):
+    np.testing.assert_array_equal(frame.depth, depth.astype(np.float32) / 256)
+  assert "proj_depth" in frames[0].depth_file
+  first = KITTI_LINES[0]
+  (data / first[0] / "proj_depth" / "groundtruth" / "image_02" / f"{first[1]:010d}.png").unlink()
+  with pytest.raises(DataError, match=f"^{re.escape(str(bench))}: the eigen_benchmark split is "
+                                      f"scored on KITTI's improved ground truth"):
+    kitti.open_kitti(data, bench)
+  assert len(kitti.open_kitti(data, split)) == 3  # the Eigen split: the scans, as upstream
+
+
 # KITTI ground truth from the Velodyne scans (MonoDepth2's kitti_utils.generate_depth_map, as
 # export_gt_depth.py calls it). Hand-made calibration: Velodyne (x forward, y left, z up) ->
 # camera (-y, -z, x + 0.5); P_rect_02 = [[2, 0, 4, 0], [0, 2, 2, 0], [0, 0, 1, 0]], so a point

@@ -218,6 +218,27 @@ def _find_improved_gt(root: Path, folder: str, frame: int, camera: int) -> Path:
                                  "frames, use the eigen_benchmark split")
 
 
+def _is_benchmark(split_file: Path) -> bool:
+  """Whether `split_file` is MonoDepth2's eigen_benchmark split (`split_evaluation`)."""
+  return split_evaluation(split_file).get("valid_gt") == "positive"
+
+
+def _benchmark_gt_root(data: Path, split_file: Path, first: tuple[str, int, int]) -> Path:
+  """Where the eigen_benchmark split's ground truth is without gt_depths.npz: KITTI's improved
+  ground truth inside the raw drives, `<data>/<folder>/proj_depth/groundtruth/image_0X/`, where
+  MonoDepth2's `export_gt_depth.py --split eigen_benchmark` reads it (never the Velodyne scans:
+  the benchmark's numbers are on the improved maps); DataError naming the split file when the
+  first line's map is not there."""
+  folder, frame, camera = first
+  tail = Path("proj_depth", "groundtruth", f"image_0{camera}", f"{frame:010d}.png")
+  if not (data / folder / tail).is_file():
+    raise DataError(split_file, f"the eigen_benchmark split is scored on KITTI's improved ground "
+                                f"truth, not found at {data / folder / tail} nor as "
+                                f"gt_depths.npz beside the split: pass improved_gt=DIR or "
+                                f"gt_depths=FILE, or depth=False")
+  return data
+
+
 def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None = None,
                improved_gt: PathLike | None = None, depth: bool = True, ext: str | None = None,
                panoptic_dir: PathLike | None = None, panoptic_json: PathLike | None = None
@@ -244,6 +265,9 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
   if gt_depths is not None and improved_gt is not None:
     raise DataError(split_file, "give either gt_depths or improved_gt, not both")
   gt = velodyne = None
+  if (depth and gt_depths is None and improved_gt is None and _is_benchmark(split_file)
+      and not (split_file.parent / "gt_depths.npz").is_file()):
+    improved_gt = _benchmark_gt_root(data, split_file, entries[0])
   if depth and improved_gt is None:
     gt_path = Path(gt_depths) if gt_depths is not None else split_file.parent / "gt_depths.npz"
     if gt_depths is not None or gt_path.is_file():
