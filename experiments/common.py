@@ -235,25 +235,30 @@ def weights_identity(ctx: Context, model: str, weights) -> dict:
 # ----------------------------------------------------------------------------- frames
 
 
-def case_frames(ctx: Context, parts: Sequence[dict], height: int, width: int) -> list:
+def case_frames(ctx: Context, parts: Sequence[dict], height: int, width: int) -> Sequence:
   """The frames of a test case: its parts one after another (one continual run), each part's
-  first frame marked as starting a recording (a method never pairs frames of two parts)."""
-  frames: list = []
-  for part in parts:
-    if ctx.dataset == "synthetic":
-      from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  first frame marked as starting a recording (a method never pairs frames of two parts). A real
+  dataset's frames stay on disk until the run reaches them (a `FrameSequence`: a case of
+  thousands of frames is never decoded at once); the synthetic benchmark's are generated."""
+  if ctx.dataset == "synthetic":
+    from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+    frames: list = []
+    for part in parts:
       got = list(generate_sequence(SyntheticConfig(height=height, width=width,
                                                    num_frames=ctx.frames, **part)))
-    else:
-      from pitta_jax.sources import open_frames
-      seq = open_frames(ctx.dataset, ctx.root, [*ctx.options, *(f"{k}={v}" for k, v in
-                                                               part.items())],
-                        ctx.segmentation, height, width)
-      got = list(seq[:ctx.frames]) if ctx.frames else list(seq)
-    if got:
-      got[0] = dataclasses.replace(got[0], starts_recording=True)
-    frames += got
-  return frames
+      if got:
+        got[0] = dataclasses.replace(got[0], starts_recording=True)
+      frames += got
+    return frames
+  from pitta_jax.sources import open_frames
+  joined = None
+  for part in parts:
+    seq = open_frames(ctx.dataset, ctx.root, [*ctx.options, *(f"{k}={v}" for k, v in
+                                                             part.items())],
+                      ctx.segmentation, height, width)
+    seq = seq[:ctx.frames] if ctx.frames else seq
+    joined = seq if joined is None else joined + seq  # (+: the part starts a recording)
+  return joined if joined is not None else []
 
 
 def check_cases(ctx: Context, cases: Sequence[tuple[str, Sequence[dict]]]

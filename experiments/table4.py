@@ -50,9 +50,9 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from pitta_jax.methods.depth_refining import dynamic_classes
   from pitta_jax.outputs import check_passes
   from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, frame_metrics,
-                             input_size, load_resume_point, model_alignment, note_compile,
-                             record_marks, run_fingerprint, run_status, save_checkpoint,
-                             truncate_record)
+                             frame_names, input_size, load_resume_point, model_alignment,
+                             note_compile, record_marks, run_fingerprint, run_status,
+                             save_checkpoint, truncate_record)
   cfg = common.adapt_config("pitta", quick=quick)
   pitta = build("pitta")  # every lambda's method but for lambda (the vmapped axis)
   every = common.CHECKPOINT_EVERY if checkpoint_dir is not None else 0
@@ -62,7 +62,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   model, tx, runner = (runners or Runners()).custom(key, lambda: _sweep_runner(weights, cfg))
   states, consts = streams.init_lambda_sweep(weights.depth, lams, cfg, tx, model=model)
   ev = eval_cfg if eval_cfg is not None else EvalConfig()
-  names = [frame.name for frame in frames]
+  names = frame_names(frames)  # (not read: a dataset's frames are read as the sweep runs)
   # per lambda: the scored frames' metrics, the frames whose depth is not finite, and AbsRel
   # of every frame (None where not scored: the curves' x is the frame index)
   record = {"names": [], "per_frame": [[] for _ in lams], "nonfinite": [[] for _ in lams],

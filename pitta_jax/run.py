@@ -407,7 +407,7 @@ def setting_differences(saved: Any, now: dict[str, Any], prefix: str = "") -> li
   return out
 
 
-def _frame_names(frames: Sequence[Frame]) -> list[str]:
+def frame_names(frames: Sequence[Frame]) -> list[str]:
   """The frames' names, without reading a lazily loaded sequence."""
   names = getattr(frames, "names", None)
   return list(names) if names is not None else [frame.name for frame in frames]
@@ -736,7 +736,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
     # where the checkpoints go is made now: a save re-creates only the checkpoint directory
     # itself, never a parent removed while the run went on (a command's locked --out)
     directory.parent.mkdir(parents=True, exist_ok=True)
-  names = None if directory is None else _frame_names(frames)
+  names = None if directory is None else frame_names(frames)
   fingerprint = None if directory is None else run_fingerprint(weights, method, cfg, eval_cfg,
                                                                names, data)
   record = {"per_frame": [], "names": [], "excluded": [], "nonfinite_indices": [],

@@ -4,6 +4,7 @@ values), rows are cached and resumed, and the rendering marks best/second as the
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import sys
@@ -375,6 +376,30 @@ def test_a_real_datasets_cases_are_opened_before_the_first_row(tmp_path, capsys)
     assert table1.main(["--dataset", "drivingstereo", "--root", str(tmp_path), "--rows",
                         "No adaptation", "--quiet", "--out", str(tmp_path / "o")]) == 2
   assert "no rainy frames" in capsys.readouterr().err and computed == []
+
+
+def test_a_real_datasets_case_is_read_as_its_run_goes(tmp_path, monkeypatch):
+  """A real dataset's test case (here DrivingStereo, two weathers) is a lazily read sequence:
+  no frame is decoded before the run reaches it (every frame of a case had been decoded into
+  memory at its full size before the row's run started), the parts in order, each part's first
+  frame starting a recording."""
+  from test_readers import make_drivingstereo
+  from pitta_jax.data.sequence import FrameFiles
+  make_drivingstereo(tmp_path, size="half")
+  loads = []
+  real = FrameFiles.load
+  monkeypatch.setattr(FrameFiles, "load", lambda self: loads.append(self.name) or real(self))
+  ctx = common.Context("drivingstereo", str(tmp_path), ["size=half"], "gt", {}, tmp_path / "o",
+                       False, 0, True)
+  frames = common.case_frames(ctx, ({"weather": "rainy"}, {"weather": "foggy"}), 16, 24)
+  assert loads == [] and len(frames) == 3
+  got = list(frames)
+  assert [f.name.split("/")[0] for f in got] == ["rainy", "rainy", "foggy"]
+  assert [f.starts_recording for f in got] == [True, False, True]
+  assert len(loads) == 3
+  two = common.case_frames(dataclasses.replace(ctx, frames=1),
+                           ({"weather": "rainy"}, {"weather": "foggy"}), 16, 24)
+  assert [f.name.split("/")[0] for f in two] == ["rainy", "foggy"]
 
 
 def _raise(error):

@@ -864,6 +864,32 @@ def test_recording_starts_survive_slices_joins_and_maps(tmp_path):
     FrameSequence(files, starts=[True, False])
 
 
+def test_a_join_of_sequences_with_other_transforms_keeps_each_and_reads_nothing(tmp_path,
+                                                                               monkeypatch):
+  """Two readers' sequences (each its own resize) joined: each frame gets its own sequence's
+  transform, nothing is read until a frame is indexed, and the second part starts a recording;
+  a join and a slice of joins still do (the tables join a case's parts so)."""
+  for k in range(4):
+    _write_rgb(tmp_path / f"{k}.png", _rgb(k))
+  files = [FrameFiles(name=str(k), image=tmp_path / f"{k}.png", recording="r") for k in range(4)]
+  tag = lambda t: (lambda f: dataclasses.replace(f, name=f.name + t))
+  a = FrameSequence(files[:2], tag("a"), temporal=True)
+  b = FrameSequence(files[2:], tag("b"), temporal=True)
+  loads = []
+  real = FrameFiles.load
+  monkeypatch.setattr(FrameFiles, "load", lambda self: loads.append(self.name) or real(self))
+  joined = a + b
+  assert loads == [] and joined.names == ("0", "1", "2", "3") and joined.temporal
+  got = list(joined)
+  assert [f.name for f in got] == ["0a", "1a", "2b", "3b"]
+  assert [f.starts_recording for f in got] == [True, False, True, False]
+  assert loads == ["0", "1", "2", "3"]  # each frame read once, when indexed
+  three = joined + FrameSequence(files[:1], tag("c"))
+  assert [f.name for f in three[1:]] == ["1a", "2b", "3b", "0c"]
+  assert [f.starts_recording for f in three[1:]] == [False, True, False, True]
+  assert [f.name for f in joined.map(tag("!"))] == ["0a!", "1a!", "2b!", "3b!"]
+
+
 @pytest.mark.parametrize("orientation", [1, 3, 6, 8, 2, 5])
 def test_exif_orientation_as_pil_turns_it(tmp_path, orientation):
   """A JPEG stored 8x12 with an EXIF orientation (6: a phone held upright) is turned as PIL's

@@ -92,6 +92,27 @@ class FrameFiles:
     return scale_intrinsics(self.intrinsics, self.intrinsics_size, size)
 
 
+@dataclasses.dataclass(frozen=True)
+class _TransformedFiles(FrameFiles):
+  """Files whose frame is transformed as it loads: the frames of a sequence joined to one with
+  another transform (`FrameSequence.__add__`) keep their own."""
+  post: Callable[[Frame], Frame] | None = None
+
+  def load(self) -> Frame:
+    frame = super().load()
+    return frame if self.post is None else self.post(frame)
+
+
+def _with_transform(files: FrameFiles, transform: Callable[[Frame], Frame] | None) -> FrameFiles:
+  """`files` whose loaded frame is then given to `transform` (after a transform it has)."""
+  if transform is None:
+    return files
+  fields = {f.name: getattr(files, f.name) for f in dataclasses.fields(FrameFiles)}
+  first = getattr(files, "post", None)
+  post = transform if first is None else (lambda frame: transform(first(frame)))
+  return _TransformedFiles(**fields, post=post)
+
+
 def _wh(shape: tuple[int, ...]) -> str:
   return f"{shape[1]}x{shape[0]}"
 
@@ -182,12 +203,20 @@ class FrameSequence(Sequence[Frame]):
     return self._with(self.files, lambda frame: transform(first(frame)), self.starts)
 
   def __add__(self, other: FrameSequence) -> FrameSequence:
-    if not isinstance(other, FrameSequence) or other.transform is not self.transform:
+    """The frames of `other` after these, still read on access; other's first frame starts a
+    recording. Sequences with different transforms (e.g. two readers' resizes) each keep their
+    own."""
+    if not isinstance(other, FrameSequence):
       return NotImplemented
     if other.evaluation != self.evaluation:
       raise ValueError(f"cannot join frames evaluated differently: {self.evaluation} and "
                        f"{other.evaluation}")
-    return FrameSequence(self.files + other.files, self.transform,
+    files, transform = self.files + other.files, self.transform
+    if other.transform is not self.transform:
+      files = tuple(_with_transform(f, self.transform) for f in self.files) + tuple(
+          _with_transform(f, other.transform) for f in other.files)
+      transform = None
+    return FrameSequence(files, transform,
                          temporal=self.temporal and other.temporal,
                          remedies={**other.remedies, **self.remedies},
                          notes=self.notes + tuple(n for n in other.notes if n not in self.notes),
