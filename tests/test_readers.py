@@ -799,6 +799,52 @@ def test_the_header_check_reads_opencv_io_max_image_pixels_as_opencv_does(tmp_pa
                              f"pixels)"), (value, ours_big)
 
 
+def test_waymo_sequences_are_named_once_and_dense_npy_depth_is_float_metres(tmp_path):
+  """sequences=s1,s1 (read twice, the repeat paired with the first as its previous frame and
+  scored twice) is refused; names around commas are stripped; a dense depth .npy of integers
+  (a PNG's metres x 256, read as 15352 m) is refused as the folder reader refuses it."""
+  make_waymo(tmp_path, "s1")
+  make_waymo(tmp_path, "s2")
+  with pytest.raises(DataError, match=f"^{re.escape(str(tmp_path))}: sequences: s1 given more "
+                                      f"than once"):
+    waymo.open_waymo(tmp_path, sequences="s1,s2, s1")
+  assert waymo.open_waymo(tmp_path, sequences="s1, s2").names[3] == "s2/000000"
+  npy = tmp_path / "s1" / "depth" / "000001.npy"
+  np.save(npy, (np.load(npy) * 256).astype(np.uint16))
+  with pytest.raises(DataError, match=f"^{re.escape(str(npy))}: a dense depth .npy must hold "
+                                      f"float metres, got uint16"):
+    waymo.open_waymo(tmp_path, sequences="s1")[1]
+
+
+def test_a_velodyne_scan_cut_short_by_whole_floats_is_refused(tmp_path):
+  """A scan whose size is not a multiple of 16 bytes (one point) is refused, also when it is a
+  multiple of 4 (cut 12 bytes short by an interrupted copy: it had read 19999 points)."""
+  from pitta_jax.data.velodyne import read_velodyne_points
+  scan = tmp_path / "0000000000.bin"
+  np.arange(40, dtype="<f4").tofile(scan)   # 10 points
+  assert read_velodyne_points(scan).shape == (10, 4)
+  for cut in (1, 4, 12, 13):
+    scan.write_bytes(np.arange(40, dtype="<f4").tobytes()[:-cut])
+    with pytest.raises(DataError, match="is not a KITTI scan of float32"):
+      read_velodyne_points(scan)
+
+
+def test_kitti_split_lines_and_ext_option_are_checked_by_their_own_words(tmp_path):
+  """A split file with a byte-order mark reads as without it; a frame number of non-ASCII
+  digits is a bad line of the split file (not int()'s words); --option ext other than jpg or
+  png is named (not pathlib's 'Invalid suffix')."""
+  split, _, _ = make_kitti(tmp_path)
+  split.write_bytes(b"\xef\xbb\xbf" + split.read_bytes())
+  assert kitti.read_split(split)[0][0] == KITTI_LINES[0][0]
+  split.write_text(f"{KITTI_LINES[0][0]} \u00b2 l\n", encoding="utf-8")
+  with pytest.raises(DataError, match=f"^{re.escape(str(split))}: line 1 is"):
+    kitti.read_split(split)
+  for ext in ("", "a/b", "tif"):
+    with pytest.raises(DataError, match=f"^--option ext={re.escape(ext)}: the KITTI images' "
+                                        f"suffix is jpg or png"):
+      kitti.open_kitti(tmp_path / "data", split, depth=False, ext=ext)
+
+
 def test_calib_json_sizes_must_be_integers_not_booleans(tmp_path):
   from pitta_jax.data.calib import read_calib_json
   j = tmp_path / "calib.json"

@@ -176,7 +176,7 @@ def read_split(path: PathLike) -> list[tuple[str, int, int]]:
   """Parses a MonoDepth2 split file into (folder, frame index, camera 2 or 3) per line."""
   path = require_file(path, "split file")
   try:
-    text = path.read_text()
+    text = path.read_text(encoding="utf-8-sig")  # (a byte-order mark is not the folder's)
   except UnicodeDecodeError:
     raise DataError(path, "not a text split file (not UTF-8)") from None
   entries = []
@@ -184,7 +184,8 @@ def read_split(path: PathLike) -> list[tuple[str, int, int]]:
     fields = line.split()
     if not fields:
       continue
-    if len(fields) != 3 or fields[2] not in SIDE_TO_CAMERA or not fields[1].isdigit():
+    if (len(fields) != 3 or fields[2] not in SIDE_TO_CAMERA or not fields[1].isascii()
+        or not fields[1].isdigit()):
       raise DataError(path, f"line {number} is {line.strip()!r}, expected '<folder> <frame> "
                             f"<side l|r|2|3>'")
     if fields[0].isdigit():  # MonoDepth2's odometry splits: '<sequence> <frame> <side>'
@@ -260,6 +261,8 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
   """
   data = require_dir(root, "KITTI data directory")
   split_file = Path(split_file)
+  if ext is not None and ext.lstrip(".").lower() not in ("jpg", "png"):
+    raise DataError(None, f"--option ext={ext}: the KITTI images' suffix is jpg or png")
   entries = read_split(split_file)
   require_frames(entries, split_file, "lines '<folder> <frame> <side>'")
   if gt_depths is not None and improved_gt is not None:

@@ -44,7 +44,7 @@ def read_velodyne_points(path: PathLike) -> np.ndarray:
   the reflectance, replaced by 1)."""
   path = require_file(path, "Velodyne scan")
   raw = np.fromfile(path, dtype="<f4")
-  if raw.size % 4:
+  if path.stat().st_size % 16:  # (bytes: a scan cut 13 bytes short still holds whole floats)
     raise DataError(path, f"{path.stat().st_size} bytes is not a KITTI scan of float32 (x, y, "
                           f"z, reflectance) points (16 bytes each)")
   points = raw.reshape(-1, 4).copy()

@@ -91,7 +91,7 @@ def rasterise_points(points: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 def read_waymo_depth_npy(path: Path, image: Path, calib: Calib | None) -> np.ndarray:
-  """A dense (H, W) or sparse (N, 3) `.npy` depth file -> (H, W) float32 metres.
+  """A dense (H, W) float or sparse (N, 3) `.npy` depth file -> (H, W) float32 metres.
 
   The raster size is calib's (height, width), or the image's when there is no calib.json.
   """
@@ -104,6 +104,8 @@ def read_waymo_depth_npy(path: Path, image: Path, calib: Calib | None) -> np.nda
   else:
     size = read_image(image).shape[:2]
   if array.shape == size:
+    if not np.issubdtype(array.dtype, np.floating):  # e.g. a PNG's uint16 metres x 256
+      raise DataError(path, f"a dense depth .npy must hold float metres, got {array.dtype}")
     return array.astype(np.float32)
   if array.shape[1] == 3:
     return rasterise_points(array, *size)
@@ -168,7 +170,10 @@ def open_waymo(root: PathLike, sequences: Sequence[str] | str | None = None, dep
     sequences = list_sequences(root)
     require_frames(sequences, root, "<seq>/image/ directories")
   elif isinstance(sequences, str):
-    sequences = [s for s in sequences.split(",") if s]
+    sequences = [s.strip() for s in sequences.split(",") if s.strip()]
+  repeated = sorted({s for s in sequences if list(sequences).count(s) > 1})
+  if repeated:  # its frames would be run and scored twice, the repeat paired with the first
+    raise DataError(root, f"sequences: {', '.join(repeated)} given more than once")
   panoptic = panoptic_source(panoptic_dir, panoptic_json)
   files = []
   for seq in sequences:
