@@ -324,6 +324,21 @@ def test_transformers5_names_convert_like_hub_names(small, tmp_path):
     np.testing.assert_array_equal(a, b)
 
 
+def test_hf_safetensors_is_known_by_its_content_not_its_name(small, tmp_path):
+  """A Hub cache blob (a hash for a name, no suffix) or MODEL.SAFETENSORS converts as
+  model.safetensors does; it had been refused as 'not a PyTorch checkpoint but a safetensors
+  file ... --from hf', under --from hf."""
+  ref_cfg, ref = small["converted"]["hf"]
+  for name in ("5f3a9c0e1d", "MODEL.SAFETENSORS"):
+    blob = tmp_path / name
+    blob.write_bytes((small["root"] / "hf" / "model.safetensors").read_bytes())
+    cfg, variables = conv.convert_depth_anything_v2(blob, "hf", {"num_heads": 3,
+                                                                "layer_idx": [0, 1, 2, 3]})
+    assert dict(cfg, encoder="custom") == dict(ref_cfg, encoder="custom")
+    for a, b in zip(jax.tree_util.tree_leaves(variables), jax.tree_util.tree_leaves(ref)):
+      np.testing.assert_array_equal(a, b)
+
+
 def test_hf_config_json_is_read(small, tmp_path):
   """Heads and layers from config.json; its depth_estimation_type and max_depth say relative
   (max_depth 1) or metric (max_depth > 0 metres); anything else is refused."""

@@ -553,3 +553,26 @@ def test_a_lazily_negated_tensor_loads_negated(tmp_path, fmt):
   got = load_pth(path)
   np.testing.assert_array_equal(got["w"], np.float32([-1.0, 2.0, -3.5]))
   _assert_tensor_equal(got["w"], torch.load(path)["w"])
+
+
+def test_a_state_dict_key_that_is_not_a_name_is_one_line_naming_the_file(tmp_path):
+  """A checkpoint whose dict has a non-string key (an int beside the tensors) is refused with
+  one line naming the file by every converter's reader (it had been an AttributeError
+  traceback in MonoDepth2's, HR-Depth's, Lite-Mono's and SGDepth's, and 'expected string or
+  bytes-like object' naming no file in the others), through the CLI with exit 2."""
+  from weights_convert.mask2former import read_checkpoint
+  from weights_convert.pth import unwrap_state_dict
+  path = tmp_path / "encoder.pth"
+  torch.save({"encoder.conv1.weight": torch.zeros(64, 3, 7, 7), 1: torch.zeros(1)}, path)
+  with pytest.raises(CheckpointError, match=f"^{path}: key 1 \\(int\\) is not a parameter name"):
+    unwrap_state_dict(load_pth(path), path)
+  with pytest.raises(CheckpointError, match=f"^{path}: key 1 \\(int\\) is not a parameter name"):
+    read_checkpoint(path, "detectron2")
+  for args in (["monodepth2", "--encoder", str(path), "--depth", str(path)],
+               ["sgdepth", "--model", str(path)], ["litemono", "--encoder", str(path),
+                                                   "--depth", str(path)]):
+    run = subprocess.run([sys.executable, "-m", "weights_convert", *args, "--out",
+                          str(tmp_path / "out")], capture_output=True, text=True)
+    assert run.returncode == 2 and run.stderr.startswith(f"error: {path}: key 1 (int) is not"), (
+        args, run.stderr[-500:])
+    assert run.stderr.count("\n") == 1, run.stderr

@@ -54,7 +54,8 @@ from typing import Any, Mapping, NamedTuple
 
 from weights_convert import rules as R
 from weights_convert.mask2former import read_safetensors
-from weights_convert.pth import CheckpointError, load_pth, unwrap_state_dict
+from weights_convert.pth import (CheckpointError, checked_path, is_safetensors_file, load_pth,
+                                 unwrap_state_dict)
 from weights_convert.strict import check_keys, looks_like
 
 FORMATS = ("official", "hf")
@@ -165,10 +166,8 @@ def read_state(path: str | os.PathLike, source: str, max_depth: float | None = N
   if source not in FORMATS:
     raise ValueError(f"unknown source {source!r}; expected one of {FORMATS}")
   train_checkpoint = False
-  if path.endswith(".safetensors"):
-    obj = read_safetensors(path)
-    if not isinstance(obj, dict):
-      raise CheckpointError(f"{path}: expected a state dict, found a {type(obj).__name__}")
+  if path.endswith(".safetensors") or is_safetensors_file(checked_path(path)):
+    obj = read_safetensors(path)  # (by its content too: a Hub cache blob has no name)
   else:
     obj = load_pth(path)
     train_checkpoint = isinstance(obj, dict) and "previous_best" in obj

@@ -39,7 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from weights_convert import rules as R
-from weights_convert.pth import CheckpointError, checked_path, load_pth, load_pth_or_pickle
+from weights_convert.pth import (CheckpointError, check_names, checked_path,
+                                 is_safetensors_file, load_pth, load_pth_or_pickle)
 from weights_convert.strict import looks_like
 
 from pitta_jax.models.mask2former.load import CONFIG_JSON, PARAMS_DIR
@@ -350,11 +351,13 @@ def read_checkpoint(path: str | os.PathLike, source: str) -> dict[str, np.ndarra
     if isinstance(obj, dict) and isinstance(obj.get("model"), dict):
       obj = obj["model"]
   elif source == "hf":
-    obj = read_safetensors(path) if path.endswith(".safetensors") else load_pth(path)
+    safetensors = path.endswith(".safetensors") or is_safetensors_file(checked_path(path))
+    obj = read_safetensors(path) if safetensors else load_pth(path)  # (a Hub blob: no name)
   else:
     raise ValueError(f"unknown source {source!r}; expected 'detectron2' or 'hf'")
   if not isinstance(obj, dict):
     raise CheckpointError(f"{path}: expected a dict of tensors, found a {type(obj).__name__}")
+  check_names(obj, path)
   return {k: (np.asarray(v) if np.isscalar(v) else v) for k, v in obj.items()}
 
 

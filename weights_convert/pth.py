@@ -690,7 +690,25 @@ def unwrap_state_dict(state: Any, path: str | os.PathLike) -> dict:
   wrapped = [k for k in WRAPPER_KEYS if isinstance(state.get(k), dict)]
   if wrapped and not any(isinstance(v, np.ndarray) for v in state.values()):
     state = state[wrapped[0]]
+  check_names(state, path)
   return strip_data_parallel(state, str(path))
+
+
+def check_names(state: dict, path: str | os.PathLike) -> None:
+  """CheckpointError naming the file when a key of the state dict is not a string: a state
+  dict's keys are parameter names (`load_state_dict` takes nothing else)."""
+  odd = next((k for k in state if not isinstance(k, str)), None)
+  if odd is not None:
+    raise CheckpointError(f"{path}: key {odd!r} ({type(odd).__name__}) is not a parameter "
+                          f"name; expected a state dict (name -> tensor)")
+
+
+def is_safetensors_file(path: str | os.PathLike) -> bool:
+  """Whether the file is a safetensors file by its content, whatever its name (a Hub cache
+  blob has none)."""
+  with open(path, "rb") as f:
+    head = f.read(16)
+  return _is_safetensors(os.fspath(path), head)
 
 
 def strip_data_parallel(state: dict, path: str) -> dict:
