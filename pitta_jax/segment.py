@@ -41,7 +41,7 @@ from pitta_jax.data import coco
 from pitta_jax.data.errors import DataError
 from pitta_jax.data.frame import Frame, Segment
 from pitta_jax.data.image_io import read_image
-from pitta_jax.data.panoptic_io import write_panoptic
+from pitta_jax.data.panoptic_io import is_segments_json, write_panoptic
 from pitta_jax.data.sequence import FrameSequence
 from pitta_jax.outputs import WatchedDirectory
 from pitta_jax.models.mask2former import CONFIG_JSON, InferenceConfig, load_mask2former, segment
@@ -166,18 +166,8 @@ def segmented_frames(frames: Sequence[Frame], weights_dir: PathLike | Segmenter,
   return MappedFrames(frames, segmenter.segment_frame)
 
 
-def _is_segments_json(path: Path) -> bool:
-  """Whether `path` is a per-image panoptic JSON as `write_panoptic` writes it (not, e.g., a
-  labelme annotation of the same stem)."""
-  try:
-    data = json.loads(path.read_text())
-  except (OSError, ValueError):
-    return False
-  return isinstance(data, dict) and set(data) == {"segments_info"}
-
-
 # per image: the segments JSON (written first) and the id PNG
-SEGMENT_OUTPUTS = Outputs((".json", ".png"), looks_own=_is_segments_json)
+SEGMENT_OUTPUTS = Outputs((".json", ".png"), looks_own=is_segments_json)
 
 
 def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_dir: PathLike,

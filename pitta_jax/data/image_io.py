@@ -355,6 +355,14 @@ def list_images(directory: PathLike, suffixes: tuple[str, ...] = IMAGE_SUFFIXES,
       found[path.name] = path
       continue
     other = found.get(path.stem)
-    if other is None or suffixes.index(suffix) < suffixes.index(other.suffix.lower()):
+    if other is None or (suffixes.index(suffix) < suffixes.index(other.suffix.lower())
+                         and not _is_panoptic_png(path)) or _is_panoptic_png(other):
       found[path.stem] = path
   return found
+
+
+def _is_panoptic_png(path: Path) -> bool:
+  """A PNG with a per-image panoptic JSON of its stem beside it: a panoptic id map (what
+  `pitta-jax segment` writes beside the images it segments), not the stem's colour image."""
+  from pitta_jax.data.panoptic_io import is_segments_json
+  return path.suffix.lower() == ".png" and is_segments_json(path.with_suffix(".json"))

@@ -73,6 +73,16 @@ def write_panoptic_png(path: PathLike, ids: np.ndarray) -> None:
   encode_file(path, id_to_rgb(ids)[..., ::-1], "panoptic PNG")
 
 
+def is_segments_json(path: Path) -> bool:
+  """Whether `path` is a per-image panoptic JSON as `write_panoptic` writes it, `{"segments_info":
+  [...]}` and nothing else (not, e.g., a labelme annotation of the same stem)."""
+  try:
+    data = json.loads(Path(path).read_text())
+  except (OSError, ValueError):
+    return False
+  return isinstance(data, dict) and set(data) == {"segments_info"}
+
+
 def segments_info(ids: np.ndarray, segments: Sequence[Segment]) -> list[dict[str, Any]]:
   """COCO `segments_info` entries of `segments` in the id map `ids` (H, W).
 
