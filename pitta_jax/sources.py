@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import inspect
+import os
 import types
 import typing
 from pathlib import Path
@@ -306,7 +307,26 @@ def check_dataset_args(dataset: str, root: str | None, option_items: Sequence[st
   from pitta_jax.data.readers import READERS
   if dataset not in READERS:
     raise DataError(None, f"unknown dataset {dataset!r}; choose from {', '.join(READERS)}")
-  return typed_options(raw, function_annotations(READERS[dataset]), dataset)
+  annotations = function_annotations(READERS[dataset])
+  options = typed_options(raw, annotations, dataset)
+  empty = next((k for k, v in options.items() if v == "" and _names_a_path(annotations[k])), None)
+  if empty is not None:  # (Path("") is the working directory)
+    raise DataError(None, f"--option {empty}= names no file or directory")
+  # the maps come from one place: --segmentation png:DIR is the panoptic directory (beside
+  # --option panoptic_json, its annotation file), mask2former:DIR computes them
+  taken = ("panoptic_dir",) if kind == "png" else ("panoptic_dir", "panoptic_json") \
+      if kind == "mask2former" else ()
+  both = next((k for k in taken if k in options), None)
+  if both is not None:
+    raise DataError(None, f"--option {both} and --segmentation {segmentation} both say where the "
+                          f"panoptic maps come from: give one")
+  return options
+
+
+def _names_a_path(annotation: Any) -> bool:
+  """Whether a reader parameter's annotation takes a path (`PathLike`, optional or not)."""
+  return any(a is os.PathLike or typing.get_origin(a) is os.PathLike
+             for a in typing.get_args(annotation))
 
 
 def lacks_panoptic_maps(config, segmentation: str, readers: Sequence[FrameSequence]) -> bool:

@@ -845,12 +845,75 @@ def test_kitti_split_lines_and_ext_option_are_checked_by_their_own_words(tmp_pat
       kitti.open_kitti(tmp_path / "data", split, depth=False, ext=ext)
 
 
+def test_segments_written_beside_jpeg_images_are_not_taken_for_the_images(tmp_path):
+  """`pitta-jax segment --images D --out D` on JPEG images writes each stem's id PNG and its
+  segments JSON into D; reading D as a folder (and Waymo's image/ directory) with those maps
+  takes the JPEGs as the images and the PNGs as their panoptic maps. The PNG had won as the
+  stem's image: the network adapted on RGB-encoded ids. A PNG beside another JSON (a labelme
+  annotation) is still an image, preferred to a JPEG of its stem as before."""
+  from pitta_jax.data import folder
+  from pitta_jax.data.frame import Segment
+  from pitta_jax.data.panoptic_io import write_panoptic
+  ids = np.zeros((H, W), np.int32)
+  ids[1:3, 2:5] = 7
+  for k in range(2):
+    cv2.imwrite(str(tmp_path / f"x{k}.jpg"), _rgb(k)[..., ::-1])
+    write_panoptic(tmp_path / f"x{k}.png", ids, [Segment(7, 3, True)])
+  frames = folder.open_folder(tmp_path, panoptic_dir=tmp_path)
+  assert [f.image.suffix for f in frames.files] == [".jpg", ".jpg"]
+  frame = frames[0]
+  assert frame.image_file == str(tmp_path / "x0.jpg")
+  np.testing.assert_array_equal(frame.panoptic, ids)
+  assert frame.image.shape == (H, W, 3)
+  _write_rgb(tmp_path / "y.png", _rgb(5))  # a user's PNG with a labelme JSON and a JPEG
+  (tmp_path / "y.json").write_text(json.dumps({"version": "5.0", "shapes": []}))
+  cv2.imwrite(str(tmp_path / "y.jpg"), _rgb(6)[..., ::-1])
+  assert folder.open_folder(tmp_path).files[2].image == tmp_path / "y.png"
+  seq = tmp_path / "w" / "s1"
+  for k in range(2):
+    (seq / "image").mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(seq / "image" / f"{k:06d}.jpg"), _rgb(k)[..., ::-1])
+    write_panoptic(seq / "image" / f"{k:06d}.png", ids, [Segment(7, 3, True)])
+  got = waymo.open_waymo(tmp_path / "w", depth=False)
+  assert [f.image.suffix for f in got.files] == [".jpg", ".jpg"]
+
+
 def test_calib_json_sizes_must_be_integers_not_booleans(tmp_path):
   from pitta_jax.data.calib import read_calib_json
   j = tmp_path / "calib.json"
   j.write_text(json.dumps({"K": np.eye(3).tolist(), "width": True, "height": 6}))
   with pytest.raises(DataError, match="width and height must be positive integers"):
     read_calib_json(j)
+
+
+def test_panoptic_maps_from_two_flags_or_an_empty_path_option_are_refused(tmp_path, capsys):
+  """--option panoptic_dir=A with --segmentation png:B (B had silently won) or mask2former:DIR
+  (whose maps replace the frames' own) is refused naming both flags, before the weights load;
+  png:DIR with --option panoptic_json (the annotation file of those PNGs) is not. An empty path
+  option (--option panoptic_dir=, read as the working directory) is refused naming it."""
+  from pitta_jax.cli import main
+  from pitta_jax.sources import check_dataset_args
+  make_waymo(tmp_path / "waymo", "segment-a", n=2)
+  weights = tmp_path / "w"  # a model.json only: loading the weights would fail
+  weights.mkdir()
+  (weights / "model.json").write_text(json.dumps({"architecture": "monodepth2", "num_layers": 18,
+                                                  "height": 64, "width": 96}))
+  base = ["adapt", "--dataset", "waymo", "--root", str(tmp_path / "waymo"), "--weights",
+          str(weights), "--out", str(tmp_path / "o")]
+  for extra, want in [
+      (["--option", "panoptic_dir=A", "--segmentation", "png:B"],
+       "error: --option panoptic_dir and --segmentation png:B both say where the panoptic maps "
+       "come from: give one\n"),
+      (["--option", "panoptic_json=a.json", "--segmentation", "mask2former:M"],
+       "error: --option panoptic_json and --segmentation mask2former:M both say where the "
+       "panoptic maps come from: give one\n"),
+      (["--option", "panoptic_dir="], "error: --option panoptic_dir= names no file or "
+                                      "directory\n")]:
+    assert main(base + extra) == 2
+    assert capsys.readouterr().err == want
+  assert check_dataset_args("waymo", str(tmp_path), ["panoptic_json=a.json"], "png:B") == {
+      "panoptic_json": "a.json"}
+  assert check_dataset_args("waymo", str(tmp_path), ["sequences="], "gt") == {"sequences": ""}
 
 
 def test_an_option_selecting_no_frame_fails_before_the_weights_load(tmp_path, capsys):
