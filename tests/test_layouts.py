@@ -95,8 +95,8 @@ def test_open_raw_sequences_split_at_missing_frames(tmp_path):
       tuple(f"{drive}/image_02/{i:010d}" for i in (5, 6))]
   assert all(s.temporal for s in seqs)
   assert seqs[0].notes == seqs[1].notes == (
-      f"{drive}: frame numbers jump after 0000000002, 0000000006; read as 3 sequences of "
-      f"consecutive frames",)
+      f"{drive}: frame numbers jump after 0000000002, 0000000006; read as 2 sequence(s) of "
+      f"consecutive frames, without 1 frame(s) that have no neighbour (0000000009)",)
   np.testing.assert_array_equal(seqs[1][0].image, _rgb(5).astype(np.float32) / np.float32(255))
 
 

@@ -425,12 +425,15 @@ def open_raw_sequences(root: PathLike) -> list[FrameSequence]:
     stems = sorted(s for s in images if len(s) == 10 and s.isdigit())
     folder = f"{drive.parent.name}/{drive.name}"
     runs = consecutive_runs(stems)
+    kept = [run for run in runs if len(run) >= 2]
+    alone = [run[0] for run in runs if len(run) < 2]
     notes = [f"{folder}: frame numbers jump after {', '.join(run[-1] for run in runs[:-1])}; "
-             f"read as {len(runs)} sequences of consecutive frames"] if len(runs) > 1 else []
+             f"read as {len(kept)} sequence(s) of consecutive frames"
+             + (f", without {len(alone)} frame(s) that have no neighbour ({alone[0]}"
+                f"{', ...' if len(alone) > 1 else ''})" if alone else "")
+             ] if len(runs) > 1 else []
     fields = calibs.frame_fields(drive.parent.parent, folder, 2)
-    for run in runs:
-      if len(run) < 2:
-        continue
+    for run in kept:
       files = [FrameFiles(name=f"{folder}/{RAW_IMAGE_DIR[0]}/{stem}", image=images[stem],
                           recording=f"{folder}/{run[0]}", **fields) for stem in run]
       sequences.append(FrameSequence(files, temporal=True, notes=notes,
