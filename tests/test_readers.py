@@ -999,6 +999,31 @@ def test_a_join_of_sequences_with_other_transforms_keeps_each_and_reads_nothing(
   assert [f.name for f in joined.map(tag("!"))] == ["0a!", "1a!", "2b!", "3b!"]
 
 
+def test_joined_frames_read_each_part_on_access_and_mark_where_parts_start():
+  """JoinedFrames (a synthetic test case's parts): frame k is the frame of its part, rendered
+  when read (SyntheticSequence), each part's first frame starting a recording; slices (a run
+  resumed at frame k) keep the marks of the frames they hold; names without rendering."""
+  from pitta_jax.data.sequence import JoinedFrames
+  from pitta_jax.data.synthetic import SyntheticConfig, SyntheticSequence, generate_sequence
+  cfgs = [SyntheticConfig(height=16, width=24, num_frames=n, seed=s, domain=d)
+          for n, s, d in ((3, 1, "fog"), (1, 2, "clear"), (2, 3, "rain"))]
+  eager = [f for cfg in cfgs for f in generate_sequence(cfg)]
+  joined = JoinedFrames([SyntheticSequence(cfg) for cfg in cfgs])
+  assert len(joined) == 6 and joined.names == tuple(f.name for f in eager)
+  got = list(joined)
+  for a, b in zip(got, eager):
+    assert a.name == b.name
+    np.testing.assert_array_equal(a.image, b.image)
+    np.testing.assert_array_equal(a.depth, b.depth)
+  assert [f.starts_recording for f in got] == [True, False, False, True, True, False]
+  assert [f.name for f in joined[2:5]] == [f.name for f in eager[2:5]]
+  assert [f.starts_recording for f in joined[2:]] == [False, True, True, False]
+  assert [f.starts_recording for f in joined[4:][1:]] == [False]
+  assert joined[-1].name == eager[-1].name and len(joined[6:]) == 0
+  with pytest.raises(IndexError):
+    joined[6]
+
+
 @pytest.mark.parametrize("orientation", [1, 3, 6, 8, 2, 5])
 def test_exif_orientation_as_pil_turns_it(tmp_path, orientation):
   """A JPEG stored 8x12 with an EXIF orientation (6: a phone held upright) is turned as PIL's

@@ -229,6 +229,67 @@ class FrameSequence(Sequence[Frame]):
     return f"FrameSequence(len={len(self)}{first})"
 
 
+class JoinedFrames(Sequence[Frame]):
+  """Sequences of frames one after another, read on access (e.g. the rendered parts of a
+  synthetic test case: `FrameSequence`s join with `+`). The first frame of each part starts a
+  recording (a method never pairs frames of two parts); a slice keeps its frames' marks.
+
+  Args:
+    parts: the sequences (any `Sequence[Frame]`), in order.
+    starts: per part, whether its first frame starts a recording (default: all).
+  """
+
+  def __init__(self, parts: Sequence[Sequence[Frame]], starts: Sequence[bool] | None = None):
+    self.parts = tuple(parts)
+    self.starts = tuple(starts) if starts is not None else (True,) * len(self.parts)
+    self._ends = tuple(np.cumsum([len(p) for p in self.parts], dtype=np.int64).tolist())
+
+  def __len__(self) -> int:
+    return self._ends[-1] if self._ends else 0
+
+  @overload
+  def __getitem__(self, index: int) -> Frame: ...
+
+  @overload
+  def __getitem__(self, index: slice) -> JoinedFrames: ...
+
+  def __getitem__(self, index: int | slice) -> Frame | JoinedFrames:
+    if isinstance(index, slice):
+      start, stop, step = index.indices(len(self))
+      if step != 1:
+        return JoinedFrames([[self[i] for i in range(start, stop, step)]], (False,))
+      parts, starts, begin = [], [], 0
+      for part, first, end in zip(self.parts, self.starts, self._ends):
+        lo, hi = max(start - begin, 0), min(stop, end) - begin
+        if hi > lo:
+          parts.append(part[lo:hi])
+          starts.append(first and lo == 0)
+        begin = end
+      return JoinedFrames(parts, starts)
+    i = index.__index__()
+    if not -len(self) <= i < len(self):
+      raise IndexError(f"frame {index} of a sequence of {len(self)}")
+    i %= len(self)
+    k = int(np.searchsorted(self._ends, i, side="right"))
+    j = i - (self._ends[k - 1] if k else 0)
+    frame = self.parts[k][j]
+    return dataclasses.replace(frame, starts_recording=True) if j == 0 and self.starts[k] \
+        else frame
+
+  def __iter__(self) -> Iterator[Frame]:
+    for k in range(len(self)):
+      yield self[k]
+
+  @property
+  def names(self) -> tuple[str, ...]:
+    """The frames' names, without reading them where the parts can tell them so."""
+    return tuple(name for part in self.parts for name in (
+        getattr(part, "names", None) or [frame.name for frame in part]))
+
+  def __repr__(self) -> str:
+    return f"JoinedFrames(len={len(self)}, parts={len(self.parts)})"
+
+
 def require_frames(files: Sequence[FrameFiles], searched: Path | str, pattern: str
                    ) -> Sequence[FrameFiles]:
   """`files`, or DataError naming the directory searched and the pattern when there are none."""
