@@ -134,11 +134,10 @@ class Context:
 
   def wants(self, label: str, *names: str) -> bool:
     """Whether --rows selects the row `label` (no --rows: every row): a --rows entry that is a
-    part of the label, or the whole of one of its other `names` (its method, network, group);
+    part of the label, or the whole of one of its other `names` (its method, network, test
+    case);
     only a label is matched by parts ('depth' once selected every MonoDepth2 row)."""
-    return not self.rows or any(r.lower() in label.lower()
-                                or any(r.lower() == n.lower() for n in names)
-                                for r in self.rows)
+    return not self.rows or any(_selects(r, label, names) for r in self.rows)
 
   def evaluation(self):
     """The protocol the rows are scored with (`run.EvalConfig`; its defaults without flags)."""
@@ -239,17 +238,13 @@ def case_frames(ctx: Context, parts: Sequence[dict], height: int, width: int) ->
   """The frames of a test case: its parts one after another (one continual run), each part's
   first frame marked as starting a recording (a method never pairs frames of two parts). A real
   dataset's frames stay on disk until the run reaches them (a `FrameSequence`: a case of
-  thousands of frames is never decoded at once); the synthetic benchmark's are generated."""
+  thousands of frames is never decoded at once), the synthetic benchmark's are rendered then."""
   if ctx.dataset == "synthetic":
-    from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
-    frames: list = []
-    for part in parts:
-      got = list(generate_sequence(SyntheticConfig(height=height, width=width,
-                                                   num_frames=ctx.frames, **part)))
-      if got:
-        got[0] = dataclasses.replace(got[0], starts_recording=True)
-      frames += got
-    return frames
+    from pitta_jax.data.sequence import JoinedFrames
+    from pitta_jax.data.synthetic import SyntheticConfig, SyntheticSequence
+    return JoinedFrames([SyntheticSequence(SyntheticConfig(height=height, width=width,
+                                                           num_frames=ctx.frames, **part))
+                         for part in parts])
   from pitta_jax.sources import open_frames
   joined = None
   for part in parts:
@@ -374,12 +369,21 @@ def clear_earlier_table(ctx: Context) -> None:
                         files=tuple(f"{ctx.name}{s}" for s in TABLE_SUFFIXES) + ("results.json",))
 
 
-def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str]) -> None:
-  """--rows that selects nothing is an error (an empty table is not a result)."""
+def _selects(entry: str, label: str, names: Sequence[str]) -> bool:
+  """Whether the --rows entry selects the row `label` with its other `names` (`Context.wants`)."""
+  return entry.lower() in label.lower() or any(entry.lower() == n.lower() for n in names)
+
+
+def check_selection(ctx: Context, selected: Sequence, labels: Sequence[str],
+                    candidates: Sequence[Sequence[str]]) -> None:
+  """--rows that selects nothing is an error (an empty table is not a result), and so is each
+  entry that selects none of `candidates` (every row's label and other names, as given to
+  `Context.wants`): a misspelt name beside a good one would leave its rows out unsaid."""
   from pitta_jax.data.errors import DataError
-  if ctx.rows and not selected:
-    raise DataError(None, f"--rows {','.join(ctx.rows)}: matches none of this table's rows "
-                          f"({', '.join(dict.fromkeys(labels))})")
+  unmatched = [r for r in ctx.rows if not any(_selects(r, c[0], c[1:]) for c in candidates)]
+  if ctx.rows and (not selected or unmatched):
+    raise DataError(None, f"--rows {','.join(unmatched or ctx.rows)}: matches none of this "
+                          f"table's rows ({', '.join(dict.fromkeys(labels))})")
 
 
 # ----------------------------------------------------------------------------- rows
@@ -444,32 +448,49 @@ def files_identity(ctx: Context) -> str:
 
 
 def _metric_values(x: Any) -> bool:
-  """A stored row's metrics: names -> numbers (None for a non-finite one)."""
+  """A stored row's metrics: none, or every metric's name -> a number (None for a non-finite
+  one)."""
+  from pitta_jax.metrics import METRIC_NAMES
   from pitta_jax.outputs import json_number
-  return isinstance(x, dict) and all(map(json_number, x.values()))
+  return isinstance(x, dict) and (not x or set(x) == set(METRIC_NAMES)) and all(
+      map(json_number, x.values()))
 
 
 def _per_frame_values(x: Any) -> bool:
-  return isinstance(x, list) and _metric_values(dict(enumerate(x)))
+  from pitta_jax.outputs import json_number
+  return isinstance(x, list) and all(map(json_number, x))
 
 
-def stored_result(stored: Any, field: str) -> bool:
+# a stored result's counts and times (numbers or None where present; a sweep's entries need
+# "frames", which the table shows)
+NUMBER_FIELDS = ("frames", "seconds", "fps", "steady_fps", "compile_seconds", "n_skipped")
+
+
+def stored_result(stored: Any, field: str, length: int | None = None) -> bool:
   """Whether a row file's content is a result of its kind: a row's ("metrics": its metrics,
-  and its per-frame AbsRel and metrics before divergence where present) or a lambda sweep's
-  ("sweep": one such result per lambda). A hand-edited file of the wrong kinds was served to
-  the table, which failed at its rendering, naming no file."""
+  all of them where its status is ok, its per-frame AbsRel, metrics before divergence, counts
+  and times where present) or a lambda sweep's ("sweep": one such result per lambda, `length`
+  of them, each with its frame count). A hand-edited file of the wrong kinds was served to the
+  table: cells left blank under an ok status, a sweep cut short shown as complete, or a failure
+  at its rendering naming no file."""
+  from pitta_jax.outputs import json_number
   if not isinstance(stored, dict):
     return False
   results = stored.get(field)
   if field == "metrics":
     results = [stored]
-  if not isinstance(results, list) or not results:
+  if not isinstance(results, list) or not results or (
+      length is not None and len(results) != length):
     return False
   return all(isinstance(r, dict) and _metric_values(r.get("metrics"))
+             and (r.get("status", "ok") != "ok" or bool(r["metrics"]))
              and (r.get("metrics_before_divergence") is None
                   or _metric_values(r["metrics_before_divergence"]))
              and _per_frame_values(r.get("abs_rel_per_frame", []))
-             and isinstance(r.get("status", ""), str) for r in results)
+             and isinstance(r.get("status", ""), str)
+             and all(json_number(r[k]) for k in NUMBER_FIELDS if k in r)
+             and (field != "sweep" or (isinstance(r.get("frames"), int)
+                                       and "abs_rel_per_frame" in r)) for r in results)
 
 
 def check_out(ctx: Context) -> None:
@@ -482,9 +503,11 @@ def check_out(ctx: Context) -> None:
     raise removed_while_running(ctx.out)
 
 
-def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "metrics") -> dict:
+def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "metrics",
+           length: int | None = None) -> dict:
   """The row result stored under `key`, computed (and stored atomically) when absent or not a
-  result (`stored_result`: a row's "metrics", a lambda sweep's "sweep"), with a warning then."""
+  result (`stored_result`: a row's "metrics", a lambda sweep's "sweep" of `length` entries),
+  with a warning then."""
   from pitta_jax.outputs import atomic_write_text, json_safe
   path = ctx.out / "rows" / f"{key}.json"
   if path.is_file():
@@ -492,7 +515,7 @@ def cached(ctx: Context, key: str, compute: Callable[[], dict], field: str = "me
       stored = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
       stored = None  # a torn file cannot exist (atomic writes); a hand-edited one is recomputed
-    if stored_result(stored, field):
+    if stored_result(stored, field, length):
       return stored
     print(f"warning: {path}: not a stored row result (edited or damaged); computing the row "
           f"again", file=sys.stderr)
@@ -658,8 +681,9 @@ def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthe
   if rows:
     p.add_argument("--rows", default="",
                    help="comma-separated row names (or parts of them, case-insensitive), "
-                        "or whole method, network or group names: compute only these rows, "
-                        "e.g. --rows 'No adaptation,PITTA' (default: all)")
+                        "or whole method, network or test case names (e.g. Foggy): compute "
+                        "only these rows, e.g. --rows 'No adaptation,PITTA' (default: all); "
+                        "an entry that selects no row is an error")
   from pitta_jax.config_cli import add_config_arguments
   from pitta_jax.run import EvalConfig
   add_config_arguments(p, EvalConfig, "eval", "evaluation (every row of the table)")
@@ -721,6 +745,9 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
       raise DataError(None, f"--weights {item}: no directory (NAME=DIR, or DIR alone for a "
                             f"monodepth2)")
     model = model or "monodepth2"
+    if model in weights:  # (the last one had silently won)
+      raise DataError(None, f"--weights {item}: {model} weights given twice ({weights[model]} "
+                            f"and {directory}): one directory per network")
     if model not in MODELS:
       raise DataError(None, f"--weights {item}: unknown network {model!r} "
                             f"(use {', '.join(MODELS)})")
@@ -737,7 +764,11 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
     raise DataError(None, f"--frames must be >= 1, got {args.frames}")
   frames = args.frames or (QUICK_FRAMES if args.quick else (FRAMES if args.dataset == "synthetic"
                                                             else 0))
-  out = Path(args.out or Path("experiments_out") / name)
+  if args.dataset == "synthetic":
+    check_synthetic_frames(frames)
+  if args.out is not None and not str(args.out).strip():  # (Path("") is the working directory)
+    raise DataError(None, "--out: an empty path")
+  out = Path(args.out if args.out is not None else Path("experiments_out") / name)
   try:  # (exists() itself raises for a name too long)
     if out.exists() and not out.is_dir():
       raise DataError(None, f"--out {out}: exists and is not a directory")  # as open_output_dir
@@ -759,6 +790,18 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
   return Context(args.dataset, args.root, list(args.option), args.segmentation, weights, out,
                  args.quick, frames, args.quiet, args.source_images, args.replay_root,
                  runners, rows, eval_cfg=eval_cfg, name=name, out_check=held.check)
+
+
+def check_synthetic_frames(frames: int) -> None:
+  """DataError naming --frames when a synthetic test case's part of `frames` frames drives
+  beyond the street the renderer draws exactly (`SyntheticConfig`'s limit), before any work."""
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.synthetic import SyntheticConfig
+  for part in {repr(p): p for parts in SYNTHETIC.values() for p in parts}.values():
+    try:
+      SyntheticConfig(height=QUICK_SIZE[0], width=QUICK_SIZE[1], num_frames=frames, **part)
+    except ValueError as e:
+      raise DataError(None, f"--frames {frames}: {str(e).removeprefix('num_frames: ')}") from None
 
 
 def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,

@@ -66,13 +66,17 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   lengths = QUICK["lengths"] if ctx.quick else LENGTHS
   ctx.frames = max(ctx.frames, max(lengths)) if not args.frames else ctx.frames
+  runs = [(study, setting, row, "fog" if part is CASE else "fog, dense traffic", (part,))
+          for study, setting, row, part in grid(ctx.quick)]
+  # what the runs need, before any work and before the earlier study's files go: flags it
+  # cannot use (--weights of another network), the weights themselves
+  common.check_flags_used(ctx, [row for _, _, row, _, _ in runs])
+  common.check_rows(ctx, [(case, parts, row) for _, _, row, case, parts in runs])
   common.clear_earlier_table(ctx)
   shared, resources, results = common.runners(ctx), {}, []
-  for study, setting, row, part in tqdm(grid(ctx.quick), desc="runs", unit="run",
-                                        disable=ctx.quiet):
-    e = common.run_row(ctx, row, "fog" if part is CASE else "fog, dense traffic", (part,),
-                       shared, resources)
-    results.append((study, setting, e))
+  for study, setting, row, case, parts in tqdm(runs, desc="runs", unit="run",
+                                               disable=ctx.quiet):
+    results.append((study, setting, common.run_row(ctx, row, case, parts, shared, resources)))
   weights = common.weights_for(ctx, "monodepth2")
   lams = LAMBDAS  # Table 4's 12, one vmapped run
   row = RowSpec("lambda sweep", "pitta", method_config=(("lam", lams),))
@@ -82,7 +86,7 @@ def run(args, runners=None) -> int:
       weights, common.case_frames(ctx, (CASE,), weights.height, weights.width), lams,
       ctx.quiet, ctx.quick, shared, common.checkpoints(ctx, key), ctx.evaluation(),
       lambda: common.check_out(ctx))},
-      field="sweep")["sweep"]
+      field="sweep", length=len(lams))["sweep"]
   common.remove_checkpoints(ctx, key)
   ref = results[0][2]
   dense_ref = next(e for s, n, e in results if n == "dense: reference")

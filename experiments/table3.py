@@ -82,7 +82,8 @@ def run(args, runners=None) -> int:
   cases = dict(ctx.cases(("Sunny", "All")))
   shared, resources, entries = common.runners(ctx), {}, []
   todo = selected(ctx)
-  common.check_selection(ctx, todo, [x for g, _, r in rows() for x in (g, r.label)])
+  common.check_selection(ctx, todo, [x for g, _, r in rows() for x in (g, r.label)],
+                         [(f"{g}: {r.label}", r.model, r.method) for g, _, r in rows()])
   common.check_flags_used(ctx, [r for _, _, r in rows()], [r for _, _, r in todo])
   common.check_rows(ctx, [(c, cases[c], r) for _, c, r in todo])
   for group, case, row in tqdm(todo, desc="rows", unit="row", disable=ctx.quiet):

@@ -158,39 +158,39 @@ def run(args, runners=None) -> int:
   elapsed = common.timer()
   (case, parts), = ctx.cases(("Waymo",))
   weights = common.weights_for(ctx, "monodepth2")
-  if weights is not None:  # the sweep's frames opened (paths only) before any work
-    common.no_instances(ctx, [(case, parts, RowSpec("PITTA", "pitta"))],
-                        common.check_cases(ctx, [(case, parts)]))
+  if weights is None:  # a table of 'needs weights' only is not a result (`check_rows`)
+    from pitta_jax.data.errors import DataError
+    raise DataError(None, f"no weights for the sweep: --weights monodepth2=DIR (on "
+                          f"{ctx.dataset} no network is trained for you)")
+  # the sweep's frames opened (paths only) before any work
+  common.no_instances(ctx, [(case, parts, RowSpec("PITTA", "pitta"))],
+                      common.check_cases(ctx, [(case, parts)]))
   common.clear_earlier_table(ctx)
-  if weights is None:
-    entries = [Entry(case, label(lam), {}, status="needs weights: --weights DIR",
-                     extra={"lambda": lam}) for lam in LAMBDAS]
-  else:
-    row = RowSpec("lambda sweep", "pitta", method_config=(("lam", LAMBDAS),))
-    key = common.row_key(ctx, row, case, parts, common.weights_identity(ctx, "monodepth2",
-                                                                        weights))
+  row = RowSpec("lambda sweep", "pitta", method_config=(("lam", LAMBDAS),))
+  key = common.row_key(ctx, row, case, parts, common.weights_identity(ctx, "monodepth2",
+                                                                      weights))
 
-    def compute():
-      frames = common.case_frames(ctx, parts, weights.height, weights.width)
-      took = common.timer()
-      sweep = lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick, common.runners(ctx),
-                           common.checkpoints(ctx, key), ctx.evaluation(),
-                           lambda: common.check_out(ctx))
-      return {"sweep": sweep, "seconds": round(took(), 2)}
-    cached = common.cached(ctx, key, compute, field="sweep")
-    common.remove_checkpoints(ctx, key)
-    # one vmapped run computes every lambda: each row's seconds are the whole sweep's
-    # what each stream ran with (lambda_sweep's AdaptConfig, PITTA's config at that lambda)
-    adapt = dataclasses.asdict(common.adapt_config("pitta", quick=ctx.quick))
-    from pitta_jax.methods.pitta import PittaConfig
-    pitta = PittaConfig()
-    entries = [Entry(case, label(lam), r["metrics"], status=r.get("status", "ok"), extra={
-        "lambda": lam, "frames": r["frames"], "seconds": cached.get("seconds"),
-        "metrics_before_divergence": r.get("metrics_before_divergence"),
-        "abs_rel_per_frame": r["abs_rel_per_frame"], "adapt": adapt,
-        "method_config": dataclasses.asdict(dataclasses.replace(pitta, lam=lam)),
-        "row_key": key})
-        for lam, r in zip(LAMBDAS, cached["sweep"])]
+  def compute():
+    frames = common.case_frames(ctx, parts, weights.height, weights.width)
+    took = common.timer()
+    sweep = lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick, common.runners(ctx),
+                         common.checkpoints(ctx, key), ctx.evaluation(),
+                         lambda: common.check_out(ctx))
+    return {"sweep": sweep, "seconds": round(took(), 2)}
+  cached = common.cached(ctx, key, compute, field="sweep", length=len(LAMBDAS))
+  common.remove_checkpoints(ctx, key)
+  # one vmapped run computes every lambda: each row's seconds are the whole sweep's
+  # what each stream ran with (lambda_sweep's AdaptConfig, PITTA's config at that lambda)
+  adapt = dataclasses.asdict(common.adapt_config("pitta", quick=ctx.quick))
+  from pitta_jax.methods.pitta import PittaConfig
+  pitta = PittaConfig()
+  entries = [Entry(case, label(lam), r["metrics"], status=r.get("status", "ok"), extra={
+      "lambda": lam, "frames": r["frames"], "seconds": cached.get("seconds"),
+      "metrics_before_divergence": r.get("metrics_before_divergence"),
+      "abs_rel_per_frame": r["abs_rel_per_frame"], "adapt": adapt,
+      "method_config": dataclasses.asdict(dataclasses.replace(pitta, lam=lam)),
+      "row_key": key})
+      for lam, r in zip(LAMBDAS, cached["sweep"])]
   common.attach_paper(entries, 4, lambda e: {"lambda": e.extra["lambda"]})
   caption = (f"PITTA's lambda of eq. 10 (AbsRel, δ<1.25), 12 streams in one vmapped run (each "
              f"row's seconds are that run's). Best bold, second underlined (ours: the paper's "

@@ -17,8 +17,9 @@ def run_grid(ctx: Context, rows: Sequence[RowSpec], cases: Sequence[str],
   are not run. One compile cache serves the whole table."""
   from experiments.common import check_flags_used, check_rows, check_selection
   todo = [(case, parts, row) for case, parts in ctx.cases(cases) for row in rows
-          if (case, row.label) not in skip and ctx.wants(row.label, row.method, row.model)]
-  check_selection(ctx, todo, [row.label for row in rows])
+          if (case, row.label) not in skip and ctx.wants(row.label, row.method, row.model, case)]
+  check_selection(ctx, todo, [row.label for row in rows],
+                  [(row.label, row.method, row.model, case) for case in cases for row in rows])
   check_flags_used(ctx, rows, [row for _, _, row in todo])
   check_rows(ctx, todo)
   shared = runners(ctx)

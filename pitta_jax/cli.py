@@ -243,7 +243,7 @@ def _run_demo(args) -> int:
             file=sys.stderr)
   from pitta_jax.outputs import open_output_dir
   from pitta_jax.report import check_results_owner
-  with open_output_dir(demo.out) as held:  # checked and locked before any work
+  with open_output_dir(demo.out, "--demo.out") as held:  # checked and locked before any work
     check_results_owner(demo.out, "demo")
     enable_compilation_cache()  # the process's choice, made here, not by the library
     if args.retrain:

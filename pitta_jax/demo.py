@@ -79,6 +79,11 @@ class DemoConfig:
     check(not bad and bool(self.shifts),
           f"shifts {bad or '()'} invalid: choose from {', '.join(DOMAINS[1:])}")
     check(self.num_frames >= 1, f"num_frames must be >= 1, got {self.num_frames}")
+    try:  # frames beyond the street the renderer draws exactly: refused before any work
+      from pitta_jax.data.synthetic import SyntheticConfig
+      SyntheticConfig(num_frames=self.num_frames)
+    except ValueError as e:
+      check(False, str(e))
     check(self.target_seed >= 0, f"target_seed must be >= 0, got {self.target_seed}")
     check(0.0 <= self.severity <= 1.0, f"severity must be in [0, 1], got {self.severity}")
     bad_rows = [m for m in self.methods if m not in ROWS]

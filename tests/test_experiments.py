@@ -161,16 +161,24 @@ def test_cached_rows_are_computed_once(tmp_path, capsys):
   ctx = common.Context("synthetic", None, [], "gt", {}, tmp_path, True, 2, True)
   calls = []
 
+  from pitta_jax.metrics import METRIC_NAMES
+  full = dict.fromkeys(METRIC_NAMES, 0.5) | {"a1": None}
+
   def compute():
     calls.append(1)
-    return {"metrics": {"abs_rel": 0.5, "a1": None}, "abs_rel_per_frame": [0.4, None]}
+    return {"metrics": full, "abs_rel_per_frame": [0.4, None], "frames": 2, "seconds": 1.5}
   assert common.cached(ctx, "k", compute) == common.cached(ctx, "k", compute)
   assert len(calls) == 1 and (tmp_path / "rows" / "k.json").is_file()
   # a row file that is JSON but not a row (hand-edited, another tool's, values of the wrong
   # kind: the table failed at rendering, naming no file) is computed again, with a warning
   texts = ("{}", "[1]", '{"metrics": 3}', "\xff", '{"metrics": {"abs_rel": "garbage"}}',
            '{"metrics": {"abs_rel": true}}', '{"metrics": {}, "abs_rel_per_frame": ["x"]}',
-           '{"metrics": {}, "metrics_before_divergence": [1]}', '{"metrics": {}, "status": 1}')
+           '{"metrics": {}, "metrics_before_divergence": [1]}', '{"metrics": {}, "status": 1}',
+           # metrics not of a row (served with status ok and blank cells), an ok row without
+           # metrics, counts and times that are not numbers (written into the CSV)
+           '{"metrics": {"bogus": 1.0}}', '{"metrics": {"abs_rel": 0.5}}', '{"metrics": {}}',
+           json.dumps({"metrics": full, "frames": "lots"}),
+           json.dumps({"metrics": full, "seconds": "abc"}))
   for text in texts:
     (tmp_path / "rows" / "k.json").write_text(text)
     assert common.cached(ctx, "k", compute) == compute()
@@ -181,14 +189,20 @@ def test_cached_rows_are_computed_once(tmp_path, capsys):
   # a lambda sweep's result (Table 4, the sensitivity study) is {"sweep": [...]}: cached too
   # (it was recomputed on every run: the check asked for "metrics")
   calls.clear()
-  sweep = lambda: calls.append(1) or {"sweep": [{"metrics": {"abs_rel": 0.4}}], "seconds": 3.0}
-  assert common.cached(ctx, "s", sweep, field="sweep") == common.cached(ctx, "s", sweep,
-                                                                          field="sweep")
+  one = {"metrics": full, "frames": 2, "abs_rel_per_frame": [0.4, 0.5]}
+  sweep = lambda: calls.append(1) or {"sweep": [one, one], "seconds": 3.0}
+  assert common.cached(ctx, "s", sweep, field="sweep", length=2) == common.cached(
+      ctx, "s", sweep, field="sweep", length=2)
   assert len(calls) == 1
-  for text in ('{"sweep": []}', '{"sweep": [{"metrics": {"abs_rel": "x"}}]}'):
+  # a sweep cut short (served as complete: Table 4 showed 3 of its 12 lambdas), an entry
+  # without its frame count or per-frame AbsRel (a KeyError traceback at the table)
+  bad = ('{"sweep": []}', '{"sweep": [{"metrics": {"abs_rel": "x"}}]}',
+         json.dumps({"sweep": [one]}), json.dumps({"sweep": [one, {**one, "frames": None}]}),
+         json.dumps({"sweep": [one, {k: v for k, v in one.items() if k != "abs_rel_per_frame"}]}))
+  for text in bad:
     (tmp_path / "rows" / "s.json").write_text(text)
-    common.cached(ctx, "s", sweep, field="sweep")
-  assert len(calls) == 3 and "not a stored row result" in capsys.readouterr().err
+    common.cached(ctx, "s", sweep, field="sweep", length=2)
+  assert len(calls) == 1 + len(bad) and "not a stored row result" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("replaced", [False, True])
@@ -353,6 +367,64 @@ def test_table_arguments_are_checked_before_work(tmp_path, capsys):
   with open_output_dir(tmp_path / "busy"):
     assert table1.main(["--quick", "--out", str(tmp_path / "busy")]) == 2
     assert "another pitta-jax run is writing there" in capsys.readouterr().err
+
+
+def test_rows_entries_each_select_a_row_and_may_name_a_test_case(tmp_path, monkeypatch):
+  """--rows Foggy computes the rows of test case Foggy (the help names test cases; it had
+  matched nothing); an entry that selects no row is an error also beside one that does (a
+  misspelt name had left its rows out, with exit 0)."""
+  from experiments import table1, tables
+  from pitta_jax.data.errors import DataError
+  ran = []
+  monkeypatch.setattr(common, "check_rows", lambda ctx, todo: None)
+  monkeypatch.setattr(tables, "run_row", lambda ctx, row, case, *a: ran.append((case, row.label)))
+  ctx = common.Context("synthetic", None, [], "gt", {}, tmp_path, True, 2, True, rows=("Foggy",))
+  tables.run_grid(ctx, table1.ROWS, ["Foggy", "Rainy"])
+  assert ran == [("Foggy", row.label) for row in table1.ROWS]
+  ran.clear()
+  for rows in (("No adaptation", "Nonexistent"), ("Nonexistent",)):
+    with pytest.raises(DataError, match="^--rows Nonexistent: matches none of this table's rows"):
+      tables.run_grid(dataclasses.replace(ctx, rows=rows), table1.ROWS, ["Foggy", "Rainy"])
+  assert ran == []
+
+
+def test_table_flags_refused_before_an_earlier_tables_files_go(tmp_path, capsys):
+  """Each refused with one line and exit 2, and an earlier table in --out stays: the same
+  network's --weights twice (the last had silently won); --frames beyond the street the
+  synthetic renderer draws (refused after the earlier table was removed, naming num_frames);
+  --out '' (had written to experiments_out/NAME); Table 4 on a real dataset without weights
+  (had written a table of 'needs weights', exit 0); the sensitivity study with weights of a
+  network it does not run, or weights that do not load."""
+  from experiments import sensitivity, table1, table2, table4
+  for d, arch in (("a", "monodepth2"), ("b", "monodepth2"), ("sg", "sgdepth")):
+    _model_json(tmp_path / d, arch)
+  out = tmp_path / "o"
+  out.mkdir()
+  earlier = {f"{name}.md": "earlier" for name in ("table1", "table4", "sensitivity")}
+  for name, text in earlier.items():
+    (out / name).write_text(text)
+  (tmp_path / "empty").mkdir()
+  cases = [
+      (table1, ["--quick", "--weights", str(tmp_path / "a"), "--weights",
+                f"monodepth2={tmp_path / 'b'}"],
+       f"error: --weights monodepth2={tmp_path / 'b'}: monodepth2 weights given twice "
+       f"({tmp_path / 'a'} and {tmp_path / 'b'}): one directory per network\n"),
+      (table1, ["--quick", "--frames", "1000000000000"],
+       "error: --frames 1000000000000: frames up to 1000000000000 drive 1e+11 s"),
+      (table4, ["--dataset", "waymo", "--root", str(tmp_path / "empty")],
+       "error: no weights for the sweep: --weights monodepth2=DIR (on waymo no network is "
+       "trained for you)\n"),
+      (sensitivity, ["--quick", "--weights", f"sgdepth={tmp_path / 'sg'}"],
+       f"error: --weights sgdepth={tmp_path / 'sg'}: this table has no sgdepth row"),
+      (sensitivity, ["--quick", "--weights", str(tmp_path / "a")],
+       f"error: {tmp_path / 'a' / 'depth'}")]
+  for module, args, want in cases:
+    assert module.main([*args, "--quiet", "--out", str(out)]) == 2, args
+    err = capsys.readouterr().err
+    assert err.startswith(want) and err.count("\n") == 1, (args, err)
+    assert {p.name: p.read_text() for p in out.glob("*.md")} == earlier, args
+  assert table2.main(["--quick", "--quiet", "--out", ""]) == 2
+  assert capsys.readouterr().err == "error: --out: an empty path\n"
 
 
 def _model_json(directory, architecture: str) -> None:

@@ -100,6 +100,22 @@ def test_demo_rows_keep_the_flags_given_and_refuse_a_method(capsys, tmp_path):
                                      "(e.g. --demo.methods none,bn,pitta,cotta)\n")
 
 
+def test_demo_frames_beyond_the_rendered_street_and_an_empty_out_are_named(capsys, tmp_path):
+  """--demo.num-frames beyond the street the synthetic renderer draws exactly is refused naming
+  the flag before any work (it had removed an earlier demo's results, then failed naming
+  num_frames); --demo.out '' names --demo.out (not --out)."""
+  out = tmp_path / "d"
+  out.mkdir()
+  (out / "results.json").write_text("{}")
+  assert main(["demo", "--demo.num-frames", "100000000", "--demo.out", str(out)]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("error: --demo.num-frames: frames up to 100000000 drive") and (
+      err.count("\n") == 1), err
+  assert (out / "results.json").read_text() == "{}"
+  assert main(["demo", "--demo.out", ""]) == 2
+  assert capsys.readouterr().err == "error: --demo.out: an empty path\n"
+
+
 def test_the_demo_notes_a_row_that_runs_with_a_flag_instead_of_its_own_setting(tmp_path,
                                                                              monkeypatch, capsys):
   """A flag given wins over a row's own setting (CoTTA adapts every parameter, selector all):
