@@ -13,17 +13,25 @@ from pitta_jax.metrics import MAX_DEPTH
 
 
 def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None = None,
-             colormap: int = cv2.COLORMAP_MAGMA) -> np.ndarray:
-  """(H, W) float -> (H, W, 3) uint8 RGB. Defaults: vmin = min, vmax = 95th percentile."""
-  values = np.asarray(values, np.float64)
+             colormap: str = "magma") -> np.ndarray:
+  """(H, W) float -> (H, W, 3) uint8 RGB. Defaults: vmin = min, vmax = 95th percentile.
+
+  As MonoDepth2's `test_simple.py` writes its disparity pictures: matplotlib's colour map
+  through `Normalize(vmin, vmax)` (values above vmax take its top colour), RGBA * 255 cut to
+  uint8; non-finite values take vmin's colour."""
+  import matplotlib
+  from matplotlib.colors import Normalize
+  values = np.asarray(values)
+  if not np.issubdtype(values.dtype, np.floating):
+    values = values.astype(np.float64)
   finite = np.isfinite(values)
   if not finite.any():
     return np.zeros(values.shape + (3,), np.uint8)
-  lo = float(np.min(values[finite])) if vmin is None else vmin
-  hi = float(np.percentile(values[finite], 95)) if vmax is None else vmax
-  scaled = np.clip((np.where(finite, values, lo) - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
-  bgr = cv2.applyColorMap((scaled * 255).astype(np.uint8), colormap)
-  return bgr[..., ::-1].copy()
+  lo = np.min(values[finite]) if vmin is None else vmin
+  hi = np.percentile(values[finite], 95) if vmax is None else vmax
+  mapped = matplotlib.colormaps[colormap](Normalize(vmin=lo, vmax=hi)(np.where(finite, values,
+                                                                               lo)))
+  return (mapped[..., :3] * 255).astype(np.uint8)
 
 
 def colorize_depth(depth: np.ndarray, max_depth: float = MAX_DEPTH) -> np.ndarray:
