@@ -43,6 +43,24 @@ def demo_out(tmp_path_factory):
   mp.undo()
 
 
+def test_a_long_demo_shift_is_rendered_as_its_rows_read_it(demo_out, tmp_path, monkeypatch):
+  """Beyond demo.RENDER_ONCE_FRAMES frames a shift is rendered as each row reads it (a shift of
+  a million frames had been rendered whole into memory first): the same frames, so the same
+  results as the demo fixture's shared frames."""
+  from pitta_jax import demo as demo_lib
+  from pitta_jax.data.synthetic import SyntheticSequence
+  seen = []
+  real = demo_lib.run_sequence
+  monkeypatch.setattr(demo_lib, "RENDER_ONCE_FRAMES", 0)
+  monkeypatch.setattr(demo_lib, "run_sequence", lambda weights, frames, *a, **k: seen.append(
+      type(frames)) or real(weights, frames, *a, **k))
+  result = run_demo(DemoConfig(shifts=("fog",), num_frames=3, methods=("none", "bn", "pitta"),
+                               out=str(tmp_path / "d")), AdaptConfig(), source=TINY, quiet=True)
+  assert seen and set(seen) == {SyntheticSequence}
+  assert [(r.group, r.method, r.metrics) for r in result["rows"]] == [
+      (r.group, r.method, r.metrics) for r in demo_out[1]["rows"]]
+
+
 @pytest.mark.parametrize("replaced", [False, True])
 def test_a_demo_whose_out_is_removed_stops_without_making_it_again(demo_out, tmp_path,
                                                                   monkeypatch, replaced):
