@@ -198,3 +198,28 @@ def test_a_non_finite_frame_does_not_enter_the_ring():
       np.testing.assert_array_equal(ring["items"][1], mean)
     else:
       assert np.all(np.isfinite(np.asarray(ring["items"])))
+
+
+def test_the_callers_source_statistics_survive_the_runners_donation():
+  """Statistics given as the caller's own JAX arrays are copied into the method state: the
+  runner donates its carry, and the caller's arrays had been deleted by the first chunk (a
+  second init_state with them then failed)."""
+  from tiny_net import TINY, tiny_variables
+  from pitta_jax.adapt import init_state
+  from pitta_jax.methods.actmad import RESOURCE, source_statistics
+  from pitta_jax.methods.base import INPUT_SIZE
+  variables = tiny_variables(0)
+  cfg = AdaptConfig(method="actmad", optimizer="sgd", lr=1e-4, bn_stats="running",
+                    selector="all")
+  method = build("actmad")
+  images = np.random.default_rng(0).uniform(size=(2, 64, 96, 3)).astype(np.float32)
+  stats = {k: (jnp.asarray(m), jnp.asarray(v))
+           for k, (m, v) in source_statistics(TINY, variables, [images]).items()}
+  state, _ = init_state(variables, method, cfg, make_optimizer(cfg, method), TINY,
+                        {INPUT_SIZE: (64, 96), RESOURCE: stats})
+  k = next(iter(stats))
+  assert state.method_state["source"][k][0] is not stats[k][0]
+  jax.block_until_ready(jax.jit(lambda s: jax.tree_util.tree_map(lambda x: x + 1, s),
+                                donate_argnums=0)(state.method_state))
+  assert all(np.isfinite(float(m.sum())) and np.isfinite(float(v.sum()))
+             for m, v in stats.values())

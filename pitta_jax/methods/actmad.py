@@ -194,7 +194,9 @@ def build(config: ActmadConfig = ActmadConfig()) -> Method:
           "actmad runs BatchNorm in eval mode: use bn_stats='running' (--bn-stats running)")
     check(RESOURCE in resources, f"actmad needs resources[{RESOURCE!r}] "
                                  "(methods.actmad.source_statistics of source images)")
-    source = {k: (jnp.asarray(m), jnp.asarray(v)) for k, (m, v) in resources[RESOURCE].items()}
+    # private copies: the runner donates the carry, which must not alias the caller's arrays
+    source = {k: (jnp.array(m, copy=True), jnp.array(v, copy=True))
+              for k, (m, v) in resources[RESOURCE].items()}
     return {"source": source,
             "rings": {k: ring_init(m, config.ring_size) for k, (m, _) in source.items()},
             "ld_weight": jnp.asarray(config.ld_weight, next(iter(source.values()))[0].dtype)}

@@ -356,7 +356,8 @@ def build(config: ComodaConfig = ComodaConfig()) -> Method:
           f"differs from --comoda.sfm.min-depth/max-depth "
           f"({config.sfm.min_depth}, {config.sfm.max_depth})")
     dtype = tree_dtype(parts.trainable)
-    images = jnp.asarray(resources[REPLAY_IMAGES], dtype)
+    # private copies: the runner donates the carry, which must not alias the caller's arrays
+    images = jnp.array(resources[REPLAY_IMAGES], dtype, copy=True)
     check(config.replay == 0 or images.shape[0] > 0, "comoda: the replay set is empty")
     check(images.shape[1] == config.window,
           f"comoda: replay windows of {images.shape[1]} frames, latency {config.latency} "
@@ -370,7 +371,7 @@ def build(config: ComodaConfig = ComodaConfig()) -> Method:
     return {"pose": pose,
             "ring": _frame_ring(images.shape[2:4], cfg.max_segments, 1 + config.latency, dtype),
             "replay_images": images,
-            "replay_K": jnp.asarray(resources[REPLAY_K], dtype),
+            "replay_K": jnp.array(resources[REPLAY_K], dtype, copy=True),
             "ld_weight": jnp.asarray(config.ld_weight, dtype)}
 
   def update(state, grads, loss_value, aux, rng, tx, cfg):
