@@ -78,3 +78,17 @@ def unrolled(key: jax.Array) -> jax.Array:
       return key
     key = jax.random.key_data(key)
   return jax.random.wrap_key_data(key, impl=UNROLLED_THREEFRY)
+
+
+def seed_key(seed: int) -> jax.Array:
+  """`jax.random.PRNGKey(seed)` as it is with 64-bit seeds (`jax_enable_x64`), whatever that
+  setting: the key (seed >> 32, seed mod 2^32). Without x64, PRNGKey keeps the low 32 bits, so
+  seed 2^32 + 7 drew seed 7's numbers; below 2^32 both give PRNGKey's key. `seed` in [0, 2^63)
+  (`configs.check_seed`)."""
+  from pitta_jax.configs import check_seed
+  check_seed(seed)
+  if seed < 2**32:
+    return jax.random.PRNGKey(seed)
+  if jax.random.PRNGKey(0).shape != (2,):
+    raise ValueError(f"seed {seed}: seeds from 2^32 on need JAX's default threefry PRNG")
+  return jnp.asarray(np.array([seed >> 32, seed & 0xFFFFFFFF], np.uint32))

@@ -63,6 +63,7 @@ from pitta_jax.models.pose import transformation_from_parameters
 from pitta_jax.outputs import atomic_write_bytes, atomic_write_text
 from pitta_jax.models.random_init import jit_init
 from pitta_jax.nonsmooth import absolute
+from pitta_jax.prng import seed_key
 
 CACHE_ENV = "PITTA_JAX_CACHE"
 # Bump when the training recipe changes, so old caches are not reused. 2: the pose network is
@@ -372,7 +373,7 @@ def train_source(cfg: SourceConfig = SourceConfig(), quiet: bool = False
 
   variables, losses = _fit(spec.build(cfg.network_config()), images[:1],
                            partial(supervised_loss, to_depth=spec.to_depth), depth_batch,
-                           cfg.steps, cfg.lr, jax.random.PRNGKey(cfg.seed),
+                           cfg.steps, cfg.lr, seed_key(cfg.seed),
                            f"train source {cfg.model} (clear)", quiet)
   t_depth = time.perf_counter() - t0 - t_data
   report = {"config": dataclasses.asdict(cfg), "train_frames": int(len(images)),
@@ -393,7 +394,7 @@ def train_source(cfg: SourceConfig = SourceConfig(), quiet: bool = False
     pose_variables, pose_losses = _fit(
         spec.build_pose(cfg.network_config()), np.zeros((1, cfg.height, cfg.width, 6)),
         pose_loss, pose_batch, cfg.pose_steps, cfg.lr,
-        jax.random.fold_in(jax.random.PRNGKey(cfg.seed), 1), f"train pose net {cfg.model}",
+        jax.random.fold_in(seed_key(cfg.seed), 1), f"train pose net {cfg.model}",
         quiet)
     report.update({"pose_train_seconds": round(time.perf_counter() - t1, 1),
                    "pose_loss_first_20": float(np.mean(pose_losses[:20])),

@@ -67,3 +67,20 @@ def test_split_fold_in_and_vmap_unchanged():
 def test_other_implementations_pass_through():
   key = jax.random.key(0, impl="rbg")
   assert prng.unrolled(key) is key
+
+
+def test_seeds_from_2_32_on_are_keys_of_their_own():
+  """prng.seed_key (the engine's, the streams' and the source model's key of a seed) is
+  jax.random.PRNGKey's key with 64-bit seeds whether or not x64 is on: without x64 PRNGKey kept
+  the low 32 bits, so seed 2^32 + 7 ran exactly as seed 7. Seeds below 2^32 keep PRNGKey's own
+  key; a negative seed (init_streams took one unchecked) is refused."""
+  from pitta_jax.prng import seed_key
+  for seed in (0, 7, 2**32 - 1):
+    np.testing.assert_array_equal(seed_key(seed), jax.random.PRNGKey(seed))
+  assert not np.array_equal(seed_key(2**32 + 7), seed_key(7))
+  assert not np.array_equal(seed_key(2**40), seed_key(0))
+  with jax.enable_x64(True):
+    for seed in (2**32, 2**32 + 7, 2**62 + 5):
+      np.testing.assert_array_equal(seed_key(seed), jax.random.PRNGKey(seed))
+  with pytest.raises(ValueError, match=r"seed must be in \[0, 2\^63\), got -5"):
+    seed_key(-5)

@@ -26,6 +26,7 @@ import optax
 from flax import struct
 
 from pitta_jax import trainable as trainable_lib
+from pitta_jax.prng import seed_key
 from pitta_jax.adapt.config import AdaptConfig
 from pitta_jax.adapt.hoist import hoist_invariants
 from pitta_jax.adapt.xla_cpu import step_compiler_options
@@ -125,7 +126,7 @@ def init_state(variables: Tree, method: Method, cfg: AdaptConfig,
       trainable=tr, opt_state=tx.init(tr),
       method_state=method.init(model, parts, cfg, dict(resources or {})),
       source=jax.tree_util.tree_map(jnp.copy, tr),  # distinct buffers: the carry is donated
-      step=jnp.zeros((), jnp.int32), rng=jax.random.PRNGKey(cfg.seed),
+      step=jnp.zeros((), jnp.int32), rng=seed_key(cfg.seed),
       n_skipped=jnp.zeros((), jnp.int32))
   consts = Consts(jax.tree_util.tree_map(jnp.asarray, parts.frozen),
                   jax.tree_util.tree_map(jnp.asarray, parts.batch_stats))

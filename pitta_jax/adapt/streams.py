@@ -42,6 +42,7 @@ from pitta_jax.adapt.engine import (AdaptState, Consts, StepInput, init_state, m
 from pitta_jax.methods import build as build_method
 from pitta_jax.methods.base import Method
 from pitta_jax.methods.pitta import PittaConfig
+from pitta_jax.prng import seed_key
 
 Tree = Any
 
@@ -90,7 +91,7 @@ def init_streams(variables: Tree, method: Method, cfg: AdaptConfig, num: int,
   if len(seeds) != num:
     raise ValueError(f"{len(seeds)} seeds for {num} streams")
   base, consts = init_state(variables, method, cfg, tx, model, resources)
-  return stack_streams([base.replace(rng=jax.random.PRNGKey(s)) for s in seeds]), consts
+  return stack_streams([base.replace(rng=seed_key(s)) for s in seeds]), consts
 
 
 def stack_stream_inputs(inputs: Sequence[StepInput]) -> StepInput:
