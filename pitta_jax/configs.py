@@ -64,10 +64,14 @@ def check_types(config: Any) -> None:
   """Each field annotated with a simple type (int, float, bool, str, or one of them | None)
   holds one (ValueError naming the field): `chunk_size=2.5` or `skip_nonfinite="no"` (truthy:
   the guard stayed on) were taken before. A float field takes an int; a bool is not a
-  number here. Other annotations are the config's own to check."""
+  number here. A NumPy scalar that fits becomes the Python value. Other annotations are the
+  config's own to check."""
   hints = typing.get_type_hints(type(config))
   for field in dataclasses.fields(config):
     want, value = hints.get(field.name), getattr(config, field.name)
+    if isinstance(want, type) and dataclasses.is_dataclass(want):  # a nested config (ld, sfm)
+      check(isinstance(value, want), f"{field.name} must be a {want.__name__}, got {value!r}")
+      continue
     union = isinstance(want, types.UnionType) or typing.get_origin(want) is typing.Union
     allowed = typing.get_args(want) if union else (want,)
     if value is None and type(None) in allowed:
@@ -78,3 +82,5 @@ def check_types(config: Any) -> None:
     check(any(_SIMPLE_TYPES[a][0](value) for a in kinds),
           f"{field.name} must be {' or '.join(_SIMPLE_TYPES[a][1] for a in kinds)}"
           f"{' or unset' if type(None) in allowed else ''}, got {value!r}")
+    if isinstance(value, np.generic):  # np.float32(0.25) -> 0.25: the config's later checks,
+      object.__setattr__(config, field.name, value.item())  # its hash and its JSON as given

@@ -292,7 +292,13 @@ def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: in
   """
   masks_lib.check_mode(mode)
   if impl in IMPLS and jnp.size(dynamic_ids) == 0:  # no instance table: no term (eq. 8)
-    return jnp.zeros((), as_float(depth).dtype)
+    depth = as_float(depth)  # the inputs checked as with a table (not hidden by its absence)
+    panoptic = masks_lib.segment_id_array(panoptic, "panoptic")
+    masks_lib.segment_id_array(dynamic_ids, "dynamic_ids")
+    if depth.ndim != 2 or panoptic.shape != depth.shape:
+      raise ValueError(f"depth {depth.shape} and panoptic {panoptic.shape} must be the same "
+                       f"(H, W)")
+    return jnp.zeros((), depth.dtype)
   inst_ids, inst_valid = masks_lib.table_from_dynamic_ids(dynamic_ids)
   if impl == "literal":
     masks = masks_lib.instance_masks(panoptic, inst_ids, inst_valid, mode)  # (N_max, H, W)

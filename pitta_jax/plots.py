@@ -23,7 +23,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from pitta_jax.configs import check, option
+from pitta_jax.configs import check, is_number, option
 from pitta_jax.outputs import atomic_write_bytes
 from pitta_jax.report import HEADERS
 
@@ -44,7 +44,7 @@ class PlotConfig:
   def __post_init__(self):
     for name in ("fig_width", "fig_height"):
       value = getattr(self, name)
-      check(isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
+      check(is_number(value) and math.isfinite(value) and value > 0,
             f"{name} must be a finite number > 0, got {value!r}")
     check(isinstance(self.dpi, int) and self.dpi >= 10, f"dpi must be an integer >= 10, got "
                                                        f"{self.dpi!r}")

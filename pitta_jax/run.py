@@ -26,7 +26,7 @@ from pitta_jax.adapt import (AdaptConfig, adapt_stream, init_state, load_state,
                              make_method_runner, make_optimizer, save_state)
 from pitta_jax.adapt.inputs import chunks
 from pitta_jax.checkpoint import Weights, saves_running
-from pitta_jax.configs import check, check_types, option
+from pitta_jax.configs import check, check_types, is_number, option
 from pitta_jax.methods import Method, build as build_method
 from pitta_jax.methods.base import INPUT_SIZE, METRIC_FACTOR
 from pitta_jax.methods.depth_refining import dynamic_classes
@@ -61,7 +61,7 @@ class EvalConfig:
 
   def __post_init__(self):
     check_types(self)
-    check(isinstance(self.min_depth, (int, float)) and isinstance(self.max_depth, (int, float))
+    check(is_number(self.min_depth) and is_number(self.max_depth)
           and 0 <= self.min_depth < self.max_depth < float("inf"),
           f"need 0 <= min_depth < max_depth < inf, got min_depth={self.min_depth} "
           f"max_depth={self.max_depth}")

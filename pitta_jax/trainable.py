@@ -56,7 +56,8 @@ def parse_selector(text: str) -> Selector:
   text = text.strip().replace(" ", "")
   if text in ("encoder_bn", "encoder_ln", "all", "no_bn"):
     return Selector(text)
-  m = re.fullmatch(r"fraction\(cnn=([\d.]+),bn=([\d.]+)\)|cnn([\d.]+)_bn([\d.]+)", text)
+  number = r"(\d+(?:\.\d*)?|\.\d+)"  # a percentage: 20, 12.5, .5 (not 1.2.3)
+  m = re.fullmatch(rf"fraction\(cnn={number},bn={number}\)|cnn{number}_bn{number}", text)
   if not m:
     raise ValueError(f"cannot parse selector {text!r}; use encoder_bn, encoder_ln, all, no_bn, "
                      f"or fraction(cnn=A,bn=B) with percentages A, B")

@@ -415,3 +415,17 @@ def test_literal_loss_from_index_refuses_a_non_scalar_n():
     with pytest.raises(ValueError, match="n .* must be a scalar"):
       losses.depth_refining_loss_from_index(depth, index, jnp.array([True, True, False]), s=3,
                                             impl=impl, n_max=3)
+
+
+def test_an_empty_instance_table_still_checks_the_inputs():
+  """With no dynamic ids (a frame without instances) L_d is 0, but a batched depth, a float
+  panoptic map or maps of another size are refused as with a table (they returned 0)."""
+  empty = np.zeros((0,), np.int32)
+  assert float(losses.depth_refining_loss(jnp.ones((6, 8)), np.zeros((6, 8), np.int32),
+                                          empty)) == 0.0
+  with pytest.raises(ValueError, match=r"depth \(2, 6, 8\) and panoptic \(6, 8\) must be"):
+    losses.depth_refining_loss(jnp.ones((2, 6, 8)), np.zeros((6, 8), np.int32), empty)
+  with pytest.raises(ValueError, match=r"depth \(6, 8\) and panoptic \(3, 3\) must be"):
+    losses.depth_refining_loss(jnp.ones((6, 8)), np.zeros((3, 3), np.int32), empty)
+  with pytest.raises(TypeError, match="panoptic must be an integer array"):
+    losses.depth_refining_loss(jnp.ones((6, 8)), np.zeros((6, 8), np.float32), empty)

@@ -65,3 +65,38 @@ def test_an_unhashable_global_is_held_by_the_runners_key():
   gc.collect()
   assert held() is not None  # the key keeps the old value alive, so its id is not reused
   assert code_key(namespace["f"]) != first
+
+
+def test_configs_take_numpy_scalars_and_check_nested_configs_and_selectors():
+  """A NumPy scalar that fits a number field is taken as its Python value (np.float32(0.25)
+  was refused as 'lam must be >= 0'); a nested config field holds its config (ld=None was
+  taken and failed when the step was traced); dynamic_classes must be a tuple (3 was a
+  TypeError without the field, 'car' was read letter by letter); a selector percentage like
+  1.2.3 is the selector's own one-line error (it was float()'s)."""
+  import numpy as np
+  import pytest
+  from pitta_jax.adapt import AdaptConfig
+  from pitta_jax.methods.adadepth import AdadepthConfig
+  from pitta_jax.methods.comoda import ComodaConfig
+  from pitta_jax.methods.cotta import CottaConfig
+  from pitta_jax.methods.depth_refining import DepthRefiningConfig
+  from pitta_jax.methods.pitta import PittaConfig
+  from pitta_jax.run import EvalConfig
+  for config, field, value in [(PittaConfig(lam=np.float32(0.25)), "lam", 0.25),
+                               (CottaConfig(brightness=np.float32(0.25)), "brightness", 0.25),
+                               (AdadepthConfig(variance_focus=np.float64(0.5)),
+                                "variance_focus", 0.5),
+                               (EvalConfig(max_depth=np.float32(80)), "max_depth", 80.0),
+                               (AdaptConfig(chunk_size=np.int64(4)), "chunk_size", 4)]:
+    got = getattr(config, field)
+    assert got == value and type(got) is type(value), (field, got)
+  for make, message in [(lambda: PittaConfig(ld=None), "ld must be a DepthRefiningConfig"),
+                        (lambda: ComodaConfig(sfm="x"), "sfm must be a SfmLossConfig"),
+                        (lambda: DepthRefiningConfig(dynamic_classes=3),
+                         "dynamic_classes must be a tuple of COCO ids or names, got 3"),
+                        (lambda: DepthRefiningConfig(dynamic_classes="car"),
+                         "dynamic_classes must be a tuple of COCO ids or names, got 'car'"),
+                        (lambda: AdaptConfig(selector="fraction(cnn=1.2.3,bn=5)"),
+                         "cannot parse selector")]:
+    with pytest.raises(ValueError, match=message):
+      make()

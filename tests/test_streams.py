@@ -327,3 +327,15 @@ def test_sharded_streams_equal_unsharded_run(multi_run, tmp_path):
       assert float(np.max(d, initial=0.0)) <= tol, (key, float(np.max(d)), tol)
   print(f"sharded vs unsharded: bitwise identical {bitwise}; max scale-relative diff per "
         f"tolerance class: {worst}")
+
+
+def test_a_lambda_sweep_takes_the_lambdas_pittas_config_takes():
+  """Stream k is PITTA with lam = lams[k]: a negative or NaN lambda (maximised L_e, or skipped
+  every update) and a lambda table that is not 1-D (lam of shape (1, 2)) are refused before
+  any work, as PittaConfig refuses them."""
+  from pitta_jax.adapt.streams import init_lambda_sweep
+  for lams, message in [([0.1, -1.0], "lam must be >= 0"), ([float("nan")], "lam must be >= 0"),
+                        ([[0.1, 0.2]], "lams must be a non-empty 1-D sequence"),
+                        ([], "lams must be a non-empty 1-D sequence")]:
+    with pytest.raises(ValueError, match=message):
+      init_lambda_sweep({}, lams, AdaptConfig())

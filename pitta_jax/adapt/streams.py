@@ -138,6 +138,11 @@ def init_lambda_sweep(variables: Tree, lams: Sequence[float], cfg: AdaptConfig,
   Returns:
     (multi-stream AdaptState with method_state {"lam": (K,)}, the shared Consts).
   """
+  lams = list(np.asarray(lams, dtype=object).reshape(-1)) if np.ndim(lams) == 1 else None
+  if not lams:
+    raise ValueError("lams must be a non-empty 1-D sequence of lambdas, one per stream")
+  for lam in lams:  # each stream is PITTA at that lambda: a lambda its config refuses is refused
+    dataclasses.replace(pitta, lam=lam)
   tx = tx or make_optimizer(cfg)
   base, consts = init_state(variables, build_method("pitta", pitta), cfg, tx, model)
   dtype = base.method_state["lam"].dtype  # the parameters' float type

@@ -68,7 +68,7 @@ import optax
 from flax import struct
 
 from pitta_jax import trainable as trainable_lib
-from pitta_jax.configs import check, check_types, finite, option
+from pitta_jax.configs import check, check_types, is_number, finite, option
 from pitta_jax.dtypes import tree_dtype
 from pitta_jax.methods.base import (INPUT_SIZE, METRIC_FACTOR, POSE, Aux, Method, ring_init,
                                     ring_push, ring_restart, variables_of)
@@ -120,7 +120,7 @@ class AdadepthConfig:
     finite(self.label_min, "label_min", 0.0)
     check(0.0 <= self.top_fraction < 1.0,
           f"top_fraction must be in [0, 1), got {self.top_fraction}")
-    check(isinstance(self.variance_focus, (int, float)) and 0.0 <= self.variance_focus <= 1.0,
+    check(is_number(self.variance_focus) and 0.0 <= self.variance_focus <= 1.0,
           f"variance_focus must be in [0, 1], got {self.variance_focus!r}")
     finite(self.silog_factor, "silog_factor", 0.0)
     finite(self.ld_weight, "ld_weight", 0.0)

@@ -56,7 +56,7 @@ import optax
 
 from pitta_jax import nonsmooth, prng
 from pitta_jax import trainable as trainable_lib
-from pitta_jax.configs import check, check_types, finite, option
+from pitta_jax.configs import check, check_types, is_number, finite, option
 from pitta_jax.dtypes import tree_dtype
 from pitta_jax.methods.base import Aux, Method, variables_of
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
@@ -106,7 +106,7 @@ class CottaConfig:
     finite(self.lr, "lr", 0.0)
     for name in ("brightness", "contrast", "saturation", "gamma"):
       value = getattr(self, name)
-      check(isinstance(value, (int, float)) and 0.0 <= value < 1.0,
+      check(is_number(value) and 0.0 <= value < 1.0,
             f"{name} must be in [0, 1), got {value!r}")
     finite(self.blur_sigma_min, "blur_sigma_min", 0.0)
     check(0.0 < self.blur_sigma_min <= self.blur_sigma_max,

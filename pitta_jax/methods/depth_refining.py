@@ -46,6 +46,8 @@ class DepthRefiningConfig:
           f"loss_impl must be one of {', '.join(losses.IMPLS)}, got {self.loss_impl!r}")
     check(is_int(self.max_instances) and 1 <= self.max_instances <= MAX_INSTANCES,
           f"max_instances must be an int in 1..{MAX_INSTANCES}, got {self.max_instances!r}")
+    check(isinstance(self.dynamic_classes, (tuple, list)),
+          f"dynamic_classes must be a tuple of COCO ids or names, got {self.dynamic_classes!r}")
     check(len(self.dynamic_classes) > 0, "dynamic_classes must name at least one class")
     from pitta_jax.data import coco
     ids = []

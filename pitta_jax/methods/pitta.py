@@ -13,7 +13,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from pitta_jax.configs import check, check_types, option
+from pitta_jax.configs import check, check_types, is_number, option
 from pitta_jax.dtypes import tree_dtype
 from pitta_jax.losses import LAMBDA
 from pitta_jax.methods.base import Aux, Method, predict
@@ -28,7 +28,7 @@ class PittaConfig:
 
   def __post_init__(self):
     check_types(self)
-    check(isinstance(self.lam, (int, float)) and not math.isnan(self.lam) and self.lam >= 0,
+    check(is_number(self.lam) and not math.isnan(self.lam) and self.lam >= 0,
           f"lam must be >= 0 (inf allowed), got {self.lam!r}")
 
 
