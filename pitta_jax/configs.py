@@ -36,8 +36,16 @@ def check(ok: bool, message: str) -> None:
 
 def finite(value: float, name: str, low: float = -math.inf) -> None:
   """`value` must be a finite number >= low."""
-  check(is_number(value) and math.isfinite(value) and value >= low,
+  check(is_number(value) and _is_finite(value) and value >= low,
         f"{name} must be a finite number >= {low:g}, got {value!r}")
+
+
+def _is_finite(value: Any) -> bool:
+  """math.isfinite, False for an int too large for a float (10**400 was an OverflowError)."""
+  try:
+    return math.isfinite(value)
+  except OverflowError:
+    return False
 
 
 def check_seed(seed: int) -> None:

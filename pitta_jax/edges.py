@@ -82,6 +82,9 @@ def channel_mean(image: Array) -> Array:
   gradient 0) then had residuals of 1e-7 and gradients of up to +-4 per pixel in a jitted
   step, 0 in PyTorch. The divisor is a full map behind an optimisation barrier: XLA rewrites a
   division by a scalar (even an opaque one) into a product with its reciprocal."""
+  if image.ndim < 1 or image.shape[-1] < 1:
+    raise ValueError(f"image must have a channel axis last (..., C) with C >= 1, got shape "
+                     f"{image.shape}")
   total = image[..., 0]
   for k in range(1, image.shape[-1]):
     total = total + image[..., k]  # (H, W), left to right as torch's sum over a short axis

@@ -363,8 +363,13 @@ def combine(l_d: Array, l_e: Array, lam: float | Array) -> Array:
   gradient.
   """
   if isinstance(lam, (int, float)):
+    if math.isnan(lam) or lam < 0:
+      raise ValueError(f"lam must be >= 0 (inf: L_e alone), got {lam}")
     return l_e if math.isinf(lam) else l_d + lam * l_e
   lam = as_float(lam)  # float64 stays float64 (x64 gradient checks)
+  if lam.ndim != 0:  # a (K,) lambda broadcast the loss to (K,)
+    raise ValueError(f"lam must be a scalar (vmap over streams for several), got shape "
+                     f"{lam.shape}")
   is_inf = jnp.isinf(lam)
   return jnp.where(is_inf, l_e, l_d + jnp.where(is_inf, 0.0, lam) * l_e)
 

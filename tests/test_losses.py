@@ -429,3 +429,24 @@ def test_an_empty_instance_table_still_checks_the_inputs():
     losses.depth_refining_loss(jnp.ones((6, 8)), np.zeros((3, 3), np.int32), empty)
   with pytest.raises(TypeError, match="panoptic must be an integer array"):
     losses.depth_refining_loss(jnp.ones((6, 8)), np.zeros((6, 8), np.float32), empty)
+
+
+def test_lambda_and_channel_mistakes_are_named():
+  """Eq. 10's lambda is a scalar >= 0 (inf: L_e alone): a negative or NaN Python lambda (which
+  maximised L_e or made the loss NaN) and a (K,) array (which broadcast the loss to (K,)) are
+  refused; an image without channels is refused by I_bar (an IndexError before); an lr too
+  large for a float is the config's own error (an OverflowError before)."""
+  from pitta_jax import edges
+  from pitta_jax.adapt import AdaptConfig
+  l_d, l_e = jnp.float32(1.0), jnp.float32(2.0)
+  assert float(losses.combine(l_d, l_e, 0.5)) == 2.0 and float(losses.combine(l_d, l_e,
+                                                                              math.inf)) == 2.0
+  for lam in (-1.0, math.nan):
+    with pytest.raises(ValueError, match="lam must be >= 0"):
+      losses.combine(l_d, l_e, lam)
+  with pytest.raises(ValueError, match=r"lam must be a scalar .* got shape \(3,\)"):
+    losses.combine(l_d, l_e, jnp.ones(3))
+  with pytest.raises(ValueError, match=r"channel axis last .* got shape \(4, 4, 0\)"):
+    edges.channel_mean(jnp.ones((4, 4, 0)))
+  with pytest.raises(ValueError, match="lr must be a finite number"):
+    AdaptConfig(lr=10**400)
