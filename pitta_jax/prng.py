@@ -20,6 +20,7 @@ only the program that computes it.
 from __future__ import annotations
 
 import math
+import operator
 
 import jax
 import jax.extend.random as jex_random
@@ -86,6 +87,7 @@ def seed_key(seed: int) -> jax.Array:
   seed 2^32 + 7 drew seed 7's numbers; below 2^32 both give PRNGKey's key. `seed` in [0, 2^63)
   (`configs.check_seed`)."""
   from pitta_jax.configs import check_seed
+  seed = operator.index(seed)  # NumPy and JAX integer scalars as Python ints; a float: TypeError
   check_seed(seed)
   if seed < 2**32:
     return jax.random.PRNGKey(seed)

@@ -29,6 +29,7 @@ def colorize(values: np.ndarray, vmin: float | None = None, vmax: float | None =
     return np.zeros(values.shape + (3,), np.uint8)
   lo = np.min(values[finite]) if vmin is None else vmin
   hi = np.percentile(values[finite], 95) if vmax is None else vmax
+  hi = max(hi, lo)  # (a vmin above the percentile: every value takes the bottom colour)
   mapped = matplotlib.colormaps[colormap](Normalize(vmin=lo, vmax=hi)(np.where(finite, values,
                                                                                lo)))
   return (mapped[..., :3] * 255).astype(np.uint8)

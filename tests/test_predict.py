@@ -310,3 +310,8 @@ def test_disparity_pictures_are_monodepth2s_colour_map_byte_for_byte():
     mapper = cm.ScalarMappable(norm=normalizer, cmap="magma")
     want = (mapper.to_rgba(disp)[:, :, :3] * 255).astype(np.uint8)
     np.testing.assert_array_equal(viz.colorize(disp), want)
+  # a depth map all beyond max_depth (its disparities below vmin = 1 / max_depth): every pixel
+  # takes the bottom colour (matplotlib's Normalize refuses vmin > vmax)
+  far = viz.colorize_depth(np.full((4, 4), 200.0))
+  np.testing.assert_array_equal(far, np.broadcast_to(
+      (np.asarray(mpl.colormaps["magma"](0.0))[:3] * 255).astype(np.uint8), (4, 4, 3)))

@@ -78,6 +78,8 @@ def test_seeds_from_2_32_on_are_keys_of_their_own():
   for seed in (0, 7, 2**32 - 1):
     np.testing.assert_array_equal(seed_key(seed), jax.random.PRNGKey(seed))
   assert not np.array_equal(seed_key(2**32 + 7), seed_key(7))
+  for seed in (jnp.int32(3), np.int64(3)):  # (init_streams(seeds=jnp.arange(K)))
+    np.testing.assert_array_equal(seed_key(seed), jax.random.PRNGKey(3))
   assert not np.array_equal(seed_key(2**40), seed_key(0))
   with jax.enable_x64(True):
     for seed in (2**32, 2**32 + 7, 2**62 + 5):

@@ -568,6 +568,8 @@ def test_a_state_dict_key_that_is_not_a_name_is_one_line_naming_the_file(tmp_pat
     unwrap_state_dict(load_pth(path), path)
   with pytest.raises(CheckpointError, match=f"^{path}: key 1 \\(int\\) is not a parameter name"):
     read_checkpoint(path, "detectron2")
+  with pytest.raises(CheckpointError, match=f"^{path}: key None \\(NoneType\\) is not"):
+    unwrap_state_dict({"a": np.zeros(1), None: np.zeros(1)}, path)
   for args in (["monodepth2", "--encoder", str(path), "--depth", str(path)],
                ["sgdepth", "--model", str(path)], ["litemono", "--encoder", str(path),
                                                    "--depth", str(path)]):

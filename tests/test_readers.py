@@ -421,6 +421,12 @@ def test_kitti_eigen_benchmark_without_gt_depths_reads_the_improved_gt_in_the_dr
                                       f"scored on KITTI's improved ground truth"):
     kitti.open_kitti(data, bench)
   assert len(kitti.open_kitti(data, split)) == 3  # the Eigen split: the scans, as upstream
+  # the improved ground truth's download unpacked into the raw root (train/, val/) is found too
+  moved = data / "train" / first[0].split("/")[1] / "proj_depth" / "groundtruth" / "image_02"
+  moved.mkdir(parents=True)
+  _write_u16(moved / f"{first[1]:010d}.png", written[0])
+  np.testing.assert_array_equal(kitti.open_kitti(data, bench)[0].depth,
+                                written[0].astype(np.float32) / 256)
 
 
 # KITTI ground truth from the Velodyne scans (MonoDepth2's kitti_utils.generate_depth_map, as

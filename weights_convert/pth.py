@@ -697,8 +697,9 @@ def unwrap_state_dict(state: Any, path: str | os.PathLike) -> dict:
 def check_names(state: dict, path: str | os.PathLike) -> None:
   """CheckpointError naming the file when a key of the state dict is not a string: a state
   dict's keys are parameter names (`load_state_dict` takes nothing else)."""
-  odd = next((k for k in state if not isinstance(k, str)), None)
-  if odd is not None:
+  odd = [k for k in state if not isinstance(k, str)][:1]
+  if odd:
+    odd = odd[0]
     raise CheckpointError(f"{path}: key {odd!r} ({type(odd).__name__}) is not a parameter "
                           f"name; expected a state dict (name -> tensor)")
 

@@ -231,12 +231,14 @@ def _benchmark_gt_root(data: Path, split_file: Path, first: tuple[str, int, int]
   the benchmark's numbers are on the improved maps); DataError naming the split file when the
   first line's map is not there."""
   folder, frame, camera = first
-  tail = Path("proj_depth", "groundtruth", f"image_0{camera}", f"{frame:010d}.png")
-  if not (data / folder / tail).is_file():
+  try:
+    _find_improved_gt(data, folder, frame, camera)  # (also train/, val/ as unpacked there)
+  except DataError:
+    tail = Path("proj_depth", "groundtruth", f"image_0{camera}", f"{frame:010d}.png")
     raise DataError(split_file, f"the eigen_benchmark split is scored on KITTI's improved ground "
                                 f"truth, not found at {data / folder / tail} nor as "
                                 f"gt_depths.npz beside the split: pass improved_gt=DIR or "
-                                f"gt_depths=FILE, or depth=False")
+                                f"gt_depths=FILE, or depth=False") from None
   return data
 
 
