@@ -219,17 +219,12 @@ def _find_improved_gt(root: Path, folder: str, frame: int, camera: int) -> Path:
                                  "frames, use the eigen_benchmark split")
 
 
-def _is_benchmark(split_file: Path) -> bool:
-  """Whether `split_file` is MonoDepth2's eigen_benchmark split (`split_evaluation`)."""
-  return split_evaluation(split_file).get("valid_gt") == "positive"
-
-
-def _benchmark_gt_root(data: Path, split_file: Path, first: tuple[str, int, int]) -> Path:
-  """Where the eigen_benchmark split's ground truth is without gt_depths.npz: KITTI's improved
-  ground truth inside the raw drives, `<data>/<folder>/proj_depth/groundtruth/image_0X/`, where
-  MonoDepth2's `export_gt_depth.py --split eigen_benchmark` reads it (never the Velodyne scans:
-  the benchmark's numbers are on the improved maps); DataError naming the split file when the
-  first line's map is not there."""
+def _check_benchmark_gt(data: Path, split_file: Path, first: tuple[str, int, int]) -> None:
+  """That the eigen_benchmark split's ground truth without gt_depths.npz is there: KITTI's
+  improved ground truth inside the raw drives, `<data>/<folder>/proj_depth/groundtruth/
+  image_0X/`, where MonoDepth2's `export_gt_depth.py --split eigen_benchmark` reads it (never
+  the Velodyne scans: the benchmark's numbers are on the improved maps); DataError naming the
+  split file when the first line's map is not there."""
   folder, frame, camera = first
   try:
     _find_improved_gt(data, folder, frame, camera)  # (also train/, val/ as unpacked there)
@@ -239,7 +234,6 @@ def _benchmark_gt_root(data: Path, split_file: Path, first: tuple[str, int, int]
                                 f"truth, not found at {data / folder / tail} nor as "
                                 f"gt_depths.npz beside the split: pass improved_gt=DIR or "
                                 f"gt_depths=FILE, or depth=False") from None
-  return data
 
 
 def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None = None,
@@ -270,9 +264,12 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
   if gt_depths is not None and improved_gt is not None:
     raise DataError(split_file, "give either gt_depths or improved_gt, not both")
   gt = velodyne = None
-  if (depth and gt_depths is None and improved_gt is None and _is_benchmark(split_file)
+  evaluation = split_evaluation(split_file)
+  if (depth and gt_depths is None and improved_gt is None
+      and evaluation.get("valid_gt") == "positive"  # the eigen_benchmark split
       and not (split_file.parent / "gt_depths.npz").is_file()):
-    improved_gt = _benchmark_gt_root(data, split_file, entries[0])
+    _check_benchmark_gt(data, split_file, entries[0])
+    improved_gt = data
   if depth and improved_gt is None:
     gt_path = Path(gt_depths) if gt_depths is not None else split_file.parent / "gt_depths.npz"
     if gt_depths is not None or gt_path.is_file():
@@ -321,7 +318,7 @@ def open_kitti(root: PathLike, split_file: PathLike, gt_depths: PathLike | None 
       "intrinsics": INTRINSICS_REMEDY,
       "previous_frame": "a split file whose lines are consecutive frames of each drive (the "
                         "Eigen test split is not)"},
-      evaluation=split_evaluation(split_file))
+      evaluation=evaluation)
 
 
 def _velodyne_loaders(data: Path, entries: list[tuple[str, int, int]]) -> list:
