@@ -343,18 +343,22 @@ def check_rows(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSp
 
 def no_instances(ctx: Context, selected: Sequence[tuple[str, Sequence[dict], RowSpec]],
                  readers: dict[str, list[tuple[str, Any]]]) -> None:
-  """A note (stderr and the caption) where a selected row's loss holds L_d but its test case's
-  frames have no panoptic maps under `--segmentation gt`: L_d is 0 there, and PITTA's row is
-  L_e alone (as `pitta-jax adapt` notes)."""
+  """A note (stderr and the caption) where a selected row's loss takes the frames' dynamic
+  instances but its test case's frames have no panoptic maps under `--segmentation gt`: L_d is
+  0 there, PITTA's row is L_e alone (as `pitta-jax adapt` notes), and a method's own use of
+  them (CoMoDa's moving-object mask) has none."""
+  from pitta_jax.methods.depth_refining import LD_IS_ZERO, instance_uses
   from pitta_jax.sources import lacks_panoptic_maps
-  cases = list(dict.fromkeys(
-      case for case, _, row in selected
-      if lacks_panoptic_maps(method_of(row).config, ctx.segmentation,
-                             [reader for _, reader in readers.get(case, ())])))
-  if cases:
+  lacking = [(case, row) for case, _, row in selected
+             if lacks_panoptic_maps(method_of(row).config, ctx.segmentation,
+                                    [reader for _, reader in readers.get(case, ())])]
+  if lacking:
+    cases = list(dict.fromkeys(case for case, _ in lacking))
+    uses = dict.fromkeys(use for _, row in lacking for use in instance_uses(method_of(row).config))
+    said = [f"{LD_IS_ZERO} in PITTA's and the '+ L_d' rows" if use == LD_IS_ZERO else use
+            for use in uses]
     note = (f"{ctx.dataset} has no panoptic maps in test case {', '.join(cases)}: no frame has "
-            f"instances, so L_d (eq. 8) is 0 in PITTA's and the '+ L_d' rows (--segmentation "
-            f"png:DIR or mask2former:DIR).")
+            f"instances, so {' and '.join(said)} (--segmentation png:DIR or mask2former:DIR).")
     print(f"note: {note}", file=sys.stderr)
     ctx.notes.append(note)
 

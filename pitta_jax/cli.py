@@ -483,9 +483,11 @@ def _run_adapt(args) -> int:
                    f"nothing is scored{remedy}")
     if (reader is not None and args.adapting
         and lacks_panoptic_maps(method.config, args.segmentation, [reader])):
+      from pitta_jax.methods.depth_refining import instance_uses
       remedy = "--option panoptic_dir=DIR, " if args.dataset == "folder" else ""
       notes.append(f"dataset {args.dataset} has no panoptic maps: no frame has instances, so "
-                   f"L_d (eq. 8) is 0 ({remedy}--segmentation png:DIR or mask2former:DIR)")
+                   f"{' and '.join(instance_uses(method.config))} ({remedy}--segmentation "
+                   f"png:DIR or mask2former:DIR)")
     if reader is not None:
       eval_cfg, protocol_note = dataset_evaluation(eval_cfg, reader.evaluation, args)
       notes += [protocol_note] if protocol_note else []

@@ -67,6 +67,8 @@ def cli(tmp_path, monkeypatch, capsys):
     assert not out.exists()  # nothing written, not even the directory
     return rc, err
 
+  run.weights = weights
+
   return run
 
 
@@ -201,6 +203,21 @@ def test_a_loss_with_l_d_on_frames_without_panoptic_maps_is_noted(cli):
                        (("--lam", "inf"), False), (("--method", "none"), False)]:
     rc, err = cli("--dataset", "folder", "--root", "TMP/seq", *flags)
     assert rc == 2 and (no_maps in err.splitlines()) == noted, (flags, err)
+  # CoMoDa masks the moving objects out of its own loss: without L_d it still needs the maps
+  # (weights with a pose network, named by their model.json only: the run stops at loading them)
+  posed = cli.weights.parent / "posed"
+  posed.mkdir()
+  (posed / "model.json").write_text(json.dumps(
+      {**json.loads((cli.weights / "model.json").read_text()), "has_pose": True}))
+  comoda = ("--method", "comoda", "--bn-stats", "running", "--selector", "no_bn", "--weights",
+            str(posed), "--option", "temporal=true", "--replay-root", "TMP/raw/2011_09_26")
+  mask = "CoMoDa's loss masks no moving object"
+  for flags, said in [(comoda, f"L_d (eq. 8) is 0 and {mask}"),
+                      ((*comoda, "--comoda.ld-weight", "0"), mask)]:
+    rc, err = cli("--dataset", "folder", "--root", "TMP/seq", *flags)
+    note = (f"note: dataset folder has no panoptic maps: no frame has instances, so {said} "
+            f"(--option panoptic_dir=DIR, --segmentation png:DIR or mask2former:DIR)")
+    assert rc == 2 and note in err.splitlines(), (flags, err)
 
 
 def test_flags_beyond_any_use_are_refused_before_work(capsys, tmp_path):

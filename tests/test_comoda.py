@@ -326,6 +326,34 @@ def test_requires_bn_eval_and_no_bn_selector():
   method.check(AdaptConfig(bn_stats="running", selector="no_bn"))
 
 
+def test_the_moving_object_mask_covers_every_dynamic_segment_beyond_ld_instances():
+  """Upstream multiplies the minimum reprojection map by its whole mask of possibly moving
+  objects: the test sample's weights are 0 on every dynamic segment of the frame (here 5 cars
+  and a person, with L_d's table cut to 2 instances), 1 elsewhere (a static pole, void)."""
+  from pitta_jax.adapt.engine import StepInput
+  from pitta_jax.methods.comoda import _frame_ring, build_sample
+  h, w, s_max = 8, 12, 10
+  panoptic = np.zeros((h, w), np.int32)
+  segs = [(3, 3), (5, 3), (7, 3), (9, 3), (11, 3), (13, 1), (21, 10)]  # (id, COCO class)
+  for k, (sid, _) in enumerate(segs):
+    panoptic[k, 1 + k:4 + k] = sid
+  ids = np.zeros(s_max, np.int32)
+  classes = np.zeros(s_max, np.int32)
+  ids[:len(segs)], classes[:len(segs)] = zip(*segs)
+  frame = StepInput(image=jnp.full((h, w, 3), 0.5), panoptic=jnp.asarray(panoptic),
+                    seg_ids=jnp.asarray(ids), seg_classes=jnp.asarray(classes),
+                    seg_valid=jnp.asarray(np.arange(s_max) < len(segs)),
+                    valid=jnp.array(True), intrinsics=jnp.eye(3), has_intrinsics=jnp.array(True),
+                    starts_recording=jnp.array(False))
+  cfg = ComodaConfig(replay=0, ld=DepthRefiningConfig(max_instances=2, window=3))
+  ms = {"ring": _frame_ring((h, w), s_max, 1, jnp.float32),
+        "replay_images": jnp.zeros((0, 2, h, w, 3)), "replay_K": jnp.zeros((0, 3, 3))}
+  sample = build_sample(frame, ms, jnp.zeros((0,), jnp.int32), cfg)
+  dynamic = [sid for sid, c in segs if c in DEFAULT_DYNAMIC_COCO_IDS]
+  assert len(dynamic) == 6
+  np.testing.assert_array_equal(np.asarray(sample.weights[0]), ~np.isin(panoptic, dynamic))
+
+
 # ------------------------------------------------------- latency 1 and the guard, on tiny networks
 
 

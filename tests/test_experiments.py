@@ -521,6 +521,20 @@ def test_rows_with_l_d_on_frames_without_panoptic_maps_are_noted(capsys):
                                       True), selected)):
     common.no_instances(ctx, chosen, readers)
     assert capsys.readouterr().err == "" and ctx.notes == []
+  # CoMoDa masks the moving objects out of its own loss: its row without L_d needs them too
+  ctx = common.Context("drivingstereo", "/d", [], "gt", {}, None, False, 0, True)
+  common.no_instances(ctx, [("Foggy", [{}], rows["CoMoDa (no L_d)"])], readers)
+  assert ctx.notes == ["drivingstereo has no panoptic maps in test case Foggy: no frame has "
+                       "instances, so CoMoDa's loss masks no moving object (--segmentation "
+                       "png:DIR or mask2former:DIR)."]
+  ctx = common.Context("drivingstereo", "/d", [], "gt", {}, None, False, 0, True)
+  common.no_instances(ctx, [("Foggy", [{}], rows[label]) for label in ("PITTA", "CoMoDa + L_d")],
+                      readers)
+  assert ctx.notes == ["drivingstereo has no panoptic maps in test case Foggy: no frame has "
+                       "instances, so L_d (eq. 8) is 0 in PITTA's and the '+ L_d' rows and "
+                       "CoMoDa's loss masks no moving object (--segmentation png:DIR or "
+                       "mask2former:DIR)."]
+  capsys.readouterr()
 
 
 def test_row_cache_sees_the_files_it_reads(tmp_path):

@@ -12,8 +12,8 @@ identity losses, edge-aware smoothness, 4 scales), with
   frozen, as the method intends;
 - the test sample's per-pixel minimum reprojection map multiplied by a mask of possibly moving
   objects (`compute_losses`: after the minimum, before the mean). Here the mask is
-  1 - [pixel on a dynamic instance], the instances of L_d (eq. 3, from the panoptic input;
-  upstream: YOLOv5 masks);
+  1 - [pixel on a dynamic instance]: every dynamic segment of the frame (L_d's classes, eq. 3,
+  from the panoptic input; not capped at L_d's `max_instances`; upstream: YOLOv5 masks);
 - experience replay: each step's batch is the test sample and `replay` source-domain samples
   (`--batch_size 4` = 1 + 3) with all-ones masks, in one forward pass (BN in eval mode: the
   samples do not interact). The samples are windows of consecutive frames of
@@ -67,7 +67,7 @@ term not at all.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -83,7 +83,7 @@ from pitta_jax.flat_optim import flat, flat_step
 from pitta_jax.methods.base import (POSE, Aux, Method, ring_init, ring_push, ring_restart,
                                     ring_valid, variables_of)
 from pitta_jax.methods.depth_refining import (DepthRefiningConfig, depth_refining_term,
-                                              frame_instances)
+                                              dynamic_pixels)
 from pitta_jax.models.pose import transformation_from_parameters
 from pitta_jax.sfm import SfmLossConfig, check_scales, monodepth2_loss
 
@@ -107,6 +107,9 @@ class ComodaConfig:
   sfm: SfmLossConfig = SfmLossConfig()
   ld_weight: float = option(1.0, "weight of PITTA's L_d (eq. 8) added to the loss (paper Sec. 4.1)")
   ld: DepthRefiningConfig = DepthRefiningConfig()
+  # the moving-object mask needs the dynamic instances with or without L_d
+  # (`depth_refining.instance_uses`: what a frame without instances means)
+  INSTANCE_USE: ClassVar[str] = "CoMoDa's loss masks no moving object"
 
   def __post_init__(self):
     check_types(self)
@@ -266,15 +269,15 @@ def build_sample(frame, ms: dict, idx: jax.Array, config: ComodaConfig) -> Sampl
     neighbours = [prev.image, frame.image]
   active = active & centre.has_intrinsics
   K = jnp.where(centre.has_intrinsics, centre.intrinsics, jnp.eye(3, dtype=centre.intrinsics.dtype))
-  index_map, _, _ = frame_instances(centre, config.ld)
-  h, w = index_map.shape
+  moving = dynamic_pixels(centre, config.ld)                              # (H, W)
+  h, w = moving.shape
   images = ms["replay_images"][idx]                                       # (R, F, H, W, 3)
   target = jnp.concatenate([centre.image[None].astype(dtype), images[:, 1]])
   test_sources = jnp.stack(neighbours).astype(dtype)[None]               # (1, N, H, W, 3)
   replay_sources = jnp.concatenate([images[:, :1], images[:, 2:]], axis=1)
   sources = jnp.concatenate([test_sources, replay_sources])
   Ks = jnp.concatenate([K[None].astype(dtype), ms["replay_K"][idx]])
-  weights = jnp.concatenate([(index_map == 0).astype(dtype)[None],
+  weights = jnp.concatenate([(~moving).astype(dtype)[None],
                              jnp.ones((idx.shape[0], h, w), dtype)])
   return Sample(target, sources, Ks, weights, centre, active)
 

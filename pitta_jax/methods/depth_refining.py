@@ -76,6 +76,15 @@ def frame_instances(frame, cfg: DepthRefiningConfig) -> tuple[jax.Array, jax.Arr
   return index_map, jnp.sum(inst_valid.astype(jnp.int32)), inst_ids
 
 
+def dynamic_pixels(frame, cfg: DepthRefiningConfig) -> jax.Array:
+  """(H, W) bool: the pixels of every dynamic segment of the frame's segment table (classes in
+  `cfg.dynamic_classes`), not only of the first `cfg.max_instances` that L_d's table keeps."""
+  inst_ids, inst_valid = masks.instance_table(
+      frame.seg_ids, frame.seg_classes, frame.seg_valid,
+      jnp.asarray(cfg.dynamic_classes, jnp.int32), frame.seg_ids.shape[0])
+  return masks.instance_index_map(frame.panoptic, inst_ids, inst_valid) > 0
+
+
 def _check_window(cfg: DepthRefiningConfig, shape: tuple[int, ...]) -> None:
   """A window wider than the frame's smaller side is refused when the step is traced (before
   any frame): its median would take most of the frame, at a cost growing with the window's
@@ -84,15 +93,28 @@ def _check_window(cfg: DepthRefiningConfig, shape: tuple[int, ...]) -> None:
                                   f"({min(shape)} pixels of {shape[1]}x{shape[0]})")
 
 
-def uses_instances(config) -> bool:
-  """Whether a method config's loss holds L_d (eq. 8), i.e. needs panoptic maps: an `ld` field
-  weighted by its `ld_weight` > 0 (a baseline + L_d), or by eq. 10 unless lambda = inf (PITTA
-  with L_e only)."""
+LD_IS_ZERO = "L_d (eq. 8) is 0"  # what a frame without instances means to a loss holding L_d
+
+
+def instance_uses(config) -> tuple[str, ...]:
+  """What a method config's loss takes from the frames' dynamic instances, each as what a frame
+  without any means (a note's phrase): `LD_IS_ZERO` where the loss holds L_d (eq. 8: an `ld`
+  field weighted by its `ld_weight` > 0, a baseline + L_d, or by eq. 10 unless lambda = inf,
+  PITTA with L_e only), then the method's own use (its config class's `INSTANCE_USE`, e.g.
+  CoMoDa's moving-object mask, which needs the instances with or without L_d)."""
   if not isinstance(getattr(config, "ld", None), DepthRefiningConfig):
-    return False
+    return ()
   if hasattr(config, "ld_weight"):
-    return config.ld_weight > 0
-  return not math.isinf(getattr(config, "lam", 0.0))
+    holds_ld = config.ld_weight > 0
+  else:
+    holds_ld = not math.isinf(getattr(config, "lam", 0.0))
+  own = getattr(type(config), "INSTANCE_USE", None)
+  return ((LD_IS_ZERO,) if holds_ld else ()) + ((own,) if own else ())
+
+
+def uses_instances(config) -> bool:
+  """Whether a method config's loss needs panoptic maps (`instance_uses`)."""
+  return bool(instance_uses(config))
 
 
 def dynamic_classes(config) -> tuple[int, ...]:
