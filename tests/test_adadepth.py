@@ -478,6 +478,47 @@ def test_lower_median_is_torch_median_of_the_masked_values():
     np.testing.assert_equal(got, want)
 
 
+def _upstream_kitti_pseudo(sup, unsup, ref, thres, lo=1e-3, hi=80.0):
+  """Upstream's augment_pseudo with `opt.dataset == "kitti"`, (1, 1, H, W) tensors: the scale
+  from mask0, then mask0 replaced by the Garg/Eigen crop for P_S."""
+  mask0 = ref > lo
+  mask0[:, :, :int(0.3 * ref.shape[2]), :] = False
+  scale = torch.median(ref[mask0]) / torch.median(unsup[mask0])
+  h, w = ref.shape[2], ref.shape[3]
+  crop = torch.zeros_like(mask0)
+  crop[:, :, int(0.40810811 * h):int(0.99189189 * h), int(0.03594771 * w):int(0.96405229 * w)] = 1
+  mask = ((ref - unsup * scale) ** 2 / ref) < thres
+  p_u = torch.clamp(torch.mul(mask.float(), unsup) * scale, min=lo, max=hi)
+  mask = (((sup - ref) ** 2) / sup < thres) * crop
+  p_s = torch.clamp(torch.mul(mask.float(), ref), min=lo, max=hi)
+  return p_s[0, 0].numpy(), p_u[0, 0].numpy(), float(scale)
+
+
+def test_garg_crop_labels_are_upstreams_kitti_branch():
+  """`label_region="garg_crop"` against upstream's KITTI branch of augment_pseudo: P_S is kept
+  inside the Garg crop (not in rows 30-41% nor the side columns, which the default keeps), P_U
+  and the scale as on other targets."""
+  r = np.random.default_rng(3)
+  h, w = 37, 53
+  ref, ema, unsup = (r.uniform(0.5, 30.0, (h, w)) for _ in range(3))
+  ema[int(0.5 * h), 10:14] = 1e-4                     # E below min_depth inside the crop
+  cfg = adadepth.AdadepthConfig(threshold=4.0, label_region="garg_crop")
+  t = lambda x: torch.from_numpy(x)[None, None]
+  want_s, want_u, want_scale = _upstream_kitti_pseudo(t(ref), t(unsup), t(ema), 4.0)
+  with jax.enable_x64(True):
+    got = adadepth.pseudo_labels(*(jnp.asarray(x) for x in (ref, ema, unsup)), cfg)
+    default = adadepth.pseudo_labels(*(jnp.asarray(x) for x in (ref, ema, unsup)),
+                                     adadepth.AdadepthConfig(threshold=4.0))
+  np.testing.assert_allclose(np.asarray(got.sup), want_s, rtol=1e-12)
+  np.testing.assert_allclose(np.asarray(got.unsup), want_u, rtol=1e-12)
+  np.testing.assert_allclose(float(got.scale), want_scale, rtol=1e-12)
+  band = slice(int(0.3 * h), int(0.40810811 * h))       # rows the default keeps, the crop not
+  assert np.any(np.asarray(default.sup)[band] > 1e-3) and np.all(np.asarray(got.sup)[band] == 1e-3)
+  np.testing.assert_array_equal(np.asarray(default.unsup), np.asarray(got.unsup))
+  with pytest.raises(ValueError, match="label_region must be one of top_rows, garg_crop"):
+    adadepth.AdadepthConfig(label_region="kitti")
+
+
 def test_requirements_fail_before_work():
   """BN eval mode and one step per frame are required (one-line errors naming the flag), and a
   missing pose network or input size is named at init."""

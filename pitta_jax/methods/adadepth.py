@@ -9,7 +9,8 @@ Upstream (Malefikus/ada-depth `adaptation.py`, `Adapt.process_batch`), per frame
 4. E moves towards S (`update_ema_variables`, decay 0.99, over the parameters);
 5. S, after its step, is the depth that is evaluated.
 
-Pseudo labels (all depths in metres; `augment_pseudo` on a non-KITTI target):
+Pseudo labels (all depths in metres; `augment_pseudo` on a non-KITTI target; on KITTI upstream
+keeps P_S inside the Garg crop instead of mask0, `label_region` "garg_crop"):
     mask0 = (E > min_depth) and not in the top `top_fraction` of the rows
     s     = median(E[mask0]) / median(U[mask0])            (torch.median: the lower middle value)
     P_U   = clamp(1[(E - s U)^2 / E < tau] * s U, min_depth, max_depth)
@@ -73,10 +74,12 @@ from pitta_jax.dtypes import tree_dtype
 from pitta_jax.methods.base import (INPUT_SIZE, METRIC_FACTOR, POSE, Aux, Method, ring_init,
                                     ring_push, ring_restart, variables_of)
 from pitta_jax.methods.depth_refining import DepthRefiningConfig, depth_refining_term
+from pitta_jax.metrics import garg_crop_mask
 from pitta_jax.models.pose import transformation_from_parameters
 from pitta_jax.sfm import SfmLossConfig, check_scales, monodepth2_loss
 
 Tree = Any
+LABEL_REGIONS = ("top_rows", "garg_crop")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,6 +102,10 @@ class AdadepthConfig:
                                  "(upstream compute_losses: > 1.0)")
   top_fraction: float = option(0.3, "top share of the rows left out of the scale median and of "
                                     "P_S (upstream augment_pseudo's mask0)")
+  label_region: str = option("top_rows", "where P_S may keep a label: top_rows (E > min_depth "
+                                         "below the top rows, upstream's non-KITTI targets) or "
+                                         "garg_crop (the Garg/Eigen crop, upstream's KITTI "
+                                         "branch); the scale median takes top_rows either way")
   variance_focus: float = option(0.85, "SILog's weight of (mean g)^2 (upstream compute_losses)")
   silog_factor: float = option(10.0, "SILog's factor (upstream compute_losses)")
   sfm: SfmLossConfig = SfmLossConfig()  # U's MonoDepth2 loss (upstream options.py defaults)
@@ -120,6 +127,8 @@ class AdadepthConfig:
     finite(self.label_min, "label_min", 0.0)
     check(0.0 <= self.top_fraction < 1.0,
           f"top_fraction must be in [0, 1), got {self.top_fraction}")
+    check(self.label_region in LABEL_REGIONS,
+          f"label_region must be one of {', '.join(LABEL_REGIONS)}, got {self.label_region!r}")
     check(is_number(self.variance_focus) and 0.0 <= self.variance_focus <= 1.0,
           f"variance_focus must be in [0, 1], got {self.variance_focus!r}")
     finite(self.silog_factor, "silog_factor", 0.0)
@@ -161,12 +170,15 @@ def lower_median(x: jax.Array, mask: jax.Array) -> jax.Array:
 
 def pseudo_labels(ref: jax.Array, ema: jax.Array, unsup: jax.Array,
                   config: AdadepthConfig) -> PseudoLabels:
-  """Upstream's `augment_pseudo` (non-KITTI target): P_S from E where R and E agree, P_U from
-  the median-scaled U where it agrees with E. ref, ema, unsup: (H, W) depths in metres."""
-  h = ref.shape[0]
+  """Upstream's `augment_pseudo`: P_S from E where R and E agree (inside mask0, or with
+  `label_region` garg_crop inside the Garg crop, upstream's KITTI branch), P_U from the
+  median-scaled U where it agrees with E. ref, ema, unsup: (H, W) depths in metres."""
+  h, w = ref.shape
   below_top = (jnp.arange(h) >= int(config.top_fraction * h))[:, None]      # (H, 1)
   mask0 = (ema > config.min_depth) & below_top
   scale = lower_median(ema, mask0) / lower_median(unsup, mask0)
+  if config.label_region == "garg_crop":  # upstream's crop_mask: MonoDepth2's Garg crop
+    mask0 = jnp.asarray(garg_crop_mask(h, w))                                # (H, W)
   scaled = unsup * scale
   keep_unsup = (ema - scaled) ** 2 / ema < config.threshold
   keep_sup = ((ref - ema) ** 2 / ref < config.threshold) & mask0
