@@ -50,8 +50,8 @@ from pitta_jax import masks as masks_lib
 from pitta_jax.edges import edge_map, image_edge_map
 from pitta_jax.dtypes import as_float
 from pitta_jax.nonsmooth import absolute
-from pitta_jax.median import (BLOCK_BYTES, INT_PAD, WINDOW, check_window, map_row_blocks,
-                              mean_of_middles, median_filter, median_of_views,
+from pitta_jax.median import (BLOCK_BYTES, INT_PAD, WINDOW, check_map, check_window,
+                              map_row_blocks, mean_of_middles, median_filter, median_of_views,
                               middle_order_statistics, middle_ranks, select_middles, window_views)
 
 Array = jax.Array
@@ -192,6 +192,7 @@ def depth_refining_loss_fast(depth: Array, index_map: Array, n: Array, s: int,
   index_map = masks_lib.index_array(index_map)
   if depth.ndim != 2 or depth.shape != index_map.shape:
     raise ValueError(f"depth {depth.shape} and index_map {index_map.shape} must be the same (H, W)")
+  check_map(depth, "depth_refining_loss")
   # Eq. 8 sums over j = 1..N: a pixel of a row above n is no instance's, as in the literal loss.
   index_map = jnp.where(index_map <= _instance_count(n), index_map, 0)  # (H, W)
   # D~_k0 at each pixel's own k0; a select, not a product with 0, outside the instances, so
@@ -252,19 +253,22 @@ def depth_refining_loss_from_index(depth: Array, index_map: Array, n: Array, *, 
     s: odd median window (static).
     mode: "binary", "segment_id" or "instance_id" (static).
     impl: "fast" (default, cost independent of N) or "literal" (eq. 8 term by term).
-    n_max: static table size, required by "literal" (rows j > n are invalid).
+    n_max: static table size, required by "literal" (rows j > n are invalid); where given, N
+      is at most n_max (a larger n counts as n_max, in both implementations).
     inst_ids: (N_max,) the table's segment ids, required by mode "segment_id".
 
   Returns:
     scalar float32 L_d.
   """
   masks_lib.check_mode(mode)
+  if n_max is not None:  # a table of n_max rows holds at most n_max instances
+    n_max = masks_lib.table_rows(n_max)
+    n = jnp.minimum(_instance_count(n), n_max)
   if impl == "fast":
     return depth_refining_loss_fast(depth, index_map, n, s, mode, inst_ids)
   if impl == "literal":
     if n_max is None:
       raise ValueError("impl='literal' needs the static table size n_max")
-    n_max = masks_lib.table_rows(n_max)
     masks = masks_lib.masks_from_index(index_map, n_max, mode, inst_ids)  # (N_max, H, W)
     valid = jnp.arange(1, n_max + 1) <= _instance_count(n)  # (N_max,), rows 1..N of eq. 8
     return depth_refining_loss_literal(depth, masks, valid, s)
@@ -370,6 +374,10 @@ def combine(l_d: Array, l_e: Array, lam: float | Array) -> Array:
   if lam.ndim != 0:  # a (K,) lambda broadcast the loss to (K,)
     raise ValueError(f"lam must be a scalar (vmap over streams for several), got shape "
                      f"{lam.shape}")
+  if not isinstance(lam, jax.core.Tracer):  # a concrete array: the Python float's check
+    value = float(lam)
+    if math.isnan(value) or value < 0:
+      raise ValueError(f"lam must be >= 0 (inf: L_e alone), got {value}")
   is_inf = jnp.isinf(lam)
   return jnp.where(is_inf, l_e, l_d + jnp.where(is_inf, 0.0, lam) * l_e)
 

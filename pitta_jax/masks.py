@@ -116,8 +116,8 @@ def instance_table(segment_ids: Array, segment_classes: Array, segment_valid: Ar
     inst_valid: (N_max,) bool, True on the first N rows.
   """
   segment_ids = segment_id_array(segment_ids, "segment_ids")
-  segment_classes = jnp.asarray(segment_classes, jnp.int32)
-  dynamic_classes = jnp.asarray(dynamic_classes, jnp.int32).reshape(-1)
+  segment_classes = segment_id_array(segment_classes, "segment_classes", "class ids")
+  dynamic_classes = segment_id_array(dynamic_classes, "dynamic_classes", "class ids").reshape(-1)
   is_dyn = (jnp.asarray(segment_valid, bool) & (segment_ids > 0)
             & jnp.any(segment_classes[:, None] == dynamic_classes[None, :], axis=1))  # (S_max,)
   return _compact(segment_ids, is_dyn, table_rows(n_max))
@@ -194,6 +194,7 @@ def pixel_gain(index_map: Array, mode: str = "binary", inst_ids: Array | None = 
   """
   check_mode(mode)
   index_map = index_array(index_map)
+  index_map = jnp.where(index_map > 0, index_map, 0)  # a negative entry is no instance either
   if mode == "binary":
     return (index_map > 0).astype(jnp.float32)
   if mode == "instance_id":

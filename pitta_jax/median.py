@@ -360,6 +360,12 @@ def median_of_views(views: list[Array], s: int) -> Array:
   return median_of_middles(*middle_order_statistics(views, s), s)
 
 
+def check_map(x: Array, what: str) -> None:
+  """ValueError unless `x` is an (H, W) map of at least one pixel (an empty one has no window)."""
+  if x.ndim != 2 or 0 in x.shape:
+    raise ValueError(f"{what} expects an (H, W) map with H, W >= 1, got shape {x.shape}")
+
+
 def median_filter(x: Array, s: int = WINDOW, block_bytes: int = BLOCK_BYTES) -> Array:
   """Median filter with a border-shrunk window, paper eq. 7.
 
@@ -381,8 +387,7 @@ def median_filter(x: Array, s: int = WINDOW, block_bytes: int = BLOCK_BYTES) -> 
   """
   check_window(s)
   x = as_float(x)
-  if x.ndim != 2:
-    raise ValueError(f"median_filter expects an (H, W) map, got shape {x.shape}")
+  check_map(x, "median_filter")
   if s >= SORT_FROM_WINDOW:  # the windows stacked on an array axis, a block of rows at a time
     def block(stacks: list[Array], lo_rank: Array, hi_rank: Array) -> tuple[Array]:
       return (mean_of_middles(*select_middles(stacks[0], lo_rank, hi_rank), lo_rank, hi_rank),)

@@ -277,6 +277,11 @@ def monodepth2_loss(target: Array, sources: Array, disps: Sequence[Array], K: Ar
   n = sources.shape[1]
   n_scales = len(cfg.scales)
   check(len(disps) == n_scales, f"need one disparity per scale {cfg.scales}, got {len(disps)}")
+  if scaled_targets is None:
+    block = 2 ** max(cfg.scales)
+    check(h % block == 0 and w % block == 0,
+          f"the target's {w}x{h} must be divisible by 2**{max(cfg.scales)} = {block} for its "
+          f"block means at every scale (or give scaled_targets)")
   if cfg.automask and noise is None:
     check(rng is not None, "monodepth2_loss with automask needs rng or noise")
     noise = jax.random.normal(prng.unrolled(rng), (n_scales, b, n, h, w), target.dtype)

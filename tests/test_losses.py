@@ -244,6 +244,30 @@ def test_index_entries_above_n_are_no_instance(s):
       np.testing.assert_allclose(np.asarray(g), want_g, rtol=RTOL, atol=1e-7, err_msg=impl)
 
 
+def test_a_count_above_the_table_counts_as_the_tables_rows():
+  # Reference: the NumPy loop of eq. 8 over the table's rows 1..n_max (a table of n_max rows
+  # holds at most n_max instances): n = 5 with 3 rows and n = 3 with 2 rows; the fast loss
+  # divided by n and kept index entries above n_max, the literal one did neither.
+  rng = np.random.default_rng(5)
+  index = random_panoptic(rng, (12, 16), 4, 2)
+  depth = rng.uniform(0.5, 80.0, (12, 16)).astype(np.float32)
+  for n, n_max in ((5, 3), (3, 2)):
+    want = depth_refining_loss_loop(depth, index, np.arange(1, n_max + 1, dtype=np.int32), 3,
+                                    "binary")
+    for impl in losses.IMPLS:
+      got = losses.depth_refining_loss_from_index(jnp.asarray(depth), jnp.asarray(index),
+                                                  jnp.int32(n), s=3, impl=impl, n_max=n_max)
+      np.testing.assert_allclose(float(got), want, rtol=RTOL, err_msg=f"{impl} n={n}")
+
+
+def test_an_empty_map_is_refused_naming_its_shape():
+  for f in (lambda d: losses.depth_refining_loss(d, jnp.zeros(d.shape, jnp.int32),
+                                                 jnp.ones(2, jnp.int32), 3),
+            lambda d: losses.median_filter(d, 3), lambda d: losses.median_filter(d, 17)):
+    with pytest.raises(ValueError, match=r"H, W >= 1, got shape \(0, 3\)"):
+      f(jnp.zeros((0, 3)))
+
+
 def test_bad_arguments():
   d, i = jnp.ones((4, 4)), jnp.zeros((4, 4), jnp.int32)
   with pytest.raises(ValueError, match="n_max"):
@@ -359,6 +383,14 @@ def test_combine_with_a_python_or_a_traced_lambda(lam, want):
   l_d, l_e = jnp.float32(2.0), jnp.float32(3.0)
   assert float(losses.combine(l_d, l_e, lam)) == want
   assert float(jax.jit(losses.combine)(l_d, l_e, jnp.float32(lam))) == want
+
+
+def test_combine_refuses_a_concrete_negative_or_nan_lambda_of_any_type():
+  """A NumPy or JAX scalar lambda is checked as a Python float is (np.float32(-1) gave -1)."""
+  for lam in (-1.0, np.float32(-1.0), np.array(np.nan), jnp.float32(-0.5)):
+    with pytest.raises(ValueError, match="lam must be >= 0"):
+      losses.combine(jnp.float32(2.0), jnp.float32(3.0), lam)
+  assert float(losses.combine(jnp.float32(2.0), jnp.float32(3.0), np.float32(0.5))) == 3.5
 
 
 def test_combine_keeps_a_float64_lambda():

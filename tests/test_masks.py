@@ -148,6 +148,17 @@ def test_pixel_gain_is_sum_of_masks():
   np.testing.assert_array_equal(masks.pixel_gain(index, "segment_id", ids), [[0, 7, 12], [12, 0, 30]])
 
 
+def test_pixel_gain_of_a_negative_index_is_zero_as_the_sum_of_masks():
+  # Reference: sum_j M_j (masks_from_index: no row matches -1); a -1 read the last row's id in
+  # "segment_id" mode and gave -1 in "instance_id" mode.
+  index = jnp.array([[-1, 0, 1], [2, -3, 0]], jnp.int32)
+  ids = jnp.array([5, 9], jnp.int32)
+  for mode in masks.MASK_MODES:
+    np.testing.assert_array_equal(masks.pixel_gain(index, mode, ids),
+                                  masks.masks_from_index(index, 2, mode, ids).sum(0), err_msg=mode)
+  np.testing.assert_array_equal(masks.pixel_gain(index, "segment_id", ids), [[0, 0, 5], [9, 0, 0]])
+
+
 def test_bad_mode():
   with pytest.raises(ValueError, match="mode"):
     masks.instance_gains(3, "weird")
@@ -174,6 +185,12 @@ def test_float_segment_ids_are_refused():
     jax.jit(masks.table_from_dynamic_ids)(np.array([3.0, 0.0]))
   with pytest.raises(TypeError, match="segment_ids must be an integer array"):
     masks.instance_table(np.array([1.5]), np.array([3]), np.array([True]), np.array([3]), 2)
+  # class ids too: a class 3.7 was read as car (3)
+  with pytest.raises(TypeError, match="segment_classes must be an integer array of class ids"):
+    masks.instance_table(np.array([1, 2]), np.array([3.7, 5.0]), np.array([True, True]),
+                         np.array([3]), 2)
+  with pytest.raises(TypeError, match="dynamic_classes must be an integer array of class ids"):
+    masks.instance_table(np.array([1]), np.array([3]), np.array([True]), np.array([3.2]), 2)
   # Every integer width is accepted and gives the int32 map.
   for dtype in (np.uint8, np.int16, np.int64):
     got = masks.instance_index_map(pan.astype(dtype), ids, valid)

@@ -443,6 +443,18 @@ def test_loss_rng_and_config():
       sfm.SfmLossConfig(**bad)
 
 
+def test_a_target_not_divisible_by_the_coarsest_scale_is_named():
+  """H and W must be divisible by 2**max(scales) for the block means of the target at each
+  scale: a 6x8 target at scales 0-2 was a bare reshape TypeError."""
+  cfg = sfm.SfmLossConfig(scales=(0, 1, 2), automask=False)
+  b, h, w = 1, 6, 8
+  disps = [jnp.full((b, h // 2 ** s, w // 2 ** s), 0.5) for s in cfg.scales]
+  eye = jnp.eye(4)[None]
+  with pytest.raises(ValueError, match=r"8x6 must be divisible by 2\*\*2 = 4"):
+    sfm.monodepth2_loss(jnp.zeros((b, h, w, 3)), jnp.zeros((b, 1, h, w, 3)), disps, eye, eye,
+                        eye[:, None], cfg=cfg)
+
+
 @pytest.mark.parametrize("shape", [(1, 1, 5, 3), (1, 4, 1, 3)])
 def test_ssim_refuses_an_axis_that_reflection_padding_cannot_pad(shape):
   """MonoDepth2's SSIM pads by reflection (nn.ReflectionPad2d(1)), which PyTorch refuses on an
