@@ -45,6 +45,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from tqdm import tqdm
   from pitta_jax import metrics as metrics_lib
   from pitta_jax.adapt import streams
+  from pitta_jax.adapt.engine import wait_for_chunk
   from pitta_jax.adapt.inputs import chunks
   from pitta_jax.methods import build
   from pitta_jax.methods.depth_refining import dynamic_classes
@@ -92,6 +93,7 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
                                    cfg.max_segments, weights.spec.image_resize,
                                    dynamic_classes(pitta.config)):
       states, out = runner(states, chunk, consts)
+      held = wait_for_chunk((states, out))  # an interrupt meanwhile: raised once it is recorded
       depth = np.asarray(out.depth)                                     # (T, K, H, W)
       for t, frame in enumerate(originals):
         for k in range(len(lams)):
@@ -114,6 +116,8 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
         last_saved = n
       bar.set_postfix_str("", refresh=False)
       bar.update(len(originals))
+      if held is not None:
+        raise held
   except KeyboardInterrupt:
     done_states, marks = done
     n = marks["names"][0]

@@ -957,6 +957,18 @@ def test_lambda_sweep_resumes_after_an_interrupt(tmp_path, monkeypatch):
   starts.clear()
   assert table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=cut) == whole
   assert starts == [frames[2].name]
+  # a Ctrl-C while the second chunk runs: XLA runs it to its end all the same, and its frames
+  # are scored and checkpointed before the sweep stops (they were dropped)
+  from interrupts import interrupt_a_wait
+  kept = tmp_path / "kept.ckpt"
+  with monkeypatch.context() as patch:
+    interrupt_a_wait(patch, 2)
+    with pytest.raises(KeyboardInterrupt):
+      table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=kept)
+  assert [p.name for p in run.complete_checkpoints(kept)][-1] == "state_000004.json"
+  starts.clear()
+  assert table4.lambda_sweep(weights, frames, lams, runners=shared, checkpoint_dir=kept) == whole
+  assert starts == [frames[4].name]
 
 
 def test_experiments_without_a_name_is_a_usage_error_on_stderr(capsys):

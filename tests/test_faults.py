@@ -19,6 +19,8 @@ import time
 import numpy as np
 import pytest
 
+from interrupts import interrupt_a_wait
+
 from pitta_jax.cli import main
 from pitta_jax.outputs import (OutputError, atomic_write_files, atomic_write_text, json_safe,
                                open_output_dir)
@@ -357,6 +359,53 @@ def test_ctrl_c_while_a_chunk_is_scored_loses_no_frame(tiny_weights, tmp_path, m
   full = json.loads((tmp_path / "full" / "results.json").read_text())
   assert resumed["resumed_at_frame"] == 2 * K and len(full["per_frame"]) == N
   assert resumed["per_frame"] == full["per_frame"] and resumed["logs"] == full["logs"]
+
+
+def test_a_ctrl_c_while_a_chunk_runs_keeps_that_chunk(tiny_weights, tmp_path, monkeypatch, capfd):
+  """XLA cannot stop a running chunk, so a Ctrl-C during its run waited for it all the same and
+  then dropped its frames (checkpointing the chunk before): it is said at once, the chunk's
+  frames are recorded and checkpointed, and the run stops there; --resume goes on after it and
+  equals an uninterrupted run."""
+  out = tmp_path / "cut"
+  interrupt_a_wait(monkeypatch, 3)
+  assert main(_adapt_args(tiny_weights, out)) == 130
+  err = capfd.readouterr().err
+  assert "interrupted while a chunk runs: it cannot be cut short" in err
+  assert f"interrupted; its first {3 * K} frames are checkpointed" in err
+  monkeypatch.undo()
+  assert main(_adapt_args(tiny_weights, out, "--resume")) == 0
+  assert main(_adapt_args(tiny_weights, tmp_path / "full")) == 0
+  resumed = json.loads((out / "results.json").read_text())
+  full = json.loads((tmp_path / "full" / "results.json").read_text())
+  assert resumed["resumed_at_frame"] == 3 * K
+  assert resumed["per_frame"] == full["per_frame"] and resumed["logs"] == full["logs"]
+
+
+def test_a_second_ctrl_c_stops_the_wait_for_a_chunk(capfd):
+  """Hand case of the wait: the first interrupt is held and returned once the arrays are ready
+  (a line on stderr at once), a second one raises."""
+  from pitta_jax.adapt import engine
+  polls = []
+
+  class Pending:  # a chunk's array: interrupted on the 2nd poll, ready from the 4th on
+    def __init__(self, cuts):
+      self.cuts = cuts
+
+  def all_ready(leaves):
+    polls.append(1)
+    if len(polls) in leaves[0].cuts:
+      raise KeyboardInterrupt
+    return len(polls) >= 4
+  import unittest.mock
+  with unittest.mock.patch.object(engine, "_all_ready", all_ready), \
+      unittest.mock.patch.object(engine, "POLL_SECONDS", 0.0):
+    held = engine.wait_for_chunk([Pending({2})])
+    assert isinstance(held, KeyboardInterrupt) and len(polls) == 4
+    assert "interrupted while a chunk runs" in capfd.readouterr().err
+    polls.clear()
+    with pytest.raises(KeyboardInterrupt):
+      engine.wait_for_chunk([Pending({1, 2})])
+    assert engine.wait_for_chunk([Pending(set())]) is None
 
 
 def test_a_record_is_cut_back_to_its_marks():

@@ -16,6 +16,8 @@ inputs => bitwise the same depths and parameters.
 from __future__ import annotations
 
 import functools
+import sys
+import time
 from pathlib import Path
 from typing import Any, Iterable, Iterator, NamedTuple
 
@@ -308,6 +310,38 @@ def make_chunk_runner(step, compiler_options: dict[str, Any] | None = None):
   return runner
 
 
+POLL_SECONDS = 0.005  # how often a wait for a running chunk looks whether it has ended
+
+
+def _all_ready(leaves: list) -> bool:
+  """Whether every array of a dispatched chunk's results is computed."""
+  return all(leaf.is_ready() for leaf in leaves if isinstance(leaf, jax.Array))
+
+
+def wait_for_chunk(tree: Any) -> KeyboardInterrupt | None:
+  """Waits until the arrays of a dispatched chunk (`tree`) are computed, answering signals
+  meanwhile: a blocking read holds a Ctrl-C until the chunk ends, and then the interrupt cut the
+  chunk's frames from the run it had waited for.
+
+  XLA cannot stop a running program, so the first Ctrl-C (or SIGTERM / SIGHUP, which the
+  commands raise as a KeyboardInterrupt) does not end the wait: it is returned, for the caller
+  to raise once the chunk's frames are recorded (and checkpointed), with a line on stderr
+  saying so at once. A second one raises at once. Returns None without a signal."""
+  leaves = jax.tree_util.tree_leaves(tree)
+  held = None
+  while True:
+    try:
+      while not _all_ready(leaves):
+        time.sleep(POLL_SECONDS)
+      return held
+    except KeyboardInterrupt as interrupt:
+      if held is not None:
+        raise
+      held = interrupt
+      print("interrupted while a chunk runs: it cannot be cut short, so its frames are kept "
+            "once it ends (interrupt again not to wait for them)", file=sys.stderr, flush=True)
+
+
 def adapt_stream(state: AdaptState, consts: Consts, chunks: Iterable[StepInput], run_chunk,
                  checkpoint_dir: str | Path | None = None, checkpoint_every: int = 0
                  ) -> Iterator[tuple[AdaptState, StepOutput]]:
@@ -317,11 +351,14 @@ def adapt_stream(state: AdaptState, consts: Consts, chunks: Iterable[StepInput],
   With `checkpoint_dir` and `checkpoint_every > 0`, the state is saved whenever the number of
   frames processed crosses a multiple of `checkpoint_every` at a chunk end (make the chunk size
   divide `checkpoint_every` to save after exact frames), as `<dir>/state_<frames:06d>`.
+  An interrupt while a chunk runs is raised after that chunk's outputs are yielded (and saved),
+  at the next iteration (`wait_for_chunk`).
   """
   last_saved = int(state.step)
   for chunk in chunks:
     # run_chunk donates the carry: work on a copy so the caller's state stays valid
     state, outs = run_chunk(jax.tree_util.tree_map(jnp.copy, state), chunk, consts)
+    held = wait_for_chunk((state, outs))
     valid = np.asarray(chunk.valid)
     host = jax.tree_util.tree_map(lambda o: np.asarray(o)[valid], outs)
     done = int(state.step)
@@ -329,6 +366,8 @@ def adapt_stream(state: AdaptState, consts: Consts, chunks: Iterable[StepInput],
       save_state(Path(checkpoint_dir) / f"state_{done:06d}", state)
       last_saved = done
     yield state, host
+    if held is not None:  # the caller has recorded the chunk it waited for
+      raise held
 
 
 def save_state(path: str | Path, state: AdaptState) -> None:
