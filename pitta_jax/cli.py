@@ -17,6 +17,10 @@ from typing import Callable, NoReturn
 from pitta_jax.data.errors import DataError
 from pitta_jax.text import first_and_count
 
+# what --images / --source-images take (`predict.expand_images`)
+IMAGES_HELP = ("an image file, a directory, a glob (quote it; ** for any depth of folders) or a "
+               ".txt list of image paths, one per line")
+
 
 def _add_predict(sub) -> None:
   p = sub.add_parser(
@@ -34,7 +38,7 @@ def _add_predict(sub) -> None:
                   "sky; its metric models: the depth itself) and <stem>_disp.png (near = "
                   "bright).")
   p.add_argument("--weights", required=True, help="weights directory (holds model.json)")
-  p.add_argument("--images", required=True, help="an image file, a directory, or a glob (quote it)")
+  p.add_argument("--images", required=True, help=IMAGES_HELP)
   p.add_argument("--out", required=True, help="output directory")
   p.add_argument("--height", type=int, help="input height (default: the weights' training size; "
                  "Depth Anything V2: from each image, its aspect ratio kept; must follow the "
@@ -86,7 +90,7 @@ def _add_segment(sub) -> None:
   p.add_argument("--weights", required=True, metavar="DIR",
                  help="Mask2Former weights directory (config.json + params)")
   p.add_argument("--images", required=True, metavar="PATH",
-                 help="an image file, a directory, or a glob (quote it)")
+                 help=IMAGES_HELP)
   p.add_argument("--out", required=True, metavar="OUT", help="output directory")
   p.add_argument("--height", type=int, metavar="H", help="resize images to H x W for the network "
                                                          "(with --width; default: own size)")
@@ -351,7 +355,7 @@ def _add_adapt(sub, name: str) -> None:
                  help="save the adaptation state and the results so far after every K frames "
                       "(and on Ctrl-C) under OUT/checkpoints (default 0: none)")
   p.add_argument("--source-images", metavar="PATH",
-                 help="source-domain images (a file, a directory or a glob) for methods that "
+                 help=f"source-domain images ({IMAGES_HELP}) for methods that "
                       "need source data (ActMAD's statistics); default on synthetic: clear-"
                       "weather training streets")
   p.add_argument("--replay-root", metavar="DIR",
@@ -586,7 +590,7 @@ def _add_source_stats(sub) -> None:
              "'kitti_raw/2011_09_26/*/image_02/data/*.jpg' --out stats/mono_640x192.npz")
   p.add_argument("--weights", required=True, metavar="DIR", help="weights directory")
   p.add_argument("--images", required=True, metavar="PATH",
-                 help="source-domain images: a file, a directory or a glob (quote it)")
+                 help=f"source-domain images: {IMAGES_HELP}")
   p.add_argument("--out", required=True, metavar="FILE", help="the .npz file to write")
   p.add_argument("--layers", metavar="REGEX",
                  help=help_of(layers).replace("%", "%%"))

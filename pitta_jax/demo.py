@@ -68,8 +68,8 @@ class DemoConfig:
   """What the demo runs (the source model is `SourceConfig`'s, the methods their configs')."""
   shifts: tuple[str, ...] = option(("fog", "rain", "night", "snow"), "target weather domains")
   severity: float = option(0.7, "synthetic weather strength in [0, 1]")
-  num_frames: int = option(40, "frames per target sequence (keeps a cached re-run near 2 "
-                               "minutes on CPU)")
+  num_frames: int = option(40, "frames per target sequence (keeps a cached re-run of the "
+                               "default rows under a minute on a 2-core CPU)")
   target_seed: int = option(100, "target streets (training uses seeds 0..7)")
   methods: tuple[str, ...] = option(("none", "bn", "pitta"),
                                     "rows under each shift: none (No adaptation), bn (BN batch "
