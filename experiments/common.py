@@ -817,12 +817,13 @@ def main_wrapper(run: Callable[..., int], p: argparse.ArgumentParser,
   runners: an in-process compile cache shared with other tables of the same process."""
   from pitta_jax.cli import exit_status, report_error, say_stopped, terminate_as_interrupt
   from pitta_jax.outputs import OutputError
-  from pitta_jax.source_model import enable_compilation_cache
+  from pitta_jax.source_model import enable_compilation_cache, repairing_compilation_cache
   args = p.parse_args(argv)
   failed = True
   try:
     enable_compilation_cache()  # the command's choice: a later run skips the step compiles
-    with terminate_as_interrupt():  # SIGTERM stops as Ctrl-C (also under python -m)
+    # SIGTERM stops as Ctrl-C (also under python -m); a damaged cached program is removed
+    with terminate_as_interrupt(), repairing_compilation_cache():
       status = run(args, runners)
     failed = False
     return status

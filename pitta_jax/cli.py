@@ -846,10 +846,11 @@ def interruptible(body: Callable[[], int], debug: bool | None = None,
   (`_quiet_libraries`), and what the process still prints after a signal. `in_process`: the
   caller's process goes on after the command (`main(argv)` from a script), so the libraries'
   log levels are put back once the command has returned, raised or been interrupted."""
+  from pitta_jax.source_model import repairing_compilation_cache
   debug = ("--debug" in sys.argv) if debug is None else debug
   restore = None
   try:
-    with terminate_as_interrupt():
+    with terminate_as_interrupt(), repairing_compilation_cache():
       if not debug:
         restore = _quiet_libraries()
       return body()

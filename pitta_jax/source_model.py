@@ -37,14 +37,18 @@ the cache on first use instead of training; without the file it trains, as for a
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import glob
 import hashlib
 import io
 import json
 import math
 import os
+import re
 import sys
 import time
+import warnings
 from functools import partial
 from pathlib import Path
 from typing import Any, Callable
@@ -189,6 +193,54 @@ def enable_compilation_cache() -> None:
   path = writable_cache_dir(cache_root() / "xla", probe=False)
   jax.config.update("jax_compilation_cache_dir", str(path))
   jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+# JAX's warning for a persistent-cache entry it cannot read (names the program or the key)
+_UNREADABLE_ENTRY = re.compile(r"Error reading persistent compilation cache entry for '([^']+)'")
+
+
+def remove_damaged_entries(name: str) -> list[Path]:
+  """Removes the compiled programs of the persistent cache that cannot be decompressed, among
+  the entries of `name` (a cache key, or a program name: its keys `<name>-<hash>`); returns
+  them. JAX writes an entry in place and never replaces one, so an entry cut short (a kill or a
+  full disk while it was written) made every later run warn and compile again."""
+  from jax._src.compilation_cache import decompress_executable
+  folder = Path(jax.config.jax_compilation_cache_dir or "")
+  if not str(folder) or not folder.is_dir():
+    return []
+  removed = []
+  for entry in sorted({*folder.glob(f"{glob.escape(name)}-cache"),
+                       *folder.glob(f"{glob.escape(name)}-*-cache")}):
+    try:
+      decompress_executable(entry.read_bytes())
+    except Exception:  # noqa: BLE001 (any decoder's error: the entry is unreadable)
+      with contextlib.suppress(OSError):
+        entry.unlink()
+        removed.append(entry)
+        entry.with_name(entry.name.removesuffix("-cache") + "-atime").unlink(missing_ok=True)
+  return removed
+
+
+@contextlib.contextmanager
+def repairing_compilation_cache():
+  """While a command runs: JAX's warning that it cannot read a cached program (it then compiles
+  it, but cannot store it again while the damaged entry is there) removes that entry, so that
+  this run's compile is stored by the next one, with one line instead of JAX's two. The
+  command's choice (warning hooks are the process's); any other warning is shown as before."""
+  with warnings.catch_warnings():
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+      found = _UNREADABLE_ENTRY.match(str(message))
+      removed = remove_damaged_entries(found.group(1)) if found else []
+      if not removed:
+        shown(message, category, filename, lineno, file, line)
+      for entry in removed:
+        print(f"warning: {entry}: a damaged compiled program in the cache (written by a run "
+              f"that was killed or ran out of disk) was removed; this run stores it again",
+              file=sys.stderr)
+    warnings.showwarning = show
+    yield
 
 
 def cached_dir(cfg: SourceConfig) -> Path:

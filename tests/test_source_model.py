@@ -9,6 +9,8 @@ the shipped model was written (`pitta-jax train-source --ship`).
 from __future__ import annotations
 
 import json
+import os
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -178,6 +180,39 @@ def test_a_damaged_cache_entry_is_rebuilt_with_a_warning_on_stderr(tmp_path, mon
   assert err.rstrip().endswith("copying the shipped model again")
   assert report["shipped"] == str(source_model.shipped_path(cfg))
   jax.tree_util.tree_map(np.testing.assert_array_equal, again.depth, first.depth)
+
+
+_CACHED_PROGRAM = """
+import jax, jax.numpy as jnp
+from pitta_jax.source_model import enable_compilation_cache, repairing_compilation_cache
+enable_compilation_cache()
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # store even this one
+with repairing_compilation_cache():
+  print(float(jax.jit(lambda x: jnp.sin(x) * 3 + 1)(jnp.float32(2.0))))
+"""
+
+
+def test_a_compiled_program_cut_short_in_the_cache_is_removed_and_stored_again(tmp_path):
+  """JAX writes a cache entry in place and never replaces one: an entry cut short by a kill or
+  a full disk made every later command warn (two lines) and compile again. The command removes
+  it, says so in one line, and stores its own compile: the entry is whole again."""
+  import subprocess
+  env = {**os.environ, source_model.CACHE_ENV: str(tmp_path), "JAX_PLATFORMS": "cpu"}
+  run = lambda: subprocess.run([sys.executable, "-c", _CACHED_PROGRAM], env=env,
+                               capture_output=True, text=True, timeout=120)
+  first = run()
+  assert first.returncode == 0, first.stderr
+  entries = list((tmp_path / "xla").glob("jit__lambda-*-cache"))
+  assert len(entries) == 1
+  whole = entries[0].read_bytes()
+  entries[0].write_bytes(whole[:len(whole) // 2])
+  second = run()
+  assert second.returncode == 0 and second.stdout == first.stdout
+  assert "Error reading persistent compilation cache" not in second.stderr
+  assert f"warning: {entries[0]}: a damaged compiled program in the cache" in second.stderr
+  assert entries[0].read_bytes() == whole
+  third = run()
+  assert third.returncode == 0 and third.stderr == ""
 
 
 def test_retrain_trains_over_a_cache_and_a_shipped_model(tmp_path, monkeypatch):
