@@ -226,6 +226,9 @@ def read_model_json(weights_dir: str | os.PathLike) -> tuple[Any, dict[str, Any]
   if not Path(weights_dir).is_dir():
     raise WeightsError(f"{weights_dir}: not a weights directory with a {MODEL_JSON} (make one "
                        f"with `pitta-jax convert ...` or `pitta-jax train-source`)")
+  if not path.is_file() and (Path(weights_dir) / INCOMPLETE).is_file():
+    raise WeightsError(f"{weights_dir}: its weights were being written when that stopped (a "
+                       f"conversion or train-source interrupted: {INCOMPLETE}); run it again")
   if not path.is_file():
     pth = sorted(p.name for p in Path(weights_dir).glob("*.pth"))
     hint = (f"; this folder holds PyTorch files ({', '.join(pth[:4])}): convert them first, e.g. "

@@ -394,7 +394,9 @@ def test_an_interrupted_convert_can_be_run_again(r18, tmp_path, monkeypatch, cap
   monkeypatch.setattr(checkpoint, "save_tree", interrupted)
   assert main(args) == 130
   assert not (out / "model.json").exists() and (out / checkpoint.INCOMPLETE).is_file()
-  with pytest.raises(checkpoint.WeightsError, match="model.json: not found"):
+  # the weights say why they are unusable: the conversion was cut short, run it again
+  with pytest.raises(checkpoint.WeightsError, match="were being written when that stopped .* "
+                                                    "run it again"):
     load_weights(out)
 
 
