@@ -313,9 +313,13 @@ def make_chunk_runner(step, compiler_options: dict[str, Any] | None = None):
 POLL_SECONDS = 0.005  # how often a wait for a running chunk looks whether it has ended
 
 
-def _all_ready(leaves: list) -> bool:
-  """Whether every array of a dispatched chunk's results is computed."""
-  return all(leaf.is_ready() for leaf in leaves if isinstance(leaf, jax.Array))
+def _all_ready(pending: list) -> bool:
+  """Whether every array of a dispatched chunk's results in `pending` is computed; drops those
+  that are, from the end (one program's outputs are ready together: a poll looks at one array,
+  not at the hundreds of a carry's leaves)."""
+  while pending and (not isinstance(pending[-1], jax.Array) or pending[-1].is_ready()):
+    pending.pop()
+  return not pending
 
 
 def wait_for_chunk(tree: Any) -> KeyboardInterrupt | None:
@@ -327,11 +331,11 @@ def wait_for_chunk(tree: Any) -> KeyboardInterrupt | None:
   commands raise as a KeyboardInterrupt) does not end the wait: it is returned, for the caller
   to raise once the chunk's frames are recorded (and checkpointed), with a line on stderr
   saying so at once. A second one raises at once. Returns None without a signal."""
-  leaves = jax.tree_util.tree_leaves(tree)
+  pending = jax.tree_util.tree_leaves(tree)
   held = None
   while True:
     try:
-      while not _all_ready(leaves):
+      while not _all_ready(pending):
         time.sleep(POLL_SECONDS)
       return held
     except KeyboardInterrupt as interrupt:
