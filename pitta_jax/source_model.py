@@ -204,9 +204,14 @@ def remove_damaged_entries(name: str) -> list[Path]:
   the entries of `name` (a cache key, or a program name: its keys `<name>-<hash>`); returns
   them. JAX writes an entry in place and never replaces one, so an entry cut short (a kill or a
   full disk while it was written) made every later run warn and compile again."""
-  from jax._src.compilation_cache import decompress_executable
-  folder = Path(jax.config.jax_compilation_cache_dir or "")
-  if not str(folder) or not folder.is_dir():
+  try:  # JAX's own decoder of its entries (zstandard or zlib, as it wrote them)
+    from jax._src.compilation_cache import decompress_executable
+  except ImportError:  # another JAX: its warning is shown as it is
+    return []
+  if not jax.config.jax_compilation_cache_dir:
+    return []
+  folder = Path(jax.config.jax_compilation_cache_dir)
+  if not folder.is_dir():
     return []
   removed = []
   for entry in sorted({*folder.glob(f"{glob.escape(name)}-cache"),
@@ -225,7 +230,7 @@ def remove_damaged_entries(name: str) -> list[Path]:
 def repairing_compilation_cache():
   """While a command runs: JAX's warning that it cannot read a cached program (it then compiles
   it, but cannot store it again while the damaged entry is there) removes that entry, so that
-  this run's compile is stored by the next one, with one line instead of JAX's two. The
+  this run's compile is stored in its place, with one line instead of JAX's two. The
   command's choice (warning hooks are the process's); any other warning is shown as before."""
   with warnings.catch_warnings():
     shown = warnings.showwarning
