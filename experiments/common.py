@@ -550,7 +550,7 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
     if res_key not in resources:
       resources[res_key] = method_resources(method, weights, ctx.dataset, ctx.source_images,
                                             ctx.replay_root, quiet=ctx.quiet)
-    ckpt = checkpoints(ctx, key)
+    ckpt = checkpoints(ctx, key, f"{case}: {row.label}")
     res = run_sequence(weights, frames, cfg, method, ctx.evaluation(),
                        name=f"{case}: {row.label}", quiet=ctx.quiet, runners=runners,
                        resources=resources[res_key], checkpoint_dir=ckpt,
@@ -574,10 +574,23 @@ def run_row(ctx: Context, row: RowSpec, case: str, parts, runners, resources: di
                    "metrics_before_divergence", "adapt", "method_config")}, "row_key": key})
 
 
-def checkpoints(ctx: Context, key: str) -> Path | None:
+ROW_OF_CHECKPOINTS = "row.txt"  # in a row's checkpoint folder: which table row it is
+
+
+def checkpoints(ctx: Context, key: str, row: str) -> Path | None:
   """Where the row (or sweep) `key` keeps its checkpoints while it runs (None with --quick:
-  none)."""
-  return None if ctx.quick else _checkpoint_dir(ctx, key)
+  none), made now with `row` (the row's case and label) written in it: the checkpoints of a
+  run whose settings (--frames, the weights, ...) gave the same row another key are then known
+  for that row's, and go when it is stored (`remove_checkpoints`)."""
+  if ctx.quick:
+    return None
+  from pitta_jax.outputs import atomic_write_text
+  directory = _checkpoint_dir(ctx, key)
+  check_out(ctx)  # not under an --out removed meanwhile (no parents made)
+  directory.parent.mkdir(exist_ok=True)
+  directory.mkdir(exist_ok=True)
+  atomic_write_text(directory / ROW_OF_CHECKPOINTS, f"{ctx.name}/{row}\n")
+  return directory
 
 
 def _checkpoint_dir(ctx: Context, key: str) -> Path:
@@ -585,11 +598,22 @@ def _checkpoint_dir(ctx: Context, key: str) -> Path:
 
 
 def remove_checkpoints(ctx: Context, key: str) -> None:
-  """The row's checkpoints, once its result is stored."""
+  """The row's checkpoints, once its result is stored, and those an earlier run left for the
+  same row under another key (its settings changed: they would never be resumed)."""
   import shutil
   directory = _checkpoint_dir(ctx, key)
-  if directory.is_dir():
-    shutil.rmtree(directory, ignore_errors=True)
+  row = _row_of(directory)
+  for other in directory.parent.glob("*.ckpt") if directory.parent.is_dir() else ():
+    if other == directory or (row is not None and other.is_dir() and _row_of(other) == row):
+      shutil.rmtree(other, ignore_errors=True)
+
+
+def _row_of(directory: Path) -> str | None:
+  """The row a checkpoint folder is for (`checkpoints`), None where it does not say."""
+  try:
+    return (directory / ROW_OF_CHECKPOINTS).read_text()
+  except (OSError, UnicodeDecodeError):
+    return None
 
 
 def attach_paper(entries: Sequence[Entry], table: int,

@@ -84,7 +84,8 @@ def run(args, runners=None) -> int:
                                                                           weights))
   sweep = common.cached(ctx, key, lambda: {"sweep": lambda_sweep(
       weights, common.case_frames(ctx, (CASE,), weights.height, weights.width), lams,
-      ctx.quiet, ctx.quick, shared, common.checkpoints(ctx, key), ctx.evaluation(),
+      ctx.quiet, ctx.quick, shared, common.checkpoints(ctx, key, f"fog: {row.label}"),
+      ctx.evaluation(),
       lambda: common.check_out(ctx))},
       field="sweep", length=len(lams))["sweep"]
   common.remove_checkpoints(ctx, key)

@@ -178,7 +178,7 @@ def run(args, runners=None) -> int:
     frames = common.case_frames(ctx, parts, weights.height, weights.width)
     took = common.timer()
     sweep = lambda_sweep(weights, frames, LAMBDAS, ctx.quiet, ctx.quick, common.runners(ctx),
-                         common.checkpoints(ctx, key), ctx.evaluation(),
+                         common.checkpoints(ctx, key, f"{case}: {row.label}"), ctx.evaluation(),
                          lambda: common.check_out(ctx))
     return {"sweep": sweep, "seconds": round(took(), 2)}
   cached = common.cached(ctx, key, compute, field="sweep", length=len(LAMBDAS))

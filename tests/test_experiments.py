@@ -537,6 +537,25 @@ def test_rows_with_l_d_on_frames_without_panoptic_maps_are_noted(capsys):
   capsys.readouterr()
 
 
+def test_a_rows_stale_checkpoints_go_when_the_row_is_stored(tmp_path):
+  """A row interrupted, then run again with other settings (--frames: another key), left the
+  first run's checkpoints for good (hundreds of MB for a method that adapts the whole network).
+  Once the row is stored, the checkpoints of the same table row go; another row's, another
+  table's and a folder that does not say whose it is stay."""
+  ctx = common.Context("synthetic", None, [], "gt", {}, tmp_path, False, 0, True, name="table2")
+  old = common.checkpoints(ctx, "k1", "Foggy: PITTA")
+  (old / "state_000032.json").write_text("{}")
+  new = common.checkpoints(ctx, "k2", "Foggy: PITTA")
+  other_row = common.checkpoints(ctx, "k3", "Foggy: CoTTA")
+  other_table = common.checkpoints(dataclasses.replace(ctx, name="table1"), "k4", "Foggy: PITTA")
+  unmarked = tmp_path / "rows" / "k5.ckpt"
+  unmarked.mkdir()
+  common.remove_checkpoints(ctx, "k2")
+  assert sorted(p.name for p in (tmp_path / "rows").iterdir()) == ["k3.ckpt", "k4.ckpt", "k5.ckpt"]
+  assert not old.exists() and not new.exists() and other_row.is_dir() and other_table.is_dir()
+  assert common.checkpoints(dataclasses.replace(ctx, quick=True), "k6", "Foggy: PITTA") is None
+
+
 def test_row_cache_sees_the_files_it_reads(tmp_path):
   """A row's cache key holds the files under --root and the --segmentation directory (their
   sizes and times), not only their paths: re-segmented maps were served the old rows. The
