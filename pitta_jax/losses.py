@@ -360,6 +360,12 @@ def pitta_loss(image: Array, depth: Array, panoptic: Array, dynamic_ids: Array, 
   return PittaLoss(total=combine(l_d, l_e, lam), l_d=l_d, l_e=l_e, n=n)
 
 
+def _check_lam(lam: float) -> None:
+  """ValueError unless eq. 10's concrete lambda is >= 0 (inf: L_e alone)."""
+  if math.isnan(lam) or lam < 0:
+    raise ValueError(f"lam must be >= 0 (inf: L_e alone), got {lam}")
+
+
 def combine(l_d: Array, l_e: Array, lam: float | Array) -> Array:
   """Eq. 10, `L = L_d + lambda * L_e`; lambda = inf means L_e alone (Table 4's last column).
 
@@ -367,17 +373,14 @@ def combine(l_d: Array, l_e: Array, lam: float | Array) -> Array:
   gradient.
   """
   if isinstance(lam, (int, float)):
-    if math.isnan(lam) or lam < 0:
-      raise ValueError(f"lam must be >= 0 (inf: L_e alone), got {lam}")
+    _check_lam(lam)
     return l_e if math.isinf(lam) else l_d + lam * l_e
   lam = as_float(lam)  # float64 stays float64 (x64 gradient checks)
   if lam.ndim != 0:  # a (K,) lambda broadcast the loss to (K,)
     raise ValueError(f"lam must be a scalar (vmap over streams for several), got shape "
                      f"{lam.shape}")
   if not isinstance(lam, jax.core.Tracer):  # a concrete array: the Python float's check
-    value = float(lam)
-    if math.isnan(value) or value < 0:
-      raise ValueError(f"lam must be >= 0 (inf: L_e alone), got {value}")
+    _check_lam(float(lam))
   is_inf = jnp.isinf(lam)
   return jnp.where(is_inf, l_e, l_d + jnp.where(is_inf, 0.0, lam) * l_e)
 

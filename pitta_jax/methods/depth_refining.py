@@ -69,9 +69,15 @@ class DepthRefiningConfig:
 def frame_instances(frame, cfg: DepthRefiningConfig) -> tuple[jax.Array, jax.Array, jax.Array]:
   """The frame's dynamic instances (eq. 3): (index_map (H, W) int32, n () int32,
   inst_ids (N_max,) int32 segment ids)."""
+  return _instances(frame, cfg, cfg.max_instances)
+
+
+def _instances(frame, cfg: DepthRefiningConfig, n_max: int
+               ) -> tuple[jax.Array, jax.Array, jax.Array]:
+  """`frame_instances` with a table of `n_max` rows."""
   inst_ids, inst_valid = masks.instance_table(
       frame.seg_ids, frame.seg_classes, frame.seg_valid,
-      jnp.asarray(cfg.dynamic_classes, jnp.int32), cfg.max_instances)
+      jnp.asarray(cfg.dynamic_classes, jnp.int32), n_max)
   index_map = masks.instance_index_map(frame.panoptic, inst_ids, inst_valid)  # (H, W)
   return index_map, jnp.sum(inst_valid.astype(jnp.int32)), inst_ids
 
@@ -79,10 +85,7 @@ def frame_instances(frame, cfg: DepthRefiningConfig) -> tuple[jax.Array, jax.Arr
 def dynamic_pixels(frame, cfg: DepthRefiningConfig) -> jax.Array:
   """(H, W) bool: the pixels of every dynamic segment of the frame's segment table (classes in
   `cfg.dynamic_classes`), not only of the first `cfg.max_instances` that L_d's table keeps."""
-  inst_ids, inst_valid = masks.instance_table(
-      frame.seg_ids, frame.seg_classes, frame.seg_valid,
-      jnp.asarray(cfg.dynamic_classes, jnp.int32), frame.seg_ids.shape[0])
-  return masks.instance_index_map(frame.panoptic, inst_ids, inst_valid) > 0
+  return _instances(frame, cfg, frame.seg_ids.shape[0])[0] > 0
 
 
 def _check_window(cfg: DepthRefiningConfig, shape: tuple[int, ...]) -> None:
