@@ -1231,3 +1231,27 @@ def test_velodyne_depth_with_a_rotated_rectification_matches_upstream(tmp_path):
       got = velodyne_depth(date, tmp_path / "scan.bin", camera=camera, vel_depth=vel_depth)
       assert np.count_nonzero(want) > 10
       np.testing.assert_array_equal(got, want.astype(np.float32))
+
+
+def test_a_damaged_compressed_gt_depths_names_the_file(tmp_path):
+  """MonoDepth2's export_gt_depth.py writes gt_depths.npz with np.savez_compressed; deflate
+  data damaged on disk (here a first block of the reserved type 3, which zlib refuses) is a
+  one-line DataError naming the file when the split is opened and when the maps load, not
+  zlib's own error (a traceback from the commands)."""
+  split, _, maps = make_kitti(tmp_path)
+  gt = split.parent / "gt_depths.npz"
+  _save_object_npz(gt, maps)
+  with zipfile.ZipFile(gt) as archive:
+    info = archive.getinfo("data.npy")
+  assert info.compress_type == zipfile.ZIP_DEFLATED
+  raw = bytearray(gt.read_bytes())
+  name_len, extra_len = (int.from_bytes(raw[info.header_offset + k:info.header_offset + k + 2],
+                                        "little") for k in (26, 28))
+  start = info.header_offset + 30 + name_len + extra_len  # the member's compressed bytes
+  raw[start:start + 16] = b"\xff" * 16
+  gt.write_bytes(bytes(raw))
+  pattern = rf"^{re.escape(str(gt))}: not a readable \.npz file \(.*\)$"
+  with pytest.raises(DataError, match=pattern):
+    kitti.open_kitti(tmp_path / "data", split)
+  with pytest.raises(DataError, match=pattern):
+    kitti.load_gt_depths(gt)

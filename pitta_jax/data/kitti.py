@@ -44,6 +44,7 @@ import functools
 import os
 import pickle
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -85,7 +86,8 @@ def gt_depths_count(path: PathLike, key: str = "data") -> int:
     with zipfile.ZipFile(path) as archive:
       stream, shape, _, _ = _open_npy_member(path, archive, key)
       stream.close()
-  except (zipfile.BadZipFile, ValueError, OSError) as e:
+  # zlib.error: damaged deflate data (export_gt_depth.py writes it with np.savez_compressed)
+  except (zipfile.BadZipFile, zlib.error, ValueError, OSError) as e:
     raise DataError(path, f"not a readable .npz file ({e})") from None
   if not shape:
     raise DataError(path, f"'{key}' is a scalar, expected one depth map per split line")
@@ -148,8 +150,8 @@ def load_gt_depths(path: PathLike, key: str = "data") -> np.ndarray:
                           f"{e.global_name})") from None
   except (pickle.UnpicklingError, CheckpointError) as e:
     raise DataError(path, f"unsafe or corrupt pickle in '{key}' ({e})") from None
-  except (zipfile.BadZipFile, ValueError, OSError, EOFError, TypeError, AttributeError,
-          IndexError, KeyError) as e:
+  except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, TypeError,
+          AttributeError, IndexError, KeyError) as e:
     raise DataError(path, f"not a readable .npz file ({type(e).__name__}: {e})") from None
   if not isinstance(array, np.ndarray) or array.ndim < 1:
     raise DataError(path, f"'{key}' is not an array of depth maps")
