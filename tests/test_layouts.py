@@ -379,3 +379,21 @@ def test_intrinsics_of_a_resize_that_changes_the_aspect_ratio():
                                 [[200, 0, 100.5], [0, 100, 25], [0, 0, 1]])
   np.testing.assert_array_equal(scale_intrinsics(K, (50, 100), (100, 100)),
                                 [[100, 0, 50], [0, 200, 50.5], [0, 0, 1]])
+
+
+def test_drivingstereo_calib_dir_named_for_a_size_is_for_that_size(tmp_path):
+  """`--option calib_dir=.../full-image-calib` (the `<seq>.txt` directory itself, as the docs
+  allow) with half-size images (881x400) and a calibration without S_rect_101: its P_rect is
+  for the full size (1762x800, the folder's name), as when the same folder is found under
+  --root, so K halves on the images (pixel centres kept); it was taken as the half size's."""
+  image_dir = tmp_path / "foggy" / "left-image-half-size"
+  for stem in FOGGY:
+    _write_rgb(image_dir / f"{stem}.jpg", np.full((400, 881, 3), 90, np.uint8))
+  calib_dir = tmp_path / "download" / "full-image-calib"
+  calib_dir.mkdir(parents=True)
+  (calib_dir / f"{FOGGY_SEQ}.txt").write_text(
+      f"P_rect_101: {_p_rect(2000.0, 2000.0, 880.0, 400.0)}\n")
+  frames = drivingstereo.open_drivingstereo(tmp_path, weather="foggy", depth=False,
+                                            calib_dir=calib_dir)
+  np.testing.assert_allclose(frames[0].intrinsics,
+                             _scaled([[2000, 0, 880], [0, 2000, 400], [0, 0, 1]], 0.5))

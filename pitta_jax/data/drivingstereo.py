@@ -27,7 +27,8 @@ text whose `P_rect_101` is the rectified left camera's projection (K = its left 
 `S_rect_101` its image size. Looked up in `calib_dir` (the `<seq>.txt` directory or its parent)
 or else under `<root>`, `<root>/calib`, `<root>/calib_train`, `<root>/calib_test` and the
 weather directory; the calibration of the size in use is preferred, the other one is scaled
-to the image (full = 2 x half).
+to the image (full = 2 x half). A file without `S_rect_101` is for the size its folder names
+(`half-image-calib/`, `full-image-calib/`, also when that folder is `calib_dir` itself).
 
 Panoptic segmentations (optional) are COCO panoptic PNG + JSON with the image's stem, found in
 `panoptic_dir` (`<stem>.png` or `<weather>/<stem>.png`; per-image JSONs or one COCO annotation
@@ -132,7 +133,10 @@ class _Calibrations:
     """(directory, the size its files are for, if known) in search order."""
     kinds = (size,) + tuple(s for s in SIZES if s != size)  # the size in use first
     if self.calib_dir is not None:
-      dirs: list[tuple[Path, str | None]] = [(self.calib_dir, None)]
+      # a `<size>-image-calib/` given itself is for that size, as when found under it: its
+      # files' P_rect_101 may come without S_rect_101 (K would be taken as the image's own)
+      own = next((s for s in SIZES if self.calib_dir.name == f"{s}-image-calib"), None)
+      dirs: list[tuple[Path, str | None]] = [(self.calib_dir, own)]
       bases = [self.calib_dir]
     else:
       dirs = []
