@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import cv2
 import hypothesis.extra.numpy as hnp
@@ -195,3 +196,23 @@ def test_errors_name_the_file(tmp_path, case, pattern):
   with pytest.raises(DataError, match=pattern) as info:
     panoptic_io.PanopticSource(tmp_path).ref("a").load()
   assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("annotation, pattern", [
+    ({"file_name": 139, "segments_info": []},
+     r"annotations\[0\] has file_name 139, expected the PNG's name"),
+    ({"file_name": None, "segments_info": []},
+     r"annotations\[0\] has file_name None, expected the PNG's name"),
+])
+def test_an_annotation_file_with_a_file_name_that_is_not_text_names_the_file(
+    tmp_path, annotation, pattern):
+  """A COCO annotation file whose file_name is a number (or null), or whose category id is a
+  list, is a one-line DataError naming the file (it was a TypeError of pathlib or of a dict,
+  which the commands print without the file)."""
+  path = tmp_path / "panoptic.json"
+  path.write_text(json.dumps({"annotations": [annotation]}))
+  with pytest.raises(DataError, match=f"^{re.escape(str(path))}: {pattern}"):
+    panoptic_io.read_annotation_file(path)
+  path.write_text(json.dumps({"annotations": [], "categories": [
+      {"id": [24], "name": "person", "isthing": 1}]}))
+  assert panoptic_io.read_annotation_file(path)[0] == {}

@@ -251,14 +251,18 @@ def read_annotation_file(path: PathLike) -> tuple[dict[str, tuple[Segment, ...]]
     raise DataError(path, "not a COCO panoptic annotation file (no 'annotations' list)")
   categories, mapping, notes = None, {}, ()
   if isinstance(data.get("categories"), list):
+    # (an id that is not an int, e.g. a list, is no segment's category_id: left out)
     categories = {c["id"]: bool(c["isthing"]) for c in data["categories"]
-                  if isinstance(c, dict) and "id" in c and "isthing" in c}
+                  if isinstance(c, dict) and isinstance(c.get("id"), int) and "isthing" in c}
     mapping, note = coco_ids_by_name(data["categories"], path)
     notes = (note,) if note else ()
   table = {}
   for k, ann in enumerate(data["annotations"]):
     if not isinstance(ann, dict) or "file_name" not in ann or "segments_info" not in ann:
       raise DataError(path, f"annotations[{k}] lacks 'file_name' or 'segments_info'")
+    if not isinstance(ann["file_name"], str):  # (the key of its PNG; a number is no file name)
+      raise DataError(path, f"annotations[{k}] has file_name {ann['file_name']!r}, expected "
+                            f"the PNG's name, e.g. '000000000139.png'")
     segments = parse_segments(ann["segments_info"], path, categories)
     table[_key(ann["file_name"])] = tuple(
         dataclasses.replace(s, category_id=mapping.get(s.category_id, s.category_id))
