@@ -822,6 +822,27 @@ def test_waymo_sequences_are_named_once_and_dense_npy_depth_is_float_metres(tmp_
     waymo.open_waymo(tmp_path, sequences="s1")[1]
 
 
+def test_kitti_ext_in_capitals_finds_the_lowercase_files(tmp_path):
+  """--option ext=JPG is accepted (the check ignores case) and finds KITTI's lowercase .jpg
+  files; it had looked for .JPG only and reported every image as not found."""
+  split, _, _ = make_kitti(tmp_path, ext="jpg")
+  for ext in ("JPG", ".Jpg", "jpg"):
+    frames = kitti.open_kitti(tmp_path / "data", split, depth=False, ext=ext)
+    assert frames[0].image.shape == (H, W, 3)
+
+
+def test_a_dense_depth_npy_that_is_an_npz_archive_is_named(tmp_path):
+  """A dense depth map saved with np.savez under a .npy name (np.load opens any zip as an
+  archive) is a one-line error naming the file, not an AttributeError on the archive."""
+  make_waymo(tmp_path, "s1")
+  npy = tmp_path / "s1" / "depth" / "000001.npy"
+  with open(npy, "wb") as f:
+    np.savez(f, depth=np.ones((2, 3), np.float32))
+  with pytest.raises(DataError, match=f"^{re.escape(str(npy))}: cannot read .npy depth "
+                                      f"\\(an .npz archive"):
+    waymo.open_waymo(tmp_path, sequences="s1")[1]
+
+
 def test_a_velodyne_scan_cut_short_by_whole_floats_is_refused(tmp_path):
   """A scan whose size is not a multiple of 16 bytes (one point) is refused, also when it is a
   multiple of 4 (cut 12 bytes short by an interrupted copy: it had read 19999 points)."""

@@ -298,9 +298,13 @@ def write_depth_png(path: PathLike, depth: np.ndarray, scale: float = DEPTH_PNG_
 def load_npy(path: PathLike, what: str) -> np.ndarray:
   """np.load without pickle (a .npy cannot run code); DataError naming the file otherwise."""
   try:
-    return np.load(path, allow_pickle=False)
+    array = np.load(path, allow_pickle=False)
   except (ValueError, OSError, EOFError) as e:  # EOFError: an empty file
     raise DataError(path, f"cannot read .npy {what} ({e or type(e).__name__})") from None
+  if not isinstance(array, np.ndarray):  # np.load opens a zip (.npz) whatever its name
+    array.close()
+    raise DataError(path, f"cannot read .npy {what} (an .npz archive, not one array)")
+  return array
 
 
 def read_depth_npy(path: PathLike) -> np.ndarray:

@@ -200,7 +200,9 @@ def read_split(path: PathLike) -> list[tuple[str, int, int]]:
 
 def _find_image(data: Path, folder: str, frame: int, camera: int, ext: str | None) -> Path:
   base = data / folder / f"image_0{camera}" / "data" / f"{frame:010d}"
-  suffixes = (".jpg", ".png") if ext is None else ("." + ext.lstrip("."),)
+  # ext as given, then lowercase: `ext` is checked case-insensitively, KITTI's files are lowercase
+  suffixes = (".jpg", ".png") if ext is None else tuple(
+      dict.fromkeys("." + e for e in (ext.lstrip("."), ext.lstrip(".").lower())))
   for suffix in suffixes:
     if base.with_suffix(suffix).is_file():
       return base.with_suffix(suffix)
