@@ -62,8 +62,8 @@ def markdown_table(rows: Sequence[Row], group_title: str = "Shift") -> str:
 
 def write_results(out_dir: str | Path, rows: Sequence[Row], meta: dict[str, Any],
                   group_title: str = "Shift") -> str:
-  """Writes results.json (meta + rows), results.csv and table.md, each atomically; returns the
-  markdown. results.json is valid JSON: a non-finite value is written as null and counted in
+  """Writes results.json (meta + rows), results.csv (one line per row: group, method, status,
+  the 7 metrics, the extras) and table.md, each atomically; returns the markdown. results.json is valid JSON: a non-finite value is written as null and counted in
   its "non_finite_values" entry."""
   out = Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
@@ -75,10 +75,13 @@ def write_results(out_dir: str | Path, rows: Sequence[Row], meta: dict[str, Any]
   buffer = io.StringIO(newline="")
   writer = csv.writer(buffer)
   extra_keys = sorted({k for r in rows for k in r.extra})
-  writer.writerow([group_title.lower(), "method", *METRIC_NAMES, *extra_keys])
+  # the row's status beside its numbers, as results.json and table.md give it: a diverged
+  # run's means cover only the frames before (`pitta-jax adapt`), which table.md does not show
+  # and a CSV without it passed off as an ok row's
+  writer.writerow([group_title.lower(), "method", "status", *METRIC_NAMES, *extra_keys])
   for r in rows:
-    writer.writerow([r.group, r.method, *(f"{r.metrics.get(m, float('nan')):.6f}"
-                                          for m in METRIC_NAMES),
+    writer.writerow([r.group, r.method, r.status, *(f"{r.metrics.get(m, float('nan')):.6f}"
+                                                    for m in METRIC_NAMES),
                      *(r.extra.get(k, "") for k in extra_keys)])
   texts = (json.dumps(payload, indent=2, allow_nan=False) + "\n", buffer.getvalue(), table)
   atomic_write_files(out, dict(zip(RESULT_FILES, texts)))

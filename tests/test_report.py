@@ -57,9 +57,9 @@ def test_write_results_files(tmp_path):
   assert data["pitta"]["lam"] == 0.2 and data["pitta"]["ld"]["window"] == 5 and data["rows"][0]["metrics"]["abs_rel"] == 0.1
   with open(tmp_path / "results.csv") as f:
     lines = list(csv.reader(f))
-  assert lines[0] == ["shift", "method", "abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2",
-                      "a3", "fps"]
-  assert lines[1][:3] == ["fog", "PITTA", "0.100000"] and lines[1][-1] == "3.5"
+  assert lines[0] == ["shift", "method", "status", "abs_rel", "sq_rel", "rmse", "rmse_log", "a1",
+                      "a2", "a3", "fps"]
+  assert lines[1][:4] == ["fog", "PITTA", "ok", "0.100000"] and lines[1][-1] == "3.5"
   assert (tmp_path / "table.md").read_text().count("\n") == 3
 
 
@@ -268,3 +268,17 @@ def test_a_blank_option_key_and_a_malformed_integer_are_named():
   with pytest.raises(argparse.ArgumentTypeError,
                      match=r"^'--5' is neither an integer nor a COCO class name$"):
     ints("1,--5")
+
+
+def test_results_csv_says_a_diverged_rows_status_as_the_table_does(tmp_path):
+  """`pitta-jax adapt` keeps a diverged run's means over the frames before it: table.md and
+  results.json say "diverged"; results.csv gave the numbers alone, as an ok row's."""
+  status = "diverged: non-finite depth from frame 3 of 10 (7 frames not scored)"
+  write_results(tmp_path, [Row("fog", "a", M1), Row("fog", "b", M2, status=status)], {})
+  with open(tmp_path / "results.csv", newline="") as f:
+    rows = list(csv.DictReader(f))
+  assert [(r["method"], r["status"], r["abs_rel"]) for r in rows] == [
+      ("a", "ok", "0.200000"), ("b", status, "0.100000")]
+  table = (tmp_path / "table.md").read_text()
+  data = json.loads((tmp_path / "results.json").read_text())
+  assert f"| fog | b | {status} |" in table and data["rows"][1]["status"] == status
