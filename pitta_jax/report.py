@@ -37,14 +37,20 @@ class Row:
 
 
 def markdown_table(rows: Sequence[Row], group_title: str = "Shift") -> str:
-  """The paper's table layout: group, method, 7 metrics (3 decimals; best per group in bold)."""
+  """The paper's table layout: group, method, 7 metrics (3 decimals; best per group in bold).
+
+  The best is found on the values as printed (3 decimals), as the paper marks them and as the
+  experiments' tables do (`experiments.render.ranks`): cells that print the same number are
+  both bold or neither (0.1004 and 0.1001 both print 0.100), and a group whose values all
+  print alike has no best to mark."""
   head = f"| {group_title} | Method | " + " | ".join(HEADERS[m] for m in METRIC_NAMES) + " |"
   lines = [head, "|" + "---|" * (len(METRIC_NAMES) + 2)]
   for group in dict.fromkeys(r.group for r in rows):
     members = [r for r in rows if r.group == group]
     best = {}
     for m in METRIC_NAMES:
-      vals = [r.metrics[m] for r in members if m in r.metrics and r.status == "ok"]
+      vals = {round(float(r.metrics[m]), 3) for r in members
+              if r.status == "ok" and m in r.metrics and np.isfinite(r.metrics[m])}
       if len(vals) > 1:
         best[m] = max(vals) if m in HIGHER_IS_BETTER else min(vals)
     for r in members:
@@ -55,7 +61,8 @@ def markdown_table(rows: Sequence[Row], group_title: str = "Shift") -> str:
       for m in METRIC_NAMES:
         v = r.metrics.get(m, float("nan"))
         text = f"{v:.3f}"
-        cells.append(f"**{text}**" if m in best and np.isclose(v, best[m]) else text)
+        cells.append(f"**{text}**" if m in best and np.isfinite(v) and round(float(v), 3)
+                     == best[m] else text)
       lines.append(f"| {group} | {r.method} | " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
 

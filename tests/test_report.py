@@ -282,3 +282,19 @@ def test_results_csv_says_a_diverged_rows_status_as_the_table_does(tmp_path):
   table = (tmp_path / "table.md").read_text()
   data = json.loads((tmp_path / "results.json").read_text())
   assert f"| fog | b | {status} |" in table and data["rows"][1]["status"] == status
+
+
+def test_markdown_table_bolds_every_cell_that_prints_the_best_value():
+  """The best is the best number as printed: 0.1004 and 0.1001 both print 0.100, and only the
+  second was bold (the unrounded minimum), beside an equal-looking plain cell; the paper and the
+  experiments' tables bold both (Table 1, All: ActMAD's and PITTA's δ<1.25 0.758)."""
+  tie_a = {**M1, "abs_rel": 0.1004, "a1": 0.7584}
+  tie_b = {**M2, "abs_rel": 0.1001, "a1": 0.7576}
+  table = markdown_table([Row("fog", "a", tie_a), Row("fog", "b", tie_b),
+                          Row("fog", "c", {**M1, "abs_rel": 0.3, "a1": 0.5})])
+  cells = [line.split(" | ") for line in table.strip().splitlines()[2:]]
+  assert [c[2] for c in cells] == ["**0.100**", "**0.100**", "0.300"]  # AbsRel
+  assert [c[6] for c in cells] == ["**0.758**", "**0.758**", "0.500"]  # δ<1.25
+  # a column whose printed values all tie has no best
+  same = markdown_table([Row("fog", "a", {**M1, "rmse": 9.0001}), Row("fog", "b", M1)])
+  assert all("**" not in line.split(" | ")[4] for line in same.strip().splitlines()[2:])
