@@ -82,8 +82,12 @@ def per_frame_figure(series: Mapping[str, Sequence[float]], metric: str, title: 
   styles = ("-", "--", ":", "-.")
   for k, (name, values) in enumerate(series.items()):
     y = _finite_or_nan(values)  # (N,)
+    # a value with no finite neighbour (a one-frame run, a frame scored between gaps) is a line
+    # of one point, which draws nothing: such points get a marker
+    alone = _isolated(y)  # (N,) bool
+    marks = dict(marker="o", markersize=3, markevery=alone) if alone.any() else {}
     ax.plot(np.arange(y.size), y, label=name, linewidth=1.5, color=colors[k % len(colors)],
-            linestyle=styles[(k // len(colors)) % len(styles)])
+            linestyle=styles[(k // len(colors)) % len(styles)], **marks)
   ax.set_xlabel("frame")
   ax.set_ylabel(HEADERS.get(metric, metric))
   ax.set_title(title)
@@ -190,6 +194,14 @@ def _finite_or_nan(values: Sequence[float]) -> np.ndarray:
   """(N,) float64 with every non-finite entry NaN (drawn as a gap; +-inf would stretch axes)."""
   y = np.asarray(values, np.float64).reshape(-1)
   return np.where(np.isfinite(y), y, np.nan)
+
+
+def _isolated(y: np.ndarray) -> np.ndarray:
+  """(N,) bool: the finite entries of `y` (N,) whose neighbours are both NaN or absent (a line
+  through them has no segment)."""
+  finite = ~np.isnan(y)
+  padded = np.concatenate([[False], finite, [False]])  # (N + 2,)
+  return finite & ~padded[:-2] & ~padded[2:]
 
 
 def _inf_position(finite_lams: np.ndarray) -> float:

@@ -190,3 +190,20 @@ def test_saving_again_replaces_the_file_and_dates_nothing(tmp_path, monkeypatch)
     save_figure(fig, tmp_path / f"d{epoch}.png", cfg)
     pdfs.append((tmp_path / f"d{epoch}.pdf").read_bytes())
   assert pdfs[0] == pdfs[1] and b"CreationDate" not in pdfs[0]
+
+
+def test_a_frame_without_finite_neighbours_is_drawn_as_a_marker():
+  """A line through one point draws nothing: a one-frame run, or a frame scored between two
+  gaps, was absent from its figure. Such points (and only they) get a marker."""
+  series = {"one frame": [0.2], "between gaps": [0.1, NAN, 0.3, 0.4, INF, 0.5],
+            "whole": [0.1, 0.2], "empty": []}
+  fig = per_frame_figure(series, "abs_rel", "t", SMALL)
+  lines = fig.axes[0].get_lines()
+  want = [[True], [True, False, False, False, False, True], None, None]  # None: no marker
+  for line, mask in zip(lines, want):
+    if mask is None:
+      assert line.get_marker() in ("None", None, "")
+    else:
+      assert line.get_marker() == "o"
+      np.testing.assert_array_equal(line.get_markevery(), mask)
+  fig.canvas.draw()  # renders with the masks
