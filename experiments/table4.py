@@ -101,6 +101,9 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
             record["nonfinite"][k].append(len(record["names"]))
             record["abs_rel"][k].append(None)
             continue
+          if frame.depth is None:  # no ground truth (e.g. --option depth=false): not scored,
+            record["abs_rel"][k].append(None)  # as `run.run_sequence` leaves such a frame
+            continue
           try:
             m = frame_metrics(depth[t, k], frame.depth, ev, model_alignment(weights))
           except metrics_lib.NoValidPixels:

@@ -199,3 +199,37 @@ def test_a_difference_that_rounds_to_zero_prints_as_zero():
   assert render.ranks(entries, "abs_rel", decimals=4) == {0: 1, 1: 1, 2: 2}
   md = render.markdown(entries, "rows", "G", "M", ("abs_rel",), decimals=4)
   assert "-0.0000" not in md and md.count("**0.0000**") == 2
+
+
+def test_a_sweep_leaves_a_frame_without_ground_truth_unscored():
+  """A frame without ground truth (a reader's `--option depth=false`) is not scored, as
+  `run.run_sequence` leaves it (a table row is then "not scored"); the sweep stopped with the
+  metrics' "gt must be a 2-D (H, W) map, got shape ()". The compiled step is stood in for by
+  constant depths (the scoring is what is tested)."""
+  import dataclasses
+  from tiny_net import SPEC, tiny_variables
+  from experiments import table4
+  from pitta_jax import run
+  from pitta_jax.checkpoint import Weights
+  from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  weights = Weights(SPEC, {"height": 64, "width": 96}, tiny_variables(0))
+  frames = list(generate_sequence(SyntheticConfig(height=64, width=96, num_frames=3,
+                                                  domain="fog")))
+  frames[1] = dataclasses.replace(frames[1], depth=None)
+
+  class Constant(run.Runners):  # every stream predicts 10 m everywhere
+    def custom(self, key, build):
+      model, tx, _ = super().custom(key, build)
+
+      def runner(states, chunk, consts):
+        t = chunk.image.shape[0]
+        return states, type("Out", (), {"depth": np.full((t, 2, 64, 96), 10.0, np.float32)})
+      return model, tx, runner
+  want = [run.frame_metrics(np.full((64, 96), 10.0), f.depth, run.EvalConfig(), "median")
+          for f in (frames[0], frames[2])]
+  for r in table4.lambda_sweep(weights, frames, (0.0, 0.5), runners=Constant()):
+    assert r["status"] == "ok" and r["frames"] == 3
+    series = r["abs_rel_per_frame"]
+    assert series[0] == want[0]["abs_rel"] and math.isnan(series[1])
+    assert series[2] == want[1]["abs_rel"]
+    assert r["metrics"]["abs_rel"] == np.mean([w["abs_rel"] for w in want])
