@@ -41,8 +41,14 @@ class EvalConfig:
   """The evaluation protocol (paper Sec. 4.1; its Appendix D is not public): MonoDepth2's
   `evaluate_depth.py` as it scores its Eigen split, without the crop unless asked (`valid_gt`
   positive is its rule on other splits; `metrics` says where they differ)."""
-  min_depth: float = option(metrics_lib.MIN_DEPTH, "ground truth below this is invalid (metres)")
-  max_depth: float = option(metrics_lib.MAX_DEPTH, "cap of ground truth and prediction (metres)")
+  # ground truth outside (min_depth, max_depth) is left out, not clipped (MonoDepth2's mask),
+  # and with valid_gt positive scored whatever its depth; the prediction is clamped either way
+  min_depth: float = option(metrics_lib.MIN_DEPTH, "ground truth at or below this is not scored "
+                                                   "(valid_gt range), and the prediction is "
+                                                   "clamped up to it (metres)")
+  max_depth: float = option(metrics_lib.MAX_DEPTH, "ground truth at or beyond this is not scored "
+                                                   "(valid_gt range; not capped), and the "
+                                                   "prediction is clamped down to it (metres)")
   alignment: str = option("model", "per-frame alignment of the prediction: model (the "
                                    "weights' own: median for self-supervised monocular nets, "
                                    "stereo (x5.4) for weights trained with stereo pairs "

@@ -261,3 +261,24 @@ def test_positive_ground_truth_leaves_out_zeros():
   pred = np.array([[12.0, 5.0, 20.0]])
   got = metrics.depth_metrics(pred, gt, median_scaling=False, valid_gt="positive")
   assert got["abs_rel"] == pytest.approx(0.1)
+
+
+def test_the_depth_range_flags_say_what_the_mask_and_the_clamp_do():
+  """--eval.max-depth's help called it a "cap of ground truth": ground truth beyond it is left
+  out (MonoDepth2's `gt < MAX_DEPTH` mask), not capped; only the prediction is clamped. Hand
+  values: gt 100 m is not scored (capped to 80 it would add an error), pred 100 m is clamped."""
+  import argparse
+  from pitta_jax.config_cli import add_config_arguments
+  from pitta_jax.run import EvalConfig
+  gt = np.array([[10.0, 100.0]])
+  pred = np.array([[12.0, 100.0]])
+  m = metrics.depth_metrics(pred, gt, median_scaling=False)
+  assert m["abs_rel"] == pytest.approx(0.2)  # the 100 m pixel is not scored
+  m = metrics.depth_metrics(np.array([[100.0]]), np.array([[50.0]]), median_scaling=False)
+  assert m["abs_rel"] == pytest.approx(30 / 50)  # the prediction clamped to 80
+  p = argparse.ArgumentParser()
+  add_config_arguments(p, EvalConfig, "eval", "eval")
+  helps = {a.dest: " ".join(a.help.split()) for a in p._actions if a.help}
+  text = {k: v for k, v in helps.items() if k.endswith(("min_depth", "max_depth"))}
+  assert len(text) == 2 and not any("cap of ground truth" in v for v in text.values())
+  assert all("not scored" in v and "clamped" in v for v in text.values())
