@@ -521,7 +521,7 @@ def _run_adapt(args) -> int:
                                                      "frames": len(res.frame_names),
                                                      "n_skipped": res.n_skipped,
                                                      "n_excluded": len(res.excluded)},
-              status=res.status + ("; means over the frames before" if res.nonfinite else ""))
+              status=res.status + ("; means over its finite frames" if res.nonfinite else ""))
     meta = {"command": args.command, "dataset": args.dataset, "root": args.root,
             "options": args.option, "segmentation": args.segmentation, "notes": notes,
             "source": {"images": args.source_images, "replay_root": args.replay_root,
@@ -548,8 +548,8 @@ def _run_adapt(args) -> int:
       print(f"{len(res.excluded)} frame(s) without valid ground truth excluded from the means: "
             f"{first_and_count(res.excluded, 5)}")
     if res.nonfinite:
-      print(f"warning: {res.status}; the means cover the frames before "
-            f"({res.nonfinite[0]} on)", file=sys.stderr)
+      print(f"warning: {res.status}; the means cover the frames whose depth is finite "
+            f"(not {first_and_count(res.nonfinite, 5)})", file=sys.stderr)
     if not res.per_frame and not res.nonfinite:
       print(f"warning: {res.status}", file=sys.stderr)
     ran = len(res.frame_names) - res.resumed_at

@@ -70,8 +70,9 @@ def markdown_table(rows: Sequence[Row], group_title: str = "Shift") -> str:
 def write_results(out_dir: str | Path, rows: Sequence[Row], meta: dict[str, Any],
                   group_title: str = "Shift") -> str:
   """Writes results.json (meta + rows), results.csv (one line per row: group, method, status,
-  the 7 metrics, the extras) and table.md, each atomically; returns the markdown. results.json is valid JSON: a non-finite value is written as null and counted in
-  its "non_finite_values" entry."""
+  the 7 metrics, the extras) and table.md, each atomically; returns the markdown. results.json
+  is valid JSON: a non-finite value is written as null and counted in its "non_finite_values"
+  entry."""
   out = Path(out_dir)
   out.mkdir(parents=True, exist_ok=True)
   table = markdown_table(rows, group_title)
@@ -83,7 +84,7 @@ def write_results(out_dir: str | Path, rows: Sequence[Row], meta: dict[str, Any]
   writer = csv.writer(buffer)
   extra_keys = sorted({k for r in rows for k in r.extra})
   # the row's status beside its numbers, as results.json and table.md give it: a diverged
-  # run's means cover only the frames before (`pitta-jax adapt`), which table.md does not show
+  # run's means cover only its finite frames (`pitta-jax adapt`), which table.md does not show
   # and a CSV without it passed off as an ok row's
   writer.writerow([group_title.lower(), "method", "status", *METRIC_NAMES, *extra_keys])
   for r in rows:

@@ -271,7 +271,7 @@ def test_a_blank_option_key_and_a_malformed_integer_are_named():
 
 
 def test_results_csv_says_a_diverged_rows_status_as_the_table_does(tmp_path):
-  """`pitta-jax adapt` keeps a diverged run's means over the frames before it: table.md and
+  """`pitta-jax adapt` keeps a diverged run's means over its finite frames: table.md and
   results.json say "diverged"; results.csv gave the numbers alone, as an ok row's."""
   status = "diverged: non-finite depth from frame 3 of 10 (7 frames not scored)"
   write_results(tmp_path, [Row("fog", "a", M1), Row("fog", "b", M2, status=status)], {})
