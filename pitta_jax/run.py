@@ -68,8 +68,9 @@ class EvalConfig:
   def __post_init__(self):
     check_types(self)
     check(is_number(self.min_depth) and is_number(self.max_depth)
-          and 0 <= self.min_depth < self.max_depth < float("inf"),
-          f"need 0 <= min_depth < max_depth < inf, got min_depth={self.min_depth} "
+          and 0 < self.min_depth < self.max_depth < float("inf"),
+          # (> 0: the prediction is clamped up to min_depth before log and division)
+          f"need 0 < min_depth < max_depth < inf, got min_depth={self.min_depth} "
           f"max_depth={self.max_depth}")
     check(self.alignment in ("model", "median", "scale_shift", "stereo", "none"),
           f"alignment must be model, median, scale_shift, stereo or none, got "

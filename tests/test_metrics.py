@@ -282,3 +282,15 @@ def test_the_depth_range_flags_say_what_the_mask_and_the_clamp_do():
   text = {k: v for k, v in helps.items() if k.endswith(("min_depth", "max_depth"))}
   assert len(text) == 2 and not any("cap of ground truth" in v for v in text.values())
   assert all("not scored" in v and "clamped" in v for v in text.values())
+
+
+def test_a_min_depth_of_zero_is_refused_before_any_frame():
+  """--eval.min-depth 0 was accepted, and a prediction of 0 on a valid pixel, clamped "up" to
+  0, then stopped the run mid-way with the metrics' ValueError: the clamp needs a positive
+  lower bound (MonoDepth2's 1e-3), so the configuration is refused before any work."""
+  from pitta_jax.run import EvalConfig
+  for bad in (0.0, -1.0):
+    with pytest.raises(ValueError, match=r"need 0 < min_depth < max_depth < inf, got "
+                                          rf"min_depth={bad} "):
+      EvalConfig(min_depth=bad)
+  assert EvalConfig(min_depth=0.1).min_depth == 0.1
