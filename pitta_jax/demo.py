@@ -168,7 +168,7 @@ def run_demo(demo: DemoConfig = DemoConfig(), adapt: AdaptConfig = AdaptConfig()
                                             else res.fps), 1),
             **({"mean_instances": float(np.mean(res.logs["n_instances"]))}
                if "n_instances" in res.logs else {})}, status=res.status))
-      per_frame[domain] = {r: [m["abs_rel"] for m in res.per_frame] for r, res in results.items()}
+      per_frame[domain] = {r: res.per_frame_series("abs_rel") for r, res in results.items()}
       check_out()
       _figures(out / "figures", domain, frames, results, h, w)
     # every figure before the results: an interrupt removes this run's figures, and results
