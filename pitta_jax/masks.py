@@ -14,7 +14,8 @@ instance index map (0 = no dynamic instance, j = instance j) carries the same in
 (H, W), which is what the fast depth-refining loss uses.
 
 Panoptic segment ids are > 0 (0 = void, as in COCO panoptic), so ids <= 0 mean "unused". They
-are integers below 2**31 (a COCO panoptic PNG holds ids below 2**24) and are compared as int32;
+are integers below 2**31 (a COCO panoptic PNG holds ids below 2**24) and are compared as int32
+(a concrete array holding one beyond int32 is refused rather than wrapped onto another id);
 a float array of ids is refused, since casting it would truncate 3.7 to segment 3.
 """
 
@@ -44,10 +45,24 @@ def check_mode(mode: str) -> None:
 def segment_id_array(x: Array, name: str, what: str = "segment ids") -> Array:
   """`x` as int32 segment ids (or instance indices, `what`); TypeError naming `name` when `x`
   is not an integer array (a cast would truncate 3.7 to 3)."""
+  if not isinstance(x, jax.core.Tracer):  # concrete: its values can be checked before the cast
+    _check_int32_range(np.asarray(x), name, what)
   x = jnp.asarray(x)
   if not jnp.issubdtype(x.dtype, jnp.integer):
     raise TypeError(f"{name} must be an integer array of {what}, got {x.dtype}")
   return x.astype(jnp.int32)
+
+
+def _check_int32_range(x: np.ndarray, name: str, what: str) -> None:
+  """ValueError when integer `x` holds a value outside int32 (a uint32 id >= 2**31, an int64
+  one beyond): the cast to int32 (or JAX's to 32 bits without x64) would wrap it silently onto
+  another segment's id (2**40 + 5 -> 5)."""
+  if (np.issubdtype(x.dtype, np.integer) and x.dtype.itemsize * 8 - np.issubdtype(
+      x.dtype, np.signedinteger) >= 32 and x.size):
+    lo, hi = int(x.min()), int(x.max())
+    if lo < -2**31 or hi >= 2**31:
+      raise ValueError(f"{name} holds {what} outside int32 ({hi if hi >= 2**31 else lo}): "
+                       f"ids are compared as int32, and a cast would wrap it onto another id")
 
 
 def table_rows(n_max: int) -> int:

@@ -197,6 +197,23 @@ def test_float_segment_ids_are_refused():
     np.testing.assert_array_equal(got, [[1, 0], [1, 0]])
 
 
+def test_ids_beyond_int32_are_refused_not_wrapped():
+  """A uint32 id of 2**31 + 3 or an int64 id of 2**40 + 5 was cast to int32 (or to 32 bits by
+  JAX without x64) and wrapped silently onto another id: 2**40 + 5 became segment 5, so the
+  table's instance 5 took the pixels of a segment it is not. Refused by name; ids in range of
+  any width are accepted."""
+  ids, valid = masks.table_from_dynamic_ids(np.array([5, 0], np.int32))
+  big = np.array([[2**40 + 5, 0], [5, 1]], np.int64)
+  with pytest.raises(ValueError, match=r"panoptic holds segment ids outside int32 \(1099511627781\)"):
+    masks.instance_index_map(big, ids, valid)
+  with pytest.raises(ValueError, match=r"dynamic_ids holds segment ids outside int32"):
+    masks.table_from_dynamic_ids(np.array([2**31 + 3, 0], np.uint32))
+  with pytest.raises(ValueError, match=r"panoptic holds segment ids outside int32 \(-4294967291\)"):
+    masks.instance_index_map(np.array([[-2**32 + 5]], np.int64), ids, valid)
+  ok = np.array([[2**31 - 1, 0], [5, 1]], np.uint32)
+  np.testing.assert_array_equal(masks.instance_index_map(ok, ids, valid), [[0, 0], [1, 0]])
+
+
 def test_every_path_refuses_float_ids_and_indices():
   """Float ids or instance indices are refused on every path, not truncated on some (the
   literal L_d read a panoptic 5.7 as segment 5 where the fast one refused it; a float index map
