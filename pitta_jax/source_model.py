@@ -64,7 +64,7 @@ from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
 from pitta_jax.configs import check, check_seed, check_types, finite, option
 from pitta_jax.models.depth_decoder import disp_to_depth
 from pitta_jax.models.pose import transformation_from_parameters
-from pitta_jax.outputs import atomic_write_bytes, atomic_write_text
+from pitta_jax.outputs import atomic_write_files, atomic_write_text
 from pitta_jax.models.random_init import jit_init
 from pitta_jax.nonsmooth import absolute
 from pitta_jax.prng import seed_key
@@ -617,6 +617,8 @@ def ship_source(cfg: SourceConfig, quiet: bool = False) -> Path:
   buffer = io.BytesIO()
   np.savez_compressed(buffer, **{"/".join((net,) + k): v for net, tree in trees.items()
                                  for k, v in flatten_dict(tree).items()})
-  atomic_write_bytes(path, buffer.getvalue())
-  atomic_write_text(path.with_suffix(".json"), json.dumps(record, indent=2) + "\n")
+  # both files synced before either is renamed: a kill leaves the old pair or the new one
+  atomic_write_files(path.parent, {path.name: buffer.getvalue(),
+                                   path.with_suffix(".json").name: json.dumps(record, indent=2)
+                                   + "\n"})
   return path
