@@ -498,3 +498,23 @@ def test_chunks_pad_the_last_chunk_and_step_input_carries_each_frames_fields():
   np.testing.assert_allclose(cubic, cv2.resize(image, (6, 4), interpolation=cv2.INTER_CUBIC),
                              atol=1e-6)
   assert not np.allclose(area, cubic)
+
+
+def test_step_input_refuses_an_8_bit_image():
+  """`Frame.image` is RGB in [0, 1]: a uint8 frame built in memory (an image read with PIL or
+  imageio) became floats of 0..255 at the network's size, or an all-white image once resized
+  (the area resize clips to [0, 1]), and the run adapted on that without a word; the same
+  image divided by 255 gives the network's input (the reference: the frame's own pixels / 255)."""
+  from pitta_jax.adapt.inputs import chunks, step_input
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.frame import Frame
+  pixels = np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3) * 3   # 0..213
+  for height, width in ((4, 6), (2, 3)):                                # as it is, and resized
+    with pytest.raises(DataError, match=r"mine: image must be floating RGB in \[0, 1\], got "
+                                        r"uint8 \(divide 8-bit images by 255\)"):
+      step_input(Frame(pixels, name="mine"), height, width, 3)
+  with pytest.raises(DataError, match="got bool"):
+    next(chunks([Frame(pixels > 100, name="mask")], 4, 6, 1, 3))
+  got = step_input(Frame(pixels / np.float32(255), name="mine"), 4, 6, 3).image
+  assert got.dtype == np.float32
+  np.testing.assert_array_equal(got, pixels.astype(np.float32) / np.float32(255))

@@ -31,6 +31,12 @@ def step_input(frame: Frame, height: int, width: int, max_segments: int,
   crowd the cars and people out."""
   if frame.image.ndim != 3 or frame.image.shape[-1] != 3:
     raise DataError(frame.name or "frame", f"image must be (H, W, 3), got {frame.image.shape}")
+  # An 8-bit image taken as it is reached the network as floats of 0..255 (or, resized, clipped
+  # to white): `Frame.image` is RGB in [0, 1], as `registry.checked_images` asks of a batch.
+  if not np.issubdtype(np.asarray(frame.image).dtype, np.floating):
+    raise DataError(frame.name or "frame", f"image must be floating RGB in [0, 1], got "
+                                           f"{np.asarray(frame.image).dtype} (divide 8-bit "
+                                           f"images by 255)")
   if not np.all(np.isfinite(frame.image)):
     raise DataError(frame.name or "frame", "image holds NaN or infinite values")
   frame = resize_frame(frame, height, width, image_resize)
