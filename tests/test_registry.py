@@ -253,3 +253,45 @@ def test_input_size_rule_on_each_side_and_its_bound():
   for h, w in ((32, 16384 + 32), (16384 + 32, 32)):
     with pytest.raises(ValueError, match=r"more than 16384 pixels on a side"):
       spec.check_size(h, w)
+
+
+def test_a_network_of_ones_own_must_return_its_maps_as_the_spec_says():
+  """ModelSpec's contract: `module.apply` returns a tuple of (B, H, W, 1) maps, full resolution
+  first. `Network.depth` reads `outputs[0][..., 0]`, so a module returning one bare (B, H, W, 1)
+  array gave image 0's map as the depth of the whole batch, (H, W), and one returning (B, H, W)
+  maps the first column of each image, (B, H): no error, wrong depths. Reference: the
+  contract-abiding module's depth, disp_to_depth of its own map, per image."""
+  import flax.linen as nn
+  from pitta_jax.models.registry import Network
+  from pitta_jax.models.spec import ModelSpec
+
+  class Net(nn.Module):
+    form: str
+
+    @nn.compact
+    def __call__(self, images, train=False):
+      disp = nn.sigmoid(nn.Conv(1, (3, 3), name="head")(images))     # (B, H, W, 1)
+      return {"bare": disp, "no_channel": (disp[..., 0],), "list": [disp, disp[:, ::2, ::2]],
+              "low_first": (disp[:, ::2, ::2], disp), "empty": ()}[self.form]
+
+  images = np.random.default_rng(0).random((2, 8, 16, 3)).astype(np.float32)
+  variables = Net("list").init(jax.random.PRNGKey(0), images)
+  spec = ModelSpec("mine", build=lambda config: Net("list"), output="sigmoid_disparity",
+                   size_multiple=8, default_size=(8, 16))
+  disp = np.asarray(Net("list").apply(variables, images)[0])[..., 0]  # (2, 8, 16)
+  want = 1 / (1 / 100 + (1 / 0.1 - 1 / 100) * disp.astype(np.float64))
+  got = Network(spec, Net("list")).depth(variables, images, False)
+  assert got.shape == (2, 8, 16)
+  np.testing.assert_allclose(np.asarray(got), want, rtol=1e-5)
+  for form, what in (("bare", r"one array of shape \(2, 8, 16, 1\), not a tuple"),
+                     ("no_channel", r"a first map of shape \(2, 8, 16\)"),
+                     ("low_first", r"a first map of shape \(2, 4, 8, 1\)"),
+                     ("empty", r"tuple \(\)")):
+    net = Network(spec, Net(form))
+    for call in (lambda: net.depth(variables, images, False),
+                 lambda: jax.jit(net.outputs, static_argnums=2)(variables, images, False),
+                 lambda: net.capture(variables, images, False, "head")):
+      with pytest.raises(ValueError, match=r"network mine: module.apply must return a tuple of "
+                                           r"\(B, H, W, 1\) maps, the full-resolution one "
+                                           rf"\(2, 8, 16, 1\) first .*got {what}"):
+        call()

@@ -57,6 +57,26 @@ def checked_images(images: Any) -> jax.Array:
   return images
 
 
+def checked_outputs(outputs: Any, images: jax.Array, name: str) -> tuple:
+  """A module's outputs, refused (ValueError naming the network) unless they are what
+  `ModelSpec`'s contract asks: a tuple (or list) of maps whose first is (B, H, W, 1) at the
+  images' batch and size. Why: `depth` reads `outputs[0][..., 0]`, so a bare (B, H, W, 1) array
+  gave the first image's (H, W) map as the batch's depth, and a (B, H, W) map without its
+  channel axis the first column of every image, (B, H), both without a word."""
+  first = outputs[0] if isinstance(outputs, (tuple, list)) and len(outputs) else None
+  want = (*images.shape[:3], 1)  # (B, H, W, 1)
+  if first is None or tuple(getattr(first, "shape", ())) != want:
+    if hasattr(outputs, "shape"):  # a bare array (a tracer under jit)
+      got = f"one array of shape {tuple(outputs.shape)}, not a tuple"
+    elif first is None:
+      got = f"{type(outputs).__name__} {outputs!r:.80}"
+    else:
+      got = f"a first map of shape {tuple(getattr(first, 'shape', ()))}"
+    raise ValueError(f"network {name}: module.apply must return a tuple of (B, H, W, 1) maps, "
+                     f"the full-resolution one {want} first (ModelSpec's contract), got {got}")
+  return tuple(outputs)
+
+
 @dataclasses.dataclass(frozen=True)
 class Network:
   """A depth network as the engine sees it: its spec and its Flax module.
@@ -78,11 +98,13 @@ class Network:
     read, XLA removes)."""
     if use_batch_stats and "batch_stats" in variables:
       mutable = [*mutable, "batch_stats"]
+    images = checked_images(images)  # (B, H, W, 3)
     if not mutable:
-      return self.module.apply(variables, checked_images(images), train=use_batch_stats,
-                               **kwargs), {}
-    return self.module.apply(variables, checked_images(images), train=use_batch_stats,
-                             mutable=mutable, **kwargs)
+      out = self.module.apply(variables, images, train=use_batch_stats, **kwargs)
+      return checked_outputs(out, images, self.spec.name), {}
+    out, state = self.module.apply(variables, images, train=use_batch_stats, mutable=mutable,
+                                   **kwargs)
+    return checked_outputs(out, images, self.spec.name), state
 
   def outputs(self, variables: Any, images: jax.Array, use_batch_stats: bool) -> tuple:
     return self._apply(variables, images, use_batch_stats, [])[0]
@@ -137,4 +159,4 @@ def network(spec: ModelSpec | str, config: Mapping[str, Any] | None = None,
   return Network(spec, module if module is not None else spec.build(dict(config or {})))
 
 
-__all__ = ["MODELS", "ModelSpec", "Network", "get_spec", "network"]
+__all__ = ["MODELS", "ModelSpec", "Network", "checked_outputs", "get_spec", "network"]
