@@ -298,7 +298,7 @@ def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: in
   if impl in IMPLS and jnp.size(dynamic_ids) == 0:  # no instance table: no term (eq. 8)
     depth = as_float(depth)  # the inputs checked as with a table (not hidden by its absence)
     panoptic = masks_lib.segment_id_array(panoptic, "panoptic")
-    masks_lib.segment_id_array(dynamic_ids, "dynamic_ids")
+    masks_lib.table_from_dynamic_ids(dynamic_ids)  # its type and rank
     if depth.ndim != 2 or panoptic.shape != depth.shape:
       raise ValueError(f"depth {depth.shape} and panoptic {panoptic.shape} must be the same "
                        f"(H, W)")
@@ -356,7 +356,7 @@ def pitta_loss(image: Array, depth: Array, panoptic: Array, dynamic_ids: Array, 
   """
   l_d = depth_refining_loss(depth, panoptic, dynamic_ids, s, mode, impl)
   l_e = edge_guided_loss(image, depth, u, v)
-  n = jnp.sum(jnp.asarray(dynamic_ids).reshape(-1) > 0).astype(jnp.int32)
+  n = jnp.sum(masks_lib.table_from_dynamic_ids(dynamic_ids)[1]).astype(jnp.int32)  # N
   return PittaLoss(total=combine(l_d, l_e, lam), l_d=l_d, l_e=l_e, n=n)
 
 

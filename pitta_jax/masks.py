@@ -142,14 +142,18 @@ def table_from_dynamic_ids(dynamic_ids: Array) -> tuple[Array, Array]:
   """Instance table from a padded list of dynamic segment ids.
 
   Args:
-    dynamic_ids: (N_max,) int panoptic segment ids of the dynamic instances; entries <= 0
-      (0 or -1) are unused and may sit anywhere.
+    dynamic_ids: (N_max,) int panoptic segment ids of the dynamic instances (a scalar: one
+      entry); entries <= 0 (0 or -1) are unused and may sit anywhere.
 
   Returns:
     (inst_ids, inst_valid), (N_max,) each, the used ids first in their order, so instance j
     (g_j = j in "instance_id" mode) is the j-th used entry.
   """
-  dynamic_ids = segment_id_array(dynamic_ids, "dynamic_ids").reshape(-1)
+  dynamic_ids = segment_id_array(dynamic_ids, "dynamic_ids")
+  if dynamic_ids.ndim > 1:  # a batch's (B, N_max) ids, flattened, were one frame's table
+    raise ValueError(f"dynamic_ids must be one frame's (N_max,) segment ids, got shape "
+                     f"{dynamic_ids.shape} (jax.vmap over a batch of frames)")
+  dynamic_ids = dynamic_ids.reshape(-1)  # (N_max,)
   return _compact(dynamic_ids, dynamic_ids > 0, dynamic_ids.shape[0])
 
 

@@ -482,3 +482,37 @@ def test_lambda_and_channel_mistakes_are_named():
     edges.channel_mean(jnp.ones((4, 4, 0)))
   with pytest.raises(ValueError, match="lr must be a finite number"):
     AdaptConfig(lr=10**400)
+
+
+def test_a_batch_of_dynamic_ids_for_one_frame_is_refused():
+  """`dynamic_ids` is one frame's (N_max,) table. A (B, N_max) batch of them (a data loader's
+  stack, with one frame's depth) was flattened into one table: the same car listed twice made
+  N = 2, and the fast L_d, which counts a repeated id's pixels once, came out half of the frame's
+  own (while the literal one counted it twice), without an error. Reference: the literal NumPy
+  loop of eq. 8 on the frame's own (N_max,) ids."""
+  rng = np.random.default_rng(0)
+  depth = rng.uniform(1, 5, (6, 7)).astype(np.float32)
+  pan = np.zeros((6, 7), np.int32)
+  pan[1:4, 2:6] = 5                                                    # one car, segment 5
+  image = rng.random((6, 7, 3)).astype(np.float32)
+  ids = np.array([5, 0], np.int32)
+  want = depth_refining_loss_loop(depth, pan, ids, 3)
+  assert want > 0
+  for impl in losses.IMPLS:
+    got = losses.pitta_loss(image, depth, pan, ids, 3, lam=0.0, impl=impl)
+    np.testing.assert_allclose(float(got.l_d), want, rtol=RTOL)
+    assert int(got.n) == 1
+  for batch in (np.stack([ids, ids]), np.zeros((2, 0), np.int32)):
+    for impl in losses.IMPLS:
+      for call in (lambda: losses.depth_refining_loss(depth, pan, batch, 3, impl=impl),
+                   lambda: jax.jit(losses.pitta_loss, static_argnames="impl")(
+                       image, depth, pan, batch, impl=impl)):
+        with pytest.raises(ValueError, match=r"dynamic_ids must be one frame's \(N_max,\) "
+                                             rf"segment ids, got shape \(2, {batch.shape[1]}\)"):
+          call()
+    with pytest.raises(ValueError, match="dynamic_ids must be one frame's"):
+      masks.table_from_dynamic_ids(batch)
+  # vmapped over a batch of frames, each frame sees its own (N_max,) row
+  got = jax.vmap(lambda d, i: losses.pitta_loss(image, d, pan, i, 3, lam=0.0).l_d)(
+      np.stack([depth, 2 * depth]), np.stack([ids, ids]))
+  np.testing.assert_allclose(np.asarray(got), [want, 2 * want], rtol=RTOL)
