@@ -518,3 +518,23 @@ def test_step_input_refuses_an_8_bit_image():
   got = step_input(Frame(pixels / np.float32(255), name="mine"), 4, 6, 3).image
   assert got.dtype == np.float32
   np.testing.assert_array_equal(got, pixels.astype(np.float32) / np.float32(255))
+
+
+def test_step_input_refuses_a_float_panoptic_map():
+  """A float panoptic map was cast to int32 on its way to the step, so segment 3.7 became
+  segment 3 (a car's id, here) without a word, where the pure functions refuse float ids
+  (`masks.segment_id_array`). Reference: the same map as int32 passes through as it is."""
+  from pitta_jax.adapt.inputs import step_input
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.frame import Frame, Segment
+  ids = np.zeros((4, 6), np.int32)
+  ids[1:3, 2:5] = 3
+  image = np.full((4, 6, 3), 0.5, np.float32)
+  with pytest.raises(DataError, match="cars: panoptic must be an integer map of segment ids, "
+                                      "got float32"):
+    step_input(Frame(image, panoptic=(ids + 0.7).astype(np.float32), segments=(Segment(3, 3),),
+                     name="cars"), 4, 6, 3)
+  got = step_input(Frame(image, panoptic=ids.astype(np.uint16), segments=(Segment(3, 3),)),
+                   4, 6, 3)
+  np.testing.assert_array_equal(got.panoptic, ids)
+  assert got.seg_ids.tolist() == [3, 0, 0] and got.seg_valid.tolist() == [True, False, False]

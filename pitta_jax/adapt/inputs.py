@@ -39,6 +39,11 @@ def step_input(frame: Frame, height: int, width: int, max_segments: int,
                                            f"images by 255)")
   if not np.all(np.isfinite(frame.image)):
     raise DataError(frame.name or "frame", "image holds NaN or infinite values")
+  if frame.panoptic is not None and not np.issubdtype(np.asarray(frame.panoptic).dtype,
+                                                      np.integer):
+    # a float id map cast to int32 read segment 3.7 as 3 (`masks.segment_id_array` refuses it)
+    raise DataError(frame.name or "frame", f"panoptic must be an integer map of segment ids, "
+                                           f"got {np.asarray(frame.panoptic).dtype}")
   frame = resize_frame(frame, height, width, image_resize)
   if frame.panoptic is None:
     panoptic = np.zeros((height, width), np.int32)
