@@ -538,3 +538,21 @@ def test_step_input_refuses_a_float_panoptic_map():
                    4, 6, 3)
   np.testing.assert_array_equal(got.panoptic, ids)
   assert got.seg_ids.tolist() == [3, 0, 0] and got.seg_valid.tolist() == [True, False, False]
+
+
+def test_step_input_refuses_a_panoptic_map_of_another_size():
+  """An in-memory frame whose panoptic map is not the image's size (here transposed) had its
+  map resized on its own to the network's size, labelling other pixels, where the readers
+  refuse such a pair. Reference: the map of the image's size passes through as it is."""
+  from pitta_jax.adapt.inputs import step_input
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.frame import Frame, Segment
+  ids = np.zeros((4, 6), np.int32)
+  ids[1:3, 2:5] = 3
+  image = np.full((4, 6, 3), 0.5, np.float32)
+  with pytest.raises(DataError, match=r"cars: panoptic map is \(6, 4\) but the image is "
+                                      r"\(4, 6\) \(H, W\)"):
+    step_input(Frame(image, panoptic=ids.T.copy(), segments=(Segment(3, 3),), name="cars"),
+               4, 6, 3)
+  np.testing.assert_array_equal(
+      step_input(Frame(image, panoptic=ids, segments=(Segment(3, 3),)), 4, 6, 3).panoptic, ids)

@@ -44,6 +44,11 @@ def step_input(frame: Frame, height: int, width: int, max_segments: int,
     # a float id map cast to int32 read segment 3.7 as 3 (`masks.segment_id_array` refuses it)
     raise DataError(frame.name or "frame", f"panoptic must be an integer map of segment ids, "
                                            f"got {np.asarray(frame.panoptic).dtype}")
+  if frame.panoptic is not None and np.shape(frame.panoptic) != frame.image.shape[:2]:
+    # resized on its own to the network's size, a map of another size (a transposed one, a
+    # segmenter's own resolution) would label other pixels; the file readers refuse it too
+    raise DataError(frame.name or "frame", f"panoptic map is {np.shape(frame.panoptic)} but "
+                                           f"the image is {frame.image.shape[:2]} (H, W)")
   frame = resize_frame(frame, height, width, image_resize)
   if frame.panoptic is None:
     panoptic = np.zeros((height, width), np.int32)
