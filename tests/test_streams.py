@@ -228,6 +228,11 @@ def test_lambda_sweep_keeps_the_given_order(variables):
   states, _ = streams.init_lambda_sweep(variables, lams, CFG, pitta=PITTA)
   assert streams.num_streams(states) == 4
   np.testing.assert_array_equal(np.asarray(states.method_state["lam"]), np.float32(lams))
+  # a list of 0-d arrays is its numbers (it was refused: "lam must be a number")
+  given = [jnp.asarray(0.5), np.asarray(0.2), jnp.float32(0.0)]
+  arrays, _ = streams.init_lambda_sweep(variables, given, CFG, pitta=PITTA)
+  np.testing.assert_array_equal(np.asarray(arrays.method_state["lam"]),
+                                np.float32([0.5, 0.2, 0.0]))
   for k in range(4):
     np.testing.assert_array_equal(streams.stream_state(states, k).rng,
                                   jax.random.PRNGKey(CFG.seed))

@@ -141,6 +141,10 @@ def init_lambda_sweep(variables: Tree, lams: Sequence[float], cfg: AdaptConfig,
   lams = list(np.asarray(lams, dtype=object).reshape(-1)) if np.ndim(lams) == 1 else None
   if not lams:
     raise ValueError("lams must be a non-empty 1-D sequence of lambdas, one per stream")
+  # a 0-d array (jnp.asarray(0.1), a NumPy scalar array) is its number, as a NumPy array of
+  # lambdas gives its elements
+  lams = [lam.item() if isinstance(lam, (jax.Array, np.ndarray)) and np.ndim(lam) == 0
+          and not isinstance(lam, jax.core.Tracer) else lam for lam in lams]
   for lam in lams:  # each stream is PITTA at that lambda: a lambda its config refuses is refused
     dataclasses.replace(pitta, lam=lam)
   tx = tx or make_optimizer(cfg)
