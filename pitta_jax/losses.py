@@ -285,7 +285,7 @@ def depth_refining_loss(depth: Array, panoptic: Array, dynamic_ids: Array, s: in
     dynamic_ids: (N_max,) int segment ids of the dynamic instances, padded with 0 or -1
       (entries <= 0 unused, anywhere); instance j is the j-th used entry (g_j = j). The used
       ids must be distinct, as a panoptic map's segment ids are (`fast` counts a repeated
-      id's pixels once, `literal` once per entry).
+      id's pixels once, `literal` once per entry); a concrete table that repeats one is refused.
     s: odd median window (static), default `WINDOW`.
     mode: "binary" (g_j = 1, default), "segment_id" (g_j = the segment id i, eq. 3 as
       written) or "instance_id" (g_j = j); static.

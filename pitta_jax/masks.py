@@ -154,6 +154,12 @@ def table_from_dynamic_ids(dynamic_ids: Array) -> tuple[Array, Array]:
     raise ValueError(f"dynamic_ids must be one frame's (N_max,) segment ids, got shape "
                      f"{dynamic_ids.shape} (jax.vmap over a batch of frames)")
   dynamic_ids = dynamic_ids.reshape(-1)  # (N_max,)
+  if not isinstance(dynamic_ids, jax.core.Tracer):  # concrete: a repeated id is refused
+    used = np.asarray(dynamic_ids)[np.asarray(dynamic_ids) > 0]
+    repeated = sorted({int(i) for i in used if np.count_nonzero(used == i) > 1})
+    if repeated:  # (the fast L_d counts its pixels once, the literal one once per entry)
+      raise ValueError(f"dynamic_ids repeats segment id(s) {repeated}: each used entry is one "
+                       f"instance, as a panoptic map's segment ids are distinct")
   return _compact(dynamic_ids, dynamic_ids > 0, dynamic_ids.shape[0])
 
 

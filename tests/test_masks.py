@@ -278,3 +278,15 @@ def test_index_map_of_an_empty_instance_table_is_all_zero():
   assert index.shape == (2, 2) and index.dtype == jnp.int32
   np.testing.assert_array_equal(np.asarray(index), 0)
   assert masks.instance_masks(pan, ids, valid).shape == (0, 2, 2)
+
+
+def test_a_repeated_dynamic_id_is_refused():
+  """dynamic_ids [5, 5] made two instances of one segment (documented as not allowed): the
+  fast L_d counted its pixels once and the literal one twice, so the two disagreed without a
+  word. Refused by name on a concrete table; under jit (values unknown) as before."""
+  with pytest.raises(ValueError, match=r"dynamic_ids repeats segment id\(s\) \[5\]"):
+    masks.table_from_dynamic_ids(np.array([5, 0, 5, 9], np.int32))
+  ids, valid = masks.table_from_dynamic_ids(np.array([5, 0, -1, 9], np.int32))
+  assert ids.tolist() == [5, 9, 0, 0] and valid.tolist() == [True, True, False, False]
+  ids, _ = jax.jit(masks.table_from_dynamic_ids)(np.array([5, 5], np.int32))
+  assert ids.tolist() == [5, 5]
