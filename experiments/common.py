@@ -906,9 +906,11 @@ ALIGNMENT_NOTES = {
 
 def evaluation_note(ev) -> str:
   """How every row of a table scores a frame (`run.EvalConfig` `ev`), for its caption."""
-  span = f"[{ev.min_depth:g}, {ev.max_depth:g}] m"
-  pixels = (f"ground truth in {span}" if ev.valid_gt == "range"
-            else f"ground truth > 0 (--eval.valid-gt positive; predictions capped to {span})")
+  # the mask is open, min < gt < max (MonoDepth2's); the prediction's clamp is closed
+  pixels = (f"ground truth in ({ev.min_depth:g}, {ev.max_depth:g}) m, predictions clamped to "
+            f"[{ev.min_depth:g}, {ev.max_depth:g}] m" if ev.valid_gt == "range"
+            else f"ground truth > 0 (--eval.valid-gt positive; predictions clamped to "
+                 f"[{ev.min_depth:g}, {ev.max_depth:g}] m)")
   crop = "inside the Garg crop" if ev.garg_crop else "no crop"
   resize = "" if ev.resize == "disparity" else ", the depth map (not the disparity) resized"
   return f"Scored per frame on {pixels}, {crop}{resize}, {ALIGNMENT_NOTES[ev.alignment]}."

@@ -233,3 +233,15 @@ def test_a_sweep_leaves_a_frame_without_ground_truth_unscored():
     assert series[0] == want[0]["abs_rel"] and math.isnan(series[1])
     assert series[2] == want[1]["abs_rel"]
     assert r["metrics"]["abs_rel"] == np.mean([w["abs_rel"] for w in want])
+
+
+def test_the_caption_gives_the_open_mask_and_the_closed_clamp():
+  """The caption said ground truth "in [0.001, 80] m", where the scored pixels are those with
+  0.001 < gt < 80 (MonoDepth2's mask; a pixel at exactly 80 m is not scored) and only the
+  prediction is clamped to the closed range."""
+  from experiments.common import evaluation_note
+  from pitta_jax.run import EvalConfig
+  note = evaluation_note(EvalConfig())
+  assert "ground truth in (0.001, 80) m, predictions clamped to [0.001, 80] m" in note
+  assert "predictions clamped to [0.001, 20] m" in evaluation_note(
+      EvalConfig(max_depth=20.0, valid_gt="positive"))
