@@ -50,10 +50,10 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
   from pitta_jax.methods import build
   from pitta_jax.methods.depth_refining import dynamic_classes
   from pitta_jax.outputs import check_passes
-  from pitta_jax.run import (EvalConfig, Runners, checkpoint_chunk_size, frame_metrics,
-                             frame_names, input_size, load_resume_point, model_alignment,
-                             note_compile, record_marks, run_fingerprint, run_status,
-                             save_checkpoint, truncate_record)
+  from pitta_jax.run import (EvalConfig, Runners, check_aspect, checkpoint_chunk_size,
+                             frame_metrics, frame_names, input_size, load_resume_point,
+                             model_alignment, note_compile, record_marks, run_fingerprint,
+                             run_status, save_checkpoint, truncate_record)
   cfg = common.adapt_config("pitta", quick=quick)
   pitta = build("pitta")  # every lambda's method but for lambda (the vmapped axis)
   every = common.CHECKPOINT_EVERY if checkpoint_dir is not None else 0
@@ -92,6 +92,8 @@ def lambda_sweep(weights, frames, lams: Sequence[float], quiet: bool = True,
                                    min(cfg.chunk_size, max(len(frames) - start, 1)),
                                    cfg.max_segments, weights.spec.image_resize,
                                    dynamic_classes(pitta.config)):
+      for frame in originals:  # the prediction is resized onto the ground truth, as in
+        check_aspect(frame)    # `run.run_sequence`: refused before the chunk runs
       states, out = runner(states, chunk, consts)
       held = wait_for_chunk((states, out))  # an interrupt meanwhile: raised once it is recorded
       depth = np.asarray(out.depth)                                     # (T, K, H, W)

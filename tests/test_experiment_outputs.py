@@ -8,6 +8,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from experiments import common, render
 from experiments.common import Entry
@@ -245,3 +246,29 @@ def test_the_caption_gives_the_open_mask_and_the_closed_clamp():
   assert "ground truth in (0.001, 80) m, predictions clamped to [0.001, 80] m" in note
   assert "predictions clamped to [0.001, 20] m" in evaluation_note(
       EvalConfig(max_depth=20.0, valid_gt="positive"))
+
+
+def test_a_sweep_refuses_ground_truth_of_another_aspect_before_its_chunk_runs():
+  """The prediction is resized onto the ground truth: a frame whose depth map has another
+  aspect ratio is refused naming it, before the chunk runs, as `run.run_sequence` refuses it
+  (the sweep scored the stretched prediction)."""
+  import dataclasses
+  from tiny_net import SPEC, tiny_variables
+  from experiments import table4
+  from pitta_jax import run
+  from pitta_jax.checkpoint import Weights
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
+  weights = Weights(SPEC, {"height": 64, "width": 96}, tiny_variables(0))
+  frames = list(generate_sequence(SyntheticConfig(height=64, width=96, num_frames=2,
+                                                  domain="fog")))
+  frames[1] = dataclasses.replace(frames[1], depth=np.ones((64, 64), np.float32), name="sq")
+  ran = []
+
+  class Never(run.Runners):  # records a chunk run
+    def custom(self, key, build):
+      model, tx, _ = super().custom(key, build)
+      return model, tx, lambda *a: ran.append(1)
+  with pytest.raises(DataError, match="^sq: "):
+    table4.lambda_sweep(weights, frames, (0.0, 0.5), runners=Never())
+  assert ran == []
