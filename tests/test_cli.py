@@ -95,6 +95,32 @@ def test_a_demo_whose_out_is_removed_stops_without_making_it_again(demo_out, tmp
     assert not out.exists()
 
 
+def test_a_demo_rows_unscored_frame_keeps_its_place_in_the_per_frame_values(demo_out, tmp_path,
+                                                                           monkeypatch):
+  """The per-frame AbsRel (results.json, the per-frame figure) has each value at its frame's
+  index and null where a frame was not scored (here frame 1 of the fog row, as a diverged
+  method leaves it): the scored frames had been closed up, shifting the curve left."""
+  import dataclasses
+  from pitta_jax import demo as demo_lib
+  real = demo_lib.run_sequence
+
+  def one_unscored(weights, frames, cfg, method, *a, name="", **k):
+    res = real(weights, frames, cfg, method, *a, name=name, **k)
+    if not name.startswith("fog"):
+      return res
+    return dataclasses.replace(res, per_frame=[res.per_frame[0], res.per_frame[2]],
+                               nonfinite_indices=[1])
+  monkeypatch.setattr(demo_lib, "run_sequence", one_unscored)
+  out = tmp_path / "d"
+  run_demo(DemoConfig(shifts=("fog",), num_frames=3, methods=("none",), out=str(out)),
+           AdaptConfig(), source=TINY, quiet=True)
+  data = json.loads((out / "results.json").read_text())
+  fog = data["per_frame_abs_rel"]["fog"]["No adaptation"]
+  clear = data["per_frame_abs_rel"]["clear"]["No adaptation"]
+  assert fog[1] is None and fog[0] is not None and fog[2] is not None and None not in clear
+  assert len(fog) == len(clear) == 3
+
+
 def test_an_interrupted_demo_leaves_no_figures_without_results(demo_out, tmp_path, monkeypatch):
   """A demo interrupted after its clear street's figure (during the first shift) removes the
   figures it wrote: they stayed without any results beside them."""
