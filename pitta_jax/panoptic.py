@@ -14,9 +14,10 @@ Implements detectron2 Mask2Former's `MaskFormer.panoptic_inference` (upstream
    otherwise a new id (1, 2, ...). Unpainted pixels are 0 (void).
 
 This is upstream's (the paper's) rule, not transformers' `post_process_panoptic_segmentation`,
-which differs: it drops the sigmoid >= 0.5 test (every pixel goes to some kept query, so there
-is no void), has its own area and threshold rules and resizes first; on the same logits the two
-give different maps (e.g. 4 segments with void pixels here, 12 without void there).
+which differs: it has no sigmoid >= 0.5 test of the owner's own mask (its `mask_threshold`
+applies to score x probability), its own area and score thresholds (0.8 and 0.5 by default)
+and resizes first, leaving void only where a query fails its area test; on the same logits the
+two give different maps (e.g. 4 segments with void pixels here, 12 there).
 
 Segments carry detectron2's contiguous class ids (0..132 for COCO panoptic, things 0..79 first);
 `to_frame_segments` maps them to COCO category ids (`pitta_jax.data.coco`) as
