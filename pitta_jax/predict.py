@@ -93,11 +93,18 @@ def check_unique_stems(paths: Sequence[Path]) -> None:
     stems[p.stem] = p
 
 
-def check_images(paths: Sequence[Path], quiet: bool = False) -> None:
+def check_images(paths: Sequence[Path], quiet: bool = False,
+                 check: Callable[[np.ndarray], None] | None = None) -> None:
   """Reads every image once before anything is written (DataError naming the first unreadable
-  one): a bad image found halfway would leave half of the outputs behind."""
+  one): a bad image found halfway would leave half of the outputs behind. `check(image)`, when
+  given, vets each (H, W, 3) image too; its ValueError becomes a DataError naming the file."""
   for path in tqdm(paths, desc="checking images", unit="img", disable=quiet or len(paths) < 50):
-    read_image(path, gray=True)
+    image = read_image(path, gray=True)
+    if check is not None:
+      try:
+        check(image)
+      except ValueError as e:
+        raise DataError(path, str(e)) from None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -44,7 +44,8 @@ from pitta_jax.data.image_io import read_image
 from pitta_jax.data.panoptic_io import is_segments_json, write_panoptic
 from pitta_jax.data.sequence import FrameSequence
 from pitta_jax.outputs import WatchedDirectory
-from pitta_jax.models.mask2former import CONFIG_JSON, InferenceConfig, load_mask2former, segment
+from pitta_jax.models.mask2former import (CONFIG_JSON, InferenceConfig, load_mask2former,
+                                         resized_shape, segment)
 from pitta_jax.predict import (Outputs, check_images, check_outputs_free, check_unique_stems,
                                expand_images, without_own_outputs)
 
@@ -202,7 +203,9 @@ def segment_images(weights_dir: PathLike, images: str | Iterable[PathLike], out_
       raise DataError(path, f"--out {out} would overwrite this input with its panoptic map "
                             "(outputs are OUT/<stem>.png): choose another --out")
   check_outputs_free(out, [p.stem for p in paths], SEGMENT_OUTPUTS)
-  check_images(paths, quiet)
+  # (an image too thin for the detectron2 resize is refused here, before any is segmented)
+  check_images(paths, quiet, lambda image: resized_shape(
+      *image.shape[:2], segmenter.inference_config(*image.shape[:2])))
   out.mkdir(parents=True, exist_ok=True)
   written = []
   with WatchedDirectory(out) as watch:

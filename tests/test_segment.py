@@ -170,6 +170,25 @@ def test_cli_detectron2_resize(weights, image_dir, tmp_path, capsys):
   assert not (tmp_path / "d3").exists()
 
 
+def test_an_image_too_thin_for_the_detectron2_resize_is_named_before_any_is_segmented(
+    weights, image_dir, tmp_path, capsys):
+  """A 1x4000 image under --detectron2-resize: its short edge rounds to 0 pixels (1333 / 4000
+  of 1), which stopped the command with a traceback halfway through its images; now one line
+  naming the file, before any image is segmented (the 60x90 one beside it is not written)."""
+  from pitta_jax.data.image_io import write_image
+  thin = tmp_path / "in" / "thin.png"
+  write_image(thin, np.full((1, 4000, 3), 0.5, np.float32))
+  write_image(tmp_path / "in" / "a.png", np.full((60, 90, 3), 0.5, np.float32))
+  out = tmp_path / "o"
+  capsys.readouterr()
+  assert cli.main(["segment", "--weights", str(weights[0]), "--images", str(tmp_path / "in"),
+                   "--out", str(out), "--detectron2-resize", "--quiet"]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith(f"error: {thin}: a 1x4000 image resized to at most 1333 pixels a side "
+                        f"is 0x1333") and err.count("\n") == 1
+  assert not out.exists()
+
+
 def test_a_segment_whose_out_is_made_again_stops_with_one_line(weights, image_dir, tmp_path,
                                                                  capsys, monkeypatch):
   """--out removed and made again after the first map: the command stops before the next map

@@ -243,7 +243,12 @@ def resized_shape(height: int, width: int, cfg: InferenceConfig) -> tuple[int, i
   if max(new_h, new_w) > cfg.max_size:
     s = cfg.max_size / max(new_h, new_w)
     new_h, new_w = new_h * s, new_w * s
-  return int(new_h + 0.5), int(new_w + 0.5)
+  size = int(new_h + 0.5), int(new_w + 0.5)
+  if min(size) < 1:  # an extreme aspect: the short edge rounds to nothing (upstream fails too)
+    raise ValueError(f"a {height}x{width} image resized to at most {cfg.max_size} pixels a side "
+                     f"is {size[0]}x{size[1]}: too thin for the detectron2 resize; give an "
+                     f"input size instead")
+  return size
 
 
 def preprocess(image: jax.Array, size: tuple[int, int], divisibility: int = 32) -> jax.Array:
