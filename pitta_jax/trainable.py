@@ -101,6 +101,8 @@ def encoder_layers(variables: Tree, kind: str, encoder: str = "encoder",
 
 
 def _last_percent(layers: list[str], percent: float) -> list[str]:
+  """The last `percent` % of `layers` (encoder order), rounded to whole layers by Python's
+  round (a half to even: 50% of 5 layers is 2); ResNet's 20 make every multiple of 5% whole."""
   n = int(round(len(layers) * percent / 100.0))
   return layers[len(layers) - n:] if n else []
 
