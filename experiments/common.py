@@ -765,7 +765,11 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
       raise DataError(args.replay_root, "--replay-root: not a directory")
   weights: dict[str, str] = {}
   for item in args.weights:
-    model, sep, directory = item.rpartition("=") if "=" in item else ("", "", item)
+    # NAME=DIR splits at the first '=' (no network's name has one), so that a DIR may hold one
+    # (`runs/lam=0.5/w`); an existing directory whose name holds '=' is a bare DIR
+    model, sep, directory = item.partition("=")
+    if not sep or (model not in MODELS and Path(item).is_dir()):
+      model, sep, directory = "", "", item
     if sep and not model:
       raise DataError(None, f"--weights {item}: no network before '=' (NAME=DIR, or DIR alone "
                             f"for a monodepth2)")
@@ -785,7 +789,7 @@ def context(args: argparse.Namespace, name: str, runners: Any = None) -> Context
     held = read_model_json(directory)[0].name
     if held != model:
       raise DataError(None, f"--weights {item}: the directory holds a {held}, not a "
-                                 f"{model}" + ("" if "=" in item else
+                                 f"{model}" + ("" if sep else
                                                f" (write --weights {held}=DIR)"))
     weights[model] = directory
   if args.frames is not None and args.frames < 1:

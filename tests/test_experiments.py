@@ -435,6 +435,25 @@ def _model_json(directory, architecture: str) -> None:
        "has_pose": False}))
 
 
+def test_weights_directories_may_hold_an_equals_sign(tmp_path, capsys):
+  """--weights [MODEL=]DIR with a DIR such as `runs/lam=0.5/w`: split at the last '=', it was
+  refused as an unknown network ('runs/lam', or 'monodepth2=runs/lam'). Both forms now pass the
+  weights' checks and reach the next flag's (--frames 0, refused before any work)."""
+  from experiments import table4
+  _model_json(tmp_path / "lam=0.5", "monodepth2")
+  out = tmp_path / "o"
+  for given in (str(tmp_path / "lam=0.5"), f"monodepth2={tmp_path / 'lam=0.5'}"):
+    assert table4.main(["--weights", given, "--frames", "0", "--out", str(out)]) == 2
+    assert capsys.readouterr().err == "error: --frames must be >= 1, got 0\n"
+  assert not out.exists()
+  # a bare DIR holding '=' that is another network's still gets the NAME=DIR hint
+  _model_json(tmp_path / "sg=1", "sgdepth")
+  assert table4.main(["--weights", str(tmp_path / "sg=1"), "--out", str(out)]) == 2
+  assert capsys.readouterr().err == (f"error: --weights {tmp_path / 'sg=1'}: the directory holds "
+                                     f"a sgdepth, not a monodepth2 (write --weights "
+                                     f"sgdepth=DIR)\n")
+
+
 def test_a_real_datasets_cases_are_opened_before_the_first_row(tmp_path, capsys):
   """A DrivingStereo root with the foggy part only: the table fails on the rainy part before it
   computes the foggy rows."""
