@@ -324,6 +324,24 @@ def test_a_given_size_must_agree_with_the_file_and_a_given_use_stereo_wins(tiny)
   assert (config["height"], config["width"], config["use_stereo"]) == (192, 640, True)
 
 
+def test_a_given_size_is_checked_before_any_file_is_read(tmp_path, capsys):
+  """--height/--width outside MonoViT's size rule (positive multiples of 32) are refused naming
+  the flags before the checkpoint is read, as SGDepth's are: they were taken as given, the file
+  read and converted, and then refused by the weights' writer without naming a flag."""
+  from weights_convert.cli import main
+  with pytest.raises(ValueError, match=r"^--height/--width: input size 640x100 \(WxH\) is not "
+                                       r"supported by monovit"):
+    convert_monovit(None, tmp_path / "absent.pth", height=100, width=640)
+  with pytest.raises(ValueError, match=r"^--height/--width: input size 640x0 "):
+    convert_monovit(tmp_path / "absent.pth", tmp_path / "absent.pth", height=0)
+  out = tmp_path / "w"
+  assert main(["monovit", "--depth", str(tmp_path / "absent.pth"), "--height", "-320",
+               "--width", "1024", "--out", str(out)]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("error: --height/--width: input size 1024x-320 ") and err.count("\n") == 1
+  assert not out.exists()
+
+
 def test_a_stage_whose_widths_do_not_divide_is_not_an_mpvit_stage(tiny):
   """The layout is read from shapes: an MLP width that is no multiple of the stage width (an
   MPViT MLP is mlp_ratio x width) is named as not an MPViT stage, rather than floored into a

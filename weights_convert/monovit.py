@@ -282,8 +282,14 @@ def convert_monovit(encoder: str | os.PathLike | None, depth: str | os.PathLike,
     variables {"params": ..., "batch_stats": ...}, nested dicts of float32 NumPy arrays.
   """
   from flax.traverse_util import unflatten_dict
-  from pitta_jax.models.monovit import MonoViT
+  from pitta_jax.models.monovit import SPEC, MonoViT
 
+  if height is not None or width is not None:  # before a file is read (as SGDepth's)
+    try:  # a side not given is the file's: the default stands in for it here
+      SPEC.check_size(SPEC.default_size[0] if height is None else int(height),
+                      SPEC.default_size[1] if width is None else int(width))
+    except ValueError as e:
+      raise ValueError(f"--height/--width: {e}") from None
   if encoder is None:  # one DeepNet file
     state = load_state_dict(depth)
     layout = infer_layout(state, str(depth), "encoder.")
