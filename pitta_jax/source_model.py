@@ -114,6 +114,12 @@ class SourceConfig:
           f"train-source cannot train {self.model} ({spec.output} output); it runs from a "
           f"converted checkpoint (`pitta-jax convert ...`, then --weights)")
     spec.check_size(self.height, self.width)
+    # a ResNet depth for a network without a ResNet encoder would be ignored, under a cache
+    # name (`name()`) that says otherwise and a training of its own: refused (18, the default,
+    # stands for "not given")
+    check(self.num_layers == 18 or self.resnet_encoder(),
+          f"num_layers {self.num_layers} does not apply to model {self.model}: it has no ResNet "
+          f"encoder")
     for name in ("sequences", "frames_per_sequence", "steps", "batch_size", "pose_max_gap"):
       check(getattr(self, name) >= 1, f"{name} must be >= 1, got {getattr(self, name)}")
     finite(self.lr, "lr", 0.0)
@@ -143,14 +149,24 @@ class SourceConfig:
     """The cache directory's (and a shipped model's file) name."""
     return f"{self.model}_r{self.num_layers}_{self.width}x{self.height}_{self.key()}"
 
-  def network_config(self) -> dict:
-    """The model.json fields of the network to train."""
+  def _base_config(self) -> dict:
+    """The model.json fields of the network to train, but for the ResNet depth."""
     from pitta_jax.models.registry import get_spec
     spec = get_spec(self.model)
-    config = (spec.source_config(self.height, self.width) if spec.source_config
-              else {"height": self.height, "width": self.width})
-    module = spec.build(config)
-    if isinstance(getattr(module, "num_layers", None), int):  # ResNet-encoder networks
+    return (spec.source_config(self.height, self.width) if spec.source_config
+            else {"height": self.height, "width": self.width})
+
+  def resnet_encoder(self) -> bool:
+    """Whether the network's encoder is a ResNet whose depth `num_layers` sets (MonoDepth2,
+    SGDepth, HR-Depth; not Lite-Mono or MonoViT)."""
+    from pitta_jax.models.registry import get_spec
+    module = get_spec(self.model).build(self._base_config())
+    return isinstance(getattr(module, "num_layers", None), int)
+
+  def network_config(self) -> dict:
+    """The model.json fields of the network to train."""
+    config = self._base_config()
+    if self.resnet_encoder():
       config["num_layers"] = self.num_layers
     return config
 

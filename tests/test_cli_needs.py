@@ -332,6 +332,28 @@ def test_a_window_as_wide_as_the_frames_smaller_side_is_allowed():
     _check_window(DepthRefiningConfig(window=5), (4, 8))
 
 
+def test_train_source_refuses_a_resnet_depth_for_a_network_without_a_resnet(capsys,
+                                                                            monkeypatch):
+  """--source.num-layers is the ResNet depth of the networks with a ResNet encoder: for Lite-Mono
+  or MonoViT it was accepted and ignored, and the same network trained again (tens of minutes)
+  under a cache name saying `_r34_`. Refused before training, naming the flags; ResNet networks
+  take it (the check passes on to the next flag's)."""
+  import pitta_jax.source_model as source_model
+  monkeypatch.setattr(source_model, "load_or_train_source",
+                      lambda *a, **k: pytest.fail("training started"))
+  for model in ("litemono", "monovit"):
+    assert main(["train-source", "--source.model", model, "--source.num-layers", "34"]) == 2
+    assert capsys.readouterr().err == (f"error: --source.model, --source.num-layers: num_layers "
+                                       f"34 does not apply to model {model}: it has no ResNet "
+                                       f"encoder\n")
+  for model in ("monodepth2", "sgdepth", "hrdepth"):
+    assert main(["train-source", "--source.model", model, "--source.num-layers", "34",
+                 "--source.steps", "0"]) == 2
+    assert capsys.readouterr().err == "error: --source.steps: steps must be >= 1, got 0\n"
+  assert source_model.SourceConfig(model="litemono").network_config() == \
+      source_model.SourceConfig(model="litemono", num_layers=18).network_config()
+
+
 def test_a_config_check_names_the_flag(capsys, tmp_path):
   """A field's check, raised by its config class, is reported with the flag that sets it (it
   named the field: 'steps, batch_size and ... must be >= 1' for --source.steps 0)."""
