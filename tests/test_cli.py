@@ -243,6 +243,22 @@ def test_user_errors_are_one_line(tmp_path, capsys):
   assert err.startswith("error: ") and err.count("\n") == 1
 
 
+def test_cottas_blur_range_is_refused_naming_its_flags(tmp_path, capsys):
+  """--cotta.blur-sigma-min above --cotta.blur-sigma-max was refused as 'blur sigma range must
+  be 0 < min <= max', naming no flag; an infinite maximum (sigmas drawn up to inf, NaN where
+  the uniform draw is 0) was taken."""
+  out = tmp_path / "o"
+  head = ["adapt", "--dataset", "synthetic", "--method", "cotta", "--bn-stats", "running",
+          "--out", str(out)]
+  assert main(head + ["--cotta.blur-sigma-min", "1", "--cotta.blur-sigma-max", "0.5"]) == 2
+  assert capsys.readouterr().err == ("error: --cotta.blur-sigma-min, --cotta.blur-sigma-max: "
+                                     "need 0 < blur_sigma_min <= blur_sigma_max, got 1.0, 0.5\n")
+  assert main(head + ["--cotta.blur-sigma-max", "inf"]) == 2
+  assert capsys.readouterr().err == ("error: --cotta.blur-sigma-max: blur_sigma_max must be a "
+                                     "finite number >= 0, got inf\n")
+  assert not out.exists()
+
+
 def test_adapt_runs_a_method_in_its_own_setting_unless_a_flag_says_otherwise():
   """`--method cotta` adapts every parameter as upstream (Method.setting) with a note; a given
   flag wins; what a method requires is still the user's to give."""

@@ -109,8 +109,10 @@ class CottaConfig:
       check(is_number(value) and 0.0 <= value < 1.0,
             f"{name} must be in [0, 1), got {value!r}")
     finite(self.blur_sigma_min, "blur_sigma_min", 0.0)
+    finite(self.blur_sigma_max, "blur_sigma_max", 0.0)  # an inf draws inf (or NaN) sigmas
+    # the fields' names, so that the command's error names both flags
     check(0.0 < self.blur_sigma_min <= self.blur_sigma_max,
-          f"blur sigma range must be 0 < min <= max, got {self.blur_sigma_min}, "
+          f"need 0 < blur_sigma_min <= blur_sigma_max, got {self.blur_sigma_min}, "
           f"{self.blur_sigma_max}")
     check(0.0 <= self.flip_p <= 1.0, f"flip_p must be in [0, 1], got {self.flip_p}")
     finite(self.noise_std, "noise_std", 0.0)
