@@ -62,7 +62,12 @@ def parse_selector(text: str) -> Selector:
     raise ValueError(f"cannot parse selector {text!r}; use encoder_bn, encoder_ln, all, no_bn, "
                      f"or fraction(cnn=A,bn=B) with percentages A, B")
   a, b = (m.group(1), m.group(2)) if m.group(1) is not None else (m.group(3), m.group(4))
-  return Selector("fraction", float(a), float(b))
+  selector = Selector("fraction", float(a), float(b))
+  if selector.cnn == 0 and selector.bn == 0:  # on any network: refused with the flags, not
+    # once the weights are loaded (`selected_paths`)
+    raise ValueError(f"selector {text!r} selects no parameter (0% of the convolutions and 0% "
+                     f"of the norm layers)")
+  return selector
 
 
 def _natural_key(path: str) -> list:

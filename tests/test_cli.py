@@ -259,6 +259,22 @@ def test_cottas_blur_range_is_refused_naming_its_flags(tmp_path, capsys):
   assert not out.exists()
 
 
+def test_a_selector_of_no_parameter_is_refused_naming_the_flag(tmp_path, monkeypatch, capsys):
+  """--selector cnn0_bn0 (fraction 0% + 0%) adapts nothing on any network: it was refused only
+  once the weights were loaded, as 'selector fraction(cnn=0,bn=0) selects no parameter', naming
+  no flag. Now at the flag's check, before any weights are opened."""
+  import pitta_jax.sources as sources
+  monkeypatch.setattr(sources, "open_weights", lambda *a, **k: pytest.fail("weights opened"))
+  out = tmp_path / "o"
+  for selector in ("cnn0_bn0", "fraction(cnn=0,bn=0.0)"):
+    assert main(["adapt", "--dataset", "synthetic", "--selector", selector, "--out",
+                 str(out)]) == 2
+    assert capsys.readouterr().err == (f"error: --adapt.selector: selector {selector!r} selects "
+                                       f"no parameter (0% of the convolutions and 0% of the "
+                                       f"norm layers)\n")
+  assert not out.exists()
+
+
 def test_adapt_runs_a_method_in_its_own_setting_unless_a_flag_says_otherwise():
   """`--method cotta` adapts every parameter as upstream (Method.setting) with a note; a given
   flag wins; what a method requires is still the user's to give."""
