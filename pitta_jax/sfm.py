@@ -85,12 +85,13 @@ class SfmLossConfig:
           f"align_corners must be a bool, got {self.align_corners!r}")
 
 
-def check_scales(scales: Sequence[int], n_outputs: int) -> None:
+def check_scales(scales: Sequence[int], n_outputs: int, name: str = "sfm.scales") -> None:
   """ValueError (one line) unless the network's `n_outputs` disparity maps (scales 0 ..
   n_outputs - 1) include every scale of the loss (`SfmLossConfig.scales`); checked when the
-  step is traced, before any frame."""
-  check(max(scales) < n_outputs, f"sfm.scales {tuple(scales)}: the network gives scales 0.."
-                                 f"{n_outputs - 1} only")
+  step is traced, before any frame. name: the config field's path (a method's
+  `comoda.sfm.scales`: its command-line flag is `--` + name)."""
+  check(max(scales) < n_outputs, f"{name} {tuple(scales)}: the network gives scales 0.."
+                                 f"{n_outputs - 1} only (--{name})")
 
 
 # ----------------------------------------------------------------------------- photometric

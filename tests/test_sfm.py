@@ -467,3 +467,13 @@ def test_ssim_refuses_an_axis_that_reflection_padding_cannot_pad(shape):
     sfm.ssim_loss(x, x)
   with pytest.raises(ValueError, match="ssim_loss"):
     sfm.reprojection_loss(x, x)
+
+
+def test_a_scale_the_network_lacks_is_named_with_its_flag():
+  """A loss scale beyond the network's outputs is refused in one line naming the method's
+  field and its flag (`--comoda.sfm.scales`): it said only "sfm.scales", no flag."""
+  from pitta_jax.sfm import check_scales
+  check_scales((0, 1, 2, 3), 4, "comoda.sfm.scales")  # scales 0..3 of 4 maps: accepted
+  with pytest.raises(ValueError, match=r"^comoda\.sfm\.scales \(0, 7\): the network gives "
+                                       r"scales 0\.\.3 only \(--comoda\.sfm\.scales\)$"):
+    check_scales((0, 7), 4, "comoda.sfm.scales")

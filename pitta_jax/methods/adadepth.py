@@ -226,7 +226,7 @@ def branch_loss(params: Tree, branch: Branch, batch_stats: Tree, image: jax.Arra
   id); disparities of every `config.scales` from U's depth network.
   """
   outs = model.outputs({"params": params["depth"], "batch_stats": batch_stats}, image[None], False)
-  check_scales(config.scales, len(outs))
+  check_scales(config.scales, len(outs), "adadepth.sfm.scales")
   disps = [outs[s][..., 0] for s in config.scales]                  # (1, H / 2**s, W / 2**s)
   pair = jnp.concatenate([previous, image], axis=-1)[None]           # (1, H, W, 6)
   axisangle, translation = branch.pose_module.apply(

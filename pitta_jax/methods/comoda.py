@@ -321,7 +321,7 @@ def loss(trainable, *, state, consts, frame, rng, model, cfg, mcfg: ComodaConfig
 
   def objective(depth_trainable, pose_trainable):
     outs = model.outputs(variables_of(depth_trainable, consts), batch.target, False)
-    check_scales(scales, len(outs))
+    check_scales(scales, len(outs), "comoda.sfm.scales")
     disps = [outs[s][..., 0] for s in scales]
     poses = camera_motions(pose, pose_trainable, batch.target, batch.sources, mcfg.offsets)
     K4, inv_K4 = _intrinsics4(batch.K)
