@@ -74,6 +74,9 @@ def read_image_list(path: Path) -> list[Path]:
     if not line.strip():
       continue
     image = Path(line.strip())
+    if not image.exists():  # (as Depth Anything V2's run.py reads them: from the working dir)
+      raise DataError(path, f"line {number}: {line.strip()!r} not found (a relative path is "
+                            f"taken from the working directory {Path.cwd()})")
     if not image.is_file() or image.suffix.lower() not in IMAGE_SUFFIXES:
       raise DataError(path, f"line {number}: {line.strip()!r} is not an image file "
                             f"({', '.join(IMAGE_SUFFIXES)})")

@@ -248,8 +248,15 @@ def test_an_image_list_a_raw_checkpoint_folder_and_a_bad_size_are_explained(conv
     cv2.imwrite(name, np.zeros((8, 8, 3), np.uint8))
   (tmp_path / "list.txt").write_text("b.png\n\na.jpg\n")
   assert expand_images("list.txt") == [Path("b.png"), Path("a.jpg")]
+  (tmp_path / "notes.md").write_text("not an image")
   (tmp_path / "list.txt").write_text("b.png\nnotes.md\n")
   with pytest.raises(DataError, match=r"list\.txt: line 2: 'notes\.md' is not an image file"):
+    expand_images("list.txt")
+  # a path that is not there (e.g. relative to the list's folder) is said to be missing, not
+  # "not an image file"
+  (tmp_path / "list.txt").write_text("b.png\nframes/c.png\n")
+  with pytest.raises(DataError, match=r"list\.txt: line 2: 'frames/c\.png' not found \(a "
+                                      r"relative path is taken from the working directory "):
     expand_images("list.txt")
   raw = tmp_path / "mono_640x192"
   raw.mkdir()
