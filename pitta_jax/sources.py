@@ -279,6 +279,9 @@ def parse_segmentation(segmentation: str) -> tuple[str, str]:
     raise DataError(None, f"--segmentation {segmentation!r}: use gt, png:DIR or mask2former:DIR")
   if kind != "gt" and not arg:
     raise DataError(None, f"--segmentation {kind}:DIR needs a directory")
+  if kind == "gt" and segmentation != "gt":  # (`gt:DIR` would read no DIR: a mistyped png:)
+    raise DataError(None, f"--segmentation {segmentation!r}: gt takes no directory (the "
+                          f"dataset's own panoptic maps); png:DIR reads maps from DIR")
   return kind, arg
 
 

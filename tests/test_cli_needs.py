@@ -137,6 +137,10 @@ def cli(tmp_path, monkeypatch, capsys):
      "the dataset with --dataset"),
     (("--dataset", "folder", "--root", "TMP/seq", "--segmentation", "png"),
      "--segmentation png:DIR needs a directory"),
+    # gt with a directory (a mistyped png:DIR) read no directory and went on with gt's maps
+    (("--dataset", "folder", "--root", "TMP/seq", "--segmentation", "gt:TMP/seq"),
+     "--segmentation 'gt:TMP/seq': gt takes no directory (the dataset's own panoptic maps); "
+     "png:DIR reads maps from DIR"),
     (("--dataset", "synthetic", "--option", "num_frames=0"),
      "--option num_frames=0: the synthetic sequence has no frames"),
     # a negative count named as the option it is (was "synthetic options: num_frames must be
