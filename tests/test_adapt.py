@@ -520,6 +520,24 @@ def test_step_input_refuses_an_8_bit_image():
   np.testing.assert_array_equal(got, pixels.astype(np.float32) / np.float32(255))
 
 
+def test_step_input_refuses_float_images_on_another_scale():
+  """Floats of 0..255 (a cast without the division) or a mean/std-normalised image went to
+  the network, which normalises [0, 1] RGB itself, without a word; refused naming the frame and
+  the range. Values within float rounding of [0, 1] pass as they are."""
+  from pitta_jax.adapt.inputs import step_input
+  from pitta_jax.data.errors import DataError
+  from pitta_jax.data.frame import Frame
+  pixels = np.arange(4 * 6 * 3, dtype=np.float32).reshape(4, 6, 3) * 3   # 0..213
+  with pytest.raises(DataError, match=r"^cast: image values must be RGB in \[0, 1\], got "
+                                      r"0\.\.213 \(divide 8-bit values by 255"):
+    step_input(Frame(pixels, name="cast"), 4, 6, 3)
+  normalised = (pixels / 255 - 0.45) / 0.225
+  with pytest.raises(DataError, match=r"^norm: image values must be RGB in \[0, 1\], got -2"):
+    step_input(Frame(normalised, name="norm"), 4, 6, 3)
+  edge = np.clip(pixels / 213, 0, 1) * np.float32(1.0004)                    # 0..1.0004
+  np.testing.assert_array_equal(step_input(Frame(edge), 4, 6, 3).image, edge)
+
+
 def test_step_input_refuses_a_float_panoptic_map():
   """A float panoptic map was cast to int32 on its way to the step, so segment 3.7 became
   segment 3 (a car's id, here) without a word, where the pure functions refuse float ids

@@ -18,6 +18,10 @@ from pitta_jax.data.frame import Frame
 from pitta_jax.data.resize import IMAGE_RESIZE, resize_frame
 from pitta_jax.masks import DEFAULT_DYNAMIC_COCO_IDS
 
+# how far outside [0, 1] a frame's values may stray (float rounding of a reader's or a
+# renderer's output) before the image is taken for another scale (0..255, mean/std-normalised)
+IMAGE_RANGE_SLACK = 1e-3
+
 
 def step_input(frame: Frame, height: int, width: int, max_segments: int,
                image_resize: str = IMAGE_RESIZE[0],
@@ -39,6 +43,14 @@ def step_input(frame: Frame, height: int, width: int, max_segments: int,
                                            f"images by 255)")
   if not np.all(np.isfinite(frame.image)):
     raise DataError(frame.name or "frame", "image holds NaN or infinite values")
+  lo, hi = ((float(np.min(frame.image)), float(np.max(frame.image))) if frame.image.size
+            else (0.0, 0.0))
+  if lo < -IMAGE_RANGE_SLACK or hi > 1.0 + IMAGE_RANGE_SLACK:
+    # 0..255 floats (a cast without the division) or a mean/std-normalised image: the networks
+    # normalise [0, 1] RGB themselves, and took either without a word
+    raise DataError(frame.name or "frame", f"image values must be RGB in [0, 1], got "
+                                           f"{lo:g}..{hi:g} (divide 8-bit values by 255; the "
+                                           f"networks normalise it themselves)")
   if frame.panoptic is not None and not np.issubdtype(np.asarray(frame.panoptic).dtype,
                                                       np.integer):
     # a float id map cast to int32 read segment 3.7 as 3 (`masks.segment_id_array` refuses it)
