@@ -789,7 +789,7 @@ def test_eval_flags_score_every_row(quick_out, monkeypatch, capsys):
   payload = json.loads((out / "results.json").read_text())
   assert payload["eval"]["max_depth"] == 20.0
   assert payload["eval"]["valid_gt"] == "positive"
-  assert "ground truth > 0 (--eval.valid-gt positive; predictions capped to [0.001, 20] m)" in \
+  assert "ground truth > 0 (--eval.valid-gt positive; predictions clamped to [0.001, 20] m)" in \
       (out / "table1.md").read_text()
   default = {(r["group"], r["label"]): r for r in json.loads(
       (quick_out[0] / "table1" / "results.json").read_text())["rows"]}
