@@ -678,3 +678,21 @@ def test_a_vits_read_at_other_blocks_is_not_labelled_vits():
       "vits", 6, [2, 5, 8, 11])
   v1 = conv.infer_config(state, "official", "x.pth", {"layer_idx": [8, 9, 10, 11]})
   assert (v1["encoder"], v1["layer_idx"]) == ("custom", [8, 9, 10, 11])
+
+
+def test_a_v1_release_needs_its_blocks(small, tmp_path):
+  """Depth Anything V1's official files (depth_anything_vit{s,b,l}14.pth) have V2's keys and
+  shapes but read the ViT's last four blocks: refused by their name without --layer-idx (V2's
+  blocks would be taken silently), converted as given with it."""
+  v1 = tmp_path / "depth_anything_vits14.pth"
+  v1.write_bytes((small["root"] / "official" / "depth_anything_v2.pth").read_bytes())
+  with pytest.raises(CheckpointError, match=re.escape(
+      f"{v1}: named 'depth_anything_vits14.pth', i.e. Depth Anything V1: V2's keys, but its head "
+      f"reads the ViT's last four blocks, not V2's: give them with --layer-idx")):
+    conv.convert_depth_anything_v2(v1, "official", {"num_heads": SMALL["heads"]})
+  last_four = list(range(SMALL["depth"] - 4, SMALL["depth"]))
+  config, variables = conv.convert_depth_anything_v2(
+      v1, "official", {"num_heads": SMALL["heads"], "layer_idx": last_four})
+  assert config["layer_idx"] == last_four
+  want = flatten_dict(small["converted"]["official"][1])
+  assert all(np.array_equal(a, want[k]) for k, a in flatten_dict(variables).items())

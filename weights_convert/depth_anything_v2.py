@@ -28,7 +28,9 @@ The architecture comes from the weights' shapes (width, depth, MLP width, positi
 widths); the number of heads and the blocks the head reads are not in the weights: they come
 from upstream's table for ViT-S/B/L (`VIT_VARIANTS`), from a `config.json` beside an HF file
 when there is one, or from `arch` overrides (`--num-heads`, `--layer-idx`). Depth Anything V1
-checkpoints have the same keys but read the last four blocks: give `--layer-idx` for them.
+checkpoints have the same keys but read the last four blocks: give `--layer-idx` for them (an
+official V1 file, named `depth_anything_vit{s,b,l}14.pth` upstream, is refused without it,
+`v1_evidence`).
 The position-embedding resize rule differs between the two implementations (see
 `models/depth_anything_v2/dinov2.py`) and is recorded as config["pos_offset"]: 0.1 upstream, 0 HF.
 
@@ -206,6 +208,23 @@ def metric_evidence(path: str, source: str) -> str | None:
     parts = [p.name] + [q.name for q in list(p.parents)[:3]]
   named = next((part for part in parts if "metric" in part.lower()), None)
   return None if named is None else f"named {named!r}"
+
+
+# Depth Anything V1's released files (LiheYoung/Depth-Anything `checkpoints/`), e.g.
+# depth_anything_vits14.pth; V2's are depth_anything_v2_vits.pth
+_V1_NAME = re.compile(r"depth_anything_vit[sblg]14", re.IGNORECASE)
+
+
+def v1_evidence(path: str, source: str) -> str | None:
+  """Why `path` is a Depth Anything V1 release, or None. V1's official `.pth` files have V2's
+  keys and shapes, but V1's head reads the ViT's last four blocks (not V2's `layer_idx`), so a
+  V1 file converted with V2's blocks gives a network of wrong outputs; only its name (upstream's
+  `depth_anything_vit{s,b,l}14.pth`) tells it apart. A Hugging Face V1 snapshot carries its
+  blocks in its config.json, so only the official format is judged."""
+  name = Path(path).name
+  if source != "official" or not _V1_NAME.search(name):
+    return None
+  return f"named {name!r}"
 
 
 class _ShapeKeys(NamedTuple):
@@ -403,6 +422,11 @@ def convert_depth_anything_v2(path: str | os.PathLike, source: str = "official",
   _check_overrides(arch or {})
   max_depth = (arch or {}).get("max_depth")
   state = read_state(path, source, max_depth)
+  v1 = v1_evidence(str(path), source)
+  if v1 and "layer_idx" not in (arch or {}):
+    raise CheckpointError(f"{path}: {v1}, i.e. Depth Anything V1: V2's keys, but its head reads "
+                          f"the ViT's last four blocks, not V2's: give them with --layer-idx "
+                          f"(8,9,10,11 for ViT-S and ViT-B, 20,21,22,23 for ViT-L)")
   config = infer_config(state, source, str(path), arch)
   rules = official_rules(config) if source == "official" else hf_rules(config)
   ignorable = lambda k: bool(_IGNORED[source].match(k))
