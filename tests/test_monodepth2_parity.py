@@ -301,7 +301,8 @@ def test_unexpected_missing_and_misshapen_keys_are_named(r18, tmp_path):
 
 
 def test_wrapped_and_data_parallel_saves_convert_like_plain_ones(r18, tmp_path):
-  """A training script's {"state_dict": sd, "epoch": n} / {"model": sd} and DataParallel's
+  """A training script's {"state_dict": sd, "epoch": n} / {"model": sd} / PyTorch's recipe
+  {"model_state_dict": sd, "optimizer_state_dict": ..., "loss": tensor} and DataParallel's
   `module.` names (torch.save of nn.DataParallel(encoder).state_dict()) are the same weights."""
   root = r18["root"] / "zip"
   state = torch.load(root / "encoder.pth")
@@ -309,9 +310,12 @@ def test_wrapped_and_data_parallel_saves_convert_like_plain_ones(r18, tmp_path):
   meta = {k: v for k, v in state.items() if not isinstance(v, torch.Tensor)}
   torch.save({"state_dict": state, "epoch": 19}, tmp_path / "wrapped.pth")
   torch.save({"model": state}, tmp_path / "model.pth")
+  # PyTorch's checkpoint recipe, its loss a scalar tensor
+  torch.save({"epoch": 19, "model_state_dict": state, "optimizer_state_dict": {"state": {}},
+              "loss": torch.tensor(0.125)}, tmp_path / "recipe.pth")
   torch.save({**{f"module.{k}": v for k, v in tensors.items()}, **meta}, tmp_path / "dp.pth")
   _, want, _ = convert_monodepth2(root / "encoder.pth", root / "depth.pth")
-  for name in ("wrapped.pth", "model.pth", "dp.pth"):
+  for name in ("wrapped.pth", "model.pth", "recipe.pth", "dp.pth"):
     _, got, _ = convert_monodepth2(tmp_path / name, root / "depth.pth")
     for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
       np.testing.assert_array_equal(a, b)

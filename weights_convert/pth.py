@@ -671,15 +671,19 @@ def load_pth_or_pickle(path: str | os.PathLike, *, allow_numpy: bool = True) -> 
 # the training-size entries a MonoDepth2-family encoder file carries beside its tensors
 METADATA_KEYS = ("height", "width", "use_stereo")
 DATA_PARALLEL_PREFIX = "module."  # `nn.DataParallel(model).state_dict()` names
-WRAPPER_KEYS = ("state_dict", "model")  # training scripts' {"state_dict": sd, "epoch": ...}
+# where training scripts put the state dict: {"state_dict": sd, "epoch": ...}, {"model": sd,
+# "optimizer": ...}, and PyTorch's checkpoint recipe {"model_state_dict": sd,
+# "optimizer_state_dict": ..., "epoch": ..., "loss": loss}
+WRAPPER_KEYS = ("state_dict", "model", "model_state_dict")
 
 
 def load_state_dict(path: str | os.PathLike) -> dict:
   """`load_pth` of a file that must hold a state dict (name -> tensor, plus metadata entries).
 
-  Two common ways of saving one are undone: a state dict stored under "state_dict" or "model"
-  of a dict that holds no tensor itself (a training script's checkpoint), and the `module.`
-  prefix of a DataParallel model (`strip_data_parallel`)."""
+  Two common ways of saving one are undone: a state dict stored under one of `WRAPPER_KEYS`
+  of a dict that holds no weight itself (a training script's checkpoint; a scalar tensor beside
+  it, such as the recipe's `loss`, is no weight), and the `module.` prefix of a DataParallel
+  model (`strip_data_parallel`)."""
   return unwrap_state_dict(load_pth(path), path)
 
 
@@ -688,7 +692,7 @@ def unwrap_state_dict(state: Any, path: str | os.PathLike) -> dict:
   if not isinstance(state, dict):
     raise CheckpointError(f"{path}: expected a state dict, found a {type(state).__name__}")
   wrapped = [k for k in WRAPPER_KEYS if isinstance(state.get(k), dict)]
-  if wrapped and not any(isinstance(v, np.ndarray) for v in state.values()):
+  if wrapped and not any(isinstance(v, np.ndarray) and v.ndim > 0 for v in state.values()):
     state = state[wrapped[0]]
   check_names(state, path)
   return strip_data_parallel(state, str(path))
