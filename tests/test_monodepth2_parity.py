@@ -321,6 +321,24 @@ def test_wrapped_and_data_parallel_saves_convert_like_plain_ones(r18, tmp_path):
       np.testing.assert_array_equal(a, b)
 
 
+def test_a_compiled_models_save_converts_like_a_plain_one(r18, tmp_path):
+  """torch.compile's wrapper names every weight `_orig_mod.<name>` (and DataParallel around it
+  `module._orig_mod.<name>`): such saves were refused as unexpected keys; they are the same
+  weights as the plain save."""
+  root = r18["root"] / "zip"
+  meta = {k: v for k, v in torch.load(root / "encoder.pth").items()
+          if not isinstance(v, torch.Tensor)}
+  compiled = torch.compile(r18["torch"][0])  # (saving it compiles nothing)
+  assert all(k.startswith("_orig_mod.") for k in compiled.state_dict())
+  torch.save({**compiled.state_dict(), **meta}, tmp_path / "compiled.pth")
+  torch.save({**torch.nn.DataParallel(compiled).state_dict(), **meta}, tmp_path / "both.pth")
+  _, want, _ = convert_monodepth2(root / "encoder.pth", root / "depth.pth")
+  for name in ("compiled.pth", "both.pth"):
+    _, got, _ = convert_monodepth2(tmp_path / name, root / "depth.pth")
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+      np.testing.assert_array_equal(a, b)
+
+
 def test_swapped_files_and_an_unusable_size_are_named(r18, tmp_path):
   root = r18["root"] / "zip"
   with pytest.raises(CheckpointError, match=r"depth\.pth: holds no ResNet encoder .*'decoder\..*"

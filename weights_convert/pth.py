@@ -670,7 +670,10 @@ def load_pth_or_pickle(path: str | os.PathLike, *, allow_numpy: bool = True) -> 
 
 # the training-size entries a MonoDepth2-family encoder file carries beside its tensors
 METADATA_KEYS = ("height", "width", "use_stereo")
-DATA_PARALLEL_PREFIX = "module."  # `nn.DataParallel(model).state_dict()` names
+# the prefixes a wrapped model's `state_dict()` puts before every name: `module.` of
+# nn.DataParallel / DistributedDataParallel, `_orig_mod.` of a `torch.compile`d model (either
+# inside the other, in any order)
+WRAPPER_PREFIXES = ("module.", "_orig_mod.")
 # where training scripts put the state dict: {"state_dict": sd, "epoch": ...}, {"model": sd,
 # "optimizer": ...}, and PyTorch's checkpoint recipe {"model_state_dict": sd,
 # "optimizer_state_dict": ..., "epoch": ..., "loss": loss}
@@ -682,8 +685,8 @@ def load_state_dict(path: str | os.PathLike) -> dict:
 
   Two common ways of saving one are undone: a state dict stored under one of `WRAPPER_KEYS`
   of a dict that holds no weight itself (a training script's checkpoint; a scalar tensor beside
-  it, such as the recipe's `loss`, is no weight), and the `module.` prefix of a DataParallel
-  model (`strip_data_parallel`)."""
+  it, such as the recipe's `loss`, is no weight), and the `module.` / `_orig_mod.` prefixes of
+  a DataParallel or compiled model (`strip_data_parallel`)."""
   return unwrap_state_dict(load_pth(path), path)
 
 
@@ -717,17 +720,21 @@ def is_safetensors_file(path: str | os.PathLike) -> bool:
 
 
 def strip_data_parallel(state: dict, path: str) -> dict:
-  """Removes `module.` when every non-metadata key carries it (a DataParallel save)."""
-  keys = [k for k in state if k not in METADATA_KEYS]
-  prefixed = [k for k in keys if isinstance(k, str) and k.startswith(DATA_PARALLEL_PREFIX)]
-  if not prefixed:
-    return state
-  if len(prefixed) != len(keys):
-    plain = sorted(map(str, set(keys) - set(prefixed)))
-    raise CheckpointError(f"{path}: {len(prefixed)} keys start with {DATA_PARALLEL_PREFIX!r} and "
-                          f"{len(plain)} do not (e.g. {plain[0]}); expected all or none")
-  n = len(DATA_PARALLEL_PREFIX)
-  return {(k[n:] if k.startswith(DATA_PARALLEL_PREFIX) else k): v for k, v in state.items()}
+  """Removes the `WRAPPER_PREFIXES` that every non-metadata key carries (a DataParallel save,
+  a compiled model's, one inside the other), outermost first."""
+  while True:
+    keys = [k for k in state if k not in METADATA_KEYS]
+    for prefix in WRAPPER_PREFIXES:
+      prefixed = [k for k in keys if isinstance(k, str) and k.startswith(prefix)]
+      if prefixed:
+        break
+    else:
+      return state
+    if len(prefixed) != len(keys):
+      plain = sorted(map(str, set(keys) - set(prefixed)))
+      raise CheckpointError(f"{path}: {len(prefixed)} keys start with {prefix!r} and "
+                            f"{len(plain)} do not (e.g. {plain[0]}); expected all or none")
+    state = {(k[len(prefix):] if k in prefixed else k): v for k, v in state.items()}
 
 
 _REQUIRED = object()
