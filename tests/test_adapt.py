@@ -232,6 +232,20 @@ def test_nonfinite_guard_skips_and_counts(variables, engine):
     np.testing.assert_array_equal(a, b)
 
 
+def test_a_frames_skipped_log_covers_every_inner_step(variables):
+  """With two optimiser steps per frame, SGD at lr 1e37 takes frame 0's first step and the
+  network overflows at its second, which the guard skips (and every step of frame 1): frame
+  0's `skipped` said False (the first step's) while `n_skipped` counted its second step; the
+  log now says whether any update of the frame was skipped, as the count does."""
+  model, method = _model(), build("pitta", PITTA)
+  cfg = AdaptConfig(optimizer="sgd", lr=1e37, chunk_size=2, steps_per_frame=2)
+  tx = make_optimizer(cfg)
+  runner = make_chunk_runner(make_step(model, method, cfg, tx))
+  state, out = _run(init_state(variables, method, cfg, tx), _frames(2), runner, 2)
+  assert np.isfinite(out.loss[0]) and not np.isfinite(out.loss[1])  # frame 0's first step ran
+  assert list(out.skipped) == [True, True] and int(state.n_skipped) == 3
+
+
 def test_all_finite_flags_any_nan_or_inf_leaf():
   """engine.all_finite against NumPy's all(isfinite) over float, int and bool leaves (hand-made
   trees), also under jit."""

@@ -92,7 +92,8 @@ class StepOutput(NamedTuple):
                           # Method.report_after_update)
   loss: jax.Array         # () the method's loss (0 for `none`)
   logs: dict              # () scalars: the method's own terms (PITTA: loss_d, loss_e, n_instances)
-  skipped: jax.Array      # () bool, the update was skipped (non-finite)
+  skipped: jax.Array      # () bool, an update of the frame was skipped (non-finite): with
+                          # several steps per frame, any of them (`n_skipped` counts each)
   grad_norm: jax.Array    # () global norm of the gradient w.r.t. the trainable tree
   update_norm: jax.Array  # () global norm of the applied update
 
@@ -234,7 +235,7 @@ def adapt_step(state: AdaptState, frame: StepInput, consts: Consts, *, model: An
       return optax_update(state, grads, loss, tx, cfg)
     return method.update(state, grads, loss, aux, key, tx, cfg)
 
-  outputs = None
+  outputs, skipped_any = None, jnp.array(False)
   for k in range(cfg.steps_per_frame if method.adapts else 1):
     # each inner step draws afresh (CoTTA's augmented views, as upstream's `steps` loop); the
     # first uses the frame's key itself, the update keys are fold_in(rng, 0 .. steps - 1)
@@ -249,8 +250,11 @@ def adapt_step(state: AdaptState, frame: StepInput, consts: Consts, *, model: An
       loss, aux = loss_fn(state.trainable)
       gnorm = unorm = jnp.zeros(())
       skipped = jnp.array(False)
+    skipped_any = skipped_any | skipped
     if k == 0 or method.report_last_step:  # the first pass (predict-then-adapt), or the last
       outputs = StepOutput(aux.depth, loss, aux.logs, skipped, gnorm, unorm)
+  # a frame's later inner step skipped is the frame's too (its log agrees with `n_skipped`)
+  outputs = outputs._replace(skipped=skipped_any)
   if method.report_after_update:  # adapt-then-predict: the depth after the last update
     outputs = outputs._replace(depth=predict(state.trainable, consts, frame, model, cfg))
   state = state.replace(step=state.step + 1)
