@@ -45,20 +45,31 @@ def check_mode(mode: str) -> None:
 def segment_id_array(x: Array, name: str, what: str = "segment ids") -> Array:
   """`x` as int32 segment ids (or instance indices, `what`); TypeError naming `name` when `x`
   is not an integer array (a cast would truncate 3.7 to 3)."""
-  if not isinstance(x, jax.core.Tracer):  # concrete: its values can be checked before the cast
-    _check_int32_range(np.asarray(x), name, what)
+  if not isinstance(x, jax.core.Tracer) and _may_leave_int32(x):  # concrete and wide: its
+    _check_int32_range(np.asarray(x), name, what)  # values are checked before the cast
   x = jnp.asarray(x)
   if not jnp.issubdtype(x.dtype, jnp.integer):
     raise TypeError(f"{name} must be an integer array of {what}, got {x.dtype}")
   return x.astype(jnp.int32)
 
 
+def _may_leave_int32(x) -> bool:
+  """Whether `x` (an array, or a Python sequence or number: dtype unknown) may hold an integer
+  outside int32: a uint32, int64 or uint64 array may; int32 and narrower ones, and floats
+  (refused as ids anyway), may not, and are not copied to the host to be looked at."""
+  dtype = getattr(x, "dtype", None)
+  if dtype is None:
+    return True
+  dtype = np.dtype(dtype)
+  return (np.issubdtype(dtype, np.integer)
+          and dtype.itemsize * 8 - np.issubdtype(dtype, np.signedinteger) >= 32)
+
+
 def _check_int32_range(x: np.ndarray, name: str, what: str) -> None:
   """ValueError when integer `x` holds a value outside int32 (a uint32 id >= 2**31, an int64
   one beyond): the cast to int32 (or JAX's to 32 bits without x64) would wrap it silently onto
   another segment's id (2**40 + 5 -> 5)."""
-  if (np.issubdtype(x.dtype, np.integer) and x.dtype.itemsize * 8 - np.issubdtype(
-      x.dtype, np.signedinteger) >= 32 and x.size):
+  if _may_leave_int32(x) and x.size:
     lo, hi = int(x.min()), int(x.max())
     if lo < -2**31 or hi >= 2**31:
       raise ValueError(f"{name} holds {what} outside int32 ({hi if hi >= 2**31 else lo}): "
@@ -155,8 +166,8 @@ def table_from_dynamic_ids(dynamic_ids: Array) -> tuple[Array, Array]:
                      f"{dynamic_ids.shape} (jax.vmap over a batch of frames)")
   dynamic_ids = dynamic_ids.reshape(-1)  # (N_max,)
   if not isinstance(dynamic_ids, jax.core.Tracer):  # concrete: a repeated id is refused
-    used = np.asarray(dynamic_ids)[np.asarray(dynamic_ids) > 0]
-    repeated = sorted({int(i) for i in used if np.count_nonzero(used == i) > 1})
+    ids, counts = np.unique(np.asarray(dynamic_ids), return_counts=True)
+    repeated = ids[(ids > 0) & (counts > 1)].tolist()  # (ascending)
     if repeated:  # (the fast L_d counts its pixels once, the literal one once per entry)
       raise ValueError(f"dynamic_ids repeats segment id(s) {repeated}: each used entry is one "
                        f"instance, as a panoptic map's segment ids are distinct")

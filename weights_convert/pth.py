@@ -725,7 +725,7 @@ def strip_data_parallel(state: dict, path: str) -> dict:
   while True:
     keys = [k for k in state if k not in METADATA_KEYS]
     for prefix in WRAPPER_PREFIXES:
-      prefixed = [k for k in keys if isinstance(k, str) and k.startswith(prefix)]
+      prefixed = {k for k in keys if isinstance(k, str) and k.startswith(prefix)}
       if prefixed:
         break
     else:

@@ -37,10 +37,9 @@ def step_input(frame: Frame, height: int, width: int, max_segments: int,
     raise DataError(frame.name or "frame", f"image must be (H, W, 3), got {frame.image.shape}")
   # An 8-bit image taken as it is reached the network as floats of 0..255 (or, resized, clipped
   # to white): `Frame.image` is RGB in [0, 1], as `registry.checked_images` asks of a batch.
-  if not np.issubdtype(np.asarray(frame.image).dtype, np.floating):
+  if not np.issubdtype(frame.image.dtype, np.floating):
     raise DataError(frame.name or "frame", f"image must be floating RGB in [0, 1], got "
-                                           f"{np.asarray(frame.image).dtype} (divide 8-bit "
-                                           f"images by 255)")
+                                           f"{frame.image.dtype} (divide 8-bit images by 255)")
   if not np.all(np.isfinite(frame.image)):
     raise DataError(frame.name or "frame", "image holds NaN or infinite values")
   lo, hi = ((float(np.min(frame.image)), float(np.max(frame.image))) if frame.image.size
@@ -51,16 +50,17 @@ def step_input(frame: Frame, height: int, width: int, max_segments: int,
     raise DataError(frame.name or "frame", f"image values must be RGB in [0, 1], got "
                                            f"{lo:g}..{hi:g} (divide 8-bit values by 255; the "
                                            f"networks normalise it themselves)")
-  if frame.panoptic is not None and not np.issubdtype(np.asarray(frame.panoptic).dtype,
-                                                      np.integer):
-    # a float id map cast to int32 read segment 3.7 as 3 (`masks.segment_id_array` refuses it)
-    raise DataError(frame.name or "frame", f"panoptic must be an integer map of segment ids, "
-                                           f"got {np.asarray(frame.panoptic).dtype}")
-  if frame.panoptic is not None and np.shape(frame.panoptic) != frame.image.shape[:2]:
-    # resized on its own to the network's size, a map of another size (a transposed one, a
-    # segmenter's own resolution) would label other pixels; the file readers refuse it too
-    raise DataError(frame.name or "frame", f"panoptic map is {np.shape(frame.panoptic)} but "
-                                           f"the image is {frame.image.shape[:2]} (H, W)")
+  if frame.panoptic is not None:
+    ids = np.asarray(frame.panoptic)
+    if not np.issubdtype(ids.dtype, np.integer):
+      # a float id map cast to int32 read segment 3.7 as 3 (`masks.segment_id_array` refuses it)
+      raise DataError(frame.name or "frame", f"panoptic must be an integer map of segment ids, "
+                                             f"got {ids.dtype}")
+    if ids.shape != frame.image.shape[:2]:
+      # resized on its own to the network's size, a map of another size (a transposed one, a
+      # segmenter's own resolution) would label other pixels; the file readers refuse it too
+      raise DataError(frame.name or "frame", f"panoptic map is {ids.shape} but the image is "
+                                             f"{frame.image.shape[:2]} (H, W)")
   frame = resize_frame(frame, height, width, image_resize)
   if frame.panoptic is None:
     panoptic = np.zeros((height, width), np.int32)
