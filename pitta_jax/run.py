@@ -98,7 +98,7 @@ def run_status(nonfinite_indices: Sequence[int], n_frames: int, n_scored: int) -
 class RunResult:
   """Everything one run produced (host NumPy)."""
   name: str
-  per_frame: list[dict]                # {"name", 7 metrics} per scored frame (valid GT)
+  per_frame: list[dict]                # {"name", "index", 7 metrics} per scored frame (valid GT)
   mean: dict[str, float]               # averaged over frames
   logs: dict[str, np.ndarray]          # per frame: loss, loss_d, loss_e, n_instances, skipped...
   frame_names: list[str]
@@ -121,14 +121,19 @@ class RunResult:
     """`metric` of every frame in frame order, NaN where the frame was not scored (its depth
     not finite, its ground truth without a valid pixel or absent): a curve over the frames
     whose x is the frame index, where `per_frame` holds the scored frames only."""
-    bad, scored, out = set(self.nonfinite_indices), iter(self.per_frame), []
+    out = [float("nan")] * len(self.frame_names)
+    if all(isinstance(e.get("index"), int) for e in self.per_frame):
+      for entry in self.per_frame:  # each scored frame knows its place
+        if 0 <= entry["index"] < len(out):
+          out[entry["index"]] = entry[metric]
+      return out
+    # entries without their index (a result built by hand): matched by name, in order
+    bad, scored = set(self.nonfinite_indices), iter(self.per_frame)
     entry = next(scored, None)
     for i, name in enumerate(self.frame_names):
       if entry is not None and i not in bad and entry.get("name") == name:
-        out.append(entry[metric])
+        out[i] = entry[metric]
         entry = next(scored, None)
-      else:
-        out.append(float("nan"))
     return out
 
   @property
@@ -816,7 +821,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
           record["nonfinite_indices"].append(index)
         elif frame.depth is not None:
           try:
-            record["per_frame"].append({"name": frame.name, **frame_metrics(
+            record["per_frame"].append({"name": frame.name, "index": index, **frame_metrics(
                 depth, frame.depth, eval_cfg, alignment)})
           except metrics_lib.NoValidPixels:
             record["excluded"].append(frame.name)
@@ -860,7 +865,7 @@ def run_sequence(weights: Weights, frames: Sequence[Frame], cfg: AdaptConfig,
       watch.close()
   seconds = time.perf_counter() - t0
   per_frame = [{k: float("nan") if v is None else v for k, v in m.items()}
-               for m in record["per_frame"]]  # {"name", 7 metrics} per scored frame
+               for m in record["per_frame"]]  # {"name", "index", 7 metrics} per scored frame
   logs = {k: np.asarray([np.nan if v is None else v for v in vals])
           for k, vals in record["logs"].items()}
   mean = metrics_lib.mean_metrics(per_frame) if per_frame else {}

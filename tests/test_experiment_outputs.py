@@ -83,6 +83,18 @@ def test_per_frame_series_keeps_each_frames_place():
   np.testing.assert_array_equal(r.per_frame_series("abs_rel"), [0.1, np.nan, 0.3, np.nan, np.nan])
 
 
+def test_per_frame_series_places_frames_of_one_name_by_their_index():
+  """Two frames of one name (a user's list), the first without ground truth: the scored
+  second frame's value had been drawn at the first one's place, matched by name. Hand
+  values, as `run_sequence` records them (each scored frame with its index)."""
+  from pitta_jax.run import RunResult
+  names = ["a", "a", "b"]
+  per_frame = [{"name": "a", "index": 1, "abs_rel": 0.2}, {"name": "b", "index": 2, "abs_rel": 0.3}]
+  r = RunResult(name="x", per_frame=per_frame, mean={}, logs={}, frame_names=names,
+                seconds=1.0, kept_depths={})
+  np.testing.assert_array_equal(r.per_frame_series("abs_rel"), [np.nan, 0.2, 0.3])
+
+
 METRICS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
 
 

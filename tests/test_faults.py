@@ -807,12 +807,17 @@ def test_frames_without_valid_ground_truth_are_excluded_not_fatal(tiny_weights):
   from pitta_jax.data.synthetic import SyntheticConfig, generate_sequence
   from pitta_jax.run import run_sequence
   frames = generate_sequence(SyntheticConfig(height=H, width=W, num_frames=3, seed=100))
-  frames[1] = dataclasses.replace(frames[1], depth=np.zeros_like(frames[1].depth))
+  frames[1] = dataclasses.replace(frames[1], depth=np.zeros_like(frames[1].depth),
+                                  name=frames[2].name)  # names need not be unique
   res = run_sequence(load_weights(tiny_weights), frames, AdaptConfig(method="none",
                      bn_stats="running"), quiet=True, keep=(0, 2))
   assert res.excluded == [frames[1].name] and len(res.per_frame) == 2
   want = [metrics.depth_metrics(res.kept_depths[i], frames[i].depth)["abs_rel"] for i in (0, 2)]
   np.testing.assert_allclose(res.mean["abs_rel"], np.mean(want), rtol=1e-12)
+  # the per-frame curve keeps frame 2's value at frame 2, not at frame 1 of the same name
+  series = res.per_frame_series("abs_rel")
+  assert np.isnan(series[1])
+  np.testing.assert_allclose([series[0], series[2]], want, rtol=1e-12)
   assert res.status == "ok"
   # no frame with valid ground truth: reported as not scored, not as an "ok" row without means
   none_valid = [dataclasses.replace(f, depth=np.zeros_like(f.depth)) for f in frames]
