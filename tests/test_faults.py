@@ -281,6 +281,15 @@ def tiny_weights(tmp_path_factory):
   return root
 
 
+@pytest.fixture(scope="module")
+def uninterrupted(tiny_weights, tmp_path_factory) -> dict:
+  """results.json of `_adapt_args`' run without a fault, from the start: what the tests of
+  interrupted and resumed runs compare theirs with (run once for the module)."""
+  out = tmp_path_factory.mktemp("uninterrupted") / "full"
+  assert main(_adapt_args(tiny_weights, out)) == 0
+  return json.loads((out / "results.json").read_text())
+
+
 def _adapt_args(weights, out, *extra, frames: int = N):
   """The default PITTA configuration at 64x96 in chunks of K frames: the program `experiments
   --quick` compiles too (the suite's shared XLA cache then serves the killed subprocess)."""
@@ -302,16 +311,14 @@ def _run_until_first_checkpoint(weights, out, *extra, frames: int = N) -> subpro
   return proc
 
 
-def test_kill_then_resume_equals_an_uninterrupted_run(tiny_weights, tmp_path):
+def test_kill_then_resume_equals_an_uninterrupted_run(tiny_weights, uninterrupted, tmp_path):
   killed = tmp_path / "killed"
   proc = _run_until_first_checkpoint(tiny_weights, killed)
   proc.send_signal(signal.SIGKILL)
   proc.wait()
   assert not (killed / "results.json").exists()  # killed before the end
   assert main(_adapt_args(tiny_weights, killed, "--resume")) == 0
-  assert main(_adapt_args(tiny_weights, tmp_path / "full")) == 0
-  resumed = json.loads((killed / "results.json").read_text())
-  full = json.loads((tmp_path / "full" / "results.json").read_text())
+  resumed, full = json.loads((killed / "results.json").read_text()), uninterrupted
   assert resumed["resumed_at_frame"] >= K and full["resumed_at_frame"] == 0
   assert resumed["per_frame"] == full["per_frame"] and len(full["per_frame"]) == N
   assert resumed["logs"] == full["logs"]
@@ -322,8 +329,8 @@ def test_kill_then_resume_equals_an_uninterrupted_run(tiny_weights, tmp_path):
   assert abs(resumed["rows"][0]["extra"]["fps"] - N / seconds["total"]) < 0.01
 
 
-def test_ctrl_c_while_a_chunk_is_scored_loses_no_frame(tiny_weights, tmp_path, monkeypatch,
-                                                       capfd):
+def test_ctrl_c_while_a_chunk_is_scored_loses_no_frame(tiny_weights, uninterrupted, tmp_path,
+                                                       monkeypatch, capfd):
   """Ctrl-C between a chunk's steps and the end of its scoring: the checkpoint is the last
   chunk whose frames were all scored (the interrupted chunk's state would skip its unscored
   frames on --resume), and the resumed run equals an uninterrupted one, frame for frame."""
@@ -354,14 +361,13 @@ def test_ctrl_c_while_a_chunk_is_scored_loses_no_frame(tiny_weights, tmp_path, m
   saved = sorted(p.name for p in (out / "checkpoints").glob("state_??????.json"))
   assert saved[-1] == f"state_{2 * K:06d}.json"          # not the half-scored third chunk's
   assert main(_adapt_args(tiny_weights, out, "--resume")) == 0
-  assert main(_adapt_args(tiny_weights, tmp_path / "full")) == 0
-  resumed = json.loads((out / "results.json").read_text())
-  full = json.loads((tmp_path / "full" / "results.json").read_text())
+  resumed, full = json.loads((out / "results.json").read_text()), uninterrupted
   assert resumed["resumed_at_frame"] == 2 * K and len(full["per_frame"]) == N
   assert resumed["per_frame"] == full["per_frame"] and resumed["logs"] == full["logs"]
 
 
-def test_a_ctrl_c_while_a_chunk_runs_keeps_that_chunk(tiny_weights, tmp_path, monkeypatch, capfd):
+def test_a_ctrl_c_while_a_chunk_runs_keeps_that_chunk(tiny_weights, uninterrupted, tmp_path,
+                                                      monkeypatch, capfd):
   """XLA cannot stop a running chunk, so a Ctrl-C during its run waited for it all the same and
   then dropped its frames (checkpointing the chunk before): it is said at once, the chunk's
   frames are recorded and checkpointed, and the run stops there; --resume goes on after it and
@@ -374,9 +380,7 @@ def test_a_ctrl_c_while_a_chunk_runs_keeps_that_chunk(tiny_weights, tmp_path, mo
   assert f"interrupted; its first {3 * K} frames are checkpointed" in err
   monkeypatch.undo()
   assert main(_adapt_args(tiny_weights, out, "--resume")) == 0
-  assert main(_adapt_args(tiny_weights, tmp_path / "full")) == 0
-  resumed = json.loads((out / "results.json").read_text())
-  full = json.loads((tmp_path / "full" / "results.json").read_text())
+  resumed, full = json.loads((out / "results.json").read_text()), uninterrupted
   assert resumed["resumed_at_frame"] == 3 * K
   assert resumed["per_frame"] == full["per_frame"] and resumed["logs"] == full["logs"]
 
@@ -460,7 +464,7 @@ def test_a_cache_resume_starts_afresh_over_another_runs_checkpoints(tiny_weights
 
 
 def test_ctrl_c_between_checkpoints_saves_the_last_chunk_without_the_cut_ones_frames(
-    tiny_weights, tmp_path, monkeypatch, capfd):
+    tiny_weights, uninterrupted, tmp_path, monkeypatch, capfd):
   """--checkpoint-every 2K in chunks of K: Ctrl-C while the second chunk is scored, before any
   checkpoint, saves the first chunk's state with the first chunk's frames only (the cut chunk's
   scored frame is dropped from the record, else a resume would score it twice), and the resumed
@@ -495,9 +499,8 @@ def test_ctrl_c_between_checkpoints_saves_the_last_chunk_without_the_cut_ones_fr
   assert 0 < sidecar["seconds"] < 3600
   assert all(len(v) == K for v in sidecar["logs"].values())
   assert main(_adapt_args(tiny_weights, out, *every, "--resume")) == 0
-  assert main(_adapt_args(tiny_weights, tmp_path / "full", *every)) == 0
-  resumed = json.loads((out / "results.json").read_text())
-  full = json.loads((tmp_path / "full" / "results.json").read_text())
+  # the uninterrupted run also runs chunks of K (checkpointing every K)
+  resumed, full = json.loads((out / "results.json").read_text()), uninterrupted
   assert resumed["resumed_at_frame"] == K and len(full["per_frame"]) == N
   assert resumed["per_frame"] == full["per_frame"] and resumed["logs"] == full["logs"]
 
