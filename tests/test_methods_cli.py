@@ -18,14 +18,14 @@ import pytest
 from pitta_jax.cli import main
 from pitta_jax.methods import METHODS
 
-H, W, N = 64, 96, 3
+H, W, N = 64, 96, 2  # the second frame pairs with the first (previous frame, pose)
 OWN_LOGS = {"pitta": "loss_e", "comoda": "loss_comoda", "adadepth": "loss_adadepth",
             "actmad": "loss_actmad", "cotta": "loss_cotta"}
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-  """A foggy DrivingStereo subset (3 consecutive frames, full size only, with calibration),
+  """A foggy DrivingStereo subset (N consecutive frames, full size only, with calibration),
   random MonoDepth2 weights with a pose net, and a source image folder."""
   import jax
   import jax.numpy as jnp
