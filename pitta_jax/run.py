@@ -237,7 +237,7 @@ def code_key(obj: Any, _path: frozenset = frozenset()) -> Any:
         cells.append(("empty",))
     return ("function", code, tuple(cells), code_key(getattr(obj, "__defaults__", None), path),
             code_key(getattr(obj, "__kwdefaults__", None), path),
-            _globals_key(code, getattr(obj, "__globals__", {})))
+            _globals_key(code, getattr(obj, "__globals__", {}), path))
   if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
     return (type(obj), tuple(code_key(getattr(obj, f.name), path)
                              for f in dataclasses.fields(obj)))
@@ -252,21 +252,28 @@ def code_key(obj: Any, _path: frozenset = frozenset()) -> Any:
   return (type(obj), obj)
 
 
-def _globals_key(code: types.CodeType, namespace: dict) -> tuple:
-  """What the module-level names a function's code reads are bound to: a class or function
-  itself, which compares by identity (a notebook cell run again with an edited `class Net` or
-  loss helper binds the name to a new object, where the code of `lambda config: Net()` stays
-  equal; held by the key, so that its id is never reused meanwhile), another hashable value (a
-  constant) by its value, an unhashable one by identity; modules are left out."""
-  names = set(code.co_names)
-  for const in code.co_consts:  # the code of nested functions and comprehensions
-    if isinstance(const, types.CodeType):
-      names |= set(const.co_names)
+def _globals_key(code: types.CodeType, namespace: dict, path: frozenset = frozenset()) -> tuple:
+  """What the module-level names a function's code reads are bound to: a Python function by
+  its own `code_key` (its code and, in turn, the names it reads: a notebook that redefines a
+  helper that the loss's helper calls gets a new key, where keying the loss's helper by
+  identity served the old compiled step), a class or any other callable itself, which compares
+  by identity (a notebook cell run again with an edited `class Net` binds the name to a new
+  object, where the code of `lambda config: Net()` stays equal; held by the key, so that its id
+  is never reused meanwhile), another hashable value (a constant) by its value, an unhashable
+  one by identity; modules are left out."""
+  names, codes = set(), [code]
+  while codes:  # the function's code and that of its nested functions and comprehensions
+    c = codes.pop()
+    names |= set(c.co_names)
+    codes += [const for const in c.co_consts if isinstance(const, types.CodeType)]
   key = []
   for name in sorted(names):
     if name not in namespace or isinstance(namespace[name], types.ModuleType):
       continue
     value = namespace[name]
+    if isinstance(value, types.FunctionType):
+      key.append((name, code_key(value, path)))
+      continue
     try:
       hash(value)
     except TypeError:

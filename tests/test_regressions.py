@@ -67,6 +67,25 @@ def test_an_unhashable_global_is_held_by_the_runners_key():
   assert code_key(namespace["f"]) != first
 
 
+def test_a_helper_redefined_two_calls_below_changes_the_runners_key():
+  """A notebook that redefines a helper which the loss's helper calls (two calls below the
+  loss) must not be served the compiled step of the old helper: `run.code_key` keyed the
+  loss's helper by identity, unchanged. A function that calls itself still has a key."""
+  from pitta_jax.run import code_key
+  namespace = {}
+  exec("def scale(x):\n  return 2 * x\n"
+       "def helper(x):\n  return scale(x) + 1\n"
+       "def loss(x):\n  return helper(x)\n"
+       "def countdown(n):\n  return countdown(n - 1) if n else 0\n", namespace)
+  first = code_key(namespace["loss"])
+  assert first == code_key(namespace["loss"]) and hash(first) == hash(code_key(namespace["loss"]))
+  exec("def scale(x):\n  return 3 * x\n", namespace)   # the cell of `scale` edited, run again
+  assert namespace["loss"](1) == 4 and code_key(namespace["loss"]) != first
+  exec("def scale(x):\n  return 2 * x\n", namespace)   # and put back: the first key again
+  assert code_key(namespace["loss"]) == first
+  assert code_key(namespace["countdown"]) == code_key(namespace["countdown"])
+
+
 def test_configs_take_numpy_scalars_and_check_nested_configs_and_selectors():
   """A NumPy scalar that fits a number field is taken as its Python value (np.float32(0.25)
   was refused as 'lam must be >= 0'); a nested config field holds its config (ld=None was
