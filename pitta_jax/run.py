@@ -215,7 +215,7 @@ class Runners:
     return self._cache[key][:3]
 
 
-def code_key(obj: Any, _path: frozenset = frozenset()) -> Any:
+def code_key(obj: Any, _path: frozenset = frozenset(), _memo: dict | None = None) -> Any:
   """A hashable key equal for objects that compute the same thing: a function by its code,
   captured values and defaults (two closures of one `def` capturing equal values are equal,
   capturing different ones are not), a `functools.partial` by its function and arguments, a
@@ -224,27 +224,29 @@ def code_key(obj: Any, _path: frozenset = frozenset()) -> Any:
   if id(obj) in _path:  # a cycle (a closure that refers to itself)
     return ("cycle", id(obj))
   path = _path | {id(obj)}
+  memo = {} if _memo is None else _memo  # one call's keys of the functions met by name
   if isinstance(obj, functools.partial):
-    return ("partial", code_key(obj.func, path), code_key(obj.args, path),
-            code_key(obj.keywords, path))
+    return ("partial", code_key(obj.func, path, memo), code_key(obj.args, path, memo),
+            code_key(obj.keywords, path, memo))
   code = getattr(obj, "__code__", None)
   if isinstance(code, types.CodeType):
     cells = []
     for cell in getattr(obj, "__closure__", None) or ():
       try:
-        cells.append(code_key(cell.cell_contents, path))
+        cells.append(code_key(cell.cell_contents, path, memo))
       except ValueError:  # a cell not yet filled
         cells.append(("empty",))
-    return ("function", code, tuple(cells), code_key(getattr(obj, "__defaults__", None), path),
-            code_key(getattr(obj, "__kwdefaults__", None), path),
-            _globals_key(code, getattr(obj, "__globals__", {}), path))
+    return ("function", code, tuple(cells),
+            code_key(getattr(obj, "__defaults__", None), path, memo),
+            code_key(getattr(obj, "__kwdefaults__", None), path, memo),
+            _globals_key(code, getattr(obj, "__globals__", {}), path, memo))
   if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-    return (type(obj), tuple(code_key(getattr(obj, f.name), path)
+    return (type(obj), tuple(code_key(getattr(obj, f.name), path, memo)
                              for f in dataclasses.fields(obj)))
   if isinstance(obj, (tuple, list)):
-    return (type(obj), tuple(code_key(v, path) for v in obj))
+    return (type(obj), tuple(code_key(v, path, memo) for v in obj))
   if isinstance(obj, dict):
-    return (dict, tuple((code_key(k, path), code_key(v, path)) for k, v in obj.items()))
+    return (dict, tuple((code_key(k, path, memo), code_key(v, path, memo)) for k, v in obj.items()))
   try:
     hash(obj)
   except TypeError:
@@ -252,7 +254,8 @@ def code_key(obj: Any, _path: frozenset = frozenset()) -> Any:
   return (type(obj), obj)
 
 
-def _globals_key(code: types.CodeType, namespace: dict, path: frozenset = frozenset()) -> tuple:
+def _globals_key(code: types.CodeType, namespace: dict, path: frozenset = frozenset(),
+                 memo: dict | None = None) -> tuple:
   """What the module-level names a function's code reads are bound to: a Python function by
   its own `code_key` (its code and, in turn, the names it reads: a notebook that redefines a
   helper that the loss's helper calls gets a new key, where keying the loss's helper by
@@ -271,8 +274,12 @@ def _globals_key(code: types.CodeType, namespace: dict, path: frozenset = frozen
     if name not in namespace or isinstance(namespace[name], types.ModuleType):
       continue
     value = namespace[name]
-    if isinstance(value, types.FunctionType):
-      key.append((name, code_key(value, path)))
+    if isinstance(value, types.FunctionType):  # keyed once per call: helpers that several
+      if memo is None:                          # functions read are not walked again each time
+        memo = {}
+      if id(value) not in memo:
+        memo[id(value)] = code_key(value, path, memo)
+      key.append((name, memo[id(value)]))
       continue
     try:
       hash(value)

@@ -86,6 +86,25 @@ def test_a_helper_redefined_two_calls_below_changes_the_runners_key():
   assert code_key(namespace["countdown"]) == code_key(namespace["countdown"])
 
 
+def test_code_key_walks_each_helper_once(monkeypatch):
+  """Helpers that several functions read are keyed once per `code_key` call: a chain of 16
+  functions each reading the next two (`f0` reads `f1` and `f2`, ...) was walked once per path
+  to each (15,501 calls for 18 functions, growing like Fibonacci's numbers with the chain).
+  Counted calls, and keys that still follow a change at the end of the chain."""
+  from pitta_jax import run
+  namespace = {}
+  source = "".join(f"def f{i}(x):\n  return f{i + 1}(x) + f{i + 2}(x)\n" for i in range(16))
+  exec(source + "def f16(x):\n  return x\ndef f17(x):\n  return 2 * x\n", namespace)
+  calls = []
+  real = run.code_key
+  monkeypatch.setattr(run, "code_key", lambda *a: calls.append(1) or real(*a))
+  first = run.code_key(namespace["f0"])
+  print(f"code_key calls for 18 functions: {len(calls)}")
+  assert len(calls) < 200
+  exec("def f17(x):\n  return 3 * x\n", namespace)
+  assert run.code_key(namespace["f0"]) != first
+
+
 def test_configs_take_numpy_scalars_and_check_nested_configs_and_selectors():
   """A NumPy scalar that fits a number field is taken as its Python value (np.float32(0.25)
   was refused as 'lam must be >= 0'); a nested config field holds its config (ld=None was
