@@ -39,7 +39,8 @@ class PlotConfig:
   fig_width: float = option(7.2, "figure width in inches (PNG pixels = inches x dpi)")
   fig_height: float = option(3.6, "figure height in inches")
   dpi: int = option(100, "PNG resolution, dots per inch")
-  pdf: bool = option(False, "also write each figure as a PDF beside its PNG")
+  pdf: bool = option(False, "also write each plot as a PDF beside its PNG (the demo's depth-map "
+                            "images, figures/*_frameNNN.png, stay PNG only)")
 
   def __post_init__(self):
     for name in ("fig_width", "fig_height"):
