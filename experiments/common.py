@@ -696,7 +696,7 @@ def add_arguments(p: argparse.ArgumentParser, datasets: Sequence[str] = ("synthe
                                 "adapt`)"))
   p.add_argument("--weights", action="append", default=[], metavar="[MODEL=]DIR",
                  help="converted weights; a bare DIR is MonoDepth2's, MODEL=DIR another network's "
-                      "(e.g. depth_anything_v2=DIR); repeatable")
+                      "(e.g. depth_anything_v2=DIR, for a table with its rows); repeatable")
   p.add_argument("--source-images", help=real_only("source-domain images for ActMAD's "
                                                     "statistics (real data)"))
   p.add_argument("--replay-root", help=real_only("KITTI raw root for CoMoDa's replay (real data)"))

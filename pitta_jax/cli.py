@@ -352,8 +352,9 @@ def _add_adapt(sub, name: str) -> None:
                       f"earlier run's results removes them when it starts (a refused --resume "
                       f"keeps them)")
   p.add_argument("--checkpoint-every", type=int, default=0, metavar="K",
-                 help="save the adaptation state and the results so far after every K frames "
-                      "(and on Ctrl-C) under OUT/checkpoints (default 0: none)")
+                 help="save the run's state (parameters, optimiser and method state) and the "
+                      "results so far after every K frames (and on Ctrl-C) under "
+                      "OUT/checkpoints (default 0: none)")
   p.add_argument("--source-images", metavar="PATH",
                  help=f"source-domain images ({IMAGES_HELP}) for methods that "
                       "need source data (ActMAD's statistics); default on synthetic: clear-"
