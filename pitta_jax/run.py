@@ -254,8 +254,7 @@ def code_key(obj: Any, _path: frozenset = frozenset(), _memo: dict | None = None
   return (type(obj), obj)
 
 
-def _globals_key(code: types.CodeType, namespace: dict, path: frozenset = frozenset(),
-                 memo: dict | None = None) -> tuple:
+def _globals_key(code: types.CodeType, namespace: dict, path: frozenset, memo: dict) -> tuple:
   """What the module-level names a function's code reads are bound to: a Python function by
   its own `code_key` (its code and, in turn, the names it reads: a notebook that redefines a
   helper that the loss's helper calls gets a new key, where keying the loss's helper by
@@ -263,7 +262,8 @@ def _globals_key(code: types.CodeType, namespace: dict, path: frozenset = frozen
   by identity (a notebook cell run again with an edited `class Net` binds the name to a new
   object, where the code of `lambda config: Net()` stays equal; held by the key, so that its id
   is never reused meanwhile), another hashable value (a constant) by its value, an unhashable
-  one by identity; modules are left out."""
+  one by identity; modules are left out. `path` and `memo` are `code_key`'s (the objects above
+  this one, the functions keyed so far in this call)."""
   names, codes = set(), [code]
   while codes:  # the function's code and that of its nested functions and comprehensions
     c = codes.pop()
@@ -274,10 +274,8 @@ def _globals_key(code: types.CodeType, namespace: dict, path: frozenset = frozen
     if name not in namespace or isinstance(namespace[name], types.ModuleType):
       continue
     value = namespace[name]
-    if isinstance(value, types.FunctionType):  # keyed once per call: helpers that several
-      if memo is None:                          # functions read are not walked again each time
-        memo = {}
-      if id(value) not in memo:
+    if isinstance(value, types.FunctionType):  # keyed once per `code_key` call: a helper
+      if id(value) not in memo:                 # several functions read is walked once
         memo[id(value)] = code_key(value, path, memo)
       key.append((name, memo[id(value)]))
       continue
