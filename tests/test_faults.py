@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -273,6 +274,25 @@ H, W, N, K = 64, 96, 6, 2
 
 @pytest.fixture(scope="module")
 def tiny_weights(tmp_path_factory):
+  """Weights of the tiny MonoDepth2-shaped network (`tiny_net`), registered for this module as a
+  user registers a network (`MODELS[spec.name] = spec`): the runs below test how the engine and
+  the commands survive faults, which does not depend on the network's size, and an in-process
+  `adapt` of N frames takes ~1.8 s on it against ~4.3 s on ResNet-18 (64x96, compiled step in
+  the cache). The subprocesses run `tiny_cli`, the command with the same registration."""
+  from pitta_jax.checkpoint import save_weights
+  from pitta_jax.models.registry import MODELS
+  from tiny_net import SPEC, tiny_variables
+  registered = pytest.MonkeyPatch()
+  registered.setitem(MODELS, SPEC.name, SPEC)
+  root = tmp_path_factory.mktemp("w") / "tiny"
+  save_weights(root, SPEC.name, {"height": H, "width": W}, tiny_variables(0))
+  yield root
+  registered.undo()
+
+
+@pytest.fixture(scope="module")
+def r18_weights(tmp_path_factory):
+  """Random MonoDepth2 ResNet-18 weights at 64x96, for the tests about MonoDepth2's weights."""
   from pitta_jax.checkpoint import save_weights
   from pitta_jax.models.random_init import random_monodepth2_variables
   root = tmp_path_factory.mktemp("w") / "r18"
@@ -291,18 +311,20 @@ def uninterrupted(tiny_weights, tmp_path_factory) -> dict:
 
 
 def _adapt_args(weights, out, *extra, frames: int = N):
-  """The default PITTA configuration at 64x96 in chunks of K frames: the program `experiments
-  --quick` compiles too (the suite's shared XLA cache then serves the killed subprocess)."""
+  """The default PITTA configuration at 64x96 in chunks of K frames (the killed subprocess finds
+  the step compiled in the suite's shared XLA cache)."""
   return ["adapt", "--dataset", "synthetic", "--weights", str(weights), "--option",
           f"num_frames={frames}", "--option", "domain=fog", "--checkpoint-every", str(K),
           "--quiet", "--out", str(out), *extra]
 
 
 def _run_until_first_checkpoint(weights, out, *extra, frames: int = N) -> subprocess.Popen:
-  """`pitta-jax adapt` in a subprocess, returned once its first checkpoint is complete."""
-  proc = subprocess.Popen([sys.executable, "-m", "pitta_jax.cli",
+  """`pitta-jax adapt` (`tiny_cli`) in a subprocess, returned once its first checkpoint is
+  complete; each later frame takes at least 0.5 s, so that the run is still going then."""
+  proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name("tiny_cli.py")),
                            *_adapt_args(weights, out, *extra, frames=frames)],
-                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          env={**os.environ, "PITTA_JAX_TEST_SECONDS_PER_FRAME": "0.5"})
   sidecar = out / "checkpoints" / f"state_{K:06d}.json"
   deadline = time.time() + 300
   while not sidecar.exists() and proc.poll() is None and time.time() < deadline:
@@ -551,21 +573,21 @@ def test_ctrl_c_as_a_checkpoint_save_ends_keeps_the_chunk_it_saved(tiny_weights,
   assert resumed["resumed_at_frame"] == K and len(resumed["per_frame"]) == 2 * K
 
 
-def test_a_run_of_another_evaluation_protocol_is_another_run(tiny_weights):
+def test_a_run_of_another_evaluation_protocol_is_another_run(r18_weights):
   """The fingerprint a checkpoint carries holds the evaluation's config: a --resume with other
   --eval.* flags does not continue frames scored under the old protocol."""
   from pitta_jax.adapt import AdaptConfig
   from pitta_jax.checkpoint import load_weights
   from pitta_jax.methods import build
   from pitta_jax.run import EvalConfig, run_fingerprint
-  weights, method, cfg = load_weights(tiny_weights), build("pitta"), AdaptConfig()
+  weights, method, cfg = load_weights(r18_weights), build("pitta"), AdaptConfig()
   names = ["a", "b"]
   prints = {run_fingerprint(weights, method, cfg, ev, names)
             for ev in (EvalConfig(), EvalConfig(max_depth=50.0), EvalConfig(garg_crop=True))}
   assert len(prints) == 3
 
 
-def test_a_run_with_other_pose_weights_is_another_run(tiny_weights):
+def test_a_run_with_other_pose_weights_is_another_run(r18_weights):
   """A method that runs the pose network (CoMoDa) continues only a run of the same pose
   weights: the fingerprint held the depth network's values alone. A method without a pose
   network keeps its fingerprint whatever the pose weights."""
@@ -575,7 +597,7 @@ def test_a_run_with_other_pose_weights_is_another_run(tiny_weights):
   from pitta_jax.checkpoint import load_weights
   from pitta_jax.methods import build
   from pitta_jax.run import EvalConfig, run_fingerprint
-  weights = load_weights(tiny_weights)
+  weights = load_weights(r18_weights)
   pose = {"params": {"pose_conv": {"kernel": np.zeros((3, 3, 6, 4), np.float32)}}}
   moved = jax.tree_util.tree_map(lambda a: a + 1, pose)
   names = ["a", "b"]
@@ -829,7 +851,7 @@ def test_frames_without_valid_ground_truth_are_excluded_not_fatal(tiny_weights):
   assert res.mean == {} and res.status == "not scored: no frame has valid ground truth"
 
 
-def test_a_diverged_method_finishes_and_is_reported_not_scored(tiny_weights):
+def test_a_diverged_method_finishes_and_is_reported_not_scored(r18_weights):
   """A method whose parameters stay finite but make the network overflow (here SGD at lr 1e30
   on the BN scales) predicts non-finite depths: those frames are named, not scored, and the
   run says where it diverged; the frames before are scored as usual (reference: frame 0's
@@ -844,7 +866,7 @@ def test_a_diverged_method_finishes_and_is_reported_not_scored(tiny_weights):
   # one name for every frame (names need not be unique): the divergence point is an index
   frames = [dataclasses.replace(f, name="same") for f in
             generate_sequence(SyntheticConfig(height=H, width=W, num_frames=3, seed=100))]
-  res = run_sequence(load_weights(tiny_weights), frames, AdaptConfig(optimizer="sgd", lr=1e30),
+  res = run_sequence(load_weights(r18_weights), frames, AdaptConfig(optimizer="sgd", lr=1e30),
                      quiet=True, keep=(0,))
   assert res.nonfinite == [f.name for f in frames[1:]] and res.diverged_at == 1
   assert [m["name"] for m in res.per_frame] == [frames[0].name]
@@ -1197,7 +1219,7 @@ def test_host_out_of_memory_is_one_line_too():
   assert out_of_memory(cv2.error("Insufficient memory to decode")) is None  # not OpenCV's form
 
 
-def test_weights_of_another_network_than_model_are_refused_before_work(tiny_weights, tmp_path,
+def test_weights_of_another_network_than_model_are_refused_before_work(r18_weights, tmp_path,
                                                                        capsys, monkeypatch):
   """--model names the network the user means; weights of another architecture are one line
   naming both, found from model.json before the arrays are read, and nothing runs (the --out
@@ -1206,26 +1228,26 @@ def test_weights_of_another_network_than_model_are_refused_before_work(tiny_weig
   loads = []
   monkeypatch.setattr(sources, "load_weights", lambda d: loads.append(d))
   out = tmp_path / "o"
-  assert main(["adapt", "--dataset", "synthetic", "--weights", str(tiny_weights), "--model",
+  assert main(["adapt", "--dataset", "synthetic", "--weights", str(r18_weights), "--model",
                "litemono", "--option", "num_frames=1", "--quiet", "--out", str(out)]) == 2
-  assert capsys.readouterr().err == (f"error: --model litemono, but {tiny_weights} holds a "
+  assert capsys.readouterr().err == (f"error: --model litemono, but {r18_weights} holds a "
                                      f"monodepth2\n")
   assert not out.exists() and loads == []
 
 
-def test_weights_of_a_size_no_image_has_are_refused(tiny_weights, tmp_path):
+def test_weights_of_a_size_no_image_has_are_refused(r18_weights, tmp_path):
   """A model.json whose size is beyond any camera (10^9 rows, a multiple of 32) is refused
   where the weights load, naming the file, and a converter does not write one (it was written,
   and a run on it failed after 40 s with a traceback from an allocation)."""
   import shutil
   from pitta_jax.checkpoint import WeightsError, load_weights, save_weights
-  weights = load_weights(tiny_weights)
+  weights = load_weights(r18_weights)
   huge = {"num_layers": 18, "height": 32 * 10 ** 8, "width": W}
   with pytest.raises(ValueError, match="more than 16384 pixels on a side"):
     save_weights(tmp_path / "w", "monodepth2", huge, weights.depth)
   assert not (tmp_path / "w" / "model.json").exists()
   edited = tmp_path / "edited"
-  shutil.copytree(tiny_weights, edited)
+  shutil.copytree(r18_weights, edited)
   meta = json.loads((edited / "model.json").read_text())
   (edited / "model.json").write_text(json.dumps({**meta, "height": huge["height"]}))
   with pytest.raises(WeightsError, match=r"model\.json: input size 96x3200000000 .* more than"):
