@@ -1,4 +1,4 @@
-"""`python -m pitta_jax.cli` with the tiny network (`tiny_net`) registered, as a user registers a
+"""`python -m pitta_jax.cli` (run as `-m` runs it) with the tiny network (`tiny_net`) registered, as a user registers a
 network of their own (`MODELS[spec.name] = spec`): the command the fault tests start as a
 subprocess and then kill, on weights of the tiny network.
 
@@ -10,6 +10,7 @@ network runs the rest of a short sequence in a fraction of a second).
 from __future__ import annotations
 
 import os
+import runpy
 import sys
 import time
 from pathlib import Path
@@ -18,7 +19,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from tiny_net import SPEC  # noqa: E402
 
-from pitta_jax import cli, run  # noqa: E402
+from pitta_jax import run  # noqa: E402
 from pitta_jax.models.registry import MODELS  # noqa: E402
 
 MODELS[SPEC.name] = SPEC
@@ -32,4 +33,4 @@ if _PAUSE > 0:
   run.frame_metrics = _slow_frame_metrics
 
 if __name__ == "__main__":
-  cli.console()
+  runpy.run_module("pitta_jax.cli", run_name="__main__", alter_sys=True)
