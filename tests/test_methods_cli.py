@@ -2,10 +2,12 @@
 panoptic PNGs, calibration as the official download lays them out) with a KITTI raw replay root:
 results.json with the method's own logs.
 
-One run (the suite's budget keeps it to CoMoDa, whose data path is the longest: pose net, K,
-previous frames, replay; Ada-Depth needs the same minus the replay); the engine-level
-bitwise-reproducibility and the PyTorch one-step references of every method are in its own test
-file, and `OWN_LOGS` names every registered method's own log.
+CoMoDa (pose net, K, previous frames, replay) and Ada-Depth (the same minus the replay), each on
+the tiny network with its pose network (`tiny_net`, registered as a user registers one): what is
+under test is the data path, not the networks, whose steps on MonoDepth2's ResNet-18 compile for
+~30 s each here. The engine-level bitwise reproducibility and the PyTorch one-step references
+of every method on MonoDepth2 are in its own test file, and `OWN_LOGS` names every registered
+method's own log.
 """
 
 from __future__ import annotations
@@ -25,19 +27,21 @@ OWN_LOGS = {"pitta": "loss_e", "comoda": "loss_comoda", "adadepth": "loss_adadep
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-  """A foggy DrivingStereo subset (N consecutive frames, full size only, with calibration),
-  random MonoDepth2 weights with a pose net, and a source image folder."""
-  import jax
-  import jax.numpy as jnp
+  """A foggy DrivingStereo subset (N consecutive frames, full size only, with calibration), a
+  KITTI raw replay root, random weights of the tiny network with its pose network (`tiny_net`,
+  registered for this module as a user registers a network: the data path, not the network,
+  is under test here; MonoDepth2's ResNet-18 pose and depth networks made this CoMoDa run's
+  compile ~30 s), and a source image folder."""
   from pitta_jax.checkpoint import save_weights
   from pitta_jax.data.image_io import write_image
   from pitta_jax.data.synthetic import SyntheticConfig, export_drivingstereo, generate_sequence
-  from pitta_jax.models.pose import PoseNet
-  from pitta_jax.models.random_init import init_variables, random_monodepth2_variables
+  from pitta_jax.models.registry import MODELS
+  from tiny_net import SPEC, tiny_pose_variables, tiny_variables
+  registered = pytest.MonkeyPatch()
+  registered.setitem(MODELS, SPEC.name, SPEC)
   root = tmp_path_factory.mktemp("ds")
   export_drivingstereo(generate_sequence(SyntheticConfig(height=H, width=W, num_frames=N,
                                                          domain="fog", seed=7)), root, "foggy")
-  # source domain: clear frames as images (ActMAD, CoTTA) and as a KITTI raw drive (CoMoDa)
   source = root / "source"
   date = root / "kitti" / "2011_09_26"
   clear = generate_sequence(SyntheticConfig(height=H, width=W, num_frames=3, seed=3))
@@ -48,18 +52,18 @@ def dataset(tmp_path_factory):
   K = clear[0].intrinsics
   p_rect = f"{K[0, 0]} 0 {K[0, 2]} 0 0 {K[1, 1]} {K[1, 2]} 0 0 0 1 0"
   (date / "calib_cam_to_cam.txt").write_text(f"S_rect_02: {W}.0 {H}.0\nP_rect_02: {p_rect}\n")
-  pose = init_variables(PoseNet(18), 1, jnp.zeros((1, H, W, 6)))
   weights = root / "weights"
-  save_weights(weights, "monodepth2", {"num_layers": 18, "height": H, "width": W},
-               random_monodepth2_variables(0), jax.device_get(pose))
-  return root, weights, source
+  save_weights(weights, SPEC.name, {"height": H, "width": W}, tiny_variables(0),
+               tiny_pose_variables(1))
+  yield root, weights, source
+  registered.undo()
 
 
 def test_every_method_has_its_own_log_named():
   assert set(OWN_LOGS) | {"none"} == set(METHODS)
 
 
-@pytest.mark.parametrize("method", ["comoda"])
+@pytest.mark.parametrize("method", ["comoda", "adadepth"])
 def test_method_runs_from_the_cli_on_drivingstereo(method, dataset, tmp_path):
   from pitta_jax.methods import method_setting
   root, weights, source = dataset

@@ -58,11 +58,30 @@ class TinyDepthNet(nn.Module):
     return TinyDecoder(name="decoder")(TinyEncoder(name="encoder")(images, train))
 
 
+class TinyPoseNet(nn.Module):
+  """Two frames (B, H, W, 6) -> (axis-angle, translation), each (B, 2, 1, 3), as MonoDepth2's
+  `PoseNet` returns them: two strided convolutions with BatchNorm, a 1x1 conv to 12 values,
+  the spatial mean times 0.01 (MonoDepth2's pose decoder's scaling)."""
+
+  @nn.compact
+  def __call__(self, frame_pair: jax.Array, train: bool = False) -> tuple[jax.Array, jax.Array]:
+    x = nn.relu(BatchNorm(name="bn1")(conv(8, 3, 2, 1, name="conv1")(frame_pair - 0.45), train))
+    x = nn.relu(conv(16, 3, 2, 1, use_bias=True, name="conv2")(x))
+    x = conv(12, 1, use_bias=True, name="pose")(x)
+    x = 0.01 * jnp.mean(x, axis=(1, 2)).reshape(-1, 2, 1, 6)
+    return x[..., :3], x[..., 3:]
+
+
 SPEC = ModelSpec(name="tiny", build=lambda config: TinyDepthNet(), output="sigmoid_disparity",
-                 size_multiple=8, default_size=(64, 96))
+                 size_multiple=8, default_size=(64, 96), build_pose=lambda config: TinyPoseNet())
 TINY = Network(SPEC, TinyDepthNet())
 
 
 def tiny_variables(seed: int) -> dict:
   """Random {"params", "batch_stats"} whose activations stay O(1) (`random_variables`)."""
   return random_variables(TinyDepthNet(), seed, jnp.zeros((1, 64, 96, 3)))
+
+
+def tiny_pose_variables(seed: int) -> dict:
+  """`TinyPoseNet`'s random variables, drawn as `tiny_variables`."""
+  return random_variables(TinyPoseNet(), seed, jnp.zeros((1, 64, 96, 6)))
