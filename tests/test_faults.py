@@ -320,7 +320,7 @@ def _adapt_args(weights, out, *extra, frames: int = N):
 
 def _run_until_first_checkpoint(weights, out, *extra, frames: int = N) -> subprocess.Popen:
   """`pitta-jax adapt` (`tiny_cli`) in a subprocess, returned once its first checkpoint is
-  complete; each later frame takes at least 0.5 s, so that the run is still going then."""
+  complete; each scored frame takes at least 0.5 s, so that the run is still going then."""
   proc = subprocess.Popen([sys.executable, str(Path(__file__).with_name("tiny_cli.py")),
                            *_adapt_args(weights, out, *extra, frames=frames)],
                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,

@@ -5,7 +5,7 @@ results.json with the method's own logs.
 CoMoDa (pose net, K, previous frames, replay) and Ada-Depth (the same minus the replay), each on
 the tiny network with its pose network (`tiny_net`, registered as a user registers one): what is
 under test is the data path, not the networks, whose steps on MonoDepth2's ResNet-18 compile for
-~30 s each here. The engine-level bitwise reproducibility and the PyTorch one-step references
+30 s and more each here. The engine-level bitwise reproducibility and the PyTorch one-step references
 of every method on MonoDepth2 are in its own test file, and `OWN_LOGS` names every registered
 method's own log.
 """
@@ -31,7 +31,7 @@ def dataset(tmp_path_factory):
   KITTI raw replay root, random weights of the tiny network with its pose network (`tiny_net`,
   registered for this module as a user registers a network: the data path, not the network,
   is under test here; MonoDepth2's ResNet-18 pose and depth networks made this CoMoDa run's
-  compile ~30 s), and a source image folder."""
+  compile for ~30 s), and a source image folder."""
   from pitta_jax.checkpoint import save_weights
   from pitta_jax.data.image_io import write_image
   from pitta_jax.data.synthetic import SyntheticConfig, export_drivingstereo, generate_sequence
@@ -42,6 +42,7 @@ def dataset(tmp_path_factory):
   root = tmp_path_factory.mktemp("ds")
   export_drivingstereo(generate_sequence(SyntheticConfig(height=H, width=W, num_frames=N,
                                                          domain="fog", seed=7)), root, "foggy")
+  # source domain: clear frames as images (ActMAD, CoTTA) and as a KITTI raw drive (CoMoDa)
   source = root / "source"
   date = root / "kitti" / "2011_09_26"
   clear = generate_sequence(SyntheticConfig(height=H, width=W, num_frames=3, seed=3))

@@ -1,6 +1,6 @@
-"""`python -m pitta_jax.cli` (run as `-m` runs it) with the tiny network (`tiny_net`) registered, as a user registers a
-network of their own (`MODELS[spec.name] = spec`): the command the fault tests start as a
-subprocess and then kill, on weights of the tiny network.
+"""`python -m pitta_jax.cli` (run as `-m` runs it) with the tiny network (`tiny_net`) registered
+as a user registers a network of their own (`MODELS[spec.name] = spec`): the command the fault
+tests start as a subprocess and then kill, on weights of the tiny network.
 
 `PITTA_JAX_TEST_SECONDS_PER_FRAME` (optional) makes each scored frame take at least that long:
 a test that kills the run after its first checkpoint then finds it still running (the tiny
