@@ -280,14 +280,11 @@ def tiny_weights(tmp_path_factory):
   `adapt` of N frames takes ~1.8 s on it against ~4.3 s on ResNet-18 (64x96, compiled step in
   the cache). The subprocesses run `tiny_cli`, the command with the same registration."""
   from pitta_jax.checkpoint import save_weights
-  from pitta_jax.models.registry import MODELS
-  from tiny_net import SPEC, tiny_variables
-  registered = pytest.MonkeyPatch()
-  registered.setitem(MODELS, SPEC.name, SPEC)
-  root = tmp_path_factory.mktemp("w") / "tiny"
-  save_weights(root, SPEC.name, {"height": H, "width": W}, tiny_variables(0))
-  yield root
-  registered.undo()
+  from tiny_net import SPEC, registered, tiny_variables
+  with registered():
+    root = tmp_path_factory.mktemp("w") / "tiny"
+    save_weights(root, SPEC.name, {"height": H, "width": W}, tiny_variables(0))
+    yield root
 
 
 @pytest.fixture(scope="module")

@@ -35,10 +35,7 @@ def dataset(tmp_path_factory):
   from pitta_jax.checkpoint import save_weights
   from pitta_jax.data.image_io import write_image
   from pitta_jax.data.synthetic import SyntheticConfig, export_drivingstereo, generate_sequence
-  from pitta_jax.models.registry import MODELS
-  from tiny_net import SPEC, tiny_pose_variables, tiny_variables
-  registered = pytest.MonkeyPatch()
-  registered.setitem(MODELS, SPEC.name, SPEC)
+  from tiny_net import SPEC, registered, tiny_pose_variables, tiny_variables
   root = tmp_path_factory.mktemp("ds")
   export_drivingstereo(generate_sequence(SyntheticConfig(height=H, width=W, num_frames=N,
                                                          domain="fog", seed=7)), root, "foggy")
@@ -54,10 +51,10 @@ def dataset(tmp_path_factory):
   p_rect = f"{K[0, 0]} 0 {K[0, 2]} 0 0 {K[1, 1]} {K[1, 2]} 0 0 0 1 0"
   (date / "calib_cam_to_cam.txt").write_text(f"S_rect_02: {W}.0 {H}.0\nP_rect_02: {p_rect}\n")
   weights = root / "weights"
-  save_weights(weights, SPEC.name, {"height": H, "width": W}, tiny_variables(0),
-               tiny_pose_variables(1))
-  yield root, weights, source
-  registered.undo()
+  with registered():
+    save_weights(weights, SPEC.name, {"height": H, "width": W}, tiny_variables(0),
+                 tiny_pose_variables(1))
+    yield root, weights, source
 
 
 def test_every_method_has_its_own_log_named():

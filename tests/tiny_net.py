@@ -13,6 +13,9 @@ networks themselves are tested against PyTorch in their own files.
 
 from __future__ import annotations
 
+import contextlib
+from typing import Iterator
+
 import jax
 import jax.numpy as jnp
 import flax.linen as nn
@@ -20,7 +23,7 @@ import flax.linen as nn
 from pitta_jax.models.depth_decoder import conv3x3_reflect
 from pitta_jax.models.layers import BatchNorm, UpConv3x3, conv, max_pool_3x3_s2
 from pitta_jax.models.random_init import random_variables
-from pitta_jax.models.registry import Network
+from pitta_jax.models.registry import MODELS, Network
 from pitta_jax.models.resnet import BasicBlock
 from pitta_jax.models.spec import ModelSpec
 
@@ -75,6 +78,22 @@ class TinyPoseNet(nn.Module):
 SPEC = ModelSpec(name="tiny", build=lambda config: TinyDepthNet(), output="sigmoid_disparity",
                  size_multiple=8, default_size=(64, 96), build_pose=lambda config: TinyPoseNet())
 TINY = Network(SPEC, TinyDepthNet())
+
+
+@contextlib.contextmanager
+def registered() -> Iterator[None]:
+  """The tiny network registered as a user registers one (`MODELS[spec.name] = spec`) while the
+  block runs, so that its weights load and the commands take them; the registry as it was
+  after."""
+  before = MODELS.get(SPEC.name)
+  MODELS[SPEC.name] = SPEC
+  try:
+    yield
+  finally:
+    if before is None:
+      del MODELS[SPEC.name]
+    else:
+      MODELS[SPEC.name] = before
 
 
 def tiny_variables(seed: int) -> dict:
