@@ -247,7 +247,17 @@ def median_time(fn: Callable[[], object], reps: int) -> tuple[float, float]:
 # XLA:CPU's two convolution libraries as per-program compiler options, for the per-layer
 # benchmarks (`kernel_grad.py`, `conv_forward.py`)
 CONV_LIBRARY_OPTIONS: dict[str, Callable[[], dict | None]] = {
-    "default": lambda: None, "eigen": lambda: conv_library_options("eigen", True, "cpu")}
+    "default": lambda: None, "eigen": lambda: conv_library_options("eigen", "cpu")}
+
+
+def padding_inside_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation, precision):
+  """`conv_vjp._kernel_grad` with the padding inside the convolution form at every batch size
+  (`pad_first=False`): the model's choice until 2026-12-08 (`step.py
+  --compare-padded-kernel-grads`)."""
+  args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
+  if g.shape[0] == 1 and x.shape[3] <= conv_vjp.PATCHES_MAX_INPUT_FEATURES:
+    return conv_vjp.kernel_grad_patches(*args)
+  return conv_vjp.kernel_grad_conv(*args, pad_first=False)
 
 
 def per_image_kernel_grad(x: jax.Array, g: jax.Array, *conv_args) -> jax.Array:

@@ -13,8 +13,10 @@ a compiled `lax.fori_loop` of `--loops` iterations (the engine's step is the bod
 and XLA:CPU compiles loop bodies differently from straight-line code), its input produced by a
 ReLU in the loop as in a network:
 - `model`: what `models.conv_vjp` compiles for this shape (its `_kernel_grad`);
-- `conv`: a convolution of x (batch and features swapped) with g as the kernel
-  (`conv_vjp.kernel_grad_conv`);
+- `conv`: a convolution of x (batch and features swapped, zero padded first) with g as the
+  kernel (`conv_vjp.kernel_grad_conv`);
+- `inside`: the same convolution with the padding inside it (`pad_first=False`: the model's
+  form until 2026-12-08, and still at batch >= 2);
 - `patches`: one matrix product of x's patches, (kh kw C, N Ho Wo) @ (N Ho Wo, O)
   (`conv_vjp.kernel_grad_patches`);
 - `per_image`: `conv` for each image, summed (what `conv_vjp` used for the decoder's wide,
@@ -70,11 +72,21 @@ LAYERS = {
     "upconv_1_1": (98, 322, 96, 32, 3, 1, 0),
     "upconv_0_0": (98, 322, 32, 16, 3, 1, 0),
     "upconv_0_1": (194, 642, 16, 16, 3, 1, 0),
+    # the decoder's layers on the largest maps, as `layers.ring_reflect_conv3x3` convolves them
+    # (zero padding 1 in the convolution, the reflected ring added apart)
+    "upconv_0_1_ring": (192, 640, 16, 16, 3, 1, 1),
+    "dispconv_0_ring": (192, 640, 16, 1, 3, 1, 1),
+    "dispconv_1_ring": (96, 320, 32, 1, 3, 1, 1),
 }
 
 
 def _conv_form(x, g, k, s, p):
   return conv_vjp.kernel_grad_conv(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
+
+
+def _inside_form(x, g, k, s, p):
+  return conv_vjp.kernel_grad_conv(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1),
+                                   pad_first=False)
 
 
 def _patches_form(x, g, k, s, p):
@@ -99,7 +111,8 @@ def _stacked_form(x, g, k, s, p):
   return bc.kernel_grad_stacked(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
 
 
-FORMS = {"model": _model_form, "conv": _conv_form, "patches": _patches_form,
+FORMS = {"model": _model_form, "conv": _conv_form, "inside": _inside_form,
+         "patches": _patches_form,
          "per_image": _per_image_form, "rows": _rows_form, "stacked": _stacked_form}
 
 # XLA:CPU's oneDNN switches (flags of jaxlib 0.10's XLA; they act only where XLA was built with

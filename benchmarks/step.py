@@ -93,7 +93,8 @@ def batched_forms_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation
 
 
 KERNEL_GRAD_CHOICES = {"model": None, "batched": batched_forms_kernel_grads,
-                       "rows": bc.row_tap_kernel_grads}
+                       "rows": bc.row_tap_kernel_grads,
+                       "padding_inside": bc.padding_inside_kernel_grads}
 
 
 class JaxImpl:
@@ -485,6 +486,11 @@ def main(argv=None) -> None:
                       "(models.conv_vjp), and XLA's default library with the batched forms "
                       "conv_vjp used until 2026-12-05 (patches products and per-image "
                       "convolutions at batch >= 2)")
+  p.add_argument("--compare-padded-kernel-grads", action="store_true",
+                 help="time the step with kernel gradients of the input padded first (the "
+                      "model's) and with the padding inside the convolution (before "
+                      "2026-12-08), on XLA's default and on Eigen's convolution library, "
+                      "interleaved")
   p.add_argument("--compare-row-taps", action="store_true",
                  help="also time the method's JAX step four ways, interleaved: XLA's default "
                       "library and Eigen's, each with the model's kernel-gradient forms "
@@ -500,7 +506,7 @@ def main(argv=None) -> None:
                       "interleaved, and print the ratio")
   p.add_argument("--compare-only", action="store_true",
                  help="with --compare-xla-option/--compare-conv-rule/--compare-conv-library/"
-                      "--compare-kernel-grads/"
+                      "--compare-kernel-grads/--compare-padded-kernel-grads/"
                       "--compare-row-taps/--compare-flat-optimizer/--compare-torch-optimizers: "
                       "skip the JAX vs PyTorch timing")
   args = p.parse_args(argv)
@@ -548,6 +554,12 @@ def main(argv=None) -> None:
         "default+model": {"conv_library": "default"},
         "eigen+model": {"conv_library": "eigen"}},
         "XLA:CPU convolution library and kernel-gradient forms", variables, args, common)
+  if args.compare_padded_kernel_grads:
+    compare_jax(args.method, {
+        f"{lib}+{grads}": {"conv_library": lib, "kernel_grads": grads}
+        for lib in ("default", "eigen") for grads in ("model", "padding_inside")},
+        "kernel gradients: input padded first or padding inside the convolution", variables,
+        args, common)
   if args.compare_row_taps:
     compare_jax(args.method, {
         f"{lib}+{grads}": {"conv_library": lib, "kernel_grads": grads}

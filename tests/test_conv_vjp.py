@@ -55,8 +55,10 @@ def _both_rules(x, k, strides, padding, dilation=(1, 1)):
 # single-output path (a product and shifted sums), the 5x5 one does not, and the kernel gradient
 # is a convolution; one image of 5 input features (at most PATCHES_MAX_INPUT_FEATURES, an
 # image's): the kernel gradient as a product of the input's patches; the same features in a
-# batch of 2, and 64 -> 64 features in a batch of 2: a convolution
-@pytest.mark.parametrize("out,cin,batch", [(7, 5, 1), (7, 5, 2), (1, 12, 2), (64, 64, 2)])
+# batch of 2, and 64 -> 64 features in a batch of 2: a convolution with the padding inside; one
+# image of 12 features (to 7, and to 1 as a disparity head): a convolution of the padded input
+@pytest.mark.parametrize("out,cin,batch", [(7, 5, 1), (7, 5, 2), (1, 12, 2), (64, 64, 2),
+                                           (7, 12, 1), (1, 12, 1)])
 @pytest.mark.parametrize("size,ksize,strides,padding,dilation", CASES)
 def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding, dilation, out,
                                                   cin, batch):
@@ -170,6 +172,28 @@ def test_kernel_gradient_is_canonical_inside_scan():
   assert ours and all(d.startswith("b01f_01io->") for d in ours)
   assert not all(d.startswith("b01f_01io->") for d in theirs), \
       "XLA now canonicalises kernel gradients in loops: use JAX's rule"
+
+
+def _kernel_grad_windows(batch: int) -> list[str]:
+  """The window of every convolution XLA compiles for the kernel gradient (16 -> 1 features,
+  3x3, zero padding 1, as a disparity head) of a 2-step scan over `batch` images of 12x20."""
+  def loss(k, x):
+    def body(c, _):
+      y = conv_vjp.conv_general_dilated(x, c, (1, 1), ((1, 1), (1, 1)), dimension_numbers=NHWC)
+      return c, jnp.sum(jnp.tanh(y))
+    return jnp.sum(lax.scan(body, k, None, length=2)[1])
+  x, k = jnp.ones((batch, 12, 20, 16)), jnp.ones((3, 3, 16, 1))
+  text = jax.jit(jax.grad(loss)).lower(k, x).compile().as_text()
+  return [w for w in re.findall(r"window=\{([^}]*)\}", text) if "size=12x20" in w]
+
+
+def test_single_image_kernel_gradient_convolves_the_padded_input():
+  """One image: the kernel gradient's convolution (a kernel the size of the output) reads the
+  input padded first, as XLA:CPU runs it many times faster; a batch keeps the padding inside."""
+  single, batch = _kernel_grad_windows(1), _kernel_grad_windows(2)
+  print("batch 1:", single, "batch 2:", batch)
+  assert single and all("pad" not in w for w in single)
+  assert batch and all("pad=1_1x1_1" in w for w in batch)
 
 
 def test_flax_conv_uses_it_with_same_parameters():

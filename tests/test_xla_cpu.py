@@ -23,57 +23,48 @@ import pytest
 
 from pitta_jax.adapt import AdaptConfig
 from pitta_jax.adapt.xla_cpu import (YNN_FUSION_FLAG, YNN_WITHOUT_CONVOLUTIONS,
-                                     adapts_conv_kernels, conv_library_options)
+                                     conv_library_options)
 
 EIGEN = {YNN_FUSION_FLAG: YNN_WITHOUT_CONVOLUTIONS}
 
 
-@pytest.mark.parametrize("library, kernel_grads, platform, expected", [
-    ("auto", False, "cpu", EIGEN),
-    ("auto", True, "cpu", None),
-    ("eigen", True, "cpu", EIGEN),
-    ("eigen", False, "cpu", EIGEN),
-    ("default", False, "cpu", None),
-    ("eigen", False, "gpu", None),
-    ("auto", False, "tpu", None),
+@pytest.mark.parametrize("library, platform, expected", [
+    ("auto", "cpu", EIGEN),
+    ("eigen", "cpu", EIGEN),
+    ("default", "cpu", None),
+    ("eigen", "gpu", None),
+    ("auto", "tpu", None),
 ])
-def test_conv_library_options(library, kernel_grads, platform, expected):
-  assert conv_library_options(library, kernel_grads, platform) == expected
-
-
-@pytest.mark.parametrize("selector, adapts, expected", [
-    ("encoder_bn", True, False), ("encoder_ln", True, False), ("all", True, True),
-    ("no_bn", True, True), ("fraction(cnn=0,bn=100)", True, False),
-    ("fraction(cnn=20,bn=80)", True, True), ("cnn5_bn0", True, True), ("all", False, False),
-])
-def test_adapts_conv_kernels(selector, adapts, expected):
-  assert adapts_conv_kernels(selector, adapts) is expected
+def test_conv_library_options(library, platform, expected):
+  assert conv_library_options(library, platform) == expected
 
 
 def test_method_choice_overrides_auto_only():
-  """`auto` takes the method's `cpu_conv_library` where it has one; an explicit config wins."""
+  """`auto` is Eigen's library, or the method's `cpu_conv_library` where it names one; an
+  explicit config wins over the method's choice."""
   from types import SimpleNamespace
 
   from pitta_jax.adapt.xla_cpu import step_compiler_options
+  from pitta_jax.methods import METHODS, build
   if jax.default_backend() != "cpu":
     pytest.skip("XLA:CPU's option")
-  plain = SimpleNamespace(adapts=True, cpu_conv_library="auto", own_conv_kernel_grads=False)
-  prefers_eigen = SimpleNamespace(adapts=True, cpu_conv_library="eigen",
-                                  own_conv_kernel_grads=False)
+  plain = SimpleNamespace(cpu_conv_library="auto")
+  prefers_default = SimpleNamespace(cpu_conv_library="default")
   every = AdaptConfig(selector="all")
-  assert step_compiler_options(every, plain) is None
-  assert step_compiler_options(every, prefers_eigen) == EIGEN
+  assert step_compiler_options(every, plain) == EIGEN
+  assert step_compiler_options(AdaptConfig(), plain) == EIGEN
+  assert step_compiler_options(every, prefers_default) is None
+  assert step_compiler_options(dataclasses.replace(every, conv_library="eigen"),
+                               prefers_default) == EIGEN
   assert step_compiler_options(dataclasses.replace(every, conv_library="default"),
-                               prefers_eigen) is None
-  assert step_compiler_options(AdaptConfig(), plain) == EIGEN  # encoder BN only
-  # kernel gradients of the method's own networks count whatever the selector
-  own_kernels = SimpleNamespace(adapts=True, cpu_conv_library="auto", own_conv_kernel_grads=True)
-  assert step_compiler_options(AdaptConfig(), own_kernels) is None
+                               plain) is None
+  for name in METHODS:  # every built-in method's step compiles with Eigen's by default
+    assert step_compiler_options(AdaptConfig(), build(name)) == EIGEN, name
 
 
 def test_unknown_library_is_refused():
   with pytest.raises(ValueError, match="conv_library must be one of auto, default, eigen"):
-    conv_library_options("mkl", False, "cpu")
+    conv_library_options("mkl", "cpu")
   with pytest.raises(ValueError, match="conv_library"):
     AdaptConfig(conv_library="ynn")
   from pitta_jax.methods import build
@@ -114,7 +105,7 @@ def test_eigen_option_reaches_the_compile():
   k = (rng.standard_normal((3, 3, 32, 32)) / 17).astype(np.float32)
   expected = _numpy_conv(x, k)
   counts = {}
-  for name, options in (("default", None), ("eigen", conv_library_options("eigen", False, "cpu"))):
+  for name, options in (("default", None), ("eigen", conv_library_options("eigen", "cpu"))):
     compiled = jax.jit(_conv, compiler_options=options).lower(x, k).compile()
     counts[name] = _convs_in_ynn_fusions(compiled.as_text())
     np.testing.assert_allclose(np.asarray(compiled(jnp.asarray(x), jnp.asarray(k))), expected,
@@ -141,8 +132,8 @@ def test_runners_pass_the_step_options(monkeypatch):
   for name in ("pitta", "actmad", "cotta", "adadepth", "comoda"):
     method = build(name)
     runners.get(weights, method, AdaptConfig(**method_setting(name)))
+  runners.get(weights, build("actmad"), AdaptConfig(**method_setting("actmad"),
+                                                    conv_library="default"))
   eigen = EIGEN if jax.default_backend() == "cpu" else None
-  # PITTA: encoder BN only; ActMAD: every encoder kernel adapts; CoTTA and CoMoDa: their own
-  # choice; Ada-Depth: its student adapts every parameter and its self-supervised branch
-  # differentiates every kernel of its own networks
-  assert seen == [eigen, None, eigen, None, eigen]
+  # `auto`: Eigen's convolutions for every method; the config's `default`: XLA's own
+  assert seen == [eigen] * 5 + [None]

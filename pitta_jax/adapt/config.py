@@ -45,9 +45,8 @@ class AdaptConfig:
   chunk_size: int = option(32, "frames per compiled scan; memory is flat in sequence length")
   seed: int = option(0, "PRNG seed of the run (per frame: fold_in(seed, frame index))")
   conv_library: str = option("auto", "XLA:CPU's library for convolutions (speed only): auto "
-                                     "(Eigen when no conv kernel adapts or the method prefers "
-                                     "it, XLA's default otherwise) | default | eigen; other "
-                                     "backends ignore it")
+                                     "(Eigen's, unless the method names its own) | default "
+                                     "(XLA's, YNNPACK) | eigen; other backends ignore it")
 
   def __post_init__(self):
     check_types(self)

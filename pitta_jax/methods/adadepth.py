@@ -360,6 +360,4 @@ def build(config: AdadepthConfig = AdadepthConfig()) -> Method:
                 # decoder's parameters in one Adam)
                 setting=(("selector", "all"),),
                 needs=("pose", "intrinsics", "previous_frame"), report_after_update=True,
-                metres=True,
-                # U's Adam step differentiates every kernel of its depth and pose networks
-                own_conv_kernel_grads=True)
+                metres=True)

@@ -33,11 +33,8 @@ A method is a `Method` value built from its own config dataclass (`pitta_jax.met
       work: "pose" (the weights' pose network, given as resources["pose"] = PoseNet(module,
       variables)), "intrinsics" (every frame's K), "previous_frame" (consecutive frames).
   cpu_conv_library: what `AdaptConfig.conv_library = "auto"` means for this method's step
-      on a CPU (`adapt.xla_cpu`): "auto" (Eigen's convolutions unless conv kernels adapt), or
-      "eigen" / "default" where the method's step was measured faster with that library.
-  own_conv_kernel_grads: the step differentiates convolution kernels outside the trainable
-      tree, whatever `AdaptConfig.selector` says (Ada-Depth's self-supervised branch U, which
-      adapts every weight of its own networks); `auto` then treats it as adapting conv kernels.
+      on a CPU (`adapt.xla_cpu`): "auto" (Eigen's convolutions, every method measured so far),
+      or "eigen" / "default" where a method's step was measured faster with that library.
   metres: the method's constants are in metres: it multiplies the network's depth by its
       config's `depth_scale`, else by the weights' factor to metres (resources["metric_factor"],
       `run.metric_factor`), else 1 (the CLI notes that case).
@@ -138,8 +135,6 @@ class Method:
   metres: bool = False
   # `AdaptConfig.conv_library = "auto"` for this method on a CPU (see the module docstring)
   cpu_conv_library: str = "auto"
-  # conv kernel gradients outside the trainable tree, whatever the selector (module docstring)
-  own_conv_kernel_grads: bool = False
 
   def __post_init__(self):
     from pitta_jax.adapt.xla_cpu import check_library  # lazy: pitta_jax.adapt imports methods

@@ -411,7 +411,4 @@ def build(config: ComodaConfig = ComodaConfig()) -> Method:
                                                  "scale/bias"),
                           ("steps_per_frame", 1, "makes one step per frame")),
                 needs=("pose", "intrinsics", "previous_frame"),
-                report_after_update=config.latency == 1,
-                # kernel gradients of a batch (1 + 3 replay images) are fastest as convolutions
-                # on Eigen's library (models.conv_vjp._kernel_grad; docs/performance.md)
-                cpu_conv_library="eigen")
+                report_after_update=config.latency == 1)

@@ -303,7 +303,4 @@ def build(config: CottaConfig = CottaConfig()) -> Method:
                 report_last_step=True,
                 optimizer=lambda cfg: optax.adam(config.lr),
                 requires=(("bn_stats", "running", "runs BatchNorm in eval mode"),),
-                setting=(("selector", "all"),),
-                # 35 forward passes per update outweigh its kernel gradients: on a Zen 3 CPU
-                # the step ran 21.5% faster with Eigen's convolutions (docs/performance.md)
-                cpu_conv_library="eigen")
+                setting=(("selector", "all"),))

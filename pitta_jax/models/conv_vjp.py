@@ -179,23 +179,41 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   96 -> 32 at 322x98: 76 against 423), though not on XLA's default one (66 against 48 for
   64 -> 64, 405 for 96 -> 32, where one convolution per image took 206). The only step that
   takes kernel gradients of a batch is CoMoDa's (1 + 3 replay images), and `auto` compiles it
-  with Eigen's convolutions (`Method.cpu_conv_library`): on that machine its step took 2742
+  with Eigen's convolutions (`adapt.xla_cpu`): on that machine its step took 2742
   ms/frame this way against 3622 with XLA's default library and the patch and per-image forms
   this function used for batches before (interleaved, 4 rounds); on a 2-core AMD EPYC (Zen 3)
   a close variant (Eigen, the convolution form but the patches for the first convolutions)
   3786 against 3966 (5 rounds). Same sums, in another order (float rounding).
+
+  A single image's convolution form takes x zero padded first, not the padding inside the
+  convolution (`pad_first`): XLA:CPU runs a padded convolution with a kernel as large as the
+  image many times slower. Inside a compiled loop at 640x192 (2 vCPUs, AMD EPYC Zen 4 without
+  AVX-512, `benchmarks/kernel_grad.py --forms conv,inside`), best ms, padding inside -> padded
+  first: the disparity head 16 -> 1 at 640x192 28.6 -> 2.8 (XLA's default library) and 51.8 ->
+  3.8 (Eigen's), 32 -> 1 at 320x96 47.5 -> 1.8, 16 -> 16 at 640x192 40.6 -> 13.1; on Eigen's
+  library ResNet's 3x3 stride-1 layers 30.8 -> 4.9 (64 features at 160x48) .. 10.1 -> 4.0 (512
+  at 20x6). Whole steps, interleaved (`step.py --compare-padded-kernel-grads`): Ada-Depth on
+  Eigen's library 2307 -> 1841 ms/frame, ActMAD 874 -> 733. At batch 4 (CoMoDa) the layers
+  moved both ways and the step did not gain on Eigen's library (3151 -> 3123) and lost on XLA's
+  default one (4625 -> 5785): the padding stays inside there. The zeros add nothing: the same
+  sums, bit for bit in these runs.
   """
   args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
   if g.shape[0] == 1 and x.shape[3] <= PATCHES_MAX_INPUT_FEATURES:
     return kernel_grad_patches(*args)
-  return kernel_grad_conv(*args)
+  return kernel_grad_conv(*args, pad_first=g.shape[0] == 1)
 
 
 def kernel_grad_conv(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
                      strides: tuple[int, int], padding: Pairs, rhs_dilation: tuple[int, int],
-                     precision: Any = None) -> jax.Array:
-  """`_kernel_grad` as a convolution of x (C, H, W, N) with g as an HWIO kernel (Ho, Wo, N, O)."""
+                     precision: Any = None, pad_first: bool = True) -> jax.Array:
+  """`_kernel_grad` as a convolution of x (C, H, W, N) with g as an HWIO kernel (Ho, Wo, N, O);
+  x zero padded first (`pad_first`) or the padding inside the convolution."""
   kh, kw = kernel_size
+  if pad_first:
+    x = lax.pad(x, jnp.zeros((), x.dtype),
+                ((0, 0, 0), *((lo, hi, 0) for lo, hi in padding), (0, 0, 0)))  # (N, Hp, Wp, C)
+    padding = ((0, 0), (0, 0))
   dk = lax.conv_general_dilated(jnp.transpose(x, (3, 1, 2, 0)), jnp.transpose(g, (1, 2, 0, 3)),
                                 rhs_dilation, padding, None, strides, NHWC_HWIO,
                                 precision=precision)                  # (C, >= kh, >= kw, O)
