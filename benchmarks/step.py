@@ -12,8 +12,9 @@ Implementations (`--impls`; the default is every one that exists for the method)
   method in its own setting (`pitta_jax.methods.method_setting`);
 - `torch-eager`: the same step as a performance-minded PyTorch user writes it
   (`benchmarks/torch_reference.py`: upstream MonoDepth2 modules, NCHW as upstream);
-- `torch-eager-cl`: the same with `memory_format=torch.channels_last` (oneDNN's layout), PITTA;
-- `torch-compile`: the same under `torch.compile` (inductor), PITTA.
+- `torch-eager-cl`: the same with `memory_format=torch.channels_last` (oneDNN's layout: the
+  networks and the frames), every method;
+- `torch-compile`: the same under `torch.compile` (inductor), PITTA and none (`TORCH_COMPILED`).
 Methods without a PyTorch step in `torch_reference.TORCH_STEPS` get a line saying so.
 
 Timing: every implementation is set up first (compile, first chunk, one warm-up chunk), then
@@ -69,6 +70,9 @@ from pitta_jax.methods.depth_refining import frame_loss  # noqa: E402
 from pitta_jax.models import conv_vjp  # noqa: E402
 
 TORCH_IMPLS = ("torch-eager", "torch-eager-cl", "torch-compile")
+# the methods with a `torch.compile` variant (the baselines' Python-level loops, hooks and
+# RNG-driven augmentations stay eager: inductor would recompile or graph-break on them)
+TORCH_COMPILED = ("pitta", "none")
 DETERMINISTIC = ("pitta", "actmad")  # same weights and frames => same losses in both frameworks
 # frames per timed chunk and rounds, per method (CoTTA's step runs 1 + 32 views: ~30x PITTA's)
 DEFAULT_FRAMES = {"cotta": 2, "comoda": 4, "adadepth": 4}
@@ -173,10 +177,11 @@ def torch_impl(impl: str, method: str, configs, resources: dict, height_width: t
   for the method (or this variant of it). fused: PyTorch's fused optimiser kernels, else the
   for-loop implementation (PyTorch's default on CPU)."""
   make = tr.TORCH_STEPS.get(method)
-  if make is None or (impl != "torch-eager" and method != "pitta"):
+  if make is None or (impl == "torch-compile" and method not in TORCH_COMPILED):
     return None
   enc, dec = tr.build(seed)
   fmt = torch.channels_last if impl == "torch-eager-cl" else torch.contiguous_format
+  enc.to(memory_format=fmt), dec.to(memory_format=fmt)  # the steps' copies inherit it
   extra = {}
   if ACTMAD_STATS in resources:  # {JAX layer path: (mean, var) (h, w, c)} -> torch (c, h, w)
     stats = resources[ACTMAD_STATS]
@@ -187,7 +192,9 @@ def torch_impl(impl: str, method: str, configs, resources: dict, height_width: t
     extra["depth_scale"] = adadepth.depth_scale(configs[1], resources)
   if method in tr.NEEDS_POSE:  # a random pose net, KITTI's K, consecutive source frames
     h, w = height_width
-    extra.update(pose=tr.build_pose(), K=bc.intrinsics_matrix(h, w), height=h, width=w)
+    pose = tr.build_pose()
+    extra.update(pose=tuple(m.to(memory_format=fmt) for m in pose), K=bc.intrinsics_matrix(h, w),
+                 height=h, width=w)
     source = bc.synthetic_frames(bc.SOURCE_FRAMES, h, w, 4, seed=2)
     extra["replay_pairs"] = torch.stack([torch.stack([tr.to_input(a.image)[0],
                                                       tr.to_input(b.image)[0]])

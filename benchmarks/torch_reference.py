@@ -185,18 +185,23 @@ class TorchPitta:
 
 
 class TorchNone:
-  """No adaptation: eval-mode BN (running statistics), one no-grad forward per frame."""
+  """No adaptation: eval-mode BN (running statistics), one no-grad forward per frame.
+
+  memory_format and compile as `TorchPitta`'s (compile: `torch.compile` of the forward)."""
 
   def __init__(self, encoder: nn.Module, decoder: nn.Module,
-               memory_format=torch.contiguous_format):
+               memory_format=torch.contiguous_format, compile: bool = False):
     self.encoder, self.decoder = encoder.eval(), decoder.eval()
     encoder.to(memory_format=memory_format)
     decoder.to(memory_format=memory_format)
+    self.forward = torch.compile(self._forward) if compile else self._forward
+
+  def _forward(self, image: torch.Tensor) -> torch.Tensor:
+    return disp_to_depth(self.decoder(self.encoder(image))[("disp", 0)])[0, 0]
 
   def step(self, image, panoptic, segments) -> tuple[torch.Tensor, float]:
     with torch.no_grad():
-      disp = self.decoder(self.encoder(image))[("disp", 0)]
-    return disp_to_depth(disp)[0, 0], 0.0
+      return self.forward(image), 0.0
 
 
 def encoder_bns(encoder: nn.Module) -> list[tuple[str, nn.Module]]:
@@ -490,8 +495,8 @@ TORCH_STEPS = {
     compile=False, fused=FUSED_OPTIMIZERS, **_: TorchPitta(
         enc, dec, lr=lr, lam=config.lam, window=config.ld.window, memory_format=memory_format,
         compile=compile, fused=fused),
-    "none": lambda enc, dec, config, memory_format=torch.contiguous_format, **_: TorchNone(
-        enc, dec, memory_format),
+    "none": lambda enc, dec, config, memory_format=torch.contiguous_format, compile=False, **_:
+    TorchNone(enc, dec, memory_format, compile),
     "actmad": lambda enc, dec, config, source_stats=None, fused=FUSED_OPTIMIZERS, **_:
     TorchActmad(enc, dec, source_stats, config, fused=fused),
     "cotta": lambda enc, dec, config, fused=FUSED_OPTIMIZERS, **_: TorchCotta(
