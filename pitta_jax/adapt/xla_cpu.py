@@ -8,8 +8,8 @@ faster (no adaptation 4-16%, PITTA, which adapts only BatchNorm parameters, 1-12
 the kernel gradients of a single image convolve the input padded first
 (`models.conv_vjp._kernel_grad`, 2026-12-08) so are the steps that adapt convolution kernels:
 ActMAD 733 against 799 ms/frame with XLA's default library, Ada-Depth 1841 against 2040, CoMoDa
-(kernel gradients of a batch of four) 3123 against 5785, CoTTA (35 forward passes per kernel
-gradient) 21% faster before that change already. A method may still name its own choice
+(kernel gradients of a batch of four) 3151 against 4625, CoTTA (35 forward passes per kernel
+gradient) 4567 against 7654. A method may still name its own choice
 (`Method.cpu_conv_library`), and `default` is one flag away (`--conv-library default`).
 The choice is per compiled program (`jax.jit(..., compiler_options=...)`), never process-wide,
 and fixed before the compile: no run-time autotuning, so that a run's numerics do not depend on

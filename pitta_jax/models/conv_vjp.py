@@ -189,10 +189,10 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   convolution (`pad_first`): XLA:CPU runs a padded convolution with a kernel as large as the
   image many times slower. Inside a compiled loop at 640x192 (2 vCPUs, AMD EPYC Zen 4 without
   AVX-512, `benchmarks/kernel_grad.py --forms conv,inside`), best ms, padding inside -> padded
-  first: the disparity head 16 -> 1 at 640x192 28.6 -> 2.8 (XLA's default library) and 51.8 ->
-  3.8 (Eigen's), 32 -> 1 at 320x96 47.5 -> 1.8, 16 -> 16 at 640x192 40.6 -> 13.1; on Eigen's
-  library ResNet's 3x3 stride-1 layers 30.8 -> 4.9 (64 features at 160x48) .. 10.1 -> 4.0 (512
-  at 20x6). Whole steps, interleaved (`step.py --compare-padded-kernel-grads`): Ada-Depth on
+  first: the disparity head 16 -> 1 at 640x192 28.4 -> 2.6 (XLA's default library) and 30.6 ->
+  2.6 (Eigen's), 32 -> 1 at 320x96 25.7 -> 1.7, 16 -> 16 at 640x192 34.4 -> 8.7; on Eigen's
+  library ResNet's 3x3 stride-1 layers 16.7 -> 4.3 (64 features at 160x48), 9.9 -> 3.8 (128),
+  6.0 -> 4.3 (512 at 20x6). Whole steps, interleaved (`step.py --compare-padded-kernel-grads`): Ada-Depth on
   Eigen's library 2307 -> 1841 ms/frame, ActMAD 874 -> 733. At batch 4 (CoMoDa) the layers
   moved both ways and the step did not gain on Eigen's library (3151 -> 3123) and lost on XLA's
   default one (4625 -> 5785): the padding stays inside there. The zeros add nothing: the same
