@@ -106,7 +106,8 @@ class JaxImpl:
 
   def __init__(self, name: str, variables, configs, resources, conv_rule: str = "loop_friendly",
                conv_library: str | None = None, kernel_grads: str = "model",
-               flat_optimizer: bool = False, xla_options: dict | None = None):
+               flat_optimizer: bool = False, xla_options: dict | None = None,
+               patches_input_grad: bool = True):
     self.cfg, mcfg = configs
     if conv_library is not None:
       self.cfg = dataclasses.replace(self.cfg, conv_library=conv_library)
@@ -122,20 +123,22 @@ class JaxImpl:
     self.compiled = None
     self.compile_s = None
     self.kernel_grads = KERNEL_GRAD_CHOICES[kernel_grads]
+    self.patches_input_grad = patches_input_grad
 
   def first(self, chunk: StepInput) -> list[float]:
     """Compile, run the first chunk (losses from the fresh weights) and one warm-up chunk."""
     t0 = time.perf_counter()
-    model_choice = conv_vjp._kernel_grad
+    model_choice, input_grad_choice = conv_vjp._kernel_grad, conv_vjp.USE_PATCHES_INPUT_GRAD
     if self.kernel_grads is not None:  # read while the step is traced (a benchmark's swap)
       conv_vjp._kernel_grad = self.kernel_grads
+    conv_vjp.USE_PATCHES_INPUT_GRAD = self.patches_input_grad
     try:
       lowered = self.runner.lower(self.state, chunk, self.consts)
       self.compiled = (lowered.compile(compiler_options={**(self.compiler_options or {}),
                                                          **self.xla_options})
                        if self.xla_options else lowered.compile())
     finally:
-      conv_vjp._kernel_grad = model_choice
+      conv_vjp._kernel_grad, conv_vjp.USE_PATCHES_INPUT_GRAD = model_choice, input_grad_choice
     self.compile_s = time.perf_counter() - t0
     losses = np.asarray(self.chunk(chunk).loss).tolist()
     self.chunk(chunk)
@@ -498,6 +501,11 @@ def main(argv=None) -> None:
                       "model's) and with the padding inside the convolution (before "
                       "2026-12-08), on XLA's default and on Eigen's convolution library, "
                       "interleaved")
+  p.add_argument("--compare-patches-input-grad", action="store_true",
+                 help="time the step with the few-pixel layers' input gradients as the "
+                      "transposed patches product (conv_vjp._patches_input_grad, the model's) "
+                      "and as the patches product of a transposed kernel copy (before "
+                      "2026-12-08), interleaved")
   p.add_argument("--compare-row-taps", action="store_true",
                  help="also time the method's JAX step four ways, interleaved: XLA's default "
                       "library and Eigen's, each with the model's kernel-gradient forms "
@@ -514,6 +522,7 @@ def main(argv=None) -> None:
   p.add_argument("--compare-only", action="store_true",
                  help="with --compare-xla-option/--compare-conv-rule/--compare-conv-library/"
                       "--compare-kernel-grads/--compare-padded-kernel-grads/"
+                      "--compare-patches-input-grad/"
                       "--compare-row-taps/--compare-flat-optimizer/--compare-torch-optimizers: "
                       "skip the JAX vs PyTorch timing")
   args = p.parse_args(argv)
@@ -567,6 +576,11 @@ def main(argv=None) -> None:
         for lib in ("default", "eigen") for grads in ("model", "padding_inside")},
         "kernel gradients: input padded first or padding inside the convolution", variables,
         args, common)
+  if args.compare_patches_input_grad:
+    compare_jax(args.method, {"transposed product": {},
+                              "kernel copy": {"patches_input_grad": False}},
+                "few-pixel input gradients: transposed patches product or the transposed kernel "
+                "copy", variables, args, common)
   if args.compare_row_taps:
     compare_jax(args.method, {
         f"{lib}+{grads}": {"conv_library": lib, "kernel_grads": grads}

@@ -78,14 +78,17 @@ def test_values_and_both_gradients_match_jax_rule(size, ksize, strides, padding,
     assert err < 1e-6, name
 
 
-@pytest.mark.parametrize("strides,padding", [((1, 1), ((1, 1), (1, 1))),
-                                            ((2, 2), ((1, 1), (1, 1)))])
-def test_few_pixels_many_features_take_patches_and_match_jax_rule(strides, padding):
+@pytest.mark.parametrize("strides,padding,size", [((1, 1), ((1, 1), (1, 1)), (6, 20)),
+                                                 ((2, 2), ((1, 1), (1, 1)), (12, 40)),
+                                                 ((2, 2), ((1, 1), (1, 1)), (8, 14)),
+                                                 ((2, 1), ((2, 0), (1, 1)), (7, 9))])
+def test_few_pixels_many_features_take_patches_and_match_jax_rule(strides, padding, size):
   """A 3x3 convolution of FEW_PIXELS_MIN_FEATURES features with at most FEW_PIXELS_MAX_OUTPUT
   output pixels (ResNet's last stage at 640x192: 6x20) is a product of patches, with JAX's
-  values and gradients to float32 rounding; in float64 it stays a convolution."""
+  values and gradients to float32 rounding; in float64 it stays a convolution. Where the input
+  has that few pixels too (6x20; 8x14 and 7x9, strided, uneven padding), the input gradient is
+  the transposed product scattered back by tap (`_patches_input_grad`); 12x40 is a convolution."""
   c = conv_vjp.FEW_PIXELS_MIN_FEATURES
-  size = (6, 20) if strides == (1, 1) else (12, 40)
   assert size[0] * size[1] // (strides[0] * strides[1]) <= conv_vjp.FEW_PIXELS_MAX_OUTPUT
   rng = np.random.default_rng(3)
   x = rng.standard_normal((1, *size, c), np.float32)

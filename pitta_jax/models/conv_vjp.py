@@ -24,7 +24,9 @@ library does not take it, and its generic loop nest was 2.6x slower. A convoluti
 input gradient) whose input is smaller than the kernel, and in float64 one whose output is
 larger than its input, is one matrix product of the input's patches (`_small_input_conv`):
 XLA:CPU runs both through slow generic code. So is one with few output pixels and many
-features (ResNet's last stage), where the product is ~25% faster than XLA's convolution.
+features (ResNet's last stage), where the product is ~25% faster than XLA's convolution; its
+input gradient is then the transposed product, scattered back tap by tap
+(`_patches_input_grad`), which needs no transposed copy of the kernel.
 """
 
 from __future__ import annotations
@@ -118,6 +120,14 @@ def _small_input_conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padd
 # together, and at least this many features on both sides is a product of patches (`_conv`)
 FEW_PIXELS_MAX_OUTPUT = 128
 FEW_PIXELS_MIN_FEATURES = 256
+USE_PATCHES_INPUT_GRAD = True  # `_patches_input_grad` where it applies (benchmarks compare)
+
+
+def _few_pixels(images: int, out: Sequence[int], k_shape: tuple[int, ...], dtype: Any) -> bool:
+  """A float32 kh x kw > 1 convolution to at most `FEW_PIXELS_MAX_OUTPUT` output pixels (all
+  images) with at least `FEW_PIXELS_MIN_FEATURES` features on both sides (`_conv`)."""
+  return (dtype == jnp.float32 and images * out[0] * out[1] <= FEW_PIXELS_MAX_OUTPUT
+          and k_shape[0] * k_shape[1] > 1 and min(k_shape[2:]) >= FEW_PIXELS_MIN_FEATURES)
 
 
 def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
@@ -138,10 +148,8 @@ def _conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padding: Pairs,
   extents = [_dilated_size(kn, d) for kn, d in zip(k.shape[:2], rhs_dilation)]
   out = [(n + lo + hi - e) // s + 1 for n, (lo, hi), e, s in zip(sizes, padding, extents, strides)]
   grows = any(m > n for m, n in zip(out, sizes))
-  few_pixels = (x.dtype == jnp.float32 and x.shape[0] * out[0] * out[1] <= FEW_PIXELS_MAX_OUTPUT
-                and k.shape[0] * k.shape[1] > 1 and min(k.shape[2:]) >= FEW_PIXELS_MIN_FEATURES)
   if any(n < e for n, e in zip(sizes, extents)) or (grows and x.dtype == jnp.float64) or \
-      few_pixels:
+      _few_pixels(x.shape[0], out, k.shape, x.dtype):
     return _small_input_conv(x, k, strides, padding, lhs_dilation, rhs_dilation, precision)
   fits = all(n + lo + hi >= e for n, (lo, hi), e in zip(sizes, padding, extents))
   small_taps = k.shape[0] * k.shape[1] <= k.shape[2]  # tap planes no larger than the input
@@ -247,10 +255,46 @@ def _conv_fwd(x, k, strides, padding, rhs_dilation, precision):
   return _conv(x, k, strides, padding, rhs_dilation, precision), (x, k)
 
 
+def _patches_input_grad(g: jax.Array, k: jax.Array, size: tuple[int, int],
+                        strides: tuple[int, int], padding: Pairs, rhs_dilation: tuple[int, int],
+                        precision: Any) -> jax.Array:
+  """The input gradient of a convolution as the transpose of the patches product: (N Ho Wo, O)
+  @ (O, kh kw C), each tap's columns then added back where that tap read the padded input.
+
+  g (N, Ho, Wo, O), k (kh, kw, C, O), size: the input's (H, W) -> (N, H, W, C). Why: the
+  convolution form (`_conv` of g with the flipped, transposed kernel) needs that kernel as a
+  copy, rebuilt each step when the kernel adapts: 7-8 ms per 3x3 512 -> 512 kernel on 2 vCPUs
+  (`benchmarks/profile_step.py --method adadepth`: about a dozen per frame). The product
+  contracts k's output features as they lie (a transposed right operand, no copy). Used where
+  `_conv` would take the patches product for the input gradient (`_few_pixels`: ResNet's last
+  stage at 640x192). Steps interleaved with the copy (`benchmarks/step.py
+  --compare-patches-input-grad`, AMD EPYC Zen 4, 2026-12-08), ms/frame median: Ada-Depth 1730
+  -> 1670, ActMAD 566 -> 559, PITTA 229 -> 220 (its copies were hoisted out of the scan, but
+  the program is 27 kernels shorter). Same sums, in another order.
+  """
+  kh, kw, c, o = k.shape
+  n, ho, wo, _ = g.shape
+  cols = lax.dot_general(g, k.reshape(kh * kw * c, o), (((3,), (1,)), ((), ())),
+                         precision=precision).reshape(n, ho, wo, kh * kw, c)  # (N, Ho, Wo, T, C)
+  padded = [m + lo + hi for m, (lo, hi) in zip(size, padding)]
+  dxp = None
+  for t in range(kh * kw):
+    pads = []
+    for tap, d, s, m, full in zip(divmod(t, kw), rhs_dilation, strides, (ho, wo), padded):
+      pads.append((tap * d, full - tap * d - s * (m - 1) - 1, s - 1))
+    term = lax.pad(cols[:, :, :, t], jnp.zeros((), g.dtype), ((0, 0, 0), *pads, (0, 0, 0)))
+    dxp = term if dxp is None else dxp + term                          # (N, Hp, Wp, C)
+  return lax.pad(dxp, jnp.zeros((), g.dtype),
+                 ((0, 0, 0), *((-lo, -hi, 0) for lo, hi in padding), (0, 0, 0)))
+
+
 def _conv_bwd(strides, padding, rhs_dilation, precision, residuals, g):
   x, k = residuals
   # kernel gradient (XLA drops it when the kernel is not differentiated)
   dk = _kernel_grad(x, g, k.shape[:2], strides, padding, rhs_dilation, precision)
+  if USE_PATCHES_INPUT_GRAD and _few_pixels(x.shape[0], x.shape[1:3], k.shape, x.dtype):
+    return _patches_input_grad(g, k, x.shape[1:3], strides, padding, rhs_dilation,
+                               precision), dk
   # input gradient: full correlation of the stride-dilated cotangent with the flipped kernel
   window = [_dilated_size(s, d) for s, d in zip(k.shape[:2], rhs_dilation)]
   lo = [w - p_lo - 1 for w, (p_lo, _) in zip(window, padding)]
