@@ -128,17 +128,18 @@ class JaxImpl:
   def first(self, chunk: StepInput) -> list[float]:
     """Compile, run the first chunk (losses from the fresh weights) and one warm-up chunk."""
     t0 = time.perf_counter()
-    model_choice, input_grad_choice = conv_vjp._kernel_grad, conv_vjp.USE_PATCHES_INPUT_GRAD
+    model_choice, input_grad_choice = conv_vjp._kernel_grad, conv_vjp._patches_input_grad
     if self.kernel_grads is not None:  # read while the step is traced (a benchmark's swap)
       conv_vjp._kernel_grad = self.kernel_grads
-    conv_vjp.USE_PATCHES_INPUT_GRAD = self.patches_input_grad
+    if not self.patches_input_grad:  # the convolution form with its transposed kernel copy
+      conv_vjp._patches_input_grad = conv_vjp._conv_input_grad
     try:
       lowered = self.runner.lower(self.state, chunk, self.consts)
       self.compiled = (lowered.compile(compiler_options={**(self.compiler_options or {}),
                                                          **self.xla_options})
                        if self.xla_options else lowered.compile())
     finally:
-      conv_vjp._kernel_grad, conv_vjp.USE_PATCHES_INPUT_GRAD = model_choice, input_grad_choice
+      conv_vjp._kernel_grad, conv_vjp._patches_input_grad = model_choice, input_grad_choice
     self.compile_s = time.perf_counter() - t0
     losses = np.asarray(self.chunk(chunk).loss).tolist()
     self.chunk(chunk)

@@ -120,7 +120,6 @@ def _small_input_conv(x: jax.Array, k: jax.Array, strides: tuple[int, int], padd
 # together, and at least this many features on both sides is a product of patches (`_conv`)
 FEW_PIXELS_MAX_OUTPUT = 128
 FEW_PIXELS_MIN_FEATURES = 256
-USE_PATCHES_INPUT_GRAD = True  # `_patches_input_grad` where it applies (benchmarks compare)
 
 
 def _few_pixels(images: int, out: Sequence[int], k_shape: tuple[int, ...], dtype: Any) -> bool:
@@ -288,21 +287,27 @@ def _patches_input_grad(g: jax.Array, k: jax.Array, size: tuple[int, int],
                  ((0, 0, 0), *((-lo, -hi, 0) for lo, hi in padding), (0, 0, 0)))
 
 
+def _conv_input_grad(g: jax.Array, k: jax.Array, size: tuple[int, int],
+                     strides: tuple[int, int], padding: Pairs, rhs_dilation: tuple[int, int],
+                     precision: Any) -> jax.Array:
+  """The input gradient as a convolution (`_conv`): the full correlation of the stride-dilated
+  cotangent g (N, Ho, Wo, O) with the flipped kernel k, read as (kh, kw, O, C), canonical HWIO
+  -> (N, H, W, C), size = (H, W)."""
+  window = [_dilated_size(s, d) for s, d in zip(k.shape[:2], rhs_dilation)]
+  lo = [w - p_lo - 1 for w, (p_lo, _) in zip(window, padding)]
+  hi = [n + w - 1 - _dilated_size(m, s) - l
+        for n, w, m, s, l in zip(size, window, g.shape[1:3], strides, lo)]
+  k_t = jnp.transpose(jnp.flip(k, (0, 1)), (0, 1, 3, 2))  # (kh, kw, O, C), canonical HWIO
+  return _conv(g, k_t, (1, 1), tuple(zip(lo, hi)), rhs_dilation, precision, lhs_dilation=strides)
+
+
 def _conv_bwd(strides, padding, rhs_dilation, precision, residuals, g):
   x, k = residuals
   # kernel gradient (XLA drops it when the kernel is not differentiated)
   dk = _kernel_grad(x, g, k.shape[:2], strides, padding, rhs_dilation, precision)
-  if USE_PATCHES_INPUT_GRAD and _few_pixels(x.shape[0], x.shape[1:3], k.shape, x.dtype):
-    return _patches_input_grad(g, k, x.shape[1:3], strides, padding, rhs_dilation,
-                               precision), dk
-  # input gradient: full correlation of the stride-dilated cotangent with the flipped kernel
-  window = [_dilated_size(s, d) for s, d in zip(k.shape[:2], rhs_dilation)]
-  lo = [w - p_lo - 1 for w, (p_lo, _) in zip(window, padding)]
-  hi = [n + w - 1 - _dilated_size(m, s) - l
-        for n, w, m, s, l in zip(x.shape[1:3], window, g.shape[1:3], strides, lo)]
-  k_t = jnp.transpose(jnp.flip(k, (0, 1)), (0, 1, 3, 2))  # (kh, kw, O, C), canonical HWIO
-  dx = _conv(g, k_t, (1, 1), tuple(zip(lo, hi)), rhs_dilation, precision, lhs_dilation=strides)
-  return dx, dk
+  input_grad = (_patches_input_grad if _few_pixels(x.shape[0], x.shape[1:3], k.shape, x.dtype)
+                else _conv_input_grad)
+  return input_grad(g, k, x.shape[1:3], strides, padding, rhs_dilation, precision), dk
 
 
 conv_nhwc.defvjp(_conv_fwd, _conv_bwd)
