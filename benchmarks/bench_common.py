@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import tempfile
@@ -250,14 +251,10 @@ CONV_LIBRARY_OPTIONS: dict[str, Callable[[], dict | None]] = {
     "default": lambda: None, "eigen": lambda: conv_library_options("eigen", "cpu")}
 
 
-def padding_inside_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation, precision):
-  """`conv_vjp._kernel_grad` with the padding inside the convolution form at every batch size
-  (`pad_first=False`): the model's choice until 2026-12-08 (`step.py
-  --compare-padded-kernel-grads`)."""
-  args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
-  if g.shape[0] == 1 and x.shape[3] <= conv_vjp.PATCHES_MAX_INPUT_FEATURES:
-    return conv_vjp.kernel_grad_patches(*args)
-  return conv_vjp.kernel_grad_conv(*args, pad_first=False)
+# `conv_vjp._kernel_grad` with the padding inside the convolution form at every batch size:
+# the model's choice until 2026-12-08 (`step.py --compare-padded-kernel-grads`). Bound to the
+# function itself, not looked up, so that it still calls it while a benchmark swaps it in.
+padding_inside_kernel_grads = functools.partial(conv_vjp._kernel_grad, pad_first=False)
 
 
 def per_image_kernel_grad(x: jax.Array, g: jax.Array, *conv_args) -> jax.Array:

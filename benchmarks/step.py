@@ -185,7 +185,8 @@ def torch_impl(impl: str, method: str, configs, resources: dict, height_width: t
     return None
   enc, dec = tr.build(seed)
   fmt = torch.channels_last if impl == "torch-eager-cl" else torch.contiguous_format
-  enc.to(memory_format=fmt), dec.to(memory_format=fmt)  # the steps' copies inherit it
+  for net in (enc, dec):  # the steps' copies (EMA teachers, sources) inherit the format
+    net.to(memory_format=fmt)
   extra = {}
   if ACTMAD_STATS in resources:  # {JAX layer path: (mean, var) (h, w, c)} -> torch (c, h, w)
     stats = resources[ACTMAD_STATS]
@@ -357,6 +358,13 @@ def torch_profile(frame: bc.BenchFrame, window: int, reps: int) -> dict:
     fn()
     out[name] = {"ms": 1e3 * bc.median_time(fn, reps)[0]}
   return out
+
+
+def library_and_kernel_grads(other: str) -> dict[str, dict]:
+  """`compare_jax` variants: XLA's default and Eigen's convolution library, each with the
+  model's kernel gradients and with `KERNEL_GRAD_CHOICES[other]`."""
+  return {f"{lib}+{grads}": {"conv_library": lib, "kernel_grads": grads}
+          for lib in ("default", "eigen") for grads in ("model", other)}
 
 
 def compare_jax(method: str, variants: dict[str, dict], what: str, variables, args,
@@ -572,21 +580,18 @@ def main(argv=None) -> None:
         "eigen+model": {"conv_library": "eigen"}},
         "XLA:CPU convolution library and kernel-gradient forms", variables, args, common)
   if args.compare_padded_kernel_grads:
-    compare_jax(args.method, {
-        f"{lib}+{grads}": {"conv_library": lib, "kernel_grads": grads}
-        for lib in ("default", "eigen") for grads in ("model", "padding_inside")},
-        "kernel gradients: input padded first or padding inside the convolution", variables,
-        args, common)
+    compare_jax(args.method, library_and_kernel_grads("padding_inside"),
+                "kernel gradients: input padded first or padding inside the convolution",
+                variables, args, common)
   if args.compare_patches_input_grad:
     compare_jax(args.method, {"transposed product": {},
                               "kernel copy": {"patches_input_grad": False}},
                 "few-pixel input gradients: transposed patches product or the transposed kernel "
                 "copy", variables, args, common)
   if args.compare_row_taps:
-    compare_jax(args.method, {
-        f"{lib}+{grads}": {"conv_library": lib, "kernel_grads": grads}
-        for lib in ("default", "eigen") for grads in ("model", "rows")},
-        "kernel gradients: row-tap products or the convolution form", variables, args, common)
+    compare_jax(args.method, library_and_kernel_grads("rows"),
+                "kernel gradients: row-tap products or the convolution form", variables, args,
+                common)
   if args.compare_flat_optimizer:
     compare_jax(args.method, {"per-leaf": {}, "raveled": {"flat_optimizer": True}},
                 "the engine's optimiser per leaf or on the raveled tree", variables, args, common)

@@ -166,7 +166,7 @@ PATCHES_MAX_INPUT_FEATURES = 8
 
 def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
                  strides: tuple[int, int], padding: Pairs, rhs_dilation: tuple[int, int],
-                 precision: Any) -> jax.Array:
+                 precision: Any, pad_first: bool | None = None) -> jax.Array:
   """dk[a, b, c, o] = sum_{n,i,j} x_pad[n, i s + a d, j s + b d, c] g[n, i, j, o].
 
   x: (N, H, W, C), g: (N, Ho, Wo, O) -> (kh, kw, C, O).
@@ -203,12 +203,12 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   Eigen's library 2307 -> 1841 ms/frame, ActMAD 874 -> 733. At batch 4 (CoMoDa) the layers
   moved both ways and the step did not gain on Eigen's library (3151 -> 3123) and lost on XLA's
   default one (4625 -> 5785): the padding stays inside there. The zeros add nothing: the same
-  sums, bit for bit in these runs.
+  sums, bit for bit in these runs. `pad_first` given overrides that rule (benchmarks compare).
   """
   args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
   if g.shape[0] == 1 and x.shape[3] <= PATCHES_MAX_INPUT_FEATURES:
     return kernel_grad_patches(*args)
-  return kernel_grad_conv(*args, pad_first=g.shape[0] == 1)
+  return kernel_grad_conv(*args, pad_first=g.shape[0] == 1 if pad_first is None else pad_first)
 
 
 def kernel_grad_conv(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
