@@ -251,10 +251,16 @@ CONV_LIBRARY_OPTIONS: dict[str, Callable[[], dict | None]] = {
     "default": lambda: None, "eigen": lambda: conv_library_options("eigen", "cpu")}
 
 
-# `conv_vjp._kernel_grad` with the padding inside the convolution form at every batch size:
-# the model's choice until 2026-12-08 (`step.py --compare-padded-kernel-grads`). Bound to the
-# function itself, not looked up, so that it still calls it while a benchmark swaps it in.
-padding_inside_kernel_grads = functools.partial(conv_vjp._kernel_grad, pad_first=False)
+# `conv_vjp._kernel_grad` with the padding inside the convolution form at every batch size and
+# strided layers as one convolution: the model's choice until the morning of 2026-12-08
+# (`step.py --compare-padded-kernel-grads`). Bound to the function itself, not looked up, so
+# that it still calls it while a benchmark swaps it in.
+padding_inside_kernel_grads = functools.partial(conv_vjp._kernel_grad, pad_first=False,
+                                                phases=False)
+# strided layers' kernel gradients as one convolution with the stride-dilated cotangent, not
+# per stride phase: the model's choice until 2026-12-08, 04:00 UTC
+# (`step.py --compare-strided-kernel-grads`)
+one_convolution_kernel_grads = functools.partial(conv_vjp._kernel_grad, phases=False)
 
 
 def per_image_kernel_grad(x: jax.Array, g: jax.Array, *conv_args) -> jax.Array:

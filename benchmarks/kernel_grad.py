@@ -17,6 +17,9 @@ ReLU in the loop as in a network:
   kernel (`conv_vjp.kernel_grad_conv`);
 - `inside`: the same convolution with the padding inside it (`pad_first=False`: the model's
   form until 2026-12-08, and still at batch >= 2);
+- `phases`: one stride-1 kernel gradient per stride phase of the padded input, taps
+  interleaved (`conv_vjp.kernel_grad_phases`; the model's form for stride 2 since 2026-12-08,
+  04:00 UTC; at stride 1 the same as `conv`);
 - `patches`: one matrix product of x's patches, (kh kw C, N Ho Wo) @ (N Ho Wo, O)
   (`conv_vjp.kernel_grad_patches`);
 - `per_image`: `conv` for each image, summed (what `conv_vjp` used for the decoder's wide,
@@ -89,6 +92,10 @@ def _inside_form(x, g, k, s, p):
                                    pad_first=False)
 
 
+def _phases_form(x, g, k, s, p):
+  return conv_vjp.kernel_grad_phases(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
+
+
 def _patches_form(x, g, k, s, p):
   return conv_vjp.kernel_grad_patches(x, g, (k, k), (s, s), ((p, p), (p, p)), (1, 1))
 
@@ -112,7 +119,7 @@ def _stacked_form(x, g, k, s, p):
 
 
 FORMS = {"model": _model_form, "conv": _conv_form, "inside": _inside_form,
-         "patches": _patches_form,
+         "phases": _phases_form, "patches": _patches_form,
          "per_image": _per_image_form, "rows": _rows_form, "stacked": _stacked_form}
 
 # XLA:CPU's oneDNN switches (flags of jaxlib 0.10's XLA; they act only where XLA was built with

@@ -98,7 +98,8 @@ def batched_forms_kernel_grads(x, g, kernel_size, strides, padding, rhs_dilation
 
 KERNEL_GRAD_CHOICES = {"model": None, "batched": batched_forms_kernel_grads,
                        "rows": bc.row_tap_kernel_grads,
-                       "padding_inside": bc.padding_inside_kernel_grads}
+                       "padding_inside": bc.padding_inside_kernel_grads,
+                       "one_convolution": bc.one_convolution_kernel_grads}
 
 
 class JaxImpl:
@@ -510,6 +511,11 @@ def main(argv=None) -> None:
                       "model's) and with the padding inside the convolution (before "
                       "2026-12-08), on XLA's default and on Eigen's convolution library, "
                       "interleaved")
+  p.add_argument("--compare-strided-kernel-grads", action="store_true",
+                 help="time the step with strided layers' kernel gradients per stride phase "
+                      "(conv_vjp.kernel_grad_phases, the model's) and as one convolution with "
+                      "the stride-dilated cotangent (before 2026-12-08, 04:00 UTC), "
+                      "interleaved")
   p.add_argument("--compare-patches-input-grad", action="store_true",
                  help="time the step with the few-pixel layers' input gradients as the "
                       "transposed patches product (conv_vjp._patches_input_grad, the model's) "
@@ -583,6 +589,10 @@ def main(argv=None) -> None:
     compare_jax(args.method, library_and_kernel_grads("padding_inside"),
                 "kernel gradients: input padded first or padding inside the convolution",
                 variables, args, common)
+  if args.compare_strided_kernel_grads:
+    compare_jax(args.method, {"phases": {}, "one convolution": {"kernel_grads": "one_convolution"}},
+                "strided kernel gradients: per stride phase or one convolution", variables, args,
+                common)
   if args.compare_patches_input_grad:
     compare_jax(args.method, {"transposed product": {},
                               "kernel copy": {"patches_input_grad": False}},

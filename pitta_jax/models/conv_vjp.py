@@ -166,20 +166,23 @@ PATCHES_MAX_INPUT_FEATURES = 8
 
 def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
                  strides: tuple[int, int], padding: Pairs, rhs_dilation: tuple[int, int],
-                 precision: Any, pad_first: bool | None = None) -> jax.Array:
+                 precision: Any, pad_first: bool | None = None,
+                 phases: bool | None = None) -> jax.Array:
   """dk[a, b, c, o] = sum_{n,i,j} x_pad[n, i s + a d, j s + b d, c] g[n, i, j, o].
 
   x: (N, H, W, C), g: (N, Ho, Wo, O) -> (kh, kw, C, O).
   A convolution of x (features <-> batch swapped: (C, H, W, N)) with g as an HWIO kernel
   (Ho, Wo, N, O), window stride d and kernel dilation s, the rows past the kernel's extent (the
-  forward convolution's unused trailing input) cut off (`kernel_grad_conv`). For a single image
-  with at most `PATCHES_MAX_INPUT_FEATURES` input features (the encoders' 7x7 stride-2
-  convolution of the image, or of two stacked images in the pose encoder) it is one matrix
-  product of the input's patches instead (`kernel_grad_patches`): as a convolution its
-  "features" are the one image and its kernel the whole 96x320 cotangent. Measured inside a
-  compiled loop at 640x192 on 2 vCPUs (Intel, AVX-512; `benchmarks/kernel_grad.py`,
-  docs/performance.md, 2026-12-05), best ms, convolution vs patches, batch 1: 3 -> 64 features 16.0 vs
-  11.7 (XLA's default library) and 18.1 vs 11.6 (Eigen's), 6 -> 64 30.6 vs 22.2 and 32.5 vs 21.5.
+  forward convolution's unused trailing input) cut off (`kernel_grad_conv`). A convolution
+  strided by 2 takes it per stride phase (`kernel_grad_phases`, below). Otherwise, for a single
+  image with at most `PATCHES_MAX_INPUT_FEATURES` input features (an image, or two stacked, seen
+  by a stride-1 or a patch-embedding convolution) it is one matrix product of the input's
+  patches (`kernel_grad_patches`): as a convolution its "features" are the one image and its
+  kernel the whole cotangent. Measured for the encoders' 7x7 stride-2 convolution before it took
+  the phases, inside a compiled loop at 640x192 on 2 vCPUs (Intel, AVX-512;
+  `benchmarks/kernel_grad.py`, docs/performance.md, 2026-12-05), best ms, convolution vs
+  patches, batch 1: 3 -> 64 features 16.0 vs 11.7 (XLA's default library) and 18.1 vs 11.6
+  (Eigen's), 6 -> 64 30.6 vs 22.2 and 32.5 vs 21.5.
 
   At batch 4 the convolution form is the fastest on Eigen's library for every layer shape of
   MonoDepth2 (3 -> 64: 31 ms against 50 for the patches; 64 -> 64 at 160x48: 22 against 48;
@@ -204,8 +207,15 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   moved both ways and the step did not gain on Eigen's library (3151 -> 3123) and lost on XLA's
   default one (4625 -> 5785): the padding stays inside there. The zeros add nothing: the same
   sums, bit for bit in these runs. `pad_first` given overrides that rule (benchmarks compare).
+
+  A stride-2 convolution's kernel gradient is the sum of its stride phases' stride-1 kernel
+  gradients (`kernel_grad_phases`), at any batch: as one convolution its kernel (the cotangent)
+  is dilated by the stride, which XLA:CPU runs at 15-25 GFLOP/s. `phases` given overrides that
+  rule (benchmarks compare).
   """
   args = (x, g, kernel_size, strides, padding, rhs_dilation, precision)
+  if _phases_pay(strides, rhs_dilation) if phases is None else phases:
+    return kernel_grad_phases(*args)
   if g.shape[0] == 1 and x.shape[3] <= PATCHES_MAX_INPUT_FEATURES:
     return kernel_grad_patches(*args)
   return kernel_grad_conv(*args, pad_first=g.shape[0] == 1 if pad_first is None else pad_first)
@@ -225,6 +235,63 @@ def kernel_grad_conv(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
                                 rhs_dilation, padding, None, strides, NHWC_HWIO,
                                 precision=precision)                  # (C, >= kh, >= kw, O)
   return jnp.transpose(dk[:, :kh, :kw], (1, 2, 0, 3))
+
+
+# the kernel gradient of a convolution strided by at most this much (and more than 1) along
+# both axes is the sum of its stride phases' kernel gradients (`_kernel_grad`)
+PHASES_MAX_STRIDE = 2
+
+
+def _phases_pay(strides: tuple[int, int], rhs_dilation: tuple[int, int]) -> bool:
+  """An undilated convolution strided by 2 along an axis, by at most `PHASES_MAX_STRIDE` along
+  both (ResNet's strided 3x3, 1x1 and 7x7 convolutions)."""
+  return (max(strides) > 1 and max(strides) <= PHASES_MAX_STRIDE
+          and tuple(rhs_dilation) == (1, 1))
+
+
+def kernel_grad_phases(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
+                       strides: tuple[int, int], padding: Pairs, rhs_dilation: tuple[int, int],
+                       precision: Any = None) -> jax.Array:
+  """`_kernel_grad` of a strided, undilated convolution as stride-1 kernel gradients, one per
+  stride phase.
+
+  x: (N, H, W, C), g: (N, Ho, Wo, O) -> (kh, kw, C, O). Tap (s a + r, s b + q) reads only the
+  padded input's phase x_pad[:, r::s, q::s], so with p_rq that phase,
+      dk[s a + r, s b + q, c, o] = sum_{n,i,j} p_rq[n, i + a, j + b, c] g[n, i, j, o]:
+  the kernel gradient of a stride-1 convolution of p_rq with a ceil((kh - r) / s) x
+  ceil((kw - q) / s) kernel (`kernel_grad_conv`; one matrix product over the pixels for a 1 x 1
+  one), its taps then interleaved. Why: as one convolution (`kernel_grad_conv`) its kernel, the
+  cotangent, is dilated by the stride, and XLA:CPU runs that at 15-25 GFLOP/s. Inside a compiled
+  loop at 640x192 (2 vCPUs, AMD EPYC Zen 4, Eigen's convolutions; `benchmarks/kernel_grad.py
+  --forms model,phases`), best ms, one convolution (or the patches product the encoders' 7x7
+  convolution of a single image took) -> phases, PyTorch's oneDNN in brackets: batch 1, ResNet's
+  3x3 64 -> 128 20.9 -> 3.3 (4.7), 128 -> 256 8.3 -> 2.5 (3.0), 256 -> 512 7.2 -> 3.5 (4.0), 1x1
+  64 -> 128 4.8 -> 0.5 (0.5), the 7x7 3 -> 64 14.5 -> 5.3 (4.8), the pose encoder's 6 -> 64
+  23.4 -> 8.7 (11.6); batch 4: 23.7 -> 10.9 (10.5), 18.8 -> 9.3 (9.7), 14.8 -> 8.3 (8.8), 8.1 ->
+  1.9 (1.8), 57.4 -> 31.2 (20.2), 104.9 -> 49.4 (50.8). The same products, summed in another
+  order (float rounding).
+  """
+  kh, kw = kernel_size
+  sh, sw = strides
+  n, ho, wo, o = g.shape
+  c = x.shape[3]
+  xp = lax.pad(x, jnp.zeros((), x.dtype),
+               ((0, 0, 0), *((lo, hi, 0) for lo, hi in padding), (0, 0, 0)))  # (N, Hp, Wp, C)
+  parts = {}
+  for r in range(min(sh, kh)):
+    for q in range(min(sw, kw)):
+      ka, kb = -(-(kh - r) // sh), -(-(kw - q) // sw)
+      phase = lax.slice(xp, (0, r, q, 0),
+                        (n, r + sh * (ho + ka - 2) + 1, q + sw * (wo + kb - 2) + 1, c),
+                        (1, sh, sw, 1))                       # (N, Ho + ka - 1, Wo + kb - 1, C)
+      if ka == kb == 1:
+        parts[r, q] = lax.dot_general(phase, g, (((0, 1, 2), (0, 1, 2)), ((), ())),
+                                      precision=precision)[None, None]  # (1, 1, C, O)
+      else:
+        parts[r, q] = kernel_grad_conv(phase, g, (ka, kb), (1, 1), ((0, 0), (0, 0)), (1, 1),
+                                       precision)             # (ka, kb, C, O)
+  taps = [parts[a % sh, b % sw][a // sh, b // sw] for a in range(kh) for b in range(kw)]
+  return jnp.stack(taps).reshape(kh, kw, c, o)
 
 
 def kernel_grad_patches(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
