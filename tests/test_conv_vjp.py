@@ -182,26 +182,29 @@ def test_kernel_gradient_is_canonical_inside_scan():
       "XLA now canonicalises kernel gradients in loops: use JAX's rule"
 
 
-def _kernel_grad_windows(batch: int) -> list[str]:
-  """The window of every convolution XLA compiles for the kernel gradient (16 -> 1 features,
-  3x3, zero padding 1, as a disparity head) of a 2-step scan over `batch` images of 12x20."""
-  def loss(k, x):
+def _kernel_grad_windows(batch: int, pad_first: bool | None = None) -> list[str]:
+  """The window of every convolution XLA compiles for `_kernel_grad` (16 -> 1 features, 3x3,
+  zero padding 1, as a disparity head) in a 2-step scan over `batch` images of 12x20."""
+  def grads(x, g):
     def body(c, _):
-      y = conv_vjp.conv_general_dilated(x, c, (1, 1), ((1, 1), (1, 1)), dimension_numbers=NHWC)
-      return c, jnp.sum(jnp.tanh(y))
-    return jnp.sum(lax.scan(body, k, None, length=2)[1])
-  x, k = jnp.ones((batch, 12, 20, 16)), jnp.ones((3, 3, 16, 1))
-  text = jax.jit(jax.grad(loss)).lower(k, x).compile().as_text()
+      dk = conv_vjp._kernel_grad(jnp.tanh(x + c), g, (3, 3), (1, 1), ((1, 1), (1, 1)), (1, 1),
+                                 None, pad_first=pad_first)
+      return c + 1.0, dk
+    return lax.scan(body, 0.0, None, length=2)[1]
+  x, g = jnp.ones((batch, 12, 20, 16)), jnp.ones((batch, 12, 20, 1))
+  text = jax.jit(grads).lower(x, g).compile().as_text()
   return [w for w in re.findall(r"window=\{([^}]*)\}", text) if "size=12x20" in w]
 
 
-def test_single_image_kernel_gradient_convolves_the_padded_input():
-  """One image: the kernel gradient's convolution (a kernel the size of the output) reads the
-  input padded first, as XLA:CPU runs it many times faster; a batch keeps the padding inside."""
-  single, batch = _kernel_grad_windows(1), _kernel_grad_windows(2)
-  print("batch 1:", single, "batch 2:", batch)
-  assert single and all("pad" not in w for w in single)
-  assert batch and all("pad=1_1x1_1" in w for w in batch)
+@pytest.mark.parametrize("batch", [1, 2])
+def test_kernel_gradient_convolves_the_padded_input(batch):
+  """The kernel gradient's convolution (a kernel the size of the output) reads the input padded
+  first, one image or a batch, as XLA:CPU runs it many times faster; `pad_first=False` (the
+  form before) keeps the padding inside the convolution."""
+  ours, inside = _kernel_grad_windows(batch), _kernel_grad_windows(batch, pad_first=False)
+  print("padded first:", ours, "padding inside:", inside)
+  assert ours and all("pad" not in w for w in ours)
+  assert inside and all("pad=1_1x1_1" in w for w in inside)
 
 
 def test_flax_conv_uses_it_with_same_parameters():

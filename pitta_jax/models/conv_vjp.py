@@ -195,18 +195,22 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   a close variant (Eigen, the convolution form but the patches for the first convolutions)
   3786 against 3966 (5 rounds). Same sums, in another order (float rounding).
 
-  A single image's convolution form takes x zero padded first, not the padding inside the
-  convolution (`pad_first`): XLA:CPU runs a padded convolution with a kernel as large as the
-  image many times slower. Inside a compiled loop at 640x192 (2 vCPUs, AMD EPYC Zen 4 without
+  The convolution form takes x zero padded first, not the padding inside the convolution
+  (`pad_first`): XLA:CPU runs a padded convolution with a kernel as large as the image many
+  times slower. Inside a compiled loop at 640x192 (2 vCPUs, AMD EPYC Zen 4 without
   AVX-512, `benchmarks/kernel_grad.py --forms conv,inside`), best ms, padding inside -> padded
   first: the disparity head 16 -> 1 at 640x192 28.4 -> 2.6 (XLA's default library) and 30.6 ->
   2.6 (Eigen's), 32 -> 1 at 320x96 25.7 -> 1.7, 16 -> 16 at 640x192 34.4 -> 8.7; on Eigen's
   library ResNet's 3x3 stride-1 layers 16.7 -> 4.3 (64 features at 160x48), 9.9 -> 3.8 (128),
   6.0 -> 4.3 (512 at 20x6). Whole steps, interleaved (`step.py --compare-padded-kernel-grads`): Ada-Depth on
   Eigen's library 2307 -> 1841 ms/frame, ActMAD 874 -> 733. At batch 4 (CoMoDa) the layers
-  moved both ways and the step did not gain on Eigen's library (3151 -> 3123) and lost on XLA's
-  default one (4625 -> 5785): the padding stays inside there. The zeros add nothing: the same
-  sums, bit for bit in these runs. `pad_first` given overrides that rule (benchmarks compare).
+  moved both ways while the strided ones were one convolution, and the step did not gain (3151
+  -> 3123 ms/frame on Eigen's library); with the strided layers per stride phase (below) every
+  padded layer gains there too (64 -> 64 at 160x48 25.2 -> 18.6 ms, 128 -> 128 22.8 -> 14.6, the
+  disparity heads 24.9 -> 18.2 and 16.5 -> 9.6; PyTorch 16.3, 15.9, 13.6, 8.4) and so does the
+  step (2982 -> 2795 ms/frame median, 4 rounds interleaved, same losses bit for bit): the input
+  is padded first at every batch since 2026-12-08, 04:00 UTC. The zeros add nothing: the same
+  sums. `pad_first` given False puts the padding inside (benchmarks compare).
 
   A stride-2 convolution's kernel gradient is the sum of its stride phases' stride-1 kernel
   gradients (`kernel_grad_phases`), at any batch: as one convolution its kernel (the cotangent)
@@ -218,7 +222,7 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
     return kernel_grad_phases(*args)
   if g.shape[0] == 1 and x.shape[3] <= PATCHES_MAX_INPUT_FEATURES:
     return kernel_grad_patches(*args)
-  return kernel_grad_conv(*args, pad_first=g.shape[0] == 1 if pad_first is None else pad_first)
+  return kernel_grad_conv(*args, pad_first=pad_first is not False)
 
 
 def kernel_grad_conv(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
