@@ -16,7 +16,7 @@ ReLU in the loop as in a network:
 - `conv`: a convolution of x (batch and features swapped, zero padded first) with g as the
   kernel (`conv_vjp.kernel_grad_conv`);
 - `inside`: the same convolution with the padding inside it (`pad_first=False`: the model's
-  form until 2026-12-08, and still at batch >= 2);
+  form until 2026-12-08, at batch >= 2 until 04:00 UTC that day);
 - `phases`: one stride-1 kernel gradient per stride phase of the padded input, taps
   interleaved (`conv_vjp.kernel_grad_phases`; the model's form for stride 2 since 2026-12-08,
   04:00 UTC; at stride 1 the same as `conv`);

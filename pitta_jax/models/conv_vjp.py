@@ -206,8 +206,8 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   Eigen's library 2307 -> 1841 ms/frame, ActMAD 874 -> 733. At batch 4 (CoMoDa) the layers
   moved both ways while the strided ones were one convolution, and the step did not gain (3151
   -> 3123 ms/frame on Eigen's library); with the strided layers per stride phase (below) every
-  padded layer gains there too (64 -> 64 at 160x48 25.2 -> 18.6 ms, 128 -> 128 22.8 -> 14.6, the
-  disparity heads 24.9 -> 18.2 and 16.5 -> 9.6; PyTorch 16.3, 15.9, 13.6, 8.4) and so does the
+  padded layer gains there too (64 -> 64 at 160x48 25.9 -> 20.3 ms, 128 -> 128 20.7 -> 14.6, the
+  disparity heads 24.7 -> 21.5 and 15.1 -> 9.3; PyTorch 17.1, 17.0, 14.0, 6.5) and so does the
   step (2982 -> 2795 ms/frame median, 4 rounds interleaved, same losses bit for bit): the input
   is padded first at every batch since 2026-12-08, 04:00 UTC. The zeros add nothing: the same
   sums. `pad_first` given False puts the padding inside (benchmarks compare).
@@ -267,13 +267,13 @@ def kernel_grad_phases(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   one), its taps then interleaved. Why: as one convolution (`kernel_grad_conv`) its kernel, the
   cotangent, is dilated by the stride, and XLA:CPU runs that at 15-25 GFLOP/s. Inside a compiled
   loop at 640x192 (2 vCPUs, AMD EPYC Zen 4, Eigen's convolutions; `benchmarks/kernel_grad.py
-  --forms model,phases`), best ms, one convolution (or the patches product the encoders' 7x7
-  convolution of a single image took) -> phases, PyTorch's oneDNN in brackets: batch 1, ResNet's
-  3x3 64 -> 128 20.9 -> 3.3 (4.7), 128 -> 256 8.3 -> 2.5 (3.0), 256 -> 512 7.2 -> 3.5 (4.0), 1x1
-  64 -> 128 4.8 -> 0.5 (0.5), the 7x7 3 -> 64 14.5 -> 5.3 (4.8), the pose encoder's 6 -> 64
-  23.4 -> 8.7 (11.6); batch 4: 23.7 -> 10.9 (10.5), 18.8 -> 9.3 (9.7), 14.8 -> 8.3 (8.8), 8.1 ->
-  1.9 (1.8), 57.4 -> 31.2 (20.2), 104.9 -> 49.4 (50.8). The same products, summed in another
-  order (float rounding).
+  --forms conv,phases`, docs/performance.md, 2026-12-08), best ms, one convolution -> phases,
+  PyTorch's oneDNN in brackets: batch 1, ResNet's 3x3 64 -> 128 15.6 -> 2.8 (2.5), 128 -> 256
+  7.6 -> 2.4 (2.5), 256 -> 512 5.5 -> 3.4 (2.6), 1x1 64 -> 128 5.8 -> 0.8 (0.9); batch 4: 24.4 ->
+  13.5 (10.4), 17.8 -> 9.0 (9.7), 14.9 -> 9.0 (10.8), 8.6 -> 1.7 (2.0), the 7x7 3 -> 64 54.7 ->
+  28.0 (18.7), the pose encoder's 6 -> 64 98.5 -> 46.1 (45.8); the 7x7 convolutions of a single
+  image, which took the patches product: 14.5 -> 5.8 (4.7) and 23.4 -> 8.9 (11.5). The same
+  products, summed in another order (float rounding).
   """
   kh, kw = kernel_size
   sh, sw = strides
