@@ -537,7 +537,7 @@ def main(argv=None) -> None:
   p.add_argument("--compare-only", action="store_true",
                  help="with --compare-xla-option/--compare-conv-rule/--compare-conv-library/"
                       "--compare-kernel-grads/--compare-padded-kernel-grads/"
-                      "--compare-patches-input-grad/"
+                      "--compare-strided-kernel-grads/--compare-patches-input-grad/"
                       "--compare-row-taps/--compare-flat-optimizer/--compare-torch-optimizers: "
                       "skip the JAX vs PyTorch timing")
   args = p.parse_args(argv)

@@ -182,7 +182,7 @@ def test_kernel_gradient_is_canonical_inside_scan():
       "XLA now canonicalises kernel gradients in loops: use JAX's rule"
 
 
-def _kernel_grad_windows(batch: int, pad_first: bool | None = None) -> list[str]:
+def _kernel_grad_windows(batch: int, pad_first: bool = True) -> list[str]:
   """The window of every convolution XLA compiles for `_kernel_grad` (16 -> 1 features, 3x3,
   zero padding 1, as a disparity head) in a 2-step scan over `batch` images of 12x20."""
   def grads(x, g):

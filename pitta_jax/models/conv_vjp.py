@@ -166,7 +166,7 @@ PATCHES_MAX_INPUT_FEATURES = 8
 
 def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
                  strides: tuple[int, int], padding: Pairs, rhs_dilation: tuple[int, int],
-                 precision: Any, pad_first: bool | None = None,
+                 precision: Any, pad_first: bool = True,
                  phases: bool | None = None) -> jax.Array:
   """dk[a, b, c, o] = sum_{n,i,j} x_pad[n, i s + a d, j s + b d, c] g[n, i, j, o].
 
@@ -210,7 +210,7 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
   disparity heads 24.7 -> 21.5 and 15.1 -> 9.3; PyTorch 17.1, 17.0, 14.0, 6.5) and so does the
   step (2982 -> 2795 ms/frame median, 4 rounds interleaved, same losses bit for bit): the input
   is padded first at every batch since 2026-12-08, 04:00 UTC. The zeros add nothing: the same
-  sums. `pad_first` given False puts the padding inside (benchmarks compare).
+  sums. `pad_first=False` puts the padding inside (benchmarks compare).
 
   A stride-2 convolution's kernel gradient is the sum of its stride phases' stride-1 kernel
   gradients (`kernel_grad_phases`), at any batch: as one convolution its kernel (the cotangent)
@@ -222,7 +222,7 @@ def _kernel_grad(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
     return kernel_grad_phases(*args)
   if g.shape[0] == 1 and x.shape[3] <= PATCHES_MAX_INPUT_FEATURES:
     return kernel_grad_patches(*args)
-  return kernel_grad_conv(*args, pad_first=pad_first is not False)
+  return kernel_grad_conv(*args, pad_first=pad_first)
 
 
 def kernel_grad_conv(x: jax.Array, g: jax.Array, kernel_size: tuple[int, int],
